@@ -1,0 +1,5 @@
+"""Multiscale 3D target detection (Algorithm 1) and surface extraction."""
+
+from ._result import Background, DataReduction, Detection, NullModel, Surfaces
+
+__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces"]

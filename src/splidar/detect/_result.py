@@ -1,0 +1,256 @@
+"""Result dataclasses of the detection stage (Algorithm 1 and surface extraction).
+
+These are the contract between :func:`splidar.detect` and everything downstream
+(:func:`splidar.reconstruct`, metrics, plots, exports). Fields may be added; the
+ones documented here keep their names, shapes and meaning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..library import SpectralLibrary
+from ..points import PointSet
+
+__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces"]
+
+
+@dataclass(frozen=True)
+class Background:
+    """Background estimate kept as its spatial and temporal factors (``eq:background_3``).
+
+    ``bhat[n, l, t] = max(spatial[n, l] + temporal[l, t] - temporal[l].mean(), 0)``.
+    Kept factored so that a real-size cube never needs a dense background cube.
+
+    Attributes
+    ----------
+    spatial : ndarray, shape (rows, cols, L), float32
+        ``b_{n,l}``: per-pixel level, counts per bin (``eq:background_2``), on the
+        temporally filtered (IRF-correlated) scale of the saliency.
+    temporal : ndarray, shape (L, T), float32
+        ``bbar_{l,t}``: temporal shape, counts per bin (``eq:background_1``).
+    """
+
+    spatial: np.ndarray
+    temporal: np.ndarray
+
+    def dense(self, rows=slice(None), cols=slice(None)) -> np.ndarray:
+        """The background ``bhat`` over a block of pixels, shape ``(r, c, L, T)`` float32."""
+        sp = self.spatial[rows, cols]
+        tm = self.temporal
+        out = sp[..., None] + (tm - tm.mean(axis=-1, keepdims=True))
+        return np.maximum(out, 0, out=out).astype(np.float32, copy=False)
+
+    def at(self, row, col) -> np.ndarray:
+        """The background at given pixels, shape ``(n, L, T)`` float32."""
+        sp = self.spatial[np.asarray(row), np.asarray(col)]
+        tm = self.temporal
+        out = sp[..., None] + (tm - tm.mean(axis=-1, keepdims=True))
+        return np.maximum(out, 0, out=out).astype(np.float32, copy=False)
+
+    @property
+    def per_bin(self) -> np.ndarray:
+        """Mean background counts per bin and pixel, per wavelength, shape ``(L,)``."""
+        return self.spatial.reshape(-1, self.spatial.shape[-1]).mean(axis=0, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class NullModel:
+    """The fitted distribution of background saliency and how the threshold came from it.
+
+    Attributes
+    ----------
+    shape, scale : float
+        Gamma parameters ``(alpha_b, beta_b)`` of ``eq:gamma_distrib`` (scale, not rate).
+    method : str
+        How they were fitted (e.g. ``"quantile"``, ``"trimmed-mle"``).
+    pfa : float
+        Requested probability of false alarm per voxel.
+    calibration : float
+        Factor applied to the gamma threshold so that the empirical false-alarm rate of
+        a simulated background-only null matches ``pfa`` (1.0 when not calibrated).
+    details : mapping
+        Anything else worth reporting (fit quantiles, iterations, empirical rates).
+    """
+
+    shape: float
+    scale: float
+    method: str
+    pfa: float
+    calibration: float = 1.0
+    details: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DataReduction:
+    """How much of the cube the binary map keeps."""
+
+    voxel_fraction: float  #: fraction of (pixel, time) voxels set in ``mask``
+    photon_fraction: float  #: fraction of all photons (all L) that fall in ``mask``
+    n_voxels: int  #: voxels kept
+    n_photons: int  #: photons kept
+
+
+@dataclass(frozen=True)
+class Surfaces:
+    """Candidate surfaces extracted from the binary map, at most ``n_slots`` per pixel.
+
+    S surfaces, Q scales, L wavelengths, W samples of histogram window.
+
+    Attributes
+    ----------
+    row, col : ndarray (S,), int64
+        Pixel of each surface.
+    slot : ndarray (S,), int64
+        Index of the surface within its pixel, in depth order (0 = nearest): the
+        ``K_s`` slot of the paper's matrix C.
+    depth_bin : ndarray (S,), float64
+        Sub-bin depth from the selected scale (the depth reference of ALGORITHM-NOTES).
+    start, stop : ndarray (S,), int64
+        Support in time: the run of ``mask`` ``[start, stop)``.
+    scale_index : ndarray (S,), int64
+        Selected scale (``eq:scale_sel``), an index into ``Detection.scales``.
+    offset : ndarray (S,), int64
+        Time bin of ``histograms[..., 0]``.
+    histograms : ndarray (S, Q, L, W), float32
+        Clean (background-free) histograms ``max(Y^q * g - bhat, 0)`` of every scale
+        (``eq:background_final``), zero outside the support.
+    signal : ndarray (S, Q, L), float64
+        ``ybar`` of every scale: the clean histograms summed over time.
+    counts : ndarray (S, L), float64
+        Raw photon counts of the surface's own pixel (finest scale, no filtering) summed
+        over the support, background included.
+    background : ndarray (S, L), float64
+        Expected background counts of the surface's own pixel summed over the support.
+    saliency_mass : ndarray (S,), float64
+        Sum of the saliency over the support (used to rank candidates).
+    image_shape : (rows, cols)
+    n_slots : int
+        ``K_s``, the maximum number of surfaces per pixel.
+    """
+
+    row: np.ndarray
+    col: np.ndarray
+    slot: np.ndarray
+    depth_bin: np.ndarray
+    start: np.ndarray
+    stop: np.ndarray
+    scale_index: np.ndarray
+    offset: np.ndarray
+    histograms: np.ndarray
+    signal: np.ndarray
+    counts: np.ndarray
+    background: np.ndarray
+    saliency_mass: np.ndarray
+    image_shape: tuple[int, int]
+    n_slots: int
+
+    def __len__(self) -> int:
+        return int(self.row.size)
+
+    @property
+    def n_surfaces(self) -> int:
+        return len(self)
+
+    @property
+    def photons(self) -> np.ndarray:
+        """``ybar_{s,l}``: clean signal at each surface's selected scale, shape (S, L)."""
+        s = np.arange(len(self))
+        return self.signal[s, self.scale_index]
+
+    @property
+    def net_counts(self) -> np.ndarray:
+        """Own-pixel signal estimate ``counts - background``, shape (S, L) (may be < 0)."""
+        return self.counts - self.background
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Result of :func:`splidar.detect`.
+
+    Attributes
+    ----------
+    cube_shape : (rows, cols, L, T)
+    irf : ndarray (L, n_irf)
+        The cube's normalised IRF (carried for downstream stages).
+    bin_width_ps : float or None
+    wavelengths_nm : ndarray (L,) or None
+    library : SpectralLibrary or None
+        The library that came with the cube, if any.
+    scales : tuple of int
+        Spatial box sizes ``k_q`` of the multiscale cubes.
+    weights : ndarray (Q,)
+        ``lambda_q``, summing to 1.
+    pfa : float
+        Requested probability of false alarm per voxel.
+    background : Background
+    saliency : ndarray (rows, cols, T), float32
+        ``S`` of ``eq:4.s1``.
+    null : NullModel
+    threshold : float or ndarray broadcastable to (rows, cols, T)
+        Voxels with ``saliency > threshold`` form ``mask`` (before surface checks).
+    mask : ndarray (rows, cols, T), bool
+        The 3D binary map M.
+    reduction : DataReduction
+    surfaces : Surfaces
+    timings : mapping
+        Seconds spent in each step.
+    options : mapping
+        The options the detection ran with (for reports and reproducibility).
+    """
+
+    cube_shape: tuple[int, int, int, int]
+    irf: np.ndarray
+    bin_width_ps: float | None
+    wavelengths_nm: np.ndarray | None
+    library: SpectralLibrary | None
+    scales: tuple[int, ...]
+    weights: np.ndarray
+    pfa: float
+    background: Background
+    saliency: np.ndarray
+    null: NullModel
+    threshold: Any
+    mask: np.ndarray
+    reduction: DataReduction
+    surfaces: Surfaces
+    timings: Mapping[str, float] = field(default_factory=dict)
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return (int(self.cube_shape[0]), int(self.cube_shape[1]))
+
+    @property
+    def n_wavelengths(self) -> int:
+        return int(self.cube_shape[2])
+
+    @property
+    def n_bins(self) -> int:
+        return int(self.cube_shape[3])
+
+    @property
+    def points(self) -> PointSet:
+        """The detected surfaces as a :class:`~splidar.PointSet` (row, col, depth_bin, layer).
+
+        ``intensity`` is the clean signal at the selected scale (``Surfaces.photons``).
+        """
+        s = self.surfaces
+        depth_m = None
+        if self.bin_width_ps is not None:
+            from ..cube import SPEED_OF_LIGHT
+
+            depth_m = s.depth_bin * self.bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2.0
+        return PointSet(
+            row=s.row,
+            col=s.col,
+            depth_bin=s.depth_bin,
+            image_shape=self.image_shape,
+            intensity=s.photons,
+            depth_m=depth_m,
+            layer=s.slot,
+        )
