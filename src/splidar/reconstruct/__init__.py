@@ -1,3 +1,5 @@
 """Bayesian 3D reconstruction and spectral classification (Algorithm 2)."""
 
-__all__: list[str] = []
+from ._result import ConvergenceHistory, Reconstruction
+
+__all__ = ["ConvergenceHistory", "Reconstruction"]
