@@ -1,0 +1,1241 @@
+"""Reading and writing photon data: histogram cubes, photon time lists, IRFs and libraries.
+
+File kinds read by :func:`load`:
+
+* **Histogram cubes** in ``.npz``, ``.mat`` (MATLAB v5 via :func:`scipy.io.loadmat`, or
+  v7.3 = HDF5 via :mod:`h5py`, whose axes come out reversed and are put back in MATLAB
+  order), ``.h5``/``.hdf5`` (axes as stored): a ``counts`` array ``(rows, cols, T)`` or
+  ``(rows, cols, L, T)`` and optionally ``irf``, ``bin_width_ps``, ``wavelengths_nm``,
+  ``library`` ``(K, L)``, ``class_names`` and ``metadata`` (a JSON string).
+* **Photon time lists**: a ``rows x cols`` cell array (MATLAB cell / NumPy object array)
+  holding the arrival times of each pixel's photons, binned by :func:`bin_photons`.
+* **Zarr** directories (``.zarr``) for data larger than RAM: ``counts`` is opened as a
+  Dask array and the :class:`~splidar.cube.Cube` stays lazy.
+
+:func:`save` writes ``.npz`` (read back exactly by :func:`load`) or chunked ``.zarr``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._validation import SplidarError, check_choice, check_int, check_positive, describe
+from .cube import Cube
+from .irf import gaussian_irf
+from .library import SpectralLibrary
+
+__all__ = [
+    "PhotonLists",
+    "bin_photons",
+    "estimate_irf_fwhm",
+    "load",
+    "load_irf",
+    "load_library",
+    "photon_lists_from_cells",
+    "read_photon_lists",
+    "save",
+]
+
+log = logging.getLogger(__name__)
+
+#: Factors from supported time units to picoseconds (``"bin"``: unknown physical unit).
+TIME_UNITS_PS = {"bin": None, "fs": 1e-3, "ps": 1.0, "ns": 1e3, "us": 1e6, "ms": 1e9, "s": 1e12}
+
+_CONTAINER_EXTS = (".npz", ".mat", ".h5", ".hdf5")
+_CSV_HEADER_WORDS = ("", "class", "classes", "name", "names", "class_name", "label", "material")
+_MAX_CUBE_BYTES = 8 * 2**30  # refuse to allocate a dense binned cube larger than 8 GiB
+
+
+# --------------------------------------------------------------------------------------
+# low-level readers: a file -> {name: array}
+# --------------------------------------------------------------------------------------
+def _check_path(path) -> Path:
+    if not isinstance(path, (str, os.PathLike)):
+        raise SplidarError(f"`path` must be a file path; got {describe(path)}.")
+    p = Path(path)
+    if not p.exists():
+        raise SplidarError(f"no such file: '{p}'. Check the path (relative to {Path.cwd()}).")
+    return p
+
+
+def _ext(p: Path) -> str:
+    return p.suffix.lower()
+
+
+def _is_hdf5(p: Path) -> bool:
+    try:
+        import h5py
+
+        return bool(h5py.is_hdf5(p))
+    except Exception:  # pragma: no cover - h5py is a dependency
+        return False
+
+
+def _h5_to_numpy(f, obj, matlab: bool):
+    """Convert one HDF5 dataset to NumPy (MATLAB v7.3: reverse axes, resolve cells)."""
+    import h5py
+
+    data = obj[()]
+    cls = obj.attrs.get("MATLAB_class", b"")
+    cls = cls.decode() if isinstance(cls, bytes) else str(cls)
+    if isinstance(data, np.ndarray) and data.dtype == h5py.ref_dtype:
+        out = np.empty(data.shape, dtype=object)
+        flat = out.reshape(-1)
+        for i, ref in enumerate(data.reshape(-1)):
+            flat[i] = _h5_to_numpy(f, f[ref], matlab)
+        data = out
+    if matlab:
+        if obj.attrs.get("MATLAB_empty", 0):
+            return np.zeros((0, 0))
+        if isinstance(data, np.ndarray) and data.ndim >= 2:
+            data = data.T  # h5py returns MATLAB arrays with their axes reversed
+        if cls == "char" and isinstance(data, np.ndarray):
+            return "".join(chr(c) for c in np.asarray(data).T.reshape(-1))
+        if cls == "logical" and isinstance(data, np.ndarray):
+            data = data.astype(bool)
+    return data
+
+
+def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
+    import h5py
+
+    out: dict[str, Any] = {}
+    with h5py.File(p, "r") as f:
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#, #subsystem#
+                out[name] = _h5_to_numpy(f, obj, matlab)
+
+        f.visititems(visit)
+        for k, v in f.attrs.items():
+            if k not in out and not k.startswith("MATLAB"):
+                out[k] = v.decode() if isinstance(v, bytes) else v
+    return out
+
+
+def _read_container(p: Path) -> dict[str, Any]:
+    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays)."""
+    ext = _ext(p)
+    if ext == ".npz":
+        try:
+            with np.load(p, allow_pickle=True) as z:
+                return {k: z[k] for k in z.files}
+        except Exception as exc:
+            raise SplidarError(f"cannot read '{p}' as .npz: {exc}") from None
+    if ext == ".mat":
+        if _is_hdf5(p):
+            return _read_hdf5(p, matlab=True)
+        import scipy.io
+
+        try:
+            d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
+        except Exception as exc:
+            raise SplidarError(f"cannot read '{p}' as a MATLAB file: {exc}") from None
+        return {k: v for k, v in d.items() if not k.startswith("__")}
+    if ext in (".h5", ".hdf5"):
+        if not _is_hdf5(p):
+            raise SplidarError(f"'{p}' is not an HDF5 file.")
+        return _read_hdf5(p, matlab=False)
+    raise SplidarError(
+        f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
+        f"{', '.join(_CONTAINER_EXTS)} and .zarr directories."
+    )
+
+
+def _summary(d: dict[str, Any]) -> str:
+    parts = []
+    for k, v in d.items():
+        if isinstance(v, np.ndarray):
+            kind = "cell/object array" if v.dtype == object else str(v.dtype)
+            parts.append(f"'{k}' {v.shape} {kind}")
+        else:
+            parts.append(f"'{k}' {type(v).__name__}")
+    return "; ".join(parts) or "(nothing)"
+
+
+def _scalar(v, name: str) -> float:
+    a = np.asarray(v)
+    if a.size != 1:
+        raise SplidarError(f"`{name}` in the file must be a single number; got shape {a.shape}.")
+    return float(a.reshape(-1)[0])
+
+
+def _is_cell_of_numbers(v) -> bool:
+    if not (isinstance(v, np.ndarray) and v.dtype == object and v.ndim == 2 and v.size):
+        return False
+    for x in v.flat[: min(v.size, 50)]:
+        a = np.asarray(x)
+        if a.dtype == object or (a.size and a.dtype.kind not in "uif"):
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------------------
+# photon lists
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PhotonLists:
+    """Photon arrival times of every pixel, flattened (the raw form of TCSPC data).
+
+    Attributes
+    ----------
+    times : ndarray, shape (n,)
+        Arrival times in the file's own unit (bin indices or picoseconds), in pixel
+        order (row-major over ``shape``), dtype as stored.
+    pixel_index : ndarray of int64, shape (n,)
+        Flat pixel index ``row * cols + col`` of each photon.
+    shape : tuple (rows, cols)
+        Image size.
+    source : str
+        Where the lists came from (file and variable), for metadata.
+    """
+
+    times: np.ndarray
+    pixel_index: np.ndarray
+    shape: tuple[int, int]
+    source: str = ""
+
+    @property
+    def n_photons(self) -> int:
+        return int(self.times.size)
+
+    def photons_per_pixel(self) -> float:
+        """Mean number of photons per pixel (all times, before any window)."""
+        return self.n_photons / (self.shape[0] * self.shape[1])
+
+
+def photon_lists_from_cells(cells, *, source: str = "") -> PhotonLists:
+    """Flatten a ``rows x cols`` cell array of per-pixel arrival times.
+
+    Parameters
+    ----------
+    cells : ndarray of object, shape (rows, cols), or nested lists
+        Each element an array (any shape, flattened) of arrival times; empty allowed.
+    source : str
+        Recorded in :attr:`PhotonLists.source`.
+
+    Returns
+    -------
+    PhotonLists
+
+    Raises
+    ------
+    SplidarError
+        Not 2-D, or an element that is not numeric.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> c = np.empty((1, 2), dtype=object)
+    >>> c[0, 0], c[0, 1] = np.array([3, 5]), np.array([], dtype=int)
+    >>> pl = photon_lists_from_cells(c)
+    >>> pl.times.tolist(), pl.pixel_index.tolist(), pl.shape
+    ([3, 5], [0, 0], (1, 2))
+    """
+    if isinstance(cells, np.ndarray) and cells.dtype == object:
+        arr = cells
+    else:
+        arr = np.empty((len(cells), len(cells[0]) if len(cells) else 0), dtype=object)
+        for i, row in enumerate(cells):
+            for j, x in enumerate(row):
+                arr[i, j] = x
+    if arr.ndim != 2:
+        raise SplidarError(
+            f"photon lists must be a 2-D (rows, cols) cell array; got shape {arr.shape}."
+        )
+    parts = [np.asarray(x).reshape(-1) for x in arr.flat]
+    sizes = np.fromiter((p.size for p in parts), dtype=np.int64, count=len(parts))
+    nonempty = [p for p in parts if p.size]
+    for p in nonempty[:1] + nonempty[-1:]:
+        if p.dtype.kind not in "uif":
+            raise SplidarError(
+                f"photon lists must hold numbers (arrival times); found dtype {p.dtype}."
+            )
+    times = np.concatenate(nonempty) if nonempty else np.zeros(0)
+    if times.dtype.kind not in "uif":
+        raise SplidarError(f"photon lists must hold numbers; got dtype {times.dtype}.")
+    pix = np.repeat(np.arange(arr.size, dtype=np.int64), sizes)
+    return PhotonLists(
+        times=times, pixel_index=pix, shape=(int(arr.shape[0]), int(arr.shape[1])), source=source
+    )
+
+
+def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) -> str:
+    """Choose the data variable of a container (``want``: 'data' or 'photons')."""
+    if variable is not None:
+        if variable not in d:
+            raise SplidarError(
+                f"variable '{variable}' is not in '{p.name}'; it holds: {_summary(d)}. "
+                "Pass one of these as variable=."
+            )
+        return variable
+    if want == "data" and "counts" in d:
+        return "counts"
+    cells = [k for k, v in d.items() if _is_cell_of_numbers(v)]
+    cubes = []
+    if want == "data":
+        cubes = [
+            k
+            for k, v in d.items()
+            if isinstance(v, np.ndarray)
+            and v.dtype.kind in "uifb"
+            and v.ndim in (3, 4)
+            and min(v.shape) > 0
+        ]
+    cands = cells + cubes
+    if len(cands) == 1:
+        log.info("reading variable '%s' of '%s'", cands[0], p.name)
+        return cands[0]
+    what = "photon-list (cell) or count-cube" if want == "data" else "photon-list (cell)"
+    if not cands:
+        raise SplidarError(
+            f"'{p.name}' holds no {what} variable; it holds: {_summary(d)}. A histogram file "
+            "needs `counts` (rows, cols[, L], T); a photon-list file a rows x cols cell array."
+        )
+    raise SplidarError(
+        f"'{p.name}' holds several {what} variables ({', '.join(cands)}); it holds: "
+        f"{_summary(d)}. Choose one with variable=."
+    )
+
+
+def read_photon_lists(path: str | os.PathLike, variable: str | None = None) -> PhotonLists:
+    """Read a rows x cols cell array of photon arrival times from a file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.mat`` (v5 or v7.3), ``.npz`` (object array, read with pickle allowed: only
+        open files you trust) or ``.h5``.
+    variable : str, optional
+        Name of the cell array; needed only when the file holds several.
+
+    Returns
+    -------
+    PhotonLists
+        Times in the file's unit, with the flat pixel index of each photon.
+
+    Raises
+    ------
+    SplidarError
+        Missing file, unknown extension, variable not found or ambiguous (the message
+        lists what the file holds), or a variable that is not a cell array of numbers.
+
+    Examples
+    --------
+    >>> pl = read_photon_lists("data_face.mat")  # doctest: +SKIP
+    >>> pl.shape, round(pl.photons_per_pixel(), 2)  # doctest: +SKIP
+    ((340, 340), 8.27)
+    """
+    p = _check_path(path)
+    d = _read_container(p)
+    name = _pick_variable(d, p, variable, "photons")
+    v = d[name]
+    if not _is_cell_of_numbers(v):
+        raise SplidarError(
+            f"variable '{name}' of '{p.name}' is not a rows x cols cell array of arrival times "
+            f"(got {describe(v)}); the file holds: {_summary(d)}."
+        )
+    return photon_lists_from_cells(v, source=f"{p.name}:{name}")
+
+
+def _default_window(times: np.ndarray, bin_width: float) -> tuple[float, float]:
+    lo, hi = float(times.min()), float(times.max())
+    n = math.floor((hi - lo) / bin_width) + 1  # include the latest photon
+    return lo, lo + n * bin_width
+
+
+def _check_window(window, bin_width) -> tuple[float, float, float]:
+    bw = check_positive(bin_width, "bin_width")
+    try:
+        start, stop = (float(w) for w in window)
+    except (TypeError, ValueError):
+        raise SplidarError(
+            f"`window` must be (start, stop) in the data's time unit; got {describe(window)}."
+        ) from None
+    if not (np.isfinite(start) and np.isfinite(stop)):
+        raise SplidarError(f"`window` must be finite; got {window!r}.")
+    if stop <= start:
+        raise SplidarError(
+            f"`window` must have stop > start; got ({start:g}, {stop:g}). It is the time "
+            "range to histogram, in the data's own unit."
+        )
+    return start, stop, bw
+
+
+def bin_photons(
+    times,
+    pixel_index,
+    *,
+    shape: tuple[int, int],
+    window: tuple[float, float],
+    bin_width: float = 1.0,
+) -> np.ndarray:
+    """Histogram photon arrival times into a ``(rows, cols, 1, T)`` count cube.
+
+    Bin ``k`` covers ``[start + k w, start + (k+1) w)``, ``T = ceil((stop - start) / w)``;
+    photons outside ``[start, stop)`` (or outside the last bin) are dropped. One
+    vectorised pass (``np.unique`` of the flat voxel index), no loop over pixels.
+
+    Parameters
+    ----------
+    times : array_like, shape (n,)
+        Arrival times (any unit; integers are binned with exact integer arithmetic when
+        ``start`` and ``bin_width`` are whole numbers).
+    pixel_index : array_like of int, shape (n,)
+        Flat pixel index ``row * cols + col`` of each photon.
+    shape : tuple (rows, cols)
+        Image size.
+    window : tuple (start, stop)
+        Time range to histogram, same unit as ``times``; ``stop > start``.
+    bin_width : float
+        Width of one bin in the same unit (> 0).
+
+    Returns
+    -------
+    counts : ndarray, shape (rows, cols, 1, T), uint16 (uint32 if a bin exceeds 65535)
+
+    Raises
+    ------
+    SplidarError
+        Mismatched lengths, pixel indices outside the image, bad window or bin width,
+        or a cube that would exceed 8 GiB (choose a wider bin or narrower window).
+
+    Examples
+    --------
+    >>> c = bin_photons([0, 1, 1, 5], [0, 0, 1, 1], shape=(1, 2), window=(0, 6), bin_width=2)
+    >>> c.shape, c[0, 0, 0].tolist(), c[0, 1, 0].tolist()
+    ((1, 2, 1, 3), [2, 0, 0], [1, 0, 1])
+    """
+    return _dense(*_bin_sparse(times, pixel_index, shape, window, bin_width))
+
+
+def _bin_sparse(times, pixel_index, shape, window, bin_width):
+    """Non-empty voxels of the binned cube: (flat index, count, rows, cols, T)."""
+    start, stop, bw = _check_window(window, bin_width)
+    try:
+        rows, cols = (check_int(s, "shape", minimum=1) for s in shape)
+    except (TypeError, ValueError):
+        raise SplidarError(f"`shape` must be (rows, cols); got {describe(shape)}.") from None
+    t = np.asarray(times).reshape(-1)
+    pix = np.asarray(pixel_index).reshape(-1)
+    if t.size != pix.size:
+        raise SplidarError(
+            f"`times` and `pixel_index` must have the same length; got {t.size} and {pix.size}."
+        )
+    if t.size and t.dtype.kind not in "uif":
+        raise SplidarError(f"`times` must be numeric; got dtype {t.dtype}.")
+    if pix.size and pix.dtype.kind not in "ui":
+        raise SplidarError(f"`pixel_index` must be integers; got dtype {pix.dtype}.")
+    n_pix = rows * cols
+    if pix.size and (pix.min() < 0 or pix.max() >= n_pix):
+        raise SplidarError(
+            f"`pixel_index` must lie in [0, {n_pix}) for shape {(rows, cols)}; got range "
+            f"[{pix.min()}, {pix.max()}]."
+        )
+    n_bins = math.ceil((stop - start) / bw - 1e-12)
+    n_bins = max(n_bins, 1)
+    nbytes = n_pix * n_bins * 2
+    if nbytes > _MAX_CUBE_BYTES:
+        raise SplidarError(
+            f"binning into T = {n_bins} bins of width {bw:g} over {(rows, cols)} pixels would "
+            f"allocate {nbytes / 2**30:.1f} GiB; pass a larger `bin_width` or a narrower "
+            "`window` (both in the data's time unit)."
+        )
+    if t.dtype.kind in "ui" and float(start).is_integer() and float(bw).is_integer():
+        b = (t.astype(np.int64) - int(start)) // int(bw)
+    else:
+        b = np.floor((t.astype(np.float64) - start) / bw).astype(np.int64)
+    keep = (b >= 0) & (b < n_bins)
+    if not np.isinf(stop):
+        keep &= t < stop
+    flat = pix[keep].astype(np.int64) * n_bins + b[keep]
+    uniq, cnt = np.unique(flat, return_counts=True)
+    return uniq, cnt, rows, cols, n_bins
+
+
+def _dense(uniq, cnt, rows, cols, n_bins):
+    n_pix = rows * cols
+    dtype = np.uint16 if (cnt.size == 0 or cnt.max() <= np.iinfo(np.uint16).max) else np.uint32
+    out = np.empty(n_pix * n_bins, dtype=dtype)
+    out.fill(0)  # explicit fill: first-touch page faults of np.zeros were 2x slower here
+    out[uniq] = cnt
+    return out.reshape(rows, cols, 1, n_bins)
+
+
+# --------------------------------------------------------------------------------------
+# IRFs
+# --------------------------------------------------------------------------------------
+def _trim_zeros(irf: np.ndarray) -> np.ndarray:
+    """Drop all-zero samples at both ends (lossless: depth is referenced to the peak)."""
+    nz = np.flatnonzero(np.any(irf > 0, axis=0))
+    if nz.size == 0:
+        return irf
+    return irf[:, nz[0] : nz[-1] + 1]
+
+
+def _crop_irf(irf: np.ndarray, n_bins: int) -> np.ndarray:
+    """Crop an ``(L, n)`` IRF to at most ``n_bins - 1`` samples around its peak."""
+    n = irf.shape[1]
+    limit = max(n_bins - 1, 1)
+    if n <= limit:
+        return irf
+    peak = int(np.argmax(irf.sum(axis=0)))
+    lo = min(max(peak - limit // 2, 0), n - limit)
+    kept = irf[:, lo : lo + limit].sum() / irf.sum()
+    log.warning(
+        "IRF (%d samples) is longer than the histograms allow (T = %d); cropped to %d samples "
+        "around its peak, keeping %.1f%% of its mass",
+        n,
+        n_bins,
+        limit,
+        100 * kept,
+    )
+    return irf[:, lo : lo + limit]
+
+
+def _irf_from_container(d: dict[str, Any], p: Path, variable: str | None) -> np.ndarray:
+    if variable is not None:
+        if variable not in d:
+            raise SplidarError(
+                f"IRF variable '{variable}' is not in '{p.name}'; it holds: {_summary(d)}."
+            )
+        name = variable
+    elif "irf" in d:
+        name = "irf"
+    else:
+        cands = []
+        for k, v in d.items():
+            if isinstance(v, np.ndarray) and v.dtype.kind in "uif" and v.size > 1:
+                s = [n for n in v.shape if n > 1]
+                if len(s) == 1 or (len(s) == 2 and min(s) <= 16):
+                    cands.append(k)
+        if len(cands) != 1:
+            raise SplidarError(
+                f"cannot tell which variable of '{p.name}' is the IRF "
+                f"({'none looks like one' if not cands else 'candidates: ' + ', '.join(cands)}); "
+                f"it holds: {_summary(d)}. Pass irf_variable= to load (variable= to load_irf)."
+            )
+        name = cands[0]
+    return np.asarray(d[name])
+
+
+def _orient_irf(a, source: str, n_wavelengths: int | None = None) -> np.ndarray:
+    """Return an IRF as ``(L, n)``; a 2-D array is transposed when it reads as ``(n, L)``.
+
+    With ``n_wavelengths`` known, the axis of that length (or of length 1) is L;
+    otherwise a column vector or a taller-than-wide array is read as ``(n, L)``.
+    """
+    try:
+        a = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SplidarError(f"the IRF in {source} must be numeric; got {describe(a)}.") from None
+    if a.ndim == 0:
+        a = a.reshape(1, 1)
+    if a.ndim > 2:
+        a = np.squeeze(a)
+    if a.ndim == 1:
+        return a[None, :]
+    if a.ndim != 2:
+        raise SplidarError(f"the IRF in {source} must be 1-D or (L, n); got shape {a.shape}.")
+    rows_are_l = a.shape[0] == 1 or (n_wavelengths is not None and a.shape[0] == n_wavelengths)
+    cols_are_l = a.shape[1] == 1 or (n_wavelengths is not None and a.shape[1] == n_wavelengths)
+    if rows_are_l:
+        return a
+    if cols_are_l or (n_wavelengths is None and a.shape[0] > a.shape[1]):
+        log.info("IRF from %s has shape %s: read as (n, L) and transposed", source, a.shape)
+        return a.T
+    return a
+
+
+def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndarray:
+    """Read an IRF ``(L, n)`` from ``.npz``/``.mat``/``.h5``/``.csv``/``.txt``.
+
+    The variable ``irf`` is used when present, otherwise the only 1-D (or thin
+    ``(L, n)`` with L <= 16) numeric array, otherwise ``variable=`` is required. A 2-D
+    array taller than wide is read as ``(n, L)`` columns. All-zero samples at both
+    ends are trimmed (lossless: depths are referenced to the IRF peak). Values are
+    returned as stored (not normalised; :class:`~splidar.cube.Cube` normalises).
+
+    Parameters
+    ----------
+    path : str or path-like
+    variable : str, optional
+        Variable holding the IRF in a container file.
+
+    Returns
+    -------
+    irf : ndarray, shape (L, n), float64
+
+    Raises
+    ------
+    SplidarError
+        Missing file, unknown extension, ambiguous or missing variable, bad shape.
+
+    Examples
+    --------
+    >>> irf = load_irf("irf-sample/data_supp.mat")  # doctest: +SKIP
+    >>> irf.shape  # doctest: +SKIP
+    (1, 31)
+    """
+    p = _check_path(path)
+    ext = _ext(p)
+    if ext in (".csv", ".txt"):
+        try:
+            a = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=1)
+        except ValueError:
+            a = np.loadtxt(p, delimiter=None if ext == ".csv" else ",", ndmin=1)
+    elif ext in _CONTAINER_EXTS:
+        a = _irf_from_container(_read_container(p), p, variable)
+    else:
+        raise SplidarError(
+            f"unknown IRF file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .txt."
+        )
+    out = _trim_zeros(_orient_irf(a, f"'{p.name}'"))
+    if not np.all(np.isfinite(out)) or np.any(out < 0) or out.sum() <= 0:
+        raise SplidarError(f"the IRF in '{p.name}' must be finite, non-negative and not all zero.")
+    return out
+
+
+def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
+    """Estimate the IRF width (FWHM, bins) from the photons themselves.
+
+    Uses the time differences of photon pairs **within the same pixel**: two signal
+    photons from one surface differ by the IRF's autocorrelation whatever the pixel's
+    depth, so no per-pixel peak alignment (and none of its self-alignment bias at a
+    few photons per pixel) is needed. Background pairs add a floor, made flat by
+    dividing lag ``k`` by the ``T - k`` bin pairs it spans. The floor is the median
+    of the outer quarter of the lag window, and
+    the FWHM of the autocorrelation peak above it is read at the half-maximum
+    crossing (linear interpolation); for a Gaussian IRF this is ``sqrt(2)`` times the
+    IRF's FWHM, which is what is returned. For a skewed or heavy-tailed pulse it is
+    a Gaussian-equivalent width: give a measured IRF when you have one.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (rows, cols, L, T) or (rows, cols, T)
+        Photon counts (all wavelengths pooled).
+    max_lag : int, optional
+        Largest lag used, bins. Default: grown from 32 (x2, at most T / 2) until the
+        half-maximum crossing lies below a quarter of it, so the floor is measured well
+        outside the peak.
+
+    Returns
+    -------
+    fwhm : float
+        Estimated FWHM in bins (at least 0.5: a pulse narrower than a bin is not
+        resolved).
+
+    Raises
+    ------
+    SplidarError
+        Too few photon pairs or no peak standing out of the background floor: give
+        the IRF explicitly (``irf=`` or ``irf_fwhm=``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from splidar.irf import gaussian_irf
+    >>> rng = np.random.default_rng(0)
+    >>> d = rng.integers(20, 80, (40, 40))
+    >>> lam = np.zeros((40, 40, 120))
+    >>> lam[np.arange(40)[:, None], np.arange(40), d] = 20.0
+    >>> from scipy.ndimage import convolve1d
+    >>> y = rng.poisson(convolve1d(lam, gaussian_irf(6.0), axis=-1) + 0.01)
+    >>> bool(5.0 < estimate_irf_fwhm(y) < 7.0)
+    True
+    """
+    a = np.asarray(counts)
+    if a.ndim == 3:
+        a = a[:, :, None, :]
+    if a.ndim != 4:
+        raise SplidarError(f"`counts` must be (rows, cols[, L], T); got shape {a.shape}.")
+    n_l, n_bins = a.shape[2], a.shape[3]
+    flat = a.reshape(-1, n_bins)
+    rowi, b = np.nonzero(flat)
+    w = flat[rowi, b]
+    return _pair_lag_fwhm(rowi // n_l, b, w, n_bins, max_lag)
+
+
+def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
+    """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count)."""
+    key = np.asarray(pix, dtype=np.int64) * (2 * n_bins + 1) + np.asarray(b, dtype=np.int64)
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    w = np.asarray(w, dtype=np.float64)[order]
+    lag0 = float(np.sum(w * (w - 1)) / 2)  # pairs inside one voxel
+    top = max(n_bins // 2, 2)
+    lag = min(32 if max_lag is None else check_int(max_lag, "max_lag", minimum=2), top)
+    while True:
+        # partners j > i with key_j - key_i <= lag share the pixel (pixel stride 2T + 1)
+        hi = np.searchsorted(key, key + lag, side="right")
+        cnt = hi - np.arange(key.size) - 1
+        total = int(cnt.sum())
+        if total > 50_000_000:
+            raise SplidarError(
+                f"too many photon pairs ({total}) to estimate the IRF; pass irf= or irf_fwhm=."
+            )
+        i = np.repeat(np.arange(key.size), cnt)
+        j = i + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+        h = np.bincount(key[j] - key[i], weights=w[i] * w[j], minlength=lag + 1)[: lag + 1]
+        # two-sided autocorrelation: ordered pairs, so lag 0 counts each pair twice
+        h[0] = 2 * lag0
+        # a flat background gives pairs in proportion to the T - k bin pairs at lag k:
+        # undo that triangle so the floor is flat
+        h *= n_bins / (n_bins - np.arange(lag + 1))
+        k_half = _half_max_lag(h)
+        if max_lag is not None or k_half < lag / 4 or lag >= top:
+            break
+        lag = min(lag * 2, top)
+    # FWHM of the autocorrelation = 2 k_half = sqrt(2) x FWHM of a Gaussian IRF
+    return max(2.0 * k_half / math.sqrt(2.0), 0.5)
+
+
+def _half_max_lag(h: np.ndarray) -> float:
+    lag = h.size - 1
+    if h.sum() < 20:
+        raise SplidarError(
+            f"only {int(h.sum())} photon pairs within a pixel: too few to estimate the IRF; "
+            "pass irf= (array or file) or irf_fwhm= (Gaussian FWHM in bins)."
+        )
+    floor = float(np.median(h[lag - max(lag // 4, 1) + 1 :]))
+    peak = float(h[0]) - floor
+    if peak <= 5.0 * math.sqrt(max(floor, 1.0)):
+        raise SplidarError(
+            "no IRF peak stands out of the background in the photon-pair time differences "
+            "(too little signal per pixel); pass irf= (array or file) or irf_fwhm= (Gaussian "
+            "FWHM in bins)."
+        )
+    above = h - floor - peak / 2
+    below = np.flatnonzero(above <= 0)
+    if below.size == 0:
+        return float(lag)
+    k = int(below[0])
+    # linear interpolation between lag k-1 (above half) and k (at or below)
+    return (k - 1) + above[k - 1] / (above[k - 1] - above[k])
+
+
+def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, sparse=None):
+    """Return (irf array (L, n), source description)."""
+    n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
+    if irf is not None and irf_fwhm is not None:
+        raise SplidarError("give either `irf` or `irf_fwhm`, not both.")
+    if irf_fwhm is not None:
+        fwhm = check_positive(irf_fwhm, "irf_fwhm")
+        g = gaussian_irf(fwhm)
+        return g[None, :], f"gaussian fwhm={fwhm:g} bins"
+    if isinstance(irf, (int, float, np.number)) and not isinstance(irf, bool):
+        raise SplidarError(
+            f"`irf` got the number {irf!r}; for a Gaussian IRF pass irf_fwhm={irf!r} (FWHM in "
+            "bins); `irf` takes an array, a file path or 'estimate'."
+        )
+    if isinstance(irf, str) and irf == "estimate":
+        file_irf = None
+        irf = None
+    elif isinstance(irf, (str, os.PathLike)):
+        a = load_irf(irf, variable=irf_variable)
+        return _orient_irf(a, f"'{irf}'", n_l), f"file {irf}"
+    if irf is not None:
+        return _orient_irf(irf, "`irf`", n_l), "given array"
+    if file_irf is not None:
+        return _orient_irf(file_irf, "the file", n_l), "file"
+    if hasattr(counts, "compute") and not isinstance(counts, np.ndarray):
+        raise SplidarError(
+            "the data hold no IRF and it is not estimated from lazy (Dask/zarr) data; pass "
+            "irf= (array or file) or irf_fwhm= (Gaussian FWHM in bins)."
+        )
+    if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
+        uniq, cnt = sparse
+        fwhm = _pair_lag_fwhm(uniq // n_bins, uniq % n_bins, cnt, n_bins, None)
+    else:
+        fwhm = estimate_irf_fwhm(counts)
+    g = gaussian_irf(fwhm)
+    log.warning(
+        "no IRF given and none in the file: estimated a Gaussian IRF of FWHM %.2f bins from "
+        "photon-pair time differences (pass irf= or irf_fwhm= to override)",
+        fwhm,
+    )
+    return g[None, :], f"estimated gaussian fwhm={fwhm:.3f} bins"
+
+
+# --------------------------------------------------------------------------------------
+# load / save
+# --------------------------------------------------------------------------------------
+def _metadata_from(v) -> dict:
+    if v is None:
+        return {}
+    s = v.item() if isinstance(v, np.ndarray) and v.size == 1 else v
+    if isinstance(s, bytes):
+        s = s.decode()
+    if not isinstance(s, str):
+        return {}
+    try:
+        out = json.loads(s)
+    except json.JSONDecodeError:
+        return {"metadata": s}
+    return out if isinstance(out, dict) else {"metadata": out}
+
+
+def _str_list(v) -> tuple[str, ...]:
+    """Names from a string array, a MATLAB cell of strings or a char matrix."""
+    if v is None:
+        return ()
+    if isinstance(v, str):
+        return (v,)
+    a = np.asarray(v)
+    if (
+        a.dtype.kind in "US"
+        and a.ndim == 2
+        and a.dtype.itemsize == np.dtype(a.dtype.kind + "1").itemsize
+    ):
+        return tuple("".join(r).strip() for r in a.astype(str))  # char matrix
+    out = []
+    for x in a.reshape(-1):
+        if isinstance(x, np.ndarray):
+            x = "".join(str(c) for c in x.reshape(-1))
+        elif isinstance(x, bytes):
+            x = x.decode()
+        out.append(str(x).strip())
+    return tuple(out)
+
+
+def _library_from(d: dict[str, Any]):
+    if "library" not in d:
+        return None
+    names = _str_list(d.get("class_names"))
+    return SpectralLibrary(np.asarray(d["library"], dtype=np.float64), class_names=names)
+
+
+def load(
+    path: str | os.PathLike,
+    *,
+    variable: str | None = None,
+    window: tuple[float, float] | None = None,
+    bin_width: float | None = None,
+    time_unit: str = "bin",
+    irf=None,
+    irf_fwhm: float | None = None,
+    irf_variable: str | None = None,
+    bin_width_ps: float | None = None,
+    wavelengths_nm=None,
+    library=None,
+) -> Cube:
+    """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.npz``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5`` or a ``.zarr`` directory.
+        ``.npz`` files are opened with pickle allowed (photon lists are object
+        arrays): open only files you trust.
+    variable : str, optional
+        Which variable holds the data when the file holds several. Default: ``counts``
+        if present, else the only cell array of arrival times or numeric 3-D/4-D array;
+        otherwise an error lists what the file holds.
+    window : (start, stop), optional
+        Photon lists: the time range to histogram, in the data's unit (``time_unit``).
+        Default: from the earliest to the latest photon (logged). Histogram files: an
+        integer bin range ``[start, stop)`` to crop along T.
+    bin_width : float, optional
+        Photon lists only: bin width in the data's unit (default 1: one unit per bin).
+        ``T = ceil((stop - start) / bin_width)``.
+    time_unit : {"bin", "fs", "ps", "ns", "us", "ms", "s"}
+        Photon lists only: unit of the arrival times. With a physical unit, the cube's
+        ``bin_width_ps`` is ``bin_width`` converted to picoseconds. ``"bin"`` (default)
+        means time-bin indices of unknown duration.
+    irf : array_like (L, n) or (n,), path, or "estimate", optional
+        Instrument response. Default: the file's ``irf``; if it has none, a Gaussian
+        whose width is estimated from the data (:func:`estimate_irf_fwhm`; logged as a
+        warning). A path is read by :func:`load_irf`. An IRF longer than T - 1 samples
+        is cropped around its peak (logged).
+    irf_fwhm : float, optional
+        Use a Gaussian IRF of this FWHM in bins instead (data without a measured IRF).
+    irf_variable : str, optional
+        Variable of the IRF file to read (see :func:`load_irf`).
+    bin_width_ps : float, optional
+        Overrides the bin width in picoseconds (e.g. known for bin-index data).
+    wavelengths_nm : array_like (L,), optional
+        Overrides the file's wavelengths.
+    library : SpectralLibrary, array (K, L) or path, optional
+        Overrides the file's spectral library.
+
+    Returns
+    -------
+    Cube
+        Photon lists become ``(rows, cols, 1, T)`` uint16 counts; ``metadata`` records the
+        source, variable, window, bin width, time unit and IRF source.
+
+    Raises
+    ------
+    SplidarError
+        Missing file, unknown extension, variable missing or ambiguous (lists the
+        contents), wrong shape, ``window`` with stop <= start, ``bin_width`` <= 0,
+        unknown ``time_unit``, options that do not apply, IRF problems.
+
+    Examples
+    --------
+    >>> cube = load("face/data_face.mat", irf_fwhm=20)  # doctest: +SKIP
+    >>> cube.shape  # doctest: +SKIP
+    (340, 340, 1, 7001)
+    >>> tower = load("tower/tower.mat", variable="data_processed", time_unit="ps",
+    ...              window=(5_180_000, 5_380_000), bin_width=100)  # doctest: +SKIP
+    """
+    check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
+    p = _check_path(path)
+    if _ext(p) == ".zarr":
+        cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
+        return _override(cube, bin_width_ps, wavelengths_nm, library)
+    d = _read_container(p)
+    name = _pick_variable(d, p, variable, "data")
+    v = d[name]
+    meta: dict[str, Any] = {"source": str(p), "variable": name}
+    sparse = None
+    from_save = False
+    if _is_cell_of_numbers(v):
+        pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
+        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
+        meta.update(md)
+        bw_ps = md.get("bin_width_ps")
+        file_irf = d.get("irf")
+        wl = d.get("wavelengths_nm")
+        lib = _library_from(d)
+    else:
+        if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
+            raise SplidarError(
+                f"variable '{name}' of '{p.name}' is neither a count cube nor a cell array of "
+                f"photon times (got {describe(v)}); the file holds: {_summary(d)}."
+            )
+        if v.ndim not in (3, 4):
+            raise SplidarError(
+                f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
+                f"(rows, cols, L, T); got shape {v.shape}."
+            )
+        if bin_width is not None or time_unit != "bin":
+            raise SplidarError(
+                "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
+                "already binned cube (use bin_width_ps= to set its bin width)."
+            )
+        counts = v if v.ndim == 4 else v[:, :, None, :]
+        md0 = _metadata_from(d.get("metadata"))
+        from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
+        if from_save:
+            meta = md0  # written by `save`: restore its metadata exactly
+        else:
+            meta = {**md0, **meta}
+        if window is not None:
+            start, stop, _ = _check_window(window, 1)
+            if not (float(start).is_integer() and float(stop).is_integer()):
+                raise SplidarError(f"`window` on a histogram file is a bin range; got {window}.")
+            counts = counts[..., int(start) : int(stop)]
+            meta["window"] = [int(start), int(stop)]
+            if counts.shape[-1] == 0:
+                raise SplidarError(f"`window` {window} selects no bins of T = {v.shape[-1]}.")
+        bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
+        file_irf = d.get("irf")
+        wl = d.get("wavelengths_nm")
+        lib = _library_from(d)
+    n_bins = counts.shape[-1]
+    irf_a, irf_src = _resolve_irf(
+        irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
+    )
+    irf_a = _crop_irf(irf_a, n_bins)
+    if irf_src != "file":
+        meta["irf_source"] = irf_src
+    elif not from_save:
+        meta.setdefault("irf_source", "file")
+    cube = Cube(
+        counts,
+        irf=irf_a,
+        bin_width_ps=bw_ps,
+        wavelengths_nm=None if wl is None else np.asarray(wl, dtype=np.float64).reshape(-1),
+        library=lib,
+        metadata=meta,
+    )
+    return _override(cube, bin_width_ps, wavelengths_nm, library)
+
+
+def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
+    if bin_width_ps is None and wavelengths_nm is None and library is None:
+        return cube
+    return Cube(
+        cube.counts,
+        irf=cube.irf,
+        bin_width_ps=cube.bin_width_ps if bin_width_ps is None else bin_width_ps,
+        wavelengths_nm=cube.wavelengths_nm if wavelengths_nm is None else wavelengths_nm,
+        library=cube.library if library is None else library,
+        metadata=cube.metadata,
+    )
+
+
+def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
+    bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
+    if pl.n_photons == 0 and window is None:
+        raise SplidarError("the photon lists are empty; pass window= to build an empty cube.")
+    if window is None:
+        window = _default_window(pl.times, bw)
+        log.info(
+            "no window given: binning %s from the earliest to the latest photon, [%g, %g) in "
+            "%s units",
+            pl.source,
+            window[0],
+            window[1],
+            time_unit,
+        )
+    start, stop, bw = _check_window(window, bw)
+    uniq, cnt, rows, cols, n_bins = _bin_sparse(
+        pl.times, pl.pixel_index, pl.shape, (start, stop), bw
+    )
+    counts = _dense(uniq, cnt, rows, cols, n_bins)
+    factor = TIME_UNITS_PS[time_unit]
+    md = {
+        "photon_lists": pl.source,
+        "window": [start, stop],
+        "bin_width": bw,
+        "time_unit": time_unit,
+        "n_photons_total": pl.n_photons,
+        "n_photons_in_window": int(cnt.sum(dtype=np.int64)),
+    }
+    if factor is not None:
+        md["bin_width_ps"] = bw * factor
+    return counts, md, (uniq, cnt)
+
+
+def save(cube: Cube, path: str | os.PathLike, *, chunks: tuple[int, int] | None = None) -> None:
+    """Write a cube to ``.npz`` (exact round trip with :func:`load`) or ``.zarr``.
+
+    ``.npz`` stores ``counts`` (dtype kept), ``irf``, ``bin_width_ps``,
+    ``wavelengths_nm``, ``library`` + ``class_names`` and ``metadata`` as a JSON string
+    (values JSON cannot hold are written with ``str``). ``.zarr`` writes a directory
+    with ``counts`` chunked over pixels (all of L and T in each chunk) and the rest as
+    small arrays and attributes; a lazy (Dask) cube is written chunk by chunk.
+
+    Parameters
+    ----------
+    cube : Cube
+    path : str or path-like
+        Ends in ``.npz`` or ``.zarr``.
+    chunks : (rows, cols), optional
+        Zarr only: pixel block per chunk (default 64 x 64).
+
+    Raises
+    ------
+    SplidarError
+        Not a Cube, unknown extension, or zarr not installed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from splidar import Cube
+    >>> c = Cube(np.ones((2, 2, 8), np.uint16), irf=[1.0, 2.0, 1.0], bin_width_ps=4.0)
+    >>> save(c, "cube.npz")  # doctest: +SKIP
+    >>> load("cube.npz").bin_width_ps  # doctest: +SKIP
+    4.0
+    """
+    if not isinstance(cube, Cube):
+        raise SplidarError(f"`cube` must be a splidar.Cube; got {describe(cube)}.")
+    if not isinstance(path, (str, os.PathLike)):
+        raise SplidarError(f"`path` must be a file path; got {describe(path)}.")
+    p = Path(path)
+    ext = _ext(p)
+    meta = json.dumps(dict(cube.metadata), default=str)
+    if ext == ".zarr":
+        _save_zarr(cube, p, chunks, meta)
+        return
+    if ext != ".npz":
+        raise SplidarError(f"`save` writes .npz or .zarr; got '{p.suffix}' in '{p}'.")
+    counts = cube.counts
+    if cube.is_lazy:
+        counts = counts.compute()
+    arrays: dict[str, Any] = {
+        "counts": counts,
+        "irf": cube.irf,
+        "metadata": np.array(meta),
+        "__kind__": np.array("Cube"),
+    }
+    if cube.bin_width_ps is not None:
+        arrays["bin_width_ps"] = np.array(cube.bin_width_ps)
+    if cube.wavelengths_nm is not None:
+        arrays["wavelengths_nm"] = cube.wavelengths_nm
+    if cube.library is not None:
+        arrays["library"] = cube.library.signatures
+        arrays["class_names"] = np.array(cube.library.class_names, dtype=str)
+    np.savez_compressed(p, **arrays)
+
+
+# --------------------------------------------------------------------------------------
+# zarr
+# --------------------------------------------------------------------------------------
+def _zarr():
+    try:
+        import zarr
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise SplidarError(
+            "reading or writing .zarr needs the optional packages zarr and dask: "
+            "pip install 'splidar[dask]'."
+        ) from None
+    return zarr
+
+
+def _save_zarr(cube: Cube, p: Path, chunks, meta: str) -> None:
+    zarr = _zarr()
+    r, c = (64, 64) if chunks is None else (check_int(x, "chunks", minimum=1) for x in chunks)
+    rows, cols, n_l, n_bins = cube.shape
+    ch = (min(r, rows), min(c, cols), n_l, n_bins)
+    g = zarr.open_group(str(p), mode="w")
+    dtype = np.dtype(cube.counts.dtype)
+    arr = g.create_array("counts", shape=cube.shape, chunks=ch, dtype=dtype)
+    if cube.is_lazy:
+        import dask.array as da
+
+        da.store(cube.counts.rechunk(ch), arr, lock=False)
+    else:
+        arr[...] = cube.counts
+    g.create_array("irf", data=cube.irf)
+    if cube.wavelengths_nm is not None:
+        g.create_array("wavelengths_nm", data=cube.wavelengths_nm)
+    if cube.library is not None:
+        g.create_array("library", data=cube.library.signatures)
+        g.attrs["class_names"] = list(cube.library.class_names)
+    if cube.bin_width_ps is not None:
+        g.attrs["bin_width_ps"] = float(cube.bin_width_ps)
+    g.attrs["metadata"] = meta
+    g.attrs["kind"] = "Cube"
+
+
+def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable) -> Cube:
+    zarr = _zarr()
+    import dask.array as da
+
+    try:
+        g = zarr.open_group(str(p), mode="r")
+    except Exception as exc:
+        raise SplidarError(f"cannot open '{p}' as a zarr group: {exc}") from None
+    names = sorted(g.array_keys())
+    if "counts" not in names:
+        raise SplidarError(f"the zarr group '{p}' has no `counts` array; it holds arrays {names}.")
+    counts = da.from_zarr(g["counts"])
+    if counts.ndim == 3:
+        counts = counts[:, :, None, :]
+    if counts.ndim != 4:
+        raise SplidarError(
+            f"`counts` in '{p}' must be (rows, cols[, L], T); got shape {counts.shape}."
+        )
+    file_irf = np.asarray(g["irf"][...]) if "irf" in names else g.attrs.get("irf")
+    irf_a, src = _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, counts.shape[-1])
+    irf_a = _crop_irf(irf_a, counts.shape[-1])
+    lib = None
+    if "library" in names:
+        lib = SpectralLibrary(
+            np.asarray(g["library"][...]), class_names=tuple(g.attrs.get("class_names", ()))
+        )
+    meta = _metadata_from(g.attrs.get("metadata"))
+    if g.attrs.get("kind") != "Cube":  # not written by `save`: record where it came from
+        meta.setdefault("source", str(p))
+        meta.setdefault("irf_source", src)
+    if src != "file":
+        meta["irf_source"] = src
+    return Cube(
+        counts,
+        irf=irf_a,
+        bin_width_ps=g.attrs.get("bin_width_ps"),
+        wavelengths_nm=np.asarray(g["wavelengths_nm"][...]) if "wavelengths_nm" in names else None,
+        library=lib,
+        metadata=meta,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# libraries
+# --------------------------------------------------------------------------------------
+def load_library(path: str | os.PathLike) -> SpectralLibrary:
+    """Read a spectral library ``(K, L)`` with optional class names.
+
+    Formats:
+
+    * ``.npz`` / ``.mat`` / ``.h5``: ``library`` (or ``signatures``) ``(K, L)`` and
+      optional ``class_names``.
+    * ``.csv``: one class per row, an optional leading name column, an optional header
+      row (ignored) recognised by a non-numeric value after its first field or by a
+      first field that is empty or one of "class", "name", "label", "material".
+    * ``.json``: ``{"signatures": [[...], ...], "class_names": [...]}`` or
+      ``{"name": [values], ...}``.
+
+    Returns
+    -------
+    SpectralLibrary
+
+    Raises
+    ------
+    SplidarError
+        Missing file, unknown extension, no library in the file, bad values.
+
+    Examples
+    --------
+    >>> lib = load_library("lego_library.csv")  # doctest: +SKIP
+    """
+    p = _check_path(path)
+    ext = _ext(p)
+    if ext in _CONTAINER_EXTS:
+        d = _read_container(p)
+        key = "library" if "library" in d else "signatures" if "signatures" in d else None
+        if key is None:
+            raise SplidarError(
+                f"'{p.name}' has no `library` or `signatures` array; it holds: {_summary(d)}."
+            )
+        names = _str_list(d.get("class_names"))
+        return SpectralLibrary(np.asarray(d[key], dtype=np.float64), class_names=names)
+    if ext == ".json":
+        try:
+            obj = json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise SplidarError(f"'{p.name}' is not valid JSON: {exc}") from None
+        if isinstance(obj, dict) and "signatures" in obj:
+            return SpectralLibrary(obj["signatures"], class_names=obj.get("class_names", ()))
+        if isinstance(obj, dict) and obj:
+            return SpectralLibrary(list(obj.values()), class_names=list(obj.keys()))
+        raise SplidarError(
+            f"'{p.name}' must hold {{'signatures': [[...]], 'class_names': [...]}} or "
+            "{name: [values], ...}."
+        )
+    if ext == ".csv":
+        names, rows = [], []
+        for i, line in enumerate(p.read_text().splitlines()):
+            fields = [f.strip() for f in line.split(",")]
+            if not line.strip():
+                continue
+            if not rows and not names and fields[0].lower() in _CSV_HEADER_WORDS:
+                continue  # header, e.g. "class,532,633,780"
+            try:
+                rows.append([float(f) for f in fields])
+                continue
+            except ValueError:
+                pass
+            try:
+                vals = [float(f) for f in fields[1:]]
+            except ValueError:
+                if rows or names:
+                    raise SplidarError(
+                        f"line {i + 1} of '{p.name}' is not a signature: {line!r}."
+                    ) from None
+                continue  # header
+            names.append(fields[0])
+            rows.append(vals)
+        if not rows:
+            raise SplidarError(f"'{p.name}' holds no signature rows.")
+        if names and len(names) != len(rows):
+            raise SplidarError(f"'{p.name}': name every row or none.")
+        try:
+            sig = np.array(rows, dtype=np.float64)
+        except ValueError:
+            raise SplidarError(f"'{p.name}': rows have different lengths.") from None
+        return SpectralLibrary(sig, class_names=names)
+    raise SplidarError(
+        f"unknown library file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .json."
+    )
