@@ -477,3 +477,12 @@ def test_load_real_irf_sample(shared_data):
     irf = load_irf(shared_data / "irf-sample" / "data_supp.mat")
     assert irf.shape[0] == 1 and 15 < irf.shape[1] < 60
     assert irf[0, 0] > 0 and irf[0, -1] > 0
+
+
+def test_estimate_irf_fwhm_too_few_pairs_raises_clear_error():
+    # regression: with no photon pair inside any pixel, bincount returned int64 and the
+    # triangle correction crashed with a casting error instead of saying what is wrong
+    from splidar.io import _pair_lag_fwhm
+
+    with pytest.raises(SplidarError, match="too few to estimate the IRF"):
+        _pair_lag_fwhm(np.array([0, 1]), np.array([3, 50]), np.array([1, 1]), 100, None)

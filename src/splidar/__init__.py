@@ -32,8 +32,8 @@ _LAZY = {
     "simulate": ("splidar.simulate", "simulate"),
     "detect": ("splidar.detect", "detect"),
     "Detection": ("splidar.detect", "Detection"),
-    "reconstruct": ("splidar.reconstruct", "reconstruct"),
-    "Reconstruction": ("splidar.reconstruct", "Reconstruction"),
+    "reconstruct": ("splidar.reconstruction", "reconstruct"),
+    "Reconstruction": ("splidar.reconstruction", "Reconstruction"),
     "process": ("splidar.pipeline", "process"),
     "evaluate": ("splidar.metrics", "evaluate"),
 }

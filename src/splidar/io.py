@@ -685,6 +685,7 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
         i = np.repeat(np.arange(key.size), cnt)
         j = i + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
         h = np.bincount(key[j] - key[i], weights=w[i] * w[j], minlength=lag + 1)[: lag + 1]
+        h = h.astype(np.float64)  # bincount of an empty input is int64 even with weights
         # two-sided autocorrelation: ordered pairs, so lag 0 counts each pair twice
         h[0] = 2 * lag0
         # a flat background gives pairs in proportion to the T - k bin pairs at lag k:

@@ -1,5 +1,6 @@
 """Multiscale 3D target detection (Algorithm 1) and surface extraction."""
 
+from ._detect import detect
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 
-__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces"]
+__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces", "detect"]

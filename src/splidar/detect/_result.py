@@ -131,6 +131,15 @@ class Surfaces:
     image_shape : (rows, cols)
     n_slots : int
         ``K_s``, the maximum number of surfaces per pixel.
+    evidence : ndarray (S,), float64, optional
+        Sum over the support of ``max(saliency / threshold - 1, 0)``: the statistic
+        calibrated against the simulated null (``surface_pfa``). Added field.
+    presence_llr : ndarray (S,), float64, optional
+        Own-pixel Poisson log-likelihood ratio, surface (with the local scale's signal)
+        vs. background only, over the support. Added field.
+    presence_z : ndarray (S,), float64, optional
+        Significance (Poisson z) of the local scale's (finest above 1 px) response at
+        the depth. Added field.
     """
 
     row: np.ndarray
@@ -148,6 +157,9 @@ class Surfaces:
     saliency_mass: np.ndarray
     image_shape: tuple[int, int]
     n_slots: int
+    evidence: np.ndarray | None = None
+    presence_llr: np.ndarray | None = None
+    presence_z: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.row.size)

@@ -1,0 +1,947 @@
+"""The ``splidar`` command line: a thin layer over the public API.
+
+Commands::
+
+    splidar demo      [--out DIR]                 simulate a scene, process it, print metrics
+    splidar run       INPUT [--out DIR] [...]     process a file (cube or photon lists)
+    splidar simulate  SCENE --out FILE [...]      write a simulated cube and its truth
+    splidar evaluate  POINTS TRUTH [--tau BINS]   the paper's metrics
+
+Every error is one line on stderr (``splidar: error: ...``) and a non-zero exit status:
+2 for a usage error, 1 for a failure while running, 130 when interrupted. ``--verbose``
+adds the traceback. Outputs of ``run`` and ``demo`` are written into a hidden
+temporary folder beside ``--out`` and renamed at the end, so an interrupted run never
+leaves a folder that looks complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import shutil
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from ._validation import SplidarError
+from ._version import __version__
+
+__all__ = ["main"]
+
+PROG = "splidar"
+log = logging.getLogger("splidar.cli")
+
+# exit statuses
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+#: The built-in demo scene: 64 x 64 pixels, 4 wavelengths, 200 bins, a net in front.
+DEMO = {"shape": (64, 64), "n_bins": 200, "ppp": 10.0, "sbr": 1.0}
+
+SCENES = ("single", "two-layer", "multispectral", "multispectral-two-layer", "art")
+
+
+class UsageError(Exception):
+    """A bad command line (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing usage and exiting, for one-line errors."""
+
+    def error(self, message):  # noqa: D401 - argparse API
+        raise UsageError(f"{message} (see '{self.prog} --help')")
+
+
+# ----------------------------------------------------------------------------------------
+# argument types
+# ----------------------------------------------------------------------------------------
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        vals = tuple(int(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers such as 1,3,7,11; got {text!r}"
+        ) from None
+    if not vals:
+        raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
+    return vals
+
+
+def _float_list(text: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers such as 0,1,0,0; got {text!r}"
+        ) from None
+    if not vals:
+        raise argparse.ArgumentTypeError(f"expected at least one number; got {text!r}")
+    return vals
+
+
+def _probability(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1); got {text!r}") from None
+    if not 0.0 < x < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in (0, 1), e.g. 1e-3; got {text!r}")
+    return x
+
+
+def _positive(kind):
+    def conv(text: str):
+        try:
+            x = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected a positive {'integer' if kind is int else 'number'}; got {text!r}"
+            ) from None
+        if not x > 0:
+            raise argparse.ArgumentTypeError(f"must be > 0; got {text!r}")
+        return x
+
+    return conv
+
+
+# ----------------------------------------------------------------------------------------
+# parser
+# ----------------------------------------------------------------------------------------
+_EPILOG = """\
+examples:
+  splidar demo
+  splidar run scan.mat --irf-fwhm 10 --out scan-result
+  splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
+  splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
+
+Run 'splidar COMMAND --help' for the options of a command.
+"""
+
+
+def _common(parser: argparse.ArgumentParser, *, top: bool) -> None:
+    # on sub-commands the default is SUPPRESS so that `splidar -v run ...` is not reset
+    d = {} if top else {"default": argparse.SUPPRESS}
+    g = parser.add_argument_group("output control")
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress bars or messages", **d)
+    g.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        help="more messages (-vv: debug); tracebacks on errors",
+        **({"default": 0} if top else d),
+    )
+
+
+def _out_options(p: argparse.ArgumentParser, default: str) -> None:
+    g = p.add_argument_group("outputs")
+    g.add_argument("-o", "--out", metavar="DIR", help=f"output folder (default: {default})")
+    g.add_argument(
+        "--force", action="store_true", help="replace an existing output folder of splidar"
+    )
+    g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    g.add_argument(
+        "--pixel-size",
+        type=_positive(float),
+        metavar="M",
+        help="pixel footprint for points.ply x and y (default 1: pixel units)",
+    )
+
+
+def _pipeline_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("detection (splidar.detect)")
+    g.add_argument(
+        "--scales",
+        type=_int_list,
+        metavar="K1,K2,..",
+        help="box sizes of the multiscale cubes, odd (default 1,3,7,11)",
+    )
+    g.add_argument(
+        "--weights",
+        type=_float_list,
+        metavar="W1,W2,..",
+        help="weight of each scale, summing to 1 (default equal)",
+    )
+    g.add_argument(
+        "--pfa", type=_probability, help="probability of false alarm per voxel (default 1e-3)"
+    )
+    g.add_argument(
+        "--max-surfaces",
+        type=_positive(int),
+        metavar="K",
+        help="most surfaces kept per pixel (default 2)",
+    )
+    g.add_argument(
+        "--null", choices=("empirical", "gamma"), help="threshold model (default empirical)"
+    )
+    g.add_argument(
+        "--presence",
+        choices=("auto", "none", "pixel"),
+        help="own-pixel presence check of candidates (default auto)",
+    )
+    g.add_argument(
+        "--min-separation",
+        type=_positive(float),
+        metavar="BINS",
+        help="peaks closer than this are one surface (default: IRF FWHM)",
+    )
+    g = p.add_argument_group("reconstruction (splidar.reconstruct)")
+    g.add_argument(
+        "--classes",
+        choices=("library", "one", "cluster"),
+        help="where classes come from (default: library if any, else one)",
+    )
+    g.add_argument(
+        "--n-classes", type=_positive(int), metavar="K", help="classes for --classes cluster"
+    )
+    g.add_argument("--gamma", type=float, help="Potts granularity, >= 0 (default 2)")
+    g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
+    g.add_argument("--links", choices=("depth", "all"), help="graph links (default depth-gated)")
+    g.add_argument("--max-iter", type=_positive(int), metavar="N", help="iterations (default 200)")
+    g.add_argument("--tol", type=_positive(float), help="convergence tolerance (default 1e-3)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``splidar`` command (for documentation tools)."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    parser = _Parser(
+        prog=PROG,
+        description="Single-photon lidar: 3D target detection, reconstruction and "
+        "spectral classification of photon-count cubes.",
+        epilog=_EPILOG,
+        formatter_class=fmt,
+    )
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    _common(parser, top=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    p = sub.add_parser(
+        "demo",
+        help="simulate a multispectral two-layer scene, process it, print metrics",
+        description="Simulate the built-in scene (64 x 64 pixels, 4 wavelengths, 200 bins, "
+        "a net in front of three materials; PPP 10, SBR 1), run detection and "
+        "reconstruction, write the outputs and print the metrics against the truth.",
+        epilog="example:\n  splidar demo --out splidar-demo\n",
+        formatter_class=fmt,
+    )
+    _out_options(p, "splidar-demo in the current folder")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--tau", type=_positive(float), default=2.0, help="matching distance, bins (default 2)"
+    )
+    _common(p, top=False)
+
+    p = sub.add_parser(
+        "run",
+        help="detect and reconstruct the surfaces of a file",
+        description="Process a cube file (.npz, .mat, .h5, .zarr) or photon lists "
+        "(a MATLAB cell array of arrival times) and write points.csv, points.ply, "
+        "result.npz, summary.json and figures/ into the output folder.",
+        epilog="examples:\n"
+        "  splidar run scene.npz\n"
+        "  splidar run data_face.mat --window 1000 8000 --irf-fwhm 8 --out face\n"
+        "  splidar run tower.mat --time-unit ps --window 5180000 5380000 --bin-width 100\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("input", metavar="INPUT", help="file to process")
+    g = p.add_argument_group("input (splidar.load)")
+    g.add_argument("--variable", metavar="NAME", help="variable holding the data")
+    g.add_argument(
+        "--window",
+        nargs=2,
+        type=float,
+        metavar=("START", "STOP"),
+        help="photon lists: time range to histogram (data unit); cubes: bin range to crop",
+    )
+    g.add_argument(
+        "--bin-width",
+        type=_positive(float),
+        metavar="W",
+        help="photon lists: bin width in the data's unit (default 1)",
+    )
+    g.add_argument(
+        "--time-unit",
+        choices=("bin", "fs", "ps", "ns", "us", "ms", "s"),
+        help="photon lists: unit of the arrival times (default bin)",
+    )
+    g.add_argument(
+        "--bin-width-ps", type=_positive(float), metavar="PS", help="bin width in picoseconds"
+    )
+    irf = g.add_mutually_exclusive_group()
+    irf.add_argument("--irf", metavar="FILE", help="instrument response file")
+    irf.add_argument(
+        "--irf-fwhm",
+        type=_positive(float),
+        metavar="BINS",
+        help="use a Gaussian IRF of this FWHM in bins",
+    )
+    g.add_argument("--library", metavar="FILE", help="spectral library file (K x L)")
+    _out_options(p, "INPUT-STEM-splidar beside the input")
+    _pipeline_options(p)
+    _common(p, top=False)
+
+    p = sub.add_parser(
+        "simulate",
+        help="write a simulated cube and its ground truth",
+        description="Simulate a built-in scene and write the cube (loadable by "
+        "'splidar run') and its ground truth as a point set FILE-STEM-truth.npz "
+        "(usable by 'splidar evaluate').",
+        epilog="examples:\n"
+        "  splidar simulate two-layer --ppp 5 --sbr 0.5 --out net.npz\n"
+        "  splidar simulate art --art-folder ../shared/data/middlebury-art --out art.npz\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("scene", metavar="SCENE", choices=SCENES, help=f"one of {', '.join(SCENES)}")
+    p.add_argument("-o", "--out", metavar="FILE", required=True, help="cube file (.npz or .zarr)")
+    p.add_argument("--ppp", type=_positive(float), default=10.0, help="signal photons per pixel")
+    p.add_argument("--sbr", type=_positive(float), default=1.0, help="signal-to-background ratio")
+    p.add_argument(
+        "--background",
+        choices=("uniform", "decaying", "pileup"),
+        default="uniform",
+        help="temporal shape of the background (default uniform)",
+    )
+    p.add_argument(
+        "--size",
+        nargs=2,
+        type=_positive(int),
+        metavar=("ROWS", "COLS"),
+        default=(64, 64),
+        help="image size (default 64 64; not for art)",
+    )
+    p.add_argument("--bins", type=_positive(int), help="time bins T (default: the scene's)")
+    p.add_argument("--irf-fwhm", type=_positive(float), help="Gaussian IRF FWHM in bins (3)")
+    p.add_argument("--art-folder", metavar="DIR", help="folder of the Middlebury Art files")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--force", action="store_true", help="replace existing files")
+    _common(p, top=False)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="the paper's metrics of estimated points against the truth",
+        description="Match estimated and true points per pixel within TAU and print "
+        "F_true, F_false, DAE, IAE, detection and label accuracy. POINTS and TRUTH can be "
+        "a point set .npz, a result.npz or output folder of 'splidar run', or a "
+        "points.csv.",
+        epilog="example:\n  splidar evaluate splidar-demo splidar-demo/truth.npz --tau 2\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("points", metavar="POINTS", help="estimated points")
+    p.add_argument("truth", metavar="TRUTH", help="true points")
+    tau = p.add_mutually_exclusive_group()
+    tau.add_argument("--tau", type=_positive(float), help="matching distance in bins (default 2)")
+    tau.add_argument("--tau-m", type=_positive(float), help="matching distance in metres")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    _common(p, top=False)
+    return parser
+
+
+# ----------------------------------------------------------------------------------------
+# logging and progress
+# ----------------------------------------------------------------------------------------
+class _Formatter(logging.Formatter):
+    def format(self, record):
+        return _cli_names(super().format(record))
+
+
+class _TqdmHandler(logging.Handler):
+    """Log records to stderr without breaking progress bars."""
+
+    def emit(self, record):
+        try:
+            from tqdm import tqdm
+
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:  # pragma: no cover - logging must never raise
+            self.handleError(record)
+
+
+@contextmanager
+def _logging(args):
+    logger = logging.getLogger("splidar")
+    handler = _TqdmHandler()
+    handler.setFormatter(_Formatter("splidar: %(message)s"))
+    level = logging.WARNING
+    if args.verbose >= 2:
+        level = logging.DEBUG
+    elif args.verbose == 1:
+        level = logging.INFO
+    if args.quiet:
+        level = logging.ERROR
+    old_level, old_prop = logger.level, logger.propagate
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old_level)
+        logger.propagate = old_prop
+
+
+class _Stages:
+    """A progress bar over the stages of a command (silent off a terminal or with -q)."""
+
+    def __init__(self, names: Sequence[str], quiet: bool):
+        from tqdm import tqdm
+
+        self.names = list(names)
+        self.timings: dict[str, float] = {}
+        disable = quiet or not sys.stderr.isatty()
+        self.bar = tqdm(
+            total=len(self.names),
+            disable=disable,
+            file=sys.stderr,
+            unit="stage",
+            bar_format="{desc:<28} {bar} {n_fmt}/{total_fmt} [{elapsed}]",
+            leave=False,
+        )
+
+    @contextmanager
+    def stage(self, name: str):
+        self.bar.set_description_str(name)
+        log.info("%s ...", name)
+        t0 = time.perf_counter()
+        yield
+        self.timings[name] = time.perf_counter() - t0
+        log.info("%s: %.2f s", name, self.timings[name])
+        self.bar.update(1)
+
+    def close(self):
+        self.bar.close()
+
+
+def _say(args, *lines: str) -> None:
+    if not args.quiet:
+        for line in lines:
+            print(line)
+
+
+# ----------------------------------------------------------------------------------------
+# output folders
+# ----------------------------------------------------------------------------------------
+def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> None:
+    """Refuse an output folder that exists (unless --force on a splidar folder) or holds input."""
+    out_r = out.resolve()
+    for p in protect:
+        pr = Path(p).resolve()
+        if pr == out_r or out_r in pr.parents:
+            raise UsageError(
+                f"the output folder '{out}' would contain or replace the input '{p}'; "
+                "choose another --out"
+            )
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise UsageError(f"the output '{out}' exists and is not a folder; choose another --out")
+        if not force:
+            raise UsageError(
+                f"the output folder '{out}' exists; pass --force to replace it or choose "
+                "another --out"
+            )
+        if any(out.iterdir()) and not (out / "summary.json").is_file():
+            raise UsageError(
+                f"refusing to replace '{out}': it is not empty and holds no summary.json of "
+                "a splidar run; choose another --out"
+            )
+
+
+@contextmanager
+def _staging(out: Path):
+    """Yield a temporary folder beside ``out``; rename it to ``out`` on success."""
+    parent = out.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    try:
+        # mkdtemp makes a private (0700) folder; give the result the usual permissions
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)
+        yield tmp
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
+            os.replace(out, old / out.name)
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_outputs(
+    folder: Path, rec, *, cube, args, metrics=None, extra=None, stages: _Stages
+) -> list[str]:
+    from . import export
+
+    files = []
+    with stages.stage("writing points and maps"):
+        export.write_csv(rec.points, folder / "points.csv")
+        export.write_ply(
+            rec,
+            folder / "points.ply",
+            pixel_size=getattr(args, "pixel_size", None) or 1.0,
+        )
+        export.write_npz(rec, folder / "result.npz")
+        files += ["points.csv", "points.ply", "result.npz"]
+    if not args.no_figures:
+        with stages.stage("drawing figures"):
+            import matplotlib
+
+            matplotlib.use("Agg", force=True)
+            from .plotting import save_figures
+
+            paths = save_figures(rec, folder / "figures", cube=cube)
+            files += [f"figures/{p.name}" for p in paths.values()]
+    extra = dict(extra or {})
+    extra["timings_s_command"] = stages.timings
+    extra["files"] = files + ["summary.json"]
+    export.write_summary(rec, folder / "summary.json", metrics=metrics, extra=extra)
+    return files
+
+
+def _given(args, names: Sequence[str]) -> dict[str, Any]:
+    """Options the user gave (None means: the API's default)."""
+    out = {}
+    for name in names:
+        v = getattr(args, name, None)
+        if v is not None:
+            out[name] = v
+    return out
+
+
+_DETECT_OPTS = ("scales", "weights", "pfa", "max_surfaces", "null", "presence", "min_separation")
+_RECON_OPTS = ("classes", "n_classes", "gamma", "rho", "links", "max_iter", "tol")
+
+
+def _pipeline(cube, args, stages: _Stages, *, library=None):
+    from .detect import detect
+    from .reconstruction import reconstruct
+
+    det_kw = _given(args, _DETECT_OPTS)
+    rec_kw = _given(args, _RECON_OPTS)
+    with stages.stage("detecting surfaces"):
+        det = detect(cube, rng=args.seed, **det_kw)
+    log.info(
+        "%d surfaces detected; %.3g %% of voxels kept",
+        len(det.surfaces),
+        100 * det.reduction.voxel_fraction,
+    )
+    with stages.stage("reconstructing"):
+        rec = reconstruct(det, library=library, rng=args.seed, **rec_kw)
+    return rec
+
+
+def _timing_line(det, rec) -> str:
+    td = (det.timings or {}).get("total")
+    tr = (rec.timings or {}).get("total")
+    parts = []
+    if td is not None:
+        parts.append(f"detection {td:.2f} s")
+    if tr is not None:
+        parts.append(f"reconstruction {tr:.2f} s")
+    return "timings: " + ", ".join(parts) if parts else ""
+
+
+# ----------------------------------------------------------------------------------------
+# commands
+# ----------------------------------------------------------------------------------------
+def _cmd_demo(args) -> int:
+    from .metrics import evaluate
+    from .scenes import multispectral_scene
+
+    out = Path(args.out) if args.out else Path("splidar-demo")
+    _check_out_folder(out, args.force)
+    stages = _Stages(
+        ["simulating", "detecting surfaces", "reconstructing", "writing points and maps"]
+        + ([] if args.no_figures else ["drawing figures"]),
+        args.quiet,
+    )
+    try:
+        with stages.stage("simulating"):
+            scene = multispectral_scene(DEMO["shape"], n_bins=DEMO["n_bins"], two_layers=True)
+            sim = scene.simulate(ppp=DEMO["ppp"], sbr=DEMO["sbr"], rng=args.seed)
+        rec = _pipeline(sim.cube, args, stages)
+        metrics = evaluate(rec.points, sim.truth, tau=args.tau)
+        with _staging(out) as tmp:
+            sim.truth.save(tmp / "truth.npz")
+            _write_outputs(
+                tmp,
+                rec,
+                cube=sim.cube,
+                args=args,
+                metrics=metrics.as_dict(),
+                extra={
+                    "command": "demo",
+                    "scene": {
+                        "name": scene.name,
+                        "description": scene.description,
+                        "ppp": sim.ppp,
+                        "sbr": sim.sbr,
+                        "seed": args.seed,
+                    },
+                },
+                stages=stages,
+            )
+    finally:
+        stages.close()
+    c = sim.cube
+    print(
+        f"demo scene: {scene.name}, {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} "
+        f"wavelengths, {c.n_bins} bins, PPP {sim.ppp:.3g}, SBR {sim.sbr:.3g}"
+    )
+    print(f"metrics against the truth ({len(sim.truth)} true surfaces):")
+    print(_indent(str(metrics)))
+    print(_timing_line(rec.detection, rec))
+    _say(args, f"outputs written to {out}/ (figures in {out}/figures/)")
+    return EXIT_OK
+
+
+def _indent(text: str, n: int = 2) -> str:
+    return "\n".join(" " * n + line for line in text.splitlines())
+
+
+def _cmd_run(args) -> int:
+    from .io import load
+
+    inp = Path(args.input)
+    if not inp.exists():
+        raise SplidarError(f"input file '{inp}' does not exist")
+    out = Path(args.out) if args.out else inp.parent / f"{inp.name.split('.')[0]}-splidar"
+    _check_out_folder(out, args.force, protect=[inp])
+    stages = _Stages(
+        ["loading", "detecting surfaces", "reconstructing", "writing points and maps"]
+        + ([] if args.no_figures else ["drawing figures"]),
+        args.quiet,
+    )
+    load_kw = _given(args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps"))
+    if args.window is not None:
+        load_kw["window"] = tuple(args.window)
+    if args.irf is not None:
+        load_kw["irf"] = args.irf
+    if args.library is not None:
+        load_kw["library"] = args.library
+    try:
+        with stages.stage("loading"):
+            cube = load(inp, **load_kw)
+        log.info("loaded %r", cube)
+        rec = _pipeline(cube, args, stages)
+        with _staging(out) as tmp:
+            _write_outputs(
+                tmp,
+                rec,
+                cube=cube,
+                args=args,
+                extra={
+                    "command": "run",
+                    "input": str(inp),
+                    "load_options": load_kw,
+                    "cube": {
+                        "shape": list(cube.shape),
+                        "bin_width_ps": cube.bin_width_ps,
+                        "metadata": dict(cube.metadata),
+                    },
+                },
+                stages=stages,
+            )
+    finally:
+        stages.close()
+    p = rec.points
+    c = cube
+    _say(
+        args,
+        f"{inp}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} wavelength(s), {c.n_bins} bins",
+        f"{len(p)} surfaces in {rec.n_layers} layer(s); "
+        f"{100 * rec.detection.reduction.voxel_fraction:.3g} % of voxels kept",
+        _timing_line(rec.detection, rec),
+        f"outputs written to {out}/",
+    )
+    return EXIT_OK
+
+
+def _truth_path(out: Path) -> Path:
+    name = out.name
+    for ext in (".npz", ".zarr"):
+        if name.endswith(ext):
+            return out.with_name(name[: -len(ext)] + "-truth.npz")
+    return out.with_name(name + "-truth.npz")
+
+
+def _cmd_simulate(args) -> int:
+    from . import scenes
+    from .io import save
+
+    out = Path(args.out)
+    if not out.name.endswith((".npz", ".zarr")):
+        raise UsageError(f"--out must end in .npz or .zarr; got '{out}'")
+    truth_out = _truth_path(out)
+    for f in (out, truth_out):
+        if f.exists() and not args.force:
+            raise UsageError(f"'{f}' exists; pass --force to replace it")
+    kw: dict[str, Any] = {}
+    if args.bins is not None:
+        kw["n_bins"] = args.bins
+    if args.irf_fwhm is not None:
+        kw["irf"] = ("gaussian", args.irf_fwhm)
+    if args.scene == "art":
+        if not args.art_folder:
+            raise UsageError("the art scene needs --art-folder DIR (view1.png, disp1.png)")
+        scene = scenes.art_scene(args.art_folder, **kw)
+    else:
+        if args.art_folder:
+            raise UsageError("--art-folder applies to the art scene only")
+        shape = tuple(args.size)
+        make = {
+            "single": lambda: scenes.single_surface_scene(shape, **kw),
+            "two-layer": lambda: scenes.two_layer_scene(shape, **kw),
+            "multispectral": lambda: scenes.multispectral_scene(shape, **kw),
+            "multispectral-two-layer": lambda: scenes.multispectral_scene(
+                shape, two_layers=True, **kw
+            ),
+        }
+        scene = make[args.scene]()
+    sim = scene.simulate(ppp=args.ppp, sbr=args.sbr, background=args.background, rng=args.seed)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # write beside the destination and rename, so that no half-written file remains
+    for dest, write in ((out, lambda p: save(sim.cube, p)), (truth_out, sim.truth.save)):
+        tmpdir = Path(tempfile.mkdtemp(prefix=f".{dest.name}.partial-", dir=dest.parent))
+        try:
+            tmp = tmpdir / dest.name
+            write(tmp)
+            if dest.is_dir() and not dest.is_symlink():
+                shutil.rmtree(dest)
+            os.replace(tmp, dest)
+        finally:
+            shutil.rmtree(tmpdir, ignore_errors=True)
+    c = sim.cube
+    _say(
+        args,
+        f"simulated {scene.name}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} "
+        f"wavelength(s), {c.n_bins} bins, {len(sim.truth)} surfaces, PPP {sim.ppp:.3g}, "
+        f"SBR {sim.sbr:.3g}",
+        f"cube:  {out}",
+        f"truth: {truth_out}",
+    )
+    return EXIT_OK
+
+
+def read_points(path: str | os.PathLike):
+    """Read a point set from a PointSet ``.npz``, a ``result.npz``, an output folder or a CSV.
+
+    Raises
+    ------
+    SplidarError
+        Missing file, or a file that holds no point set.
+    """
+    import numpy as np
+
+    from .points import PointSet
+
+    p = Path(path)
+    if p.is_dir():
+        if (p / "result.npz").is_file():
+            p = p / "result.npz"
+        else:
+            raise SplidarError(f"folder '{p}' holds no result.npz of a splidar run")
+    if not p.exists():
+        raise SplidarError(f"file '{p}' does not exist")
+    if p.suffix.lower() == ".csv":
+        return _read_points_csv(p)
+    try:
+        z = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise SplidarError(
+            f"cannot read points from '{p}': not a .npz or .csv of points ({exc})"
+        ) from None
+    with z:
+        if not hasattr(z, "files"):
+            raise SplidarError(f"'{p}' holds a single array, not a point set")
+        if "row" in z.files:
+            return PointSet.from_dict(z)
+        if "points_row" in z.files:
+            return PointSet.from_dict({k[7:]: z[k] for k in z.files if k.startswith("points_")})
+        raise SplidarError(
+            f"'{p}' holds no point set (arrays: {', '.join(z.files[:8])}); pass a point set "
+            ".npz, a result.npz or a points.csv"
+        )
+
+
+def _read_points_csv(p: Path):
+    import numpy as np
+
+    from .points import PointSet
+
+    with open(p, encoding="ascii", errors="replace") as fh:
+        header = fh.readline().strip().split(",")
+    if header[:3] != ["row", "col", "depth_bin"]:
+        raise SplidarError(
+            f"'{p}' is not a points.csv of splidar (header starts {header[:3]}, expected "
+            "row,col,depth_bin)"
+        )
+    data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    if data.shape[0] == 0:
+        data = np.zeros((0, len(header)))
+    col = {name: data[:, i] for i, name in enumerate(header)}
+    inten = [col[h] for h in header if h.startswith("intensity_") and "std" not in h]
+    std = [col[h] for h in header if h.startswith("intensity_std_")]
+    n_rows = int(col["row"].max()) + 1 if data.shape[0] else 1
+    n_cols = int(col["col"].max()) + 1 if data.shape[0] else 1
+    log.warning(
+        "%s: a CSV does not record the image size; using %d x %d from the points",
+        p,
+        n_rows,
+        n_cols,
+    )
+    return PointSet(
+        row=col["row"].astype(np.int64),
+        col=col["col"].astype(np.int64),
+        depth_bin=col["depth_bin"],
+        image_shape=(n_rows, n_cols),
+        intensity=np.stack(inten, axis=1) if inten else None,
+        label=col["label"].astype(np.int64) if "label" in col else None,
+        depth_m=col.get("depth_m"),
+        intensity_std=np.stack(std, axis=1) if std else None,
+        label_confidence=col.get("label_confidence"),
+        layer=col["layer"].astype(np.int64) if "layer" in col else None,
+    )
+
+
+def _cmd_evaluate(args) -> int:
+    from .metrics import evaluate
+
+    est = read_points(args.points)
+    true = read_points(args.truth)
+    if est.image_shape != true.image_shape:
+        # a CSV guesses the image size from its points; adopt the truth's when it fits
+        rows, cols = true.image_shape
+        fits = len(est) == 0 or (est.row.max() < rows and est.col.max() < cols)
+        if str(args.points).lower().endswith(".csv") and fits:
+            from dataclasses import replace
+
+            est = replace(est, image_shape=true.image_shape)
+        else:
+            raise SplidarError(
+                f"POINTS have image size {est.image_shape} but TRUTH {true.image_shape}; "
+                "they must come from the same scene"
+            )
+    m = evaluate(est, true, tau=args.tau, tau_m=args.tau_m)
+    if args.json:
+        print(json.dumps({k: _json_num(v) for k, v in m.as_dict().items()}, indent=2))
+    else:
+        print(str(m))
+    return EXIT_OK
+
+
+def _json_num(v):
+    import math
+
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+_COMMANDS = {
+    "demo": _cmd_demo,
+    "run": _cmd_run,
+    "simulate": _cmd_simulate,
+    "evaluate": _cmd_evaluate,
+}
+
+
+# API parameter names that are also options of `splidar run`/`demo`; messages of the
+# library name them as `name` or name=, which the CLI shows as --name.
+_API_OPTIONS = (
+    _DETECT_OPTS
+    + _RECON_OPTS
+    + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable")
+)
+_NAME_RE = re.compile(
+    r"`("
+    + "|".join(_API_OPTIONS)
+    + r")`|\b("
+    + "|".join(_API_OPTIONS + ("irf", "library"))
+    + r")=(?![\w\[\(])"
+)
+
+
+def _cli_names(msg: str) -> str:
+    """Spell the API's parameter names as the command line's options."""
+    return _NAME_RE.sub(lambda m: "--" + (m.group(1) or m.group(2)).replace("_", "-"), msg)
+
+
+def _one_line(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split())
+    return _cli_names(msg) or type(exc).__name__
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``splidar`` command line; returns the exit status.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success, 1 when the command failed, 2 for a usage error, 130 when
+        interrupted.
+
+    Examples
+    --------
+    >>> main(["--version"])  # doctest: +SKIP
+    splidar 0.1.0
+    0
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except SystemExit as exc:  # --help, --version
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    if args.command is None:
+        parser.print_help()
+        return EXIT_USAGE
+    verbose = args.verbose > 0
+    with _logging(args):
+        try:
+            return _COMMANDS[args.command](args)
+        except UsageError as exc:
+            _report(exc, verbose)
+            return EXIT_USAGE
+        except KeyboardInterrupt:
+            print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except (SplidarError, ValueError, OSError, MemoryError) as exc:
+            _report(exc, verbose)
+            return EXIT_FAILURE
+        except Exception as exc:  # noqa: BLE001 - the CLI never shows a raw traceback
+            _report(exc, verbose, unexpected=True)
+            return EXIT_FAILURE
+
+
+def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:
+    if verbose:
+        traceback.print_exception(type(exc), exc, exc.__traceback__, file=sys.stderr)
+    msg = _one_line(exc)
+    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in msg:
+        msg = f"{msg}: '{exc.filename}'"
+    if isinstance(exc, MemoryError):
+        msg = "out of memory; crop the data (--window) or process a smaller region"
+    if unexpected:
+        msg = f"unexpected {type(exc).__name__}: {msg}"
+        if not verbose:
+            msg += " (run with --verbose for the traceback)"
+    print(f"{PROG}: error: {msg}", file=sys.stderr)

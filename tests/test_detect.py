@@ -1,0 +1,284 @@
+"""Tests of splidar.detect (Algorithm 1 and surface extraction).
+
+Small cubes with fixed seeds; statistical tolerances are justified where they appear.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from splidar import Cube, SplidarError, gaussian_irf
+from splidar.detect import Detection, detect
+from splidar.detect._filters import Correlator
+
+IRF = gaussian_irf(3.0)  # FWHM 3 bins, 13 samples, peak on the centre
+
+
+def _cube(lam, rng=0) -> Cube:
+    return Cube(np.random.default_rng(rng).poisson(lam).astype(np.uint16), irf=IRF)
+
+
+def _returns(shape, T, depths, photons, bg):
+    """Poisson mean (rows, cols, 1, T) with returns at fractional ``depths`` (per pixel)."""
+    lam = np.full(shape + (1, T), float(bg))
+    t = np.arange(T)
+    sig = 3.0 / 2.3548
+    for d, ph in zip(depths, photons, strict=True):
+        d = np.broadcast_to(d, shape)[..., None]
+        g = np.exp(-0.5 * ((t - d) / sig) ** 2)
+        lam[:, :, 0, :] += ph * g / g.sum(axis=-1, keepdims=True)
+    return lam
+
+
+def _tilted(shape=(32, 32), T=120, photons=20.0, bg=0.05):
+    r, c = np.mgrid[0 : shape[0], 0 : shape[1]]
+    depth = 30.0 + 1.3 * c + 0.4 * r  # fractional depths spanning ~60 bins
+    return _returns(shape, T, [depth], [photons], bg), depth
+
+
+# ----------------------------------------------------------------------------------------
+# filters and background
+# ----------------------------------------------------------------------------------------
+
+
+def test_correlator_peak_lands_on_depth():
+    corr = Correlator(IRF[None, :], 60)
+    x = np.zeros((1, 60), np.float32)
+    x[0, 30 - 6 : 30 + 7] = IRF  # a return whose peak lands on bin 30
+    out = corr(x)
+    assert out.argmax() == 30
+    # normalised g keeps a flat level everywhere, window edges included (mirrored)
+    np.testing.assert_allclose(corr(np.ones((1, 60), np.float32)), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", ["uniform", "decaying"])
+def test_detect_background_close_to_truth(shape):
+    from splidar.simulate import background_shape
+
+    lam_t, _ = _tilted(T=160, bg=0.0)
+    b_t = 0.3 * background_shape(shape, 160)
+    det = detect(_cube(lam_t + b_t, rng=1), rng=0)
+    bh = det.background.dense()[:, :, 0, :].mean(axis=(0, 1))
+    err = (bh - b_t) / b_t.mean()
+    # 32 x 32 pixels x 160 bins at 0.3 photons/bin: the pixel mean has a relative sd of
+    # ~0.2 % per bin; returns in ~70 % of the coarse windows at some bins (the tilt
+    # spread by the 11 x 11 box) leave a bias: measured <= 2 % on average and <= 13 %
+    # of the mean level at worst
+    assert abs(err.mean()) < 0.04
+    assert np.abs(err).max() < 0.16
+    assert det.background.spatial.shape == (32, 32, 1)
+    assert det.background.temporal.shape == (1, 160)
+
+
+def test_detect_saliency_peaks_at_true_depth():
+    lam, depth = _tilted()
+    det = detect(_cube(lam), rng=0)
+    peak = det.saliency.argmax(axis=-1)
+    # 20 photons per pixel: the saliency peak sits within 1 bin of the true depth away
+    # from the image border (there the reflected coarse boxes of a tilted plane are
+    # asymmetric and shift the coarse response by up to 2 bins)
+    inner = (slice(5, -5), slice(5, -5))
+    assert np.mean(np.abs(peak - depth)[inner] <= 1.0) > 0.97
+    assert np.mean(np.abs(peak - depth) <= 2.0) > 0.97
+
+
+# ----------------------------------------------------------------------------------------
+# false-alarm calibration
+# ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("level", "shape"), [(0.02, "uniform"), (2.0, "decaying")])
+def test_detect_false_alarm_rate_matches_pfa(level, shape):
+    from splidar.simulate import background_shape
+
+    T = 200
+    lam = np.broadcast_to(level * background_shape(shape, T), (48, 48, 1, T))
+    det = detect(_cube(lam, rng=3), pfa=1e-3, rng=0)
+    rate = det.mask.mean()
+    # 460,800 voxels: ~460 expected false alarms (sampling sd ~5 %); the requirement is
+    # a factor 2 (the plain gamma fit misses by 7-126x, ALGORITHM-NOTES)
+    assert 0.5e-3 <= rate <= 2e-3
+    assert det.null.method.startswith("empirical")
+    assert det.null.pfa == 1e-3
+
+
+def test_detect_threshold_varies_with_t_for_decaying_background():
+    from splidar.simulate import background_shape
+
+    lam = np.broadcast_to(1.0 * background_shape("decaying", 200), (32, 32, 1, 200))
+    det = detect(_cube(lam, rng=4), rng=0)
+    thr = np.broadcast_to(det.threshold, det.saliency.shape)
+    # background falls 20-fold along t: its noise, hence the threshold, falls too
+    assert thr[0, 0, 10] > 1.5 * thr[0, 0, -10]
+
+
+# ----------------------------------------------------------------------------------------
+# surfaces
+# ----------------------------------------------------------------------------------------
+
+
+def test_detect_resolves_two_surfaces_a_few_irf_widths_apart():
+    shape = (24, 24)
+    d1 = 50.3 + np.zeros(shape)
+    d2 = d1 + 10.4  # 3.5 FWHM apart
+    lam = _returns(shape, 140, [d1, d2], [15.0, 15.0], 0.02)
+    det = detect(_cube(lam, rng=5), rng=0)
+    s = det.surfaces
+    n_per_px = np.bincount(s.row * shape[1] + s.col, minlength=shape[0] * shape[1])
+    assert np.mean(n_per_px == 2) > 0.95
+    two = n_per_px[s.row * shape[1] + s.col] == 2
+    near = s.depth_bin[two & (s.slot == 0)]
+    far = s.depth_bin[two & (s.slot == 1)]
+    # 15 photons per return: the sub-bin depth has an sd of ~0.35 bin; the mean over
+    # ~550 pixels must sit within 0.15 bin of the truth (integer depths would be 0.3-0.4 off)
+    assert abs(near.mean() - 50.3) < 0.15
+    assert abs(far.mean() - 60.7) < 0.15
+    assert np.median(np.abs(near - 50.3)) < 0.5
+
+
+def test_detect_respects_max_surfaces_and_slot_order():
+    shape = (16, 16)
+    lam = _returns(shape, 160, [40.0, 70.0, 100.0], [15.0, 15.0, 15.0], 0.02)
+    det = detect(_cube(lam, rng=6), max_surfaces=2, rng=0)
+    s = det.surfaces
+    key = s.row * shape[1] + s.col
+    assert np.bincount(key).max() <= 2
+    assert s.n_slots == 2
+    # slots in depth order within each pixel
+    for k in np.unique(key)[:50]:
+        sel = key == k
+        order = np.argsort(s.slot[sel])
+        assert np.all(np.diff(s.depth_bin[sel][order]) > 0)
+    det1 = detect(_cube(lam, rng=6), max_surfaces=1, rng=0)
+    assert np.bincount(det1.surfaces.row * shape[1] + det1.surfaces.col).max() == 1
+
+
+def test_detect_scale_selection_and_histograms():
+    lam, depth = _tilted()
+    det = detect(_cube(lam), rng=0)
+    s = det.surfaces
+    Q = len(det.scales)
+    assert s.scale_index.min() >= 1 and s.scale_index.max() <= Q - 1  # eq:scale_sel, q in 2..Q
+    assert s.histograms.shape[:3] == (len(s), Q, 1)
+    assert np.all(s.histograms >= 0)
+    # zero outside the support
+    W = s.histograms.shape[-1]
+    tt = s.offset[:, None] + np.arange(W)
+    outside = (tt < s.start[:, None]) | (tt >= s.stop[:, None])
+    assert np.all(s.histograms[:, :, 0, :][np.broadcast_to(outside[:, None], (len(s), Q, W))] == 0)
+    np.testing.assert_allclose(s.signal, s.histograms.sum(axis=-1), rtol=1e-4, atol=1e-4)
+    # own-pixel counts minus background ~ 20 photons per surface on average
+    assert 15 < s.net_counts[:, 0].mean() < 25
+    p = det.points
+    err = p.depth_bin - depth[p.row, p.col]
+    assert np.mean(np.abs(err) < 1.0) > 0.95
+    assert np.all(p.layer == s.slot)
+
+
+def test_detect_with_one_scale_uses_it():
+    lam, _ = _tilted()
+    det = detect(_cube(lam), scales=(3,), rng=0)
+    assert det.scales == (3,)
+    assert np.all(det.surfaces.scale_index == 0)
+    assert len(det.surfaces) > 0.9 * 32 * 32
+
+
+def test_detect_thin_net_few_false_surfaces():
+    from splidar.scenes import two_layer_scene
+
+    scene = two_layer_scene((40, 40), n_bins=160)
+    sim = scene.simulate(ppp=10, sbr=1, background="uniform", rng=0)
+    from splidar.metrics import evaluate
+
+    auto = evaluate(detect(sim.cube, rng=0).points, sim.truth, tau=3)
+    none = evaluate(detect(sim.cube, presence="none", rng=0).points, sim.truth, tau=3)
+    # the presence check removes most of what coarse scales plant beside the strands
+    # while keeping the true surfaces (measured on 64 x 64, two seeds: F_true 0.944 and
+    # 0.052 false surfaces per true one with the check, 0.899 and 0.566 without)
+    assert auto.f_false_rate < 0.3 * none.f_false_rate
+    assert auto.f_true > 0.9
+
+
+def test_detect_presence_keeps_dim_extended_surface():
+    # a flat plane of 0.5 signal photons per pixel: its 3 x 3 response cannot reach
+    # presence_z = 3 (predicted z ~ 2), so a fixed z test drops about half of it
+    # (measured: 53 % kept, seeds 0 and 1); the adaptive test only asks a local response
+    # presence_z below the neighbourhood's prediction and keeps it (measured 86 % and
+    # 96 %, with 12 and 19 wrong-depth points of 1024)
+    lam = _returns((32, 32), 120, [60.0], [0.5], 0.04)
+    det = detect(_cube(lam, rng=0), rng=0)
+    ok = np.abs(det.points.depth_bin - 60.0) <= 3
+    assert ok.sum() > 0.75 * 32 * 32
+    assert (~ok).sum() < 0.03 * 32 * 32
+
+
+def test_detect_result_fields_and_reduction():
+    lam, _ = _tilted()
+    cube = _cube(lam)
+    det = detect(cube, rng=0)
+    assert isinstance(det, Detection)
+    assert det.saliency.shape == (32, 32, 120) and det.saliency.dtype == np.float32
+    assert det.mask.shape == (32, 32, 120) and det.mask.dtype == bool
+    r = det.reduction
+    assert r.n_voxels == int(det.mask.sum())
+    assert 0 < r.voxel_fraction < 0.2
+    # the mask keeps far more photons than voxels (signal is concentrated)
+    assert r.photon_fraction > 3 * r.voxel_fraction
+    assert set(det.timings) >= {"null", "total"}
+    assert det.options["pfa"] == 1e-3
+    np.testing.assert_allclose(det.weights.sum(), 1.0)
+
+
+def test_detect_is_reproducible_with_rng():
+    lam, _ = _tilted(shape=(16, 16))
+    cube = _cube(lam)
+    a, b = detect(cube, rng=1), detect(cube, rng=1)
+    np.testing.assert_array_equal(a.mask, b.mask)
+    np.testing.assert_array_equal(a.surfaces.depth_bin, b.surfaces.depth_bin)
+
+
+# ----------------------------------------------------------------------------------------
+# bad inputs
+# ----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_cube():
+    return _cube(np.full((8, 8, 1, 40), 0.1))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(scales=(1, 2, 7)), "odd"),
+        (dict(scales=(0, 3)), "odd"),
+        (dict(scales=(1.5, 3)), "scales"),
+        (dict(scales=()), "empty"),
+        (dict(scales=(3, 3)), "repeat"),
+        (dict(weights=[0.5, 0.5]), "one value per scale"),
+        (dict(weights=[0.5, 0.5, 0.5, 0.5]), "sum to 1"),
+        (dict(weights=[1.5, -0.5, 0, 0]), "non-negative"),
+        (dict(pfa=0.0), "pfa"),
+        (dict(pfa=1.0), "pfa"),
+        (dict(max_surfaces=0), "max_surfaces"),
+        (dict(surface_pfa=2.0), "surface_pfa"),
+        (dict(null="normal"), "null"),
+        (dict(presence="maybe"), "presence"),
+        (dict(split_ratio=1.5), "split_ratio"),
+    ],
+)
+def test_detect_bad_options_raise(small_cube, kwargs, match):
+    with pytest.raises(SplidarError, match=match):
+        detect(small_cube, **kwargs)
+
+
+def test_detect_rejects_non_cube():
+    with pytest.raises(SplidarError, match="Cube"):
+        detect(np.zeros((4, 4, 10)))
+
+
+def test_detect_rejects_irf_longer_than_t():
+    # Cube itself refuses such an IRF; detect re-checks cubes built around validation
+    with pytest.raises(SplidarError, match="longer"):
+        Cube(np.zeros((4, 4, 5), np.uint16), irf=IRF)
