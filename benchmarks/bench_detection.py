@@ -47,7 +47,7 @@ TARGETS = (
 def _splidar_detect():
     """``splidar.detect`` if it is importable, else None (the baselines still run)."""
     try:
-        from splidar.detect import detect
+        from splidar.detection import detect
     except ImportError:
         return None
     return detect

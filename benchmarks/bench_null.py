@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from splidar import Cube, gaussian_irf
-from splidar.detect import detect
+from splidar.detection import detect
 from splidar.simulate import background_shape
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 import splidar
-from splidar.detect import detect
+from splidar.detection import detect
 from splidar.reconstruction import irf_fraction, nearest_signature, reconstruct, synthetic_detection
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"

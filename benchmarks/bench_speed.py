@@ -302,7 +302,7 @@ class _Sim:
 # Imported from their modules: once a subpackage such as ``splidar.detect`` has been
 # imported, ``splidar.detect`` names the subpackage, not the function.
 _STAGE_MODULES = {
-    "detect": "splidar.detect",
+    "detect": "splidar.detection",
     "reconstruct": "splidar.reconstruction",
     "process": "splidar.pipeline",
 }

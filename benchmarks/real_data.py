@@ -66,7 +66,7 @@ def _reconstruct():
 
 
 def _report(name, desc, cube, args, truth=None):
-    from splidar.detect import detect
+    from splidar.detection import detect
 
     L = cube.n_wavelengths
     print(f"\n== {name}: {desc}")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from splidar import Cube, SplidarError, gaussian_irf
-from splidar.detect import Detection, detect
-from splidar.detect._filters import Correlator
+from splidar.detection import Detection, detect
+from splidar.detection._filters import Correlator
 
 IRF = gaussian_irf(3.0)  # FWHM 3 bins, 13 samples, peak on the centre
 
@@ -200,17 +200,20 @@ def test_detect_thin_net_few_false_surfaces():
     assert auto.f_true > 0.9
 
 
-def test_detect_presence_keeps_dim_extended_surface():
+def test_detect_adaptive_presence_keeps_dim_extended_surface():
     # a flat plane of 0.5 signal photons per pixel: its 3 x 3 response cannot reach
-    # presence_z = 3 (predicted z ~ 2), so a fixed z test drops about half of it
+    # presence_z = 3 (predicted z ~ 2), so the fixed z test ("auto") drops about half of it
     # (measured: 53 % kept, seeds 0 and 1); the adaptive test only asks a local response
     # presence_z below the neighbourhood's prediction and keeps it (measured 86 % and
     # 96 %, with 12 and 19 wrong-depth points of 1024)
     lam = _returns((32, 32), 120, [60.0], [0.5], 0.04)
-    det = detect(_cube(lam, rng=0), rng=0)
+    cube = _cube(lam, rng=0)
+    det = detect(cube, presence="adaptive", rng=0)
     ok = np.abs(det.points.depth_bin - 60.0) <= 3
     assert ok.sum() > 0.75 * 32 * 32
     assert (~ok).sum() < 0.03 * 32 * 32
+    fixed = np.abs(detect(cube, rng=0).points.depth_bin - 60.0) <= 3
+    assert fixed.sum() < ok.sum()
 
 
 def test_detect_result_fields_and_reduction():

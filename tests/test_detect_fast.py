@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from splidar.detect._background import CLIP, robust_level
-from splidar.detect._fast import poisson_background, saliency_wavelength
-from splidar.detect._filters import box
+from splidar.detection._background import CLIP, robust_level
+from splidar.detection._fast import poisson_background, saliency_wavelength
+from splidar.detection._filters import box
 
 
 def _reference(c, keep, scales, weights, dev, var_factor, quantum, spatial=None):

@@ -11,7 +11,7 @@ from plyfile import PlyData
 
 from splidar import PointSet, SpectralLibrary, SplidarError
 from splidar.cube import SPEED_OF_LIGHT
-from splidar.detect._result import Background, DataReduction, Detection, NullModel, Surfaces
+from splidar.detection._result import Background, DataReduction, Detection, NullModel, Surfaces
 from splidar.export import point_colors, write_csv, write_npz, write_ply, write_summary
 from splidar.reconstruction._result import ConvergenceHistory, Reconstruction
 

@@ -523,7 +523,7 @@ _RECON_OPTS = ("classes", "n_classes", "gamma", "rho", "links", "max_iter", "tol
 
 
 def _pipeline(cube, args, stages: _Stages, *, library=None):
-    from .detect import detect
+    from .detection import detect
     from .reconstruction import reconstruct
 
     det_kw = _given(args, _DETECT_OPTS)

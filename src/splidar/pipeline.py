@@ -58,7 +58,7 @@ def process(cube: Cube, *, library=None, **options):
     >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
     >>> rec = splidar.process(sim.cube, rng=0)  # doctest: +SKIP
     """
-    from .detect import detect
+    from .detection import detect
     from .reconstruction import reconstruct
 
     if not isinstance(cube, Cube):

@@ -9,7 +9,7 @@ import numpy as np
 
 from .._validation import SplidarError, as_float_array, check_choice, check_int, check_positive
 from ..cube import SPEED_OF_LIGHT
-from ..detect._result import Detection
+from ..detection._result import Detection
 from ..library import as_library
 from ..points import PointSet
 from . import _kernels as kern

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..detect._result import Detection
+from ..detection._result import Detection
 from ..library import SpectralLibrary
 from ..points import PointSet
 
@@ -81,6 +81,14 @@ class Reconstruction:
     hyperparameters: Mapping[str, Any] = field(default_factory=dict)
     timings: Mapping[str, float] = field(default_factory=dict)
     detection: Detection | None = None
+
+    def __repr__(self) -> str:
+        k = "none" if self.library is None else f"{self.library.n_classes} classes"
+        return (
+            f"Reconstruction(points={len(self.points)}, image_shape={self.image_shape}, "
+            f"layers={self.n_layers}, L={self.n_wavelengths}, library={k}, "
+            f"iterations={self.history.n_iter}, converged={self.history.converged})"
+        )
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._validation import check_int, check_positive
-from ..detect._result import Background, DataReduction, Detection, NullModel, Surfaces
+from ..detection._result import Background, DataReduction, Detection, NullModel, Surfaces
 from ..irf import gaussian_irf
 from ..library import SpectralLibrary
 from ..points import PointSet

@@ -2,12 +2,12 @@
 
 One kernel per wavelength replaces, for a block of correlated counts, the per-scale
 :func:`scipy.ndimage.uniform_filter` calls, the weighted multiscale sum, the robust
-background level (:func:`~splidar.detect._background.robust_level`), ``bhat``
+background level (:func:`~splidar.detection._background.robust_level`), ``bhat``
 (``eq:background_3``) and the saliency accumulation (``eq:4.s1``): the correlated
 block is read about once per output row from cache, and no ``(rows, cols, T)``
 temporary is allocated per scale or step.
 
-The box filters reproduce :func:`~splidar.detect._filters.box` (``mode="reflect"``,
+The box filters reproduce :func:`~splidar.detection._filters.box` (``mode="reflect"``,
 separable: a float32 pass along rows, then one along columns with float64 running
 sums), so the results agree with the scipy reference up to float32 rounding
 (``tests/test_detect_fast.py``).
@@ -236,9 +236,9 @@ def saliency_wavelength(
         ``bhat`` with ``x = sum_q lambda_q Box_q(c) - bhat``.
     spatial : ndarray (r, C) float32, optional
         Background level; estimated (robust clipped mean over t of the coarsest scale,
-        as :func:`~splidar.detect._background.robust_level`) when None.
+        as :func:`~splidar.detection._background.robust_level`) when None.
     var_factor, quantum, clip, n_iter
-        As :func:`~splidar.detect._background.robust_level`.
+        As :func:`~splidar.detection._background.robust_level`.
     n_threads : int
         Threads over output rows (the kernel releases the GIL); results do not depend
         on it (every output row is computed the same way).

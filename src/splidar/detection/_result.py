@@ -233,6 +233,14 @@ class Detection:
     timings: Mapping[str, float] = field(default_factory=dict)
     options: Mapping[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        return (
+            f"Detection(cube_shape={tuple(self.cube_shape)}, surfaces={len(self.surfaces)}, "
+            f"scales={tuple(self.scales)}, pfa={self.pfa:g}, "
+            f"voxels_kept={self.reduction.voxel_fraction:.4g}, "
+            f"photons_kept={self.reduction.photon_fraction:.4g})"
+        )
+
     @property
     def image_shape(self) -> tuple[int, int]:
         return (int(self.cube_shape[0]), int(self.cube_shape[1]))
