@@ -182,7 +182,7 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--presence",
-        choices=("auto", "none", "pixel"),
+        choices=("auto", "adaptive", "none", "pixel"),
         help="own-pixel presence check of candidates (default auto)",
     )
     g.add_argument(
