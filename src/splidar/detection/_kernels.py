@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ._fast import _refl as _reflect  # one reflect rule for every kernel
+
 __all__ = ["find_segments", "gather_scales"]
 
 
@@ -173,16 +175,6 @@ def find_segments(mask, d, s, e, min_sep, rho):
                     o_ev[k] = seg_ev[u]
                     k += 1
     return o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k]
-
-
-@njit(cache=True, nogil=True)
-def _reflect(i, n):
-    m = i % (2 * n)
-    if m < 0:
-        m += 2 * n
-    if m >= n:
-        m = 2 * n - 1 - m
-    return m
 
 
 @njit(cache=True, nogil=True)
