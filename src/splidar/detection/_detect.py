@@ -265,6 +265,26 @@ class _BlockOut:
     n_rejected: int
 
 
+def _parabola_depth(u, w0, offset):
+    """Sub-bin depth: parabola through the response ``u`` (S, W) around its peak ``w0`` (S,).
+
+    The vertex offset is kept only for a concave peak and clipped to half a bin; peaks on
+    the window edge keep their integer position.
+    """
+    W = u.shape[1]
+    sidx = np.arange(u.shape[0])
+    depth = (offset + w0).astype(np.float64)
+    ok = (w0 > 0) & (w0 < W - 1)
+    if np.any(ok):
+        um = u[sidx[ok], w0[ok] - 1].astype(np.float64)
+        uc = u[sidx[ok], w0[ok]].astype(np.float64)
+        up = u[sidx[ok], w0[ok] + 1].astype(np.float64)
+        den = um - 2 * uc + up
+        delta = np.where(den < 0, 0.5 * (um - up) / np.where(den < 0, den, -1.0), 0.0)
+        depth[ok] += np.clip(delta, -0.5, 0.5)
+    return depth
+
+
 def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
     """Per-candidate clean histograms at every scale, scale selection, depth, presence."""
     R, C = opts["image_shape"]
@@ -298,15 +318,7 @@ def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx,
     sidx = np.arange(S)
     u = resp[sidx, qbar].sum(axis=1)  # (S, W)
     w0 = d_q[sidx, qbar]
-    depth = (offset + w0).astype(np.float64)
-    ok = (w0 > 0) & (w0 < W - 1)
-    if np.any(ok):
-        um = u[sidx[ok], w0[ok] - 1].astype(np.float64)
-        uc = u[sidx[ok], w0[ok]].astype(np.float64)
-        up = u[sidx[ok], w0[ok] + 1].astype(np.float64)
-        den = um - 2 * uc + up
-        delta = np.where(den < 0, 0.5 * (um - up) / np.where(den < 0, den, -1.0), 0.0)
-        depth[ok] += np.clip(delta, -0.5, 0.5)
+    depth = _parabola_depth(u, w0, offset)
     # adaptive refinement: where the finest scale's own response is significant (z >= 3
     # against the Poisson noise of the background), its peak gives the depth; coarse
     # scales mix the returns of neighbours at depth edges and on slopes.
@@ -328,15 +340,7 @@ def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx,
             if np.any(ref):
                 w0 = np.where(ref, wq, w0)
                 u = np.where(ref[:, None], uq, u)
-        depth = (offset + w0).astype(np.float64)
-        ok = (w0 > 0) & (w0 < W - 1)
-        if np.any(ok):
-            um = u[sidx[ok], w0[ok] - 1].astype(np.float64)
-            uc = u[sidx[ok], w0[ok]].astype(np.float64)
-            up = u[sidx[ok], w0[ok] + 1].astype(np.float64)
-            den = um - 2 * uc + up
-            delta = np.where(den < 0, 0.5 * (um - up) / np.where(den < 0, den, -1.0), 0.0)
-            depth[ok] += np.clip(delta, -0.5, 0.5)
+        depth = _parabola_depth(u, w0, offset)
     # own-pixel raw counts and background over the support
     ye = y[rows + (r0 - e0), cols]  # (S, L, T) raw
     raw = np.take_along_axis(ye, np.broadcast_to(tt[:, None, :], (S, L, W)), axis=2)
