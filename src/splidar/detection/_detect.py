@@ -25,7 +25,7 @@ from ..cube import Cube
 from ._background import CLIP, temporal_shape
 from ._fast import poisson_background, saliency_wavelength
 from ._filters import Correlator
-from ._kernels import find_segments, gather_scales
+from ._kernels import extract_surfaces, find_segments
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 
@@ -242,16 +242,6 @@ def _irf_fwhm(irf: np.ndarray) -> float:
     return out
 
 
-def _shifted_irf(irf: np.ndarray, peak: np.ndarray, t: np.ndarray, depth: np.ndarray):
-    """``g_l(t - d)`` with the peak on ``d`` (linear interpolation), shape (S, L, W)."""
-    L, n = irf.shape
-    out = np.empty((depth.size, L, t.shape[-1]), np.float64)
-    for l in range(L):
-        x = t - depth[:, None] + peak[l]
-        out[:, l] = np.interp(x, np.arange(n), irf[l], left=0.0, right=0.0)
-    return out
-
-
 @dataclass
 class _BlockOut:
     sal: np.ndarray
@@ -265,109 +255,97 @@ class _BlockOut:
     n_rejected: int
 
 
-def _parabola_depth(u, w0, offset):
-    """Sub-bin depth: parabola through the response ``u`` (S, W) around its peak ``w0`` (S,).
-
-    The vertex offset is kept only for a concave peak and clipped to half a bin; peaks on
-    the window edge keep their integer position.
-    """
-    W = u.shape[1]
-    sidx = np.arange(u.shape[0])
-    depth = (offset + w0).astype(np.float64)
-    ok = (w0 > 0) & (w0 < W - 1)
-    if np.any(ok):
-        um = u[sidx[ok], w0[ok] - 1].astype(np.float64)
-        uc = u[sidx[ok], w0[ok]].astype(np.float64)
-        up = u[sidx[ok], w0[ok] + 1].astype(np.float64)
-        den = um - 2 * uc + up
-        delta = np.where(den < 0, 0.5 * (um - up) / np.where(den < 0, den, -1.0), 0.0)
-        depth[ok] += np.clip(delta, -0.5, 0.5)
-    return depth
-
-
 def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
-    """Per-candidate clean histograms at every scale, scale selection, depth, presence."""
+    """Per-candidate clean histograms at every scale, scale selection, depth, presence.
+
+    Runs the numba kernel :func:`~splidar.detection._kernels.extract_surfaces` over the
+    candidates (split over ``ctx.workers`` threads; each candidate is computed the same
+    way whatever the split). For each candidate: box means of the correlated block at
+    every scale over a window of ``width`` bins about its peak, minus ``bhat``
+    (``eq:background_3``), kept positive inside the support (``eq:background_final``);
+    the global and per-scale depths (argmax of the clean matched-filter response,
+    ``eq:depth_global`` / ``eq:depth_scale``) and the selected scale (``eq:scale_sel``);
+    a sub-bin depth (parabola through the selected scale's response, or the finest
+    scale's when significant and ``refine``); own-pixel counts, background and the
+    presence statistics (own-pixel log-likelihood ratio, local-scale z, predicted z).
+    """
     R, C = opts["image_shape"]
     L, T = ctx.dev.shape
     Q = ctx.scales.size
     W = opts["width"]
-    wh = W // 2
     S = rows.size
-    offset = np.clip(peak - wh, 0, max(T - W, 0))
-    lo = np.maximum(start, offset)
-    hi = np.minimum(stop, offset + W)
-    img_rows = rows + r0
-    hist = gather_scales(c_ext, img_rows, cols, offset, W, ctx.scales, R, e0, C)  # (S,Q,L,W)
-    tt = offset[:, None] + np.arange(W)[None, :]  # (S, W)
-    inside = (tt >= lo[:, None]) & (tt < hi[:, None])
-    bh = sp_blk[rows, cols][:, :, None] + ctx.dev[:, tt].transpose(1, 0, 2)  # (S, L, W)
-    np.maximum(bh, 0, out=bh)
-    resp = hist - bh[:, None]  # (S, Q, L, W)
-    clean = np.maximum(resp, 0) * inside[:, None, None, :]  # eq:background_final
-    signal = clean.sum(axis=-1, dtype=np.float64)
-    # eq:depth_global / eq:depth_scale: argmax of the matched-filter response (our
-    # clean histograms are already correlated with g; see detect's Notes)
-    per_scale = clean.sum(axis=2)  # (S, Q, W)
-    d_glob = per_scale.sum(axis=1).argmax(axis=-1)
-    d_q = per_scale.argmax(axis=-1)  # (S, Q)
-    if Q == 1:
-        qbar = np.zeros(S, np.int64)
+    qloc = _local_scale(ctx.scales)
+    want_sel = opts["presence"] == "pixel"
+    o = dict(
+        depth_bin=np.empty(S, np.float64),
+        start=np.empty(S, np.int64),
+        stop=np.empty(S, np.int64),
+        scale_index=np.empty(S, np.int64),
+        offset=np.empty(S, np.int64),
+        histograms=np.empty((S, Q, L, W), np.float32),
+        signal=np.empty((S, Q, L), np.float64),
+        counts=np.empty((S, L), np.float64),
+        background=np.empty((S, L), np.float64),
+        presence_llr=np.empty(S, np.float64),
+        presence_z=np.empty(S, np.float64),
+    )
+    zpred = np.empty(S, np.float64)
+    llr_sel = np.empty(S if want_sel else 0, np.float64)
+    args = (
+        y,
+        c_ext,
+        int(e0),
+        int(r0),
+        np.ascontiguousarray(rows, np.int64),
+        np.ascontiguousarray(cols, np.int64),
+        np.ascontiguousarray(start, np.int64),
+        np.ascontiguousarray(stop, np.int64),
+        np.ascontiguousarray(peak, np.int64),
+        sp_blk,
+        ctx.dev,
+        ctx.scales,
+        np.ascontiguousarray(ctx.gsq, np.float64),
+        np.ascontiguousarray(ctx.corr.irf, np.float64),
+        np.ascontiguousarray(ctx.corr.peak, np.float64),
+        int(W),
+        int(R),
+        int(C),
+        bool(opts["refine"]),
+        float(opts["refine_z"]),
+        int(qloc),
+        want_sel,
+    )
+    outs = (
+        o["depth_bin"],
+        o["start"],
+        o["stop"],
+        o["scale_index"],
+        o["offset"],
+        o["histograms"],
+        o["signal"],
+        o["counts"],
+        o["background"],
+        o["presence_llr"],
+        o["presence_z"],
+        zpred,
+        llr_sel,
+    )
+    n_threads = max(1, min(int(ctx.workers), S // 2000))
+    if n_threads == 1:
+        extract_surfaces(*args, 0, S, *outs)
     else:
-        dist = np.abs(d_q[:, 1:] - d_glob[:, None])
-        qbar = dist.argmin(axis=1) + 1  # eq:scale_sel, q in 2..Q
-    sidx = np.arange(S)
-    u = resp[sidx, qbar].sum(axis=1)  # (S, W)
-    w0 = d_q[sidx, qbar]
-    depth = _parabola_depth(u, w0, offset)
-    # adaptive refinement: where the finest scale's own response is significant (z >= 3
-    # against the Poisson noise of the background), its peak gives the depth; coarse
-    # scales mix the returns of neighbours at depth edges and on slopes.
-    if opts["refine"] and Q > 1:
-        done = np.zeros(S, bool)
-        for q, zmin in ((0, opts["refine_z"][0]), (1, opts["refine_z"][1])):
-            if q >= Q - 1 and q > 0:
-                break
-            uq = (resp[:, q] * inside[:, None, :]).sum(axis=1)  # (S, W)
-            sdq = np.sqrt(
-                (np.maximum((bh * inside[:, None, :]).max(axis=-1), 1e-6) * ctx.gsq[None, :]).sum(
-                    axis=1
+        cuts = np.linspace(0, S, n_threads + 1).round().astype(np.int64)
+        with ThreadPoolExecutor(n_threads) as ex:
+            list(
+                ex.map(
+                    lambda ab: extract_surfaces(*args, int(ab[0]), int(ab[1]), *outs),
+                    zip(cuts[:-1], cuts[1:], strict=True),
                 )
-            ) / float(ctx.scales[q])
-            wq = uq.argmax(axis=-1)
-            z = uq[sidx, wq] / np.maximum(sdq, 1e-9)
-            ref = (z >= zmin) & ~done
-            done |= ref
-            if np.any(ref):
-                w0 = np.where(ref, wq, w0)
-                u = np.where(ref[:, None], uq, u)
-        depth = _parabola_depth(u, w0, offset)
-    # own-pixel raw counts and background over the support
-    ye = y[rows + (r0 - e0), cols]  # (S, L, T) raw
-    raw = np.take_along_axis(ye, np.broadcast_to(tt[:, None, :], (S, L, W)), axis=2)
-    raw = raw.astype(np.float64) * inside[:, None, :]
-    counts = raw.sum(axis=-1)
-    background = (bh * inside[:, None, :]).sum(axis=-1, dtype=np.float64)
+            )
     keep = np.ones(S, bool)
-    llr = np.zeros(S)
-    zloc = np.zeros(S)
-    if S:
-        qloc = _local_scale(ctx.scales)
-        s_loc = signal[:, qloc]  # (S, L) clean signal per pixel at the local scale
-        llr = _own_llr(raw, bh, inside, depth - offset, s_loc, ctx)
-        # significance of the local scale's response at the depth bin (Poisson z)
-        wd = np.clip(np.round(depth - offset).astype(np.int64), 0, W - 1)
-        r_loc = resp[sidx, qloc][sidx, :, wd].sum(axis=-1)
-        var = (bh[sidx, :, wd] * ctx.gsq[None, :]).sum(axis=-1) / ctx.scales[qloc] ** 2
-        zloc = r_loc / np.sqrt(np.maximum(var, 1e-12))
-        # the z the local scale would reach if the pixel and its 3 x 3 neighbours held a
-        # return of the selected scale's intensity (matched-filter peak = I sum g^2):
-        # beside a bright neighbourhood a ghost falls far short of it; in a dim one
-        # (a dark stripe) even a true return cannot reach presence_z
-        zpred = (signal[sidx, qbar] * ctx.gsq[None, :]).sum(axis=-1) / np.sqrt(
-            np.maximum(var, 1e-12)
-        )
+    zloc, llr = o["presence_z"], o["presence_llr"]
     if opts["presence"] == "pixel" and S:
-        keep = _own_llr(raw, bh, inside, depth - offset, signal[sidx, qbar], ctx) >= 0.0
+        keep = llr_sel >= 0.0
     elif opts["presence"] in ("auto", "adaptive") and S:
         zreq = opts["presence_z"]
         if opts["presence"] == "adaptive":
@@ -375,44 +353,16 @@ def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx,
             # is too dim for a true return to reach presence_z
             zreq = np.minimum(zreq, zpred - opts["presence_z"])
         keep = (zloc >= zreq) & (llr >= -opts["presence_llr"])
-    return dict(
-        row=img_rows,
-        col=cols,
-        depth_bin=depth,
-        start=lo,
-        stop=hi,
-        scale_index=qbar,
-        offset=offset,
-        histograms=clean.astype(np.float32),
-        signal=signal,
-        counts=counts,
-        background=background,
-        saliency_mass=mass,
-        presence_llr=llr,
-        presence_z=zloc,
-    ), keep
+    o["row"] = rows + r0
+    o["col"] = cols
+    o["saliency_mass"] = mass
+    return o, keep
 
 
 def _local_scale(scales: np.ndarray) -> int:
     """Index of the local scale of the presence check: the finest one above 1 pixel."""
     above = np.flatnonzero(scales > 1)
     return int(above[0]) if above.size else 0
-
-
-def _own_llr(raw, bh, inside, depth_w, s_pred, ctx: _Ctx):
-    """Own-pixel Poisson log-likelihood ratio: a return of ``s_pred`` photons at the depth
-    vs. background only, over the support window.
-
-    ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` summed over wavelengths.
-    """
-    W = raw.shape[-1]
-    tw = np.broadcast_to(np.arange(W, dtype=np.float64), (raw.shape[0], W))
-    g = _shifted_irf(ctx.corr.irf, ctx.corr.peak, tw, depth_w) * inside[:, None, :]
-    s = np.maximum(s_pred, 1e-9)  # (S, L)
-    b = np.maximum(bh.astype(np.float64), 1e-9)
-    return (raw * np.log1p(s[:, :, None] * g / b)).sum(axis=(1, 2)) - (s * g.sum(axis=-1)).sum(
-        axis=1
-    )
 
 
 def _rank_in_pixel(row, col, score, keep):
@@ -484,9 +434,15 @@ def _block(counts, r0, r1, ctx: _Ctx, thr_fn, opts) -> _BlockOut:
     rows, cols, start, stop, peak, mass, ev = find_segments(
         mask & (d > 0), d, sal, _evidence(sal, thr), opts["min_separation"], opts["split_ratio"]
     )
+    n_cand = int(rows.size)
+    # candidates whose evidence does not beat the simulated null are dropped before
+    # the (costly) extraction: the evidence does not depend on it
+    pre = np.flatnonzero(ev > opts["evidence_threshold"])
+    rows, cols, start, stop, peak, mass, ev = (
+        a[pre] for a in (rows, cols, start, stop, peak, mass, ev)
+    )
     surf, keep = _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp, ctx, opts)
     surf["evidence"] = ev
-    keep &= ev > opts["evidence_threshold"]
     if opts["presence"] in ("auto", "adaptive") and keep.any():
         # a pixel's strongest candidate is supported by the scene's continuity; any
         # further one is an extra claim on the pixel and needs its own counts to favour
@@ -498,10 +454,10 @@ def _block(counts, r0, r1, ctx: _Ctx, thr_fn, opts) -> _BlockOut:
             extra_ok &= surf["presence_z"] >= opts["presence_z"]
         keep &= (rank == 0) | extra_ok
     del c_ext
-    return _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts)
+    return _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts, n_cand)
 
 
-def _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts) -> _BlockOut:
+def _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     idx, slot = _select(surf, keep, opts["max_surfaces"])
     out = {k: v[idx] for k, v in surf.items()}
     out["slot"] = slot
@@ -513,8 +469,8 @@ def _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts) -> _BlockOut
         n_photons_kept=kept,
         n_photons=n_ph,
         surf=out,
-        n_candidates=int(keep.size),
-        n_rejected=int((~keep).sum()),
+        n_candidates=n_cand,
+        n_rejected=n_cand - int(keep.sum()),
     )
 
 
@@ -825,7 +781,7 @@ def detect(
         presence_z=presence_z,
         secondary_llr=presence_secondary,
         refine=refine,
-        refine_z=(3.0, np.inf),
+        refine_z=3.0,
         evidence_threshold=ev_thr,
         max_surfaces=max_surfaces,
     )

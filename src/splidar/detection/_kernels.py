@@ -220,3 +220,252 @@ def gather_scales(c, row, col, offset, width, scales, n_rows_img, row0, n_cols_i
                 for w in range(width):
                     out[s, q, l, w] = acc[l, w] * inv
     return out
+
+
+@njit(cache=True, nogil=True)
+def _interp_irf(g, x):
+    """``np.interp(x, arange(n), g, left=0, right=0)`` for one sample."""
+    n = g.size
+    if x < 0.0 or x > n - 1:
+        return 0.0
+    i = int(np.floor(x))
+    if i >= n - 1:
+        return g[n - 1]
+    return g[i] + (x - i) * (g[i + 1] - g[i])
+
+
+@njit(cache=True, nogil=True)
+def _parabola(u, w0, W):
+    """Sub-bin offset of the vertex of the parabola through ``u[w0-1:w0+2]``.
+
+    Kept only for a concave peak away from the window edges, clipped to half a bin.
+    """
+    if w0 <= 0 or w0 >= W - 1:
+        return 0.0
+    um = np.float64(u[w0 - 1])
+    uc = np.float64(u[w0])
+    up = np.float64(u[w0 + 1])
+    den = um - 2.0 * uc + up
+    if den < 0.0:
+        delta = 0.5 * (um - up) / den
+        return min(max(delta, -0.5), 0.5)
+    return 0.0
+
+
+@njit(cache=True, nogil=True)
+def _llr_one(raw, bh, inside, dw, s, irf, peak, L, W):
+    """Own-pixel Poisson log-likelihood ratio of a return of ``s`` (L,) photons at depth
+    ``dw`` (window coordinates) against background ``bh`` (L, W) over the support."""
+    out = 0.0
+    for l in range(L):
+        sl = max(s[l], 1e-9)
+        gsum = 0.0
+        for w in range(W):
+            if not inside[w]:
+                continue
+            gv = _interp_irf(irf[l], w - dw + peak[l])
+            gsum += gv
+            b = max(np.float64(bh[l, w]), 1e-9)
+            out += raw[l, w] * np.log1p(sl * gv / b)
+        out -= sl * gsum
+    return out
+
+
+@njit(cache=True, nogil=True)
+def extract_surfaces(
+    y,
+    c,
+    e0,
+    r0,
+    rows,
+    cols,
+    start,
+    stop,
+    peak_bin,
+    sp,
+    dev,
+    scales,
+    gsq,
+    irf,
+    irf_peak,
+    width,
+    n_rows_img,
+    n_cols_img,
+    refine,
+    refine_z,
+    qloc,
+    want_llr_sel,
+    i_begin,
+    i_end,
+    o_depth,
+    o_lo,
+    o_hi,
+    o_qbar,
+    o_offset,
+    o_hist,
+    o_signal,
+    o_counts,
+    o_background,
+    o_llr,
+    o_zloc,
+    o_zpred,
+    o_llr_sel,
+):
+    """Clean histograms, scale selection, depth and presence statistics of candidates.
+
+    One candidate at a time (rows ``[i_begin, i_end)`` of the candidate arrays), every
+    output written in place; see :func:`splidar.detection._detect._extract` for the
+    meaning of each. Box means at every scale (``mode="reflect"``) are read from the
+    correlated block ``c`` (``(er, C, L, T)`` from image row ``e0``), the background
+    ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
+    ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``).
+    """
+    Q = scales.size
+    L = c.shape[2]
+    T = c.shape[3]
+    W = width
+    wh = W // 2
+    hmax = scales[Q - 1] // 2
+    acc = np.zeros((Q, L, W), np.float64)
+    resp = np.empty((Q, L, W), np.float32)
+    bh = np.empty((L, W), np.float32)
+    inside = np.empty(W, np.bool_)
+    per_scale = np.empty((Q, W), np.float32)
+    tot = np.empty(W, np.float32)
+    u = np.empty(W, np.float32)
+    uq = np.empty(W, np.float32)
+    raw = np.empty((L, W), np.float64)
+    d_q = np.empty(Q, np.int64)
+    s_tmp = np.empty(L, np.float64)
+    for s in range(i_begin, i_end):
+        irow = rows[s] + r0
+        jcol = cols[s]
+        off = min(max(peak_bin[s] - wh, 0), max(T - W, 0))
+        lo = max(start[s], off)
+        hi = min(stop[s], off + W)
+        for w in range(W):
+            inside[w] = (off + w >= lo) and (off + w < hi)
+        # box sums of every scale in one sweep of the largest box (same order per scale)
+        acc[:] = 0.0
+        for di in range(-hmax, hmax + 1):
+            ri = _reflect(irow + di, n_rows_img) - e0
+            for dj in range(-hmax, hmax + 1):
+                cj = _reflect(jcol + dj, n_cols_img)
+                for q in range(Q):
+                    h = scales[q] // 2
+                    if abs(di) > h or abs(dj) > h:
+                        continue
+                    for l in range(L):
+                        cr = c[ri, cj, l]
+                        for w in range(W):
+                            acc[q, l, w] += cr[off + w]
+        for l in range(L):
+            spl = sp[rows[s], jcol, l]
+            for w in range(W):
+                b = spl + dev[l, off + w]
+                if b < 0:
+                    b = np.float32(0.0)  # eq:background_3
+                bh[l, w] = b
+        for q in range(Q):
+            inv = 1.0 / (scales[q] * scales[q])
+            for w in range(W):
+                per_scale[q, w] = 0.0
+            for l in range(L):
+                ssum = 0.0
+                for w in range(W):
+                    hv = np.float32(acc[q, l, w] * inv)
+                    r = hv - bh[l, w]
+                    resp[q, l, w] = r
+                    cv = r if (r > 0 and inside[w]) else np.float32(0.0)  # eq:background_final
+                    o_hist[s, q, l, w] = cv
+                    ssum += cv
+                    per_scale[q, w] += cv
+                o_signal[s, q, l] = ssum
+        # eq:depth_global / eq:depth_scale on the clean matched-filter response
+        for w in range(W):
+            tot[w] = 0.0
+        for q in range(Q):
+            best = 0
+            for w in range(W):
+                tot[w] += per_scale[q, w]
+                if per_scale[q, w] > per_scale[q, best]:
+                    best = w
+            d_q[q] = best
+        d_glob = 0
+        for w in range(W):
+            if tot[w] > tot[d_glob]:
+                d_glob = w
+        qbar = 0
+        if Q > 1:
+            qbar = 1
+            for q in range(2, Q):
+                if abs(d_q[q] - d_glob) < abs(d_q[qbar] - d_glob):
+                    qbar = q  # eq:scale_sel
+        for w in range(W):
+            u[w] = 0.0
+            for l in range(L):
+                u[w] += resp[qbar, l, w]
+        w0 = d_q[qbar]
+        if refine and Q > 1:
+            # the finest scale's own response, when significant, gives the depth
+            sdq = 0.0
+            for l in range(L):
+                mx = np.float32(0.0)
+                for w in range(W):
+                    v = bh[l, w] if inside[w] else np.float32(0.0)
+                    if v > mx:
+                        mx = v
+                sdq += max(mx, np.float32(1e-6)) * gsq[l]
+            sdq = np.sqrt(sdq) / scales[0]
+            wq = 0
+            for w in range(W):
+                uq[w] = 0.0
+                for l in range(L):
+                    uq[w] += resp[0, l, w] if inside[w] else np.float32(0.0)
+                if uq[w] > uq[wq]:
+                    wq = w
+            if uq[wq] / max(sdq, 1e-9) >= refine_z:
+                w0 = wq
+                for w in range(W):
+                    u[w] = uq[w]
+        depth = off + w0 + _parabola(u, w0, W)
+        o_depth[s] = depth
+        o_lo[s] = lo
+        o_hi[s] = hi
+        o_qbar[s] = qbar
+        o_offset[s] = off
+        # own-pixel raw counts and background over the support
+        yr = irow - e0
+        for l in range(L):
+            cnt = 0.0
+            bsum = 0.0
+            for w in range(W):
+                if inside[w]:
+                    raw[l, w] = np.float64(y[yr, jcol, l, off + w])
+                    bsum += bh[l, w]
+                else:
+                    raw[l, w] = 0.0
+                cnt += raw[l, w]
+            o_counts[s, l] = cnt
+            o_background[s, l] = bsum
+        dw = depth - off
+        for l in range(L):
+            s_tmp[l] = o_signal[s, qloc, l]
+        o_llr[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
+        if want_llr_sel:
+            for l in range(L):
+                s_tmp[l] = o_signal[s, qbar, l]
+            o_llr_sel[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
+        wd = int(np.rint(dw))
+        wd = min(max(wd, 0), W - 1)
+        r_loc = np.float32(0.0)
+        var = 0.0
+        zp = 0.0
+        for l in range(L):
+            r_loc += resp[qloc, l, wd]
+            var += bh[l, wd] * gsq[l]
+            zp += o_signal[s, qbar, l] * gsq[l]
+        var /= scales[qloc] * scales[qloc]
+        sd = np.sqrt(max(var, 1e-12))
+        o_zloc[s] = r_loc / sd
+        o_zpred[s] = zp / sd
