@@ -25,7 +25,7 @@ from ..cube import Cube
 from ._background import CLIP, temporal_shape
 from ._fast import poisson_background, saliency_wavelength
 from ._filters import Correlator
-from ._kernels import extract_surfaces, find_segments
+from ._kernels import extract_surfaces, find_segments, threshold_cube, threshold_pass
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 
@@ -114,7 +114,7 @@ class _Ctx:
     quantum: np.ndarray = None  # (L,) max g / K^2: one photon in a coarse voxel
 
 
-def _core(y, ctx: _Ctx, spatial=None, keep=None):
+def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None):
     """Correlated cube, saliency and signed response of a block of pixels.
 
     Parameters
@@ -126,6 +126,11 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None):
     keep : slice, optional
         Rows of the block to return the saliency of (the others are halo, used by the
         box filters only); default all.
+    c : (r, c, L, T) float32, optional
+        ``Y (*) g`` when already computed (halo rows carried over from the previous
+        block); computed from ``y`` when None.
+    sal_out : (r_keep, c, T) float32, optional
+        Where to write the saliency (zeroed here); a new array when None.
 
     Returns
     -------
@@ -135,11 +140,16 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None):
     spatial : (r, c, L) float32
     level : (r, c, T) float32  ``sum_l bhat``
     """
-    c = ctx.corr(y, workers=ctx.workers)
+    if c is None:
+        c = ctx.corr(y, workers=ctx.workers)
     keep = slice(None) if keep is None else keep
     r_all, cc, L, T = c.shape
     r = len(range(*keep.indices(r_all)))
-    sal = np.zeros((r, cc, T), np.float32)
+    if sal_out is None:
+        sal = np.zeros((r, cc, T), np.float32)
+    else:
+        sal = sal_out
+        sal[...] = 0.0
     d = np.zeros((r, cc, T), np.float32)
     level = np.zeros((r, cc, T), np.float32)
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
@@ -244,10 +254,6 @@ def _irf_fwhm(irf: np.ndarray) -> float:
 
 @dataclass
 class _BlockOut:
-    sal: np.ndarray
-    mask: np.ndarray
-    spatial: np.ndarray
-    thr: np.ndarray | None
     n_photons_kept: int
     n_photons: int
     surf: dict
@@ -417,23 +423,31 @@ def _evidence(sal, thr):
     return e
 
 
-def _block(counts, r0, r1, ctx: _Ctx, thr_fn, opts) -> _BlockOut:
-    R = counts.shape[0]
-    h = int(ctx.scales.max()) // 2
-    e0, e1 = max(0, r0 - h), min(R, r1 + h)
-    y = np.asarray(counts[e0:e1])
+def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out) -> _BlockOut:
+    """Saliency, map and surfaces of image rows ``[r0, r1)``.
+
+    ``y`` and ``c_ext`` hold the raw and correlated rows ``[e0, e0 + len(y))`` (the
+    block with its halo); ``out`` the preallocated image-size outputs written here.
+    """
     i0, i1 = r0 - e0, r1 - e0
-    c_ext, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1))
-    thr = thr_fn(level)
-    mask = sal > thr
-    yb = y[i0:i1]
-    n_ph = int(yb.sum(dtype=np.int64))
-    kept = int(np.where(mask[:, :, None, :], yb, 0).sum(dtype=np.int64))
+    sal_out = out["saliency"][r0:r1]
+    _, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out)
+    xs, ys, store_thr = table
+    r, C, T = sal.shape
+    cand = np.empty((r, C, T), bool)
+    ev_vox = np.empty((r, C, T), np.float32)
+    thr = out["threshold"][r0:r1] if store_thr else np.empty((1, 1, 1), np.float32)
+    mask = out["mask"][r0:r1]
+    # threshold, M, candidate voxels, evidence and photon counts in one pass
+    n_ph, kept = threshold_pass(sal, d, level, xs, ys, y, i0, thr, store_thr, mask, cand, ev_vox)
+    del level
+    out["spatial"][r0:r1] = sp
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
     rows, cols, start, stop, peak, mass, ev = find_segments(
-        mask & (d > 0), d, sal, _evidence(sal, thr), opts["min_separation"], opts["split_ratio"]
+        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"]
     )
+    del cand, ev_vox, d
     n_cand = int(rows.size)
     # candidates whose evidence does not beat the simulated null are dropped before
     # the (costly) extraction: the evidence does not depend on it
@@ -453,19 +467,44 @@ def _block(counts, r0, r1, ctx: _Ctx, thr_fn, opts) -> _BlockOut:
         if opts["presence"] == "adaptive":
             extra_ok &= surf["presence_z"] >= opts["presence_z"]
         keep &= (rank == 0) | extra_ok
-    del c_ext
-    return _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts, n_cand)
+    return _finish_block(kept, n_ph, surf, keep, opts, n_cand)
 
 
-def _finish_block(sal, mask, sp, thr, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
+def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> list:
+    """Blocks of ``block_rows`` rows over image rows ``[a, b)``, one after the other.
+
+    The correlated halo rows shared by consecutive blocks are carried over, so every
+    image row is matched-filtered once (plus ``2 h`` rows per call).
+    """
+    R = counts.shape[0]
+    h = int(ctx.scales.max()) // 2
+    res = []
+    carry, carry0 = None, 0  # correlated rows [carry0, carry0 + len(carry))
+    for r0 in range(a, b, block_rows):
+        r1 = min(b, r0 + block_rows)
+        e0, e1 = max(0, r0 - h), min(R, r1 + h)
+        y = np.asarray(counts[e0:e1])
+        if carry is not None and carry0 <= e0 < carry0 + carry.shape[0]:
+            have = carry[e0 - carry0 :]
+            n_have = have.shape[0]
+            if e0 + n_have >= e1:
+                c_ext = have[: e1 - e0]
+            else:
+                c_ext = np.concatenate([have, ctx.corr(y[n_have:], workers=ctx.workers)])
+        else:
+            c_ext = ctx.corr(y, workers=ctx.workers)
+        res.append(_block(y, c_ext, e0, r0, r1, ctx, table, opts, out))
+        carry0 = max(e0, r1 - h)
+        carry = c_ext[carry0 - e0 :].copy()
+        del c_ext, y
+    return res
+
+
+def _finish_block(kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     idx, slot = _select(surf, keep, opts["max_surfaces"])
     out = {k: v[idx] for k, v in surf.items()}
     out["slot"] = slot
     return _BlockOut(
-        sal=sal,
-        mask=mask,
-        spatial=sp,
-        thr=np.asarray(thr, np.float32) if np.ndim(thr) else None,
         n_photons_kept=kept,
         n_photons=n_ph,
         surf=out,
@@ -785,22 +824,38 @@ def detect(
         evidence_threshold=ev_thr,
         max_surfaces=max_surfaces,
     )
-    starts = list(range(0, R, block_rows))
-    jobs = [(a, min(R, a + block_rows)) for a in starts]
-    if n_jobs > 1 and len(jobs) > 1:
-        with ThreadPoolExecutor(n_jobs) as ex:
-            outs = list(
-                ex.map(lambda ab: _block(cube.counts, ab[0], ab[1], ctx, thr_fn, opts), jobs)
-            )
+    if null == "gamma":
+        table = (np.zeros(1), np.array([float(np.float32(thr_gamma))]), False)
     else:
-        # one block (or one job): threads inside the block instead
+        table = (np.asarray(xs, np.float64), np.asarray(ys, np.float64), False)
+    out = dict(
+        saliency=np.empty((R, C, T), np.float32),
+        mask=np.empty((R, C, T), bool),
+        spatial=np.empty((R, C, L), np.float32),
+    )
+    # contiguous runs of rows, one per thread; blocks within a run share their halo
+    n_run = max(1, min(n_jobs, R // (2 * h_max + 1)))
+    cuts = np.linspace(0, R, n_run + 1).round().astype(int)
+    runs = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
+    if len(runs) > 1:
+        with ThreadPoolExecutor(len(runs)) as ex:
+            outs = [
+                o
+                for res in ex.map(
+                    lambda ab: _run_rows(
+                        cube.counts, ab[0], ab[1], ctx, table, opts, out, block_rows
+                    ),
+                    runs,
+                )
+                for o in res
+            ]
+    else:
+        # one run: threads inside each block instead
         bctx = dataclasses.replace(ctx, workers=n_jobs)
-        outs = [_block(cube.counts, a, b, bctx, thr_fn, opts) for a, b in jobs]
-    saliency = np.concatenate([o.sal for o in outs], axis=0)
-    mask = np.concatenate([o.mask for o in outs], axis=0)
-    spatial = np.concatenate([o.spatial for o in outs], axis=0)
-    if outs[0].thr is None:
-        threshold = float(thr_fn(None))
+        outs = _run_rows(cube.counts, 0, R, bctx, table, opts, out, block_rows)
+    saliency, mask, spatial = out["saliency"], out["mask"], out["spatial"]
+    if table[0].size == 1:
+        threshold = float(np.float32(table[1][0]))
     else:
         sp_sum = spatial.sum(axis=-1)
         if np.ptp(sp_sum) <= 1e-6 * max(float(sp_sum.max()), 1e-12):
@@ -808,7 +863,7 @@ def detect(
             lev_t = np.maximum(spatial[0, 0][:, None] + dev, 0).sum(axis=0)
             threshold = thr_fn(lev_t)[None, None, :]
         else:
-            threshold = np.concatenate([o.thr for o in outs], axis=0)
+            threshold = threshold_cube(spatial, dev, table[0], table[1])
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
 
     keys = outs[0].surf.keys()

@@ -7,7 +7,7 @@ from numba import njit
 
 from ._fast import _refl as _reflect  # one reflect rule for every kernel
 
-__all__ = ["find_segments", "gather_scales"]
+__all__ = ["extract_surfaces", "find_segments", "threshold_pass"]
 
 
 @njit(cache=True, nogil=True)
@@ -175,51 +175,6 @@ def find_segments(mask, d, s, e, min_sep, rho):
                     o_ev[k] = seg_ev[u]
                     k += 1
     return o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k]
-
-
-@njit(cache=True, nogil=True)
-def gather_scales(c, row, col, offset, width, scales, n_rows_img, row0, n_cols_img):
-    """Box means of ``c`` at every scale over each surface's time window.
-
-    Parameters
-    ----------
-    c : (er, C, L, T) float32
-        Correlated counts of a block of rows starting at image row ``row0`` (with a
-        halo of ``max(scales) // 2`` rows wherever the image continues).
-    row, col : (S,) int64
-        Image pixel of each surface.
-    offset : (S,) int64
-        First bin of each window; the window is ``[offset, offset + width)``.
-    scales : (Q,) int64
-        Box sizes.
-
-    Returns
-    -------
-    out : (S, Q, L, width) float32
-        ``mean_{k x k}(c)`` with ``mode="reflect"`` borders, as the full-image filter.
-    """
-    S = row.size
-    Q = scales.size
-    L = c.shape[2]
-    out = np.zeros((S, Q, L, width), np.float32)
-    acc = np.zeros((L, width), np.float64)
-    for s in range(S):
-        for q in range(Q):
-            k = scales[q]
-            h = k // 2
-            acc[:] = 0.0
-            for di in range(-h, h + 1):
-                ri = _reflect(row[s] + di, n_rows_img) - row0
-                for dj in range(-h, h + 1):
-                    cj = _reflect(col[s] + dj, n_cols_img)
-                    for l in range(L):
-                        for w in range(width):
-                            acc[l, w] += c[ri, cj, l, offset[s] + w]
-            inv = 1.0 / (k * k)
-            for l in range(L):
-                for w in range(width):
-                    out[s, q, l, w] = acc[l, w] * inv
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -469,3 +424,100 @@ def extract_surfaces(
         sd = np.sqrt(max(var, 1e-12))
         o_zloc[s] = r_loc / sd
         o_zpred[s] = zp / sd
+
+
+@njit(cache=True, nogil=True)
+def _interp_table(x, xs, ys):
+    """``np.interp(x, xs, ys)`` (constant beyond the ends) for one sample."""
+    n = xs.size
+    if n == 1 or x <= xs[0]:
+        return ys[0]
+    if x >= xs[n - 1]:
+        return ys[n - 1]
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xs[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    slope = (ys[lo + 1] - ys[lo]) / (xs[lo + 1] - xs[lo])
+    return slope * (x - xs[lo]) + ys[lo]
+
+
+@njit(cache=True, nogil=True)
+def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, cand, ev):
+    """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
+
+    Parameters
+    ----------
+    sal, d, level : (r, C, T) float32
+        Saliency (``eq:4.s1``), signed response and background level of the block.
+    xs, ys : (G,) float64
+        Threshold table: ``threshold = interp(level, xs, ys)`` (``G = 1``: constant).
+    y : (er, C, L, T) integer
+        Raw counts of the block with its halo; output row ``i`` is ``y[y_row0 + i]``.
+    thr_out : (r, C, T) float32
+        Threshold per voxel, written when ``store_thr``.
+    mask, cand : (r, C, T) bool
+        Written: ``M = S > threshold``; ``M & (d > 0)`` (a surface is a positive
+        excursion of the response).
+    ev : (r, C, T) float32
+        Written: evidence ``max(S / threshold - 1, 0)``.
+
+    Returns
+    -------
+    n_photons, n_photons_kept : int
+        Photons of the block and photons in voxels of ``M`` (summed over wavelengths).
+    """
+    r, C, T = sal.shape
+    L = y.shape[2]
+    n_ph = 0
+    n_kept = 0
+    for i in range(r):
+        for j in range(C):
+            for t in range(T):
+                th = np.float32(_interp_table(np.float64(level[i, j, t]), xs, ys))
+                if store_thr:
+                    thr_out[i, j, t] = th
+                s = sal[i, j, t]
+                m = s > th
+                mask[i, j, t] = m
+                cand[i, j, t] = m and d[i, j, t] > 0
+                e = s / max(th, np.float32(1e-12)) - np.float32(1.0)
+                ev[i, j, t] = e if e > 0 else np.float32(0.0)
+            for l in range(L):
+                yr = y[y_row0 + i, j, l]
+                for t in range(T):
+                    v = np.int64(yr[t])
+                    n_ph += v
+                    if mask[i, j, t]:
+                        n_kept += v
+    return n_ph, n_kept
+
+
+@njit(cache=True, nogil=True)
+def threshold_cube(spatial, dev, xs, ys):
+    """Threshold per voxel ``interp(sum_l max(b_l + dev_l(t), 0), xs, ys)``, (R, C, T).
+
+    The level is accumulated over wavelengths in float32 in the order of the main pass,
+    so the values are those the binary map was computed with.
+    """
+    R, C, L = spatial.shape
+    T = dev.shape[1]
+    out = np.empty((R, C, T), np.float32)
+    lev = np.empty(T, np.float32)
+    for i in range(R):
+        for j in range(C):
+            lev[:] = 0.0
+            for l in range(L):
+                s0 = spatial[i, j, l]
+                for t in range(T):
+                    b = s0 + dev[l, t]
+                    if b < 0:
+                        b = np.float32(0.0)
+                    lev[t] += b
+            for t in range(T):
+                out[i, j, t] = np.float32(_interp_table(np.float64(lev[t]), xs, ys))
+    return out
