@@ -241,6 +241,47 @@ def test_detect_is_reproducible_with_rng():
     np.testing.assert_array_equal(a.surfaces.depth_bin, b.surfaces.depth_bin)
 
 
+def test_detect_histograms_match_box_filter_reference():
+    # independent reference: scipy's uniform_filter of the correlated cube minus bhat
+    from scipy import ndimage
+
+    lam, _ = _tilted(shape=(20, 24), T=100)
+    lam[::3, ::2, 0, 70] += 4.0  # a second, sparse return in some pixels
+    cube = _cube(lam, rng=3)
+    det = detect(cube, rng=0, presence="none")
+    s = det.surfaces
+    c = Correlator(cube.irf, cube.n_bins)(cube.counts)[:, :, 0, :]  # (R, C, T)
+    bh = det.background.dense()[:, :, 0, :]  # eq:background_3 (clipped at 0)
+    W = s.histograms.shape[-1]
+    tt = s.offset[:, None] + np.arange(W)
+    inside = (tt >= s.start[:, None]) & (tt < s.stop[:, None])
+    for q, k in enumerate(det.scales):
+        box = ndimage.uniform_filter(c.astype(np.float64), size=(k, k, 1), mode="reflect")
+        resp = box[s.row[:, None], s.col[:, None], tt] - bh[s.row[:, None], s.col[:, None], tt]
+        ref = np.where(inside, np.maximum(resp, 0), 0)  # eq:background_final
+        # float32 box sums vs float64 reference: 1e-5 relative to the response scale
+        np.testing.assert_allclose(s.histograms[:, q, 0], ref, rtol=1e-4, atol=1e-5)
+    raw = cube.counts[s.row[:, None], s.col[:, None], 0, tt]
+    np.testing.assert_array_equal(s.counts[:, 0], np.where(inside, raw, 0).sum(axis=1))
+
+
+def test_detect_same_result_whatever_blocks_and_threads():
+    lam, _ = _tilted(shape=(40, 20), T=90)
+    lam[..., :] += np.linspace(0.0, 0.2, 40)[:, None, None, None]  # spatially varying bg
+    cube = _cube(lam, rng=4)
+    ref = detect(cube, rng=2, n_jobs=1, block_rows=40)
+    assert np.ndim(ref.threshold) == 3 and ref.threshold.shape == (40, 20, 90)
+    np.testing.assert_array_equal(ref.mask, ref.saliency > ref.threshold)
+    for kw in (dict(n_jobs=1, block_rows=6), dict(n_jobs=3, block_rows=7), dict(n_jobs=2)):
+        other = detect(cube, rng=2, **kw)
+        np.testing.assert_array_equal(other.saliency, ref.saliency)
+        np.testing.assert_array_equal(other.mask, ref.mask)
+        np.testing.assert_array_equal(other.threshold, ref.threshold)
+        np.testing.assert_array_equal(other.surfaces.depth_bin, ref.surfaces.depth_bin)
+        np.testing.assert_array_equal(other.surfaces.histograms, ref.surfaces.histograms)
+        assert other.reduction == ref.reduction
+
+
 # ----------------------------------------------------------------------------------------
 # bad inputs
 # ----------------------------------------------------------------------------------------
