@@ -25,7 +25,7 @@ from ..cube import Cube
 from ._background import CLIP, temporal_shape
 from ._fast import poisson_background, saliency_wavelength
 from ._filters import Correlator
-from ._kernels import extract_surfaces, find_segments, threshold_cube, threshold_pass
+from ._kernels import extract_surfaces, find_segments, threshold_pass
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 
@@ -827,11 +827,14 @@ def detect(
     if null == "gamma":
         table = (np.zeros(1), np.array([float(np.float32(thr_gamma))]), False)
     else:
-        table = (np.asarray(xs, np.float64), np.asarray(ys, np.float64), False)
+        # a threshold varying with the level is written by the main pass (and reduced
+        # to its variation with t alone if the background turns out spatially flat)
+        table = (np.asarray(xs, np.float64), np.asarray(ys, np.float64), xs.size > 1)
     out = dict(
         saliency=np.empty((R, C, T), np.float32),
         mask=np.empty((R, C, T), bool),
         spatial=np.empty((R, C, L), np.float32),
+        threshold=np.empty((R, C, T), np.float32) if table[2] else None,
     )
     # contiguous runs of rows, one per thread; blocks within a run share their halo
     n_run = max(1, min(n_jobs, R // (2 * h_max + 1)))
@@ -863,7 +866,8 @@ def detect(
             lev_t = np.maximum(spatial[0, 0][:, None] + dev, 0).sum(axis=0)
             threshold = thr_fn(lev_t)[None, None, :]
         else:
-            threshold = threshold_cube(spatial, dev, table[0], table[1])
+            threshold = out["threshold"]
+    out.clear()
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
 
     keys = outs[0].surf.keys()

@@ -495,29 +495,3 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
                     if mask[i, j, t]:
                         n_kept += v
     return n_ph, n_kept
-
-
-@njit(cache=True, nogil=True)
-def threshold_cube(spatial, dev, xs, ys):
-    """Threshold per voxel ``interp(sum_l max(b_l + dev_l(t), 0), xs, ys)``, (R, C, T).
-
-    The level is accumulated over wavelengths in float32 in the order of the main pass,
-    so the values are those the binary map was computed with.
-    """
-    R, C, L = spatial.shape
-    T = dev.shape[1]
-    out = np.empty((R, C, T), np.float32)
-    lev = np.empty(T, np.float32)
-    for i in range(R):
-        for j in range(C):
-            lev[:] = 0.0
-            for l in range(L):
-                s0 = spatial[i, j, l]
-                for t in range(T):
-                    b = s0 + dev[l, t]
-                    if b < 0:
-                        b = np.float32(0.0)
-                    lev[t] += b
-            for t in range(T):
-                out[i, j, t] = np.float32(_interp_table(np.float64(lev[t]), xs, ys))
-    return out
