@@ -176,6 +176,16 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None):
     return c, sal, d, sp_out, level
 
 
+class _FixedSeed:
+    """Stands in for a Generator whose next ``integers`` draw was taken in advance."""
+
+    def __init__(self, seed: int):
+        self.seed = int(seed)
+
+    def integers(self, *args, **kwargs) -> int:
+        return self.seed
+
+
 def _null_samples(counts, ctx: _Ctx, n_target: int, rng, *, patch: int = 32, max_patches=400):
     """Saliency of background-only cubes drawn from the estimated background.
 
@@ -184,16 +194,17 @@ def _null_samples(counts, ctx: _Ctx, n_target: int, rng, *, patch: int = 32, max
     saliency computed with the same filters; the patch interior (at least ``h`` pixels
     from any cut) is kept. Returns null saliency, its level, and the data's saliency on
     the same patches (for the gamma fit).
+
+    The patches and their seeds are drawn first, in order, from ``rng``; the patches are
+    then computed on ``ctx.workers`` threads (one patch per thread), so the result does
+    not depend on the number of threads.
     """
     R, C, L, T = counts.shape
     h = int(ctx.scales.max()) // 2
     pr, pc = min(R, patch), min(C, patch)
-    s_sim, lev, d_sim, s_real = [], [], [], []
+    plan = []
     n = 0
-    cache = {}
-    it = 0
-    while n < n_target and it < max_patches:
-        it += 1
+    while n < n_target and len(plan) < max_patches:
         # every pixel is equally likely to be in a patch (patches are clipped at the
         # image border): borders, where the reflected box filters have a larger
         # variance, are represented in proportion
@@ -201,31 +212,47 @@ def _null_samples(counts, ctx: _Ctx, n_target: int, rng, *, patch: int = 32, max
         b0 = int(rng.integers(-(pc - 1), C)) if pc < C else 0
         r0, r1 = max(0, a0), min(R, a0 + pr)
         c0, c1 = max(0, b0), min(C, b0 + pc)
+        seed = int(rng.integers(2**62))  # as poisson_background draws it
+        plan.append((r0, r1, c0, c1, seed))
+        n += (r1 - r0) * (c1 - c0) * T
+
+    def window(key):
+        r0, r1, c0, c1 = key
         dr0, dr1 = max(0, r0 - 2 * h), min(R, r1 + 2 * h)
         dc0, dc1 = max(0, c0 - 2 * h), min(C, c1 + 2 * h)
         sr0, sr1 = max(0, r0 - h), min(R, r1 + h)
         sc0, sc1 = max(0, c0 - h), min(C, c1 + h)
-        key = (r0, r1, c0, c1)
-        if key not in cache:
-            yw = np.asarray(counts[dr0:dr1, dc0:dc1])
-            _, sal_w, _, sp_w, _ = _core(yw, ctx, keep=slice(sr0 - dr0, sr1 - dr0))
-            sp = sp_w[:, sc0 - dc0 : sc1 - dc0].copy()
-            real = sal_w[r0 - sr0 : r1 - sr0, c0 - dc0 : c1 - dc0].ravel().copy()
-            if len(cache) < 64:
-                cache[key] = (sp, real)
-        else:
-            sp, real = cache[key]
+        yw = np.asarray(counts[dr0:dr1, dc0:dc1])
+        _, sal_w, _, sp_w, _ = _core(yw, wctx, keep=slice(sr0 - dr0, sr1 - dr0))
+        sp = sp_w[:, sc0 - dc0 : sc1 - dc0].copy()
+        real = sal_w[r0 - sr0 : r1 - sr0, c0 - dc0 : c1 - dc0].ravel().copy()
+        return sp, real
+
+    def simulate(item):
+        r0, r1, c0, c1, seed = item
+        sp, real = windows[(r0, r1, c0, c1)]
         # Poisson cube of bhat (eq:background_3), drawn in numba (seeded from rng)
-        ysim = poisson_background(sp, ctx.dev, rng)
-        _, sal, d, _, level = _core(ysim, ctx, spatial=sp)
-        i0, j0 = r0 - sr0, c0 - sc0
+        ysim = poisson_background(sp, ctx.dev, _FixedSeed(seed))
+        _, sal, d, _, level = _core(ysim, wctx, spatial=sp)
+        i0, j0 = r0 - max(0, r0 - h), c0 - max(0, c0 - h)
         sl = (slice(i0, i0 + r1 - r0), slice(j0, j0 + c1 - c0))
-        s_sim.append(sal[sl].copy())
-        lev.append(level[sl].copy())
-        d_sim.append(d[sl].copy())
-        s_real.append(real)
-        n += (r1 - r0) * (c1 - c0) * T
-    return s_sim, lev, d_sim, np.concatenate(s_real)
+        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real
+
+    keys = list(dict.fromkeys(p[:4] for p in plan))
+    n_par = max(1, min(int(ctx.workers), len(plan)))
+    # one patch per thread when there are several; threads inside a single patch
+    wctx = dataclasses.replace(ctx, workers=1) if n_par > 1 else ctx
+    if n_par > 1:
+        with ThreadPoolExecutor(n_par) as ex:
+            windows = dict(zip(keys, ex.map(window, keys), strict=True))
+            res = list(ex.map(simulate, plan))
+    else:
+        windows = {k: window(k) for k in keys}
+        res = [simulate(p) for p in plan]
+    s_sim = [r[0] for r in res]
+    lev = [r[1] for r in res]
+    d_sim = [r[2] for r in res]
+    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res])
 
 
 # ----------------------------------------------------------------------------------------
