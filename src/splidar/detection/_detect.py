@@ -643,7 +643,12 @@ def detect(
         Adaptive depth: when the finest scale's own-pixel response is significant
         (z >= 3), take the depth from it rather than from the selected (coarser) scale,
         which mixes neighbours' returns at depth edges and on slopes. ``scale_index``
-        still reports ``eq:scale_sel``.
+        still reports ``eq:scale_sel``. Also: when a candidate's run is longer than the
+        histogram window (a steep slope), the window is centred on the own pixel's
+        matched-filter peak in the run if that peak is significant (z >= sqrt(9 + 2 ln
+        run length), the max of that many background bins), not on the coarse peak,
+        which drifts off the return beside brightness changes (single surface, PPP 50,
+        SBR 10: F_true 0.980 -> 0.994).
     block_rows : int, optional
         Rows per block (memory/time trade-off). Default: about 256 MB of float32 per
         block (at least ``4 x max(k) // 2`` rows, so the halo costs little).

@@ -295,7 +295,32 @@ def extract_surfaces(
     for s in range(i_begin, i_end):
         irow = rows[s] + r0
         jcol = cols[s]
-        off = min(max(peak_bin[s] - wh, 0), max(T - W, 0))
+        centre = peak_bin[s]
+        if refine and stop[s] - start[s] > W:
+            # a run longer than the window (a steep slope smears the coarse scales):
+            # centre the window on the own pixel's matched-filter peak in the run when
+            # it is significant against the max of that many background bins
+            n_run = stop[s] - start[s]
+            z_need = np.sqrt(refine_z * refine_z + 2.0 * np.log(n_run))
+            yr0 = irow - e0
+            best_z = -np.inf
+            best_t = centre
+            for t in range(start[s], stop[s]):
+                num = 0.0
+                var = 0.0
+                for l in range(L):
+                    b = sp[rows[s], jcol, l] + dev[l, t]
+                    if b < 0:
+                        b = np.float32(0.0)
+                    num += c[yr0, jcol, l, t] - b
+                    var += max(b, np.float32(1e-6)) * gsq[l]
+                z = num / np.sqrt(var)
+                if z > best_z:
+                    best_z = z
+                    best_t = t
+            if best_z >= z_need and abs(best_t - centre) >= wh:
+                centre = best_t
+        off = min(max(centre - wh, 0), max(T - W, 0))
         lo = max(start[s], off)
         hi = min(stop[s], off + W)
         for w in range(W):
