@@ -22,3 +22,39 @@ def test_process_lazy_zarr_cube_matches_in_memory(tmp_path):
     np.testing.assert_array_equal(a.detection.mask, b.detection.mask)
     np.testing.assert_array_equal(a.points.depth_bin, b.points.depth_bin)
     np.testing.assert_allclose(a.points.intensity, b.points.intensity)
+
+
+def test_detect_store_writes_arrays_to_zarr_and_matches_memory(tmp_path):
+    import zarr
+
+    sim = single_surface_scene((30, 20), n_bins=120).simulate(
+        ppp=10, sbr=1, background="decaying", rng=2
+    )
+    # a spatially varying background so that the threshold varies per voxel
+    rng = np.random.default_rng(3)
+    extra = rng.poisson(np.linspace(0.0, 0.2, 30)[:, None, None, None] * np.ones((1, 20, 1, 120)))
+    counts = sim.cube.counts + extra.astype(sim.cube.counts.dtype)
+    cube = splidar.Cube(counts, irf=sim.cube.irf)
+    save(cube, tmp_path / "c.zarr", chunks=(6, 20))
+    lazy = load(tmp_path / "c.zarr")
+    a = splidar.detect(cube, rng=1, block_rows=7)
+    b = splidar.detect(lazy, rng=1, block_rows=7, n_jobs=2, store=tmp_path / "det")
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[0] == 7
+    np.testing.assert_array_equal(np.asarray(b.saliency), a.saliency)
+    np.testing.assert_array_equal(np.asarray(b.mask), a.mask)
+    assert np.ndim(a.threshold) == 3
+    np.testing.assert_array_equal(np.asarray(b.threshold), a.threshold)
+    np.testing.assert_array_equal(b.surfaces.depth_bin, a.surfaces.depth_bin)
+    assert b.reduction == a.reduction
+    # the arrays stay on disk after the call
+    g = zarr.open_group(str(tmp_path / "det"), mode="r")
+    np.testing.assert_array_equal(g["mask"][:], a.mask)
+
+
+def test_detect_store_refuses_existing_directory(tmp_path):
+    sim = single_surface_scene((16, 16), n_bins=80).simulate(ppp=10, sbr=1, rng=0)
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "file.txt").write_text("keep me")
+    with pytest.raises(splidar.SplidarError, match="not an empty directory"):
+        splidar.detect(sim.cube, store=tmp_path / "busy")
+    assert (tmp_path / "busy" / "file.txt").read_text() == "keep me"

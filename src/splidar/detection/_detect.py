@@ -281,6 +281,7 @@ def _irf_fwhm(irf: np.ndarray) -> float:
 
 @dataclass
 class _BlockOut:
+    n_voxels: int
     n_photons_kept: int
     n_photons: int
     surf: dict
@@ -457,17 +458,29 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out) -> _BlockOut:
     block with its halo); ``out`` the preallocated image-size outputs written here.
     """
     i0, i1 = r0 - e0, r1 - e0
-    sal_out = out["saliency"][r0:r1]
+    in_ram = isinstance(out["saliency"], np.ndarray)
+    # in memory the block writes straight into the outputs; with a store it writes
+    # into buffers copied to the (chunk-aligned) store at the end
+    sal_out = out["saliency"][r0:r1] if in_ram else None
     _, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out)
     xs, ys, store_thr = table
     r, C, T = sal.shape
     cand = np.empty((r, C, T), bool)
     ev_vox = np.empty((r, C, T), np.float32)
-    thr = out["threshold"][r0:r1] if store_thr else np.empty((1, 1, 1), np.float32)
-    mask = out["mask"][r0:r1]
+    if store_thr:
+        thr = out["threshold"][r0:r1] if in_ram else np.empty((r, C, T), np.float32)
+    else:
+        thr = np.empty((1, 1, 1), np.float32)
+    mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
     # threshold, M, candidate voxels, evidence and photon counts in one pass
     n_ph, kept = threshold_pass(sal, d, level, xs, ys, y, i0, thr, store_thr, mask, cand, ev_vox)
     del level
+    n_vox = int(np.count_nonzero(mask))
+    if not in_ram:
+        out["saliency"][r0:r1] = sal
+        out["mask"][r0:r1] = mask
+        if store_thr:
+            out["threshold"][r0:r1] = thr
     out["spatial"][r0:r1] = sp
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
@@ -494,7 +507,7 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out) -> _BlockOut:
         if opts["presence"] == "adaptive":
             extra_ok &= surf["presence_z"] >= opts["presence_z"]
         keep &= (rank == 0) | extra_ok
-    return _finish_block(kept, n_ph, surf, keep, opts, n_cand)
+    return _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand)
 
 
 def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> list:
@@ -527,17 +540,54 @@ def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> lis
     return res
 
 
-def _finish_block(kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
+def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     idx, slot = _select(surf, keep, opts["max_surfaces"])
     out = {k: v[idx] for k, v in surf.items()}
     out["slot"] = slot
     return _BlockOut(
+        n_voxels=n_vox,
         n_photons_kept=kept,
         n_photons=n_ph,
         surf=out,
         n_candidates=n_cand,
         n_rejected=n_cand - int(keep.sum()),
     )
+
+
+def _open_store(store, shape, block_rows: int, with_threshold: bool) -> dict:
+    """Chunked Zarr arrays for saliency, mask (and threshold) in a new directory."""
+    import os as _os
+    from pathlib import Path
+
+    try:
+        import zarr
+    except ImportError:
+        raise SplidarError(
+            "`store` needs the zarr package; install it with `pip install splidar[dask]` "
+            "or pass store=None to keep the arrays in memory."
+        ) from None
+    try:
+        path = Path(_os.fspath(store))
+    except TypeError:
+        raise SplidarError(
+            f"`store` must be a directory path (str or os.PathLike); got {describe(store)}."
+        ) from None
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise SplidarError(
+            f"`store` '{path}' exists and is not an empty directory; name a new directory "
+            "(detect does not overwrite files)."
+        )
+    g = zarr.open_group(str(path), mode="w")
+    R, C, T = shape
+    ch = (min(block_rows, R), C, T)
+    out = dict(
+        saliency=g.create_array("saliency", shape=shape, chunks=ch, dtype="float32"),
+        mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
+        threshold=g.create_array("threshold", shape=shape, chunks=ch, dtype="float32")
+        if with_threshold
+        else None,
+    )
+    return out
 
 
 # ----------------------------------------------------------------------------------------
@@ -563,6 +613,7 @@ def detect(
     refine: bool = True,
     block_rows: int | None = None,
     n_jobs: int | None = None,
+    store=None,
     rng=None,
 ) -> Detection:
     """Multiscale saliency detection of surfaces in a photon-count cube (Algorithm 1).
@@ -654,6 +705,13 @@ def detect(
         block (at least ``4 x max(k) // 2`` rows, so the halo costs little).
     n_jobs : int, optional
         Threads (default: CPU count, at most 4).
+    store : str or path, optional
+        A new directory in which ``saliency``, ``mask`` and a threshold varying per
+        voxel are written as chunked Zarr arrays (chunks of ``block_rows`` rows) instead
+        of being held in memory: for cubes whose ``(rows, cols, T)`` arrays do not fit
+        in RAM (with a lazy, Zarr- or Dask-backed cube, the counts are read block by
+        block too). The result then holds ``zarr`` arrays; results are identical.
+        Needs the ``zarr`` package (``pip install splidar[dask]``).
     rng : None, int or Generator
         Randomness of the simulated null.
 
@@ -862,15 +920,23 @@ def detect(
         # a threshold varying with the level is written by the main pass (and reduced
         # to its variation with t alone if the background turns out spatially flat)
         table = (np.asarray(xs, np.float64), np.asarray(ys, np.float64), xs.size > 1)
-    out = dict(
-        saliency=np.empty((R, C, T), np.float32),
-        mask=np.empty((R, C, T), bool),
-        spatial=np.empty((R, C, L), np.float32),
-        threshold=np.empty((R, C, T), np.float32) if table[2] else None,
-    )
+    if store is None:
+        out = dict(
+            saliency=np.empty((R, C, T), np.float32),
+            mask=np.empty((R, C, T), bool),
+            spatial=np.empty((R, C, L), np.float32),
+            threshold=np.empty((R, C, T), np.float32) if table[2] else None,
+        )
+    else:
+        out = _open_store(store, (R, C, T), block_rows, table[2])
+        out["spatial"] = np.empty((R, C, L), np.float32)
     # contiguous runs of rows, one per thread; blocks within a run share their halo
     n_run = max(1, min(n_jobs, R // (2 * h_max + 1)))
     cuts = np.linspace(0, R, n_run + 1).round().astype(int)
+    if store is not None:
+        # runs start on chunk boundaries: no two threads write one chunk
+        cuts = np.unique(np.minimum(np.round(cuts / block_rows).astype(int) * block_rows, R))
+        cuts[0], cuts[-1] = 0, R
     runs = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
     if len(runs) > 1:
         with ThreadPoolExecutor(len(runs)) as ex:
@@ -930,9 +996,9 @@ def detect(
     )
     n_ph = sum(o.n_photons for o in outs)
     n_kept = sum(o.n_photons_kept for o in outs)
-    n_vox = int(mask.sum())
+    n_vox = sum(o.n_voxels for o in outs)
     reduction = DataReduction(
-        voxel_fraction=n_vox / mask.size,
+        voxel_fraction=n_vox / (R * C * T),
         photon_fraction=n_kept / n_ph if n_ph else 0.0,
         n_voxels=n_vox,
         n_photons=n_kept,
@@ -955,6 +1021,7 @@ def detect(
             refine=refine,
             block_rows=block_rows,
             n_jobs=n_jobs,
+            store=None if store is None else str(store),
             window=W,
             n_candidates=int(sum(o.n_candidates for o in outs)),
             n_rejected=int(sum(o.n_rejected for o in outs)),
