@@ -375,3 +375,23 @@ def test_cli_names_spells_api_parameters_as_options():
     )
     # values after = and names that are not options stay as they are
     assert _cli_names("Pass weights=None; `counts` bad") == "Pass weights=None; `counts` bad"
+
+
+def test_main_run_with_store_keeps_arrays_on_disk(simulated, run_out, tmp_path):
+    pytest.importorskip("zarr")
+    cube, _ = simulated
+    out = tmp_path / "out"
+    store = tmp_path / "det.zarr"
+    rc = main(
+        ["run", str(cube), "-q", "--seed", "0", "--out", str(out), "--store", str(store)]
+        + ["--jobs", "2"]
+    )
+    assert rc == 0
+    assert (store / "mask").exists() and (out / "figures").is_dir()
+    with np.load(out / "result.npz") as a, np.load(run_out / "result.npz") as b:
+        # same detection as the in-memory run; the map itself stays in the store
+        assert "detection_mask" not in a.files and str(a["detection_store"]) == str(store)
+        np.testing.assert_array_equal(a["points_depth_bin"], b["points_depth_bin"])
+    assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(
+        p.name for p in (run_out / "figures").iterdir()
+    )

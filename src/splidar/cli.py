@@ -191,6 +191,15 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         metavar="BINS",
         help="peaks closer than this are one surface (default: IRF FWHM)",
     )
+    g.add_argument(
+        "--store",
+        metavar="DIR",
+        help="write saliency, map and threshold to this new Zarr directory instead of "
+        "memory (cubes larger than RAM)",
+    )
+    g.add_argument(
+        "--jobs", type=_positive(int), metavar="N", help="threads (default: cores, at most 4)"
+    )
     g = p.add_argument_group("reconstruction (splidar.reconstruct)")
     g.add_argument(
         "--classes",
@@ -518,7 +527,16 @@ def _given(args, names: Sequence[str]) -> dict[str, Any]:
     return out
 
 
-_DETECT_OPTS = ("scales", "weights", "pfa", "max_surfaces", "null", "presence", "min_separation")
+_DETECT_OPTS = (
+    "scales",
+    "weights",
+    "pfa",
+    "max_surfaces",
+    "null",
+    "presence",
+    "min_separation",
+    "store",
+)
 _RECON_OPTS = ("classes", "n_classes", "gamma", "rho", "links", "max_iter", "tol")
 
 
@@ -527,6 +545,8 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     from .reconstruction import reconstruct
 
     det_kw = _given(args, _DETECT_OPTS)
+    if getattr(args, "jobs", None) is not None:
+        det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
     with stages.stage("detecting surfaces"):
         det = detect(cube, rng=args.seed, **det_kw)

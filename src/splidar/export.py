@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ._arrays import sample_rows
 from ._validation import SplidarError, check_positive
 from .points import PointSet
 
@@ -359,9 +360,12 @@ def write_npz(reconstruction, path: str | os.PathLike) -> Path:
     if det is not None:
         if getattr(det, "wavelengths_nm", None) is not None:
             arrays["wavelengths_nm"] = np.asarray(det.wavelengths_nm)
-        arrays["detection_mask"] = np.asarray(det.mask, dtype=bool)
-        thr = np.asarray(det.threshold, dtype=np.float64)
-        if thr.size <= _MAX_THRESHOLD_VALUES:
+        if isinstance(det.mask, np.ndarray):
+            arrays["detection_mask"] = np.asarray(det.mask, dtype=bool)
+        else:  # written by detect(store=...): it stays there
+            arrays["detection_store"] = np.asarray(str(det.options.get("store", "")))
+        thr = sample_rows(det.threshold).astype(np.float64)
+        if isinstance(det.threshold, np.ndarray | float) and thr.size <= _MAX_THRESHOLD_VALUES:
             arrays["detection_threshold"] = thr
         else:  # a per-voxel threshold would dwarf the rest of the file
             arrays["detection_threshold_median"] = np.float64(np.median(thr))
@@ -473,7 +477,7 @@ def summarize(reconstruction, *, metrics: Any = None, extra: Mapping[str, Any] |
             "pfa": det.null.pfa,
             "calibration": det.null.calibration,
         }
-        thr = np.asarray(det.threshold, dtype=np.float64)
+        thr = sample_rows(det.threshold).astype(np.float64)
         out["threshold"] = (
             float(thr)
             if thr.ndim == 0

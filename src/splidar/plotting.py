@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._arrays import sample_rows, sum_over_rows
 from ._validation import SplidarError, check_int
 from .cube import SPEED_OF_LIGHT
 from .points import PointSet
@@ -524,11 +525,11 @@ def plot_saliency_histogram(
     det = _detection(detection)
     bins = check_int(bins, "bins", minimum=2)
     max_samples = check_int(max_samples, "max_samples", minimum=1)
-    s = np.asarray(det.saliency).reshape(-1)
+    s = sample_rows(det.saliency, max_values=max(max_samples, 1 << 22)).reshape(-1)
     if s.size > max_samples:
         s = s[np.random.default_rng(rng).integers(0, s.size, max_samples)]
     s = s[np.isfinite(s)].astype(np.float64)
-    thr = np.asarray(det.threshold, dtype=np.float64)
+    thr = sample_rows(det.threshold).astype(np.float64)
     t_med = float(np.median(thr))
     t_lo, t_hi = float(thr.min()), float(thr.max())
     null = det.null
@@ -656,13 +657,13 @@ def plot_detection_slice(
     mask = det.mask
     R, C, T = mask.shape
     if t is None:
-        per_t = mask.sum(axis=(0, 1))
+        per_t = sum_over_rows(mask, 2)
         t = int(np.argmax(per_t)) if per_t.any() else T // 2
     t = check_int(t, "t", minimum=0)
     if t >= T:
         raise SplidarError(f"`t` must be below T = {T}; got {t}.")
     if row is None:
-        per_r = mask.sum(axis=(1, 2))
+        per_r = sum_over_rows(mask, 0)
         row = int(np.argmax(per_r)) if per_r.any() else R // 2
     row = check_int(row, "row", minimum=0)
     if row >= R:
