@@ -265,6 +265,8 @@ def extract_surfaces(
     o_zloc,
     o_zpred,
     o_llr_sel,
+    o_own_counts,
+    o_own_background,
 ):
     """Clean histograms, scale selection, depth and presence statistics of candidates.
 
@@ -273,7 +275,9 @@ def extract_surfaces(
     meaning of each. Box means at every scale (``mode="reflect"``) are read from the
     correlated block ``c`` (``(er, C, L, T)`` from image row ``e0``), the background
     ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
-    ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``).
+    ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``). ``o_own_counts``
+    and ``o_own_background`` (S, L, W) receive the pixel's raw counts and ``bhat`` over
+    the window, zero outside the support.
     """
     Q = scales.size
     L = c.shape[2]
@@ -421,10 +425,15 @@ def extract_surfaces(
             bsum = 0.0
             for w in range(W):
                 if inside[w]:
-                    raw[l, w] = np.float64(y[yr, jcol, l, off + w])
+                    v = y[yr, jcol, l, off + w]
+                    raw[l, w] = np.float64(v)
                     bsum += bh[l, w]
+                    o_own_counts[s, l, w] = v
+                    o_own_background[s, l, w] = bh[l, w]
                 else:
                     raw[l, w] = 0.0
+                    o_own_counts[s, l, w] = 0
+                    o_own_background[s, l, w] = 0.0
                 cnt += raw[l, w]
             o_counts[s, l] = cnt
             o_background[s, l] = bsum

@@ -1,0 +1,353 @@
+"""Global quality passes over the candidate surfaces of :func:`splidar.detection.detect`.
+
+These passes run once on the table of candidates of the whole image, after every block
+of rows has been processed (they need the neighbours across block borders) and before
+the ``K_s`` per pixel are selected. They only read the candidate table (the ``surf``
+dict of ``_detect._extract``), so they do not depend on how the candidates were found.
+
+Spill-over rejection (issue #3)
+-------------------------------
+The coarse scales of ``eq:4.s1`` spread a return into the neighbouring pixels: beside a
+thin foreground (a net) and across depth edges they plant candidates at a neighbour's
+depth where the pixel itself holds nothing. Such a candidate
+
+1. has a *source*: a candidate in one of its 8 neighbours at the same depth (within the
+   IRF's FWHM);
+2. is not *enclosed* by that surface: no pair of opposite 4-neighbours (north/south or
+   west/east) holds candidates whose mean depth is within the FWHM of its depth. A
+   continuous surface (flat or sloped) passes through a pixel it surrounds, so a pixel
+   inside a surface keeps the benefit of the spatial pooling; a pixel beside a strand or
+   on the far side of a depth edge has same-depth neighbours on one side only;
+3. is not supported by its own counts: the own-pixel Poisson log-likelihood ratio of a
+   return as bright as the source (its own-pixel signal) against background only,
+   ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` (the test of ``_own_llr``
+   with the source's intensity), is below ``llr_level``.
+
+Only candidates meeting all three are rejected; the test is repeated until nothing
+changes (a rejected candidate is no longer a source nor part of an enclosing pair, so the
+spread two or more pixels away from the source is tested next). The intensity of the
+source rather than the local box average is what a real surface continuing into the
+pixel would bring: a pixel with no photons at that depth then gives a log-ratio of about
+``-s``, far below zero, while the box average (diluted by the pixel's empty neighbours)
+cannot reject it. At very low counts (about 1 photon per pixel) the test has little
+power either way: it then trades some true surfaces at edges for more false ones.
+
+Isolated candidates
+-------------------
+A candidate no neighbour shares at its depth has no support from the pooling and must be
+significant on its own counts (:func:`reject_isolated`).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+__all__ = ["reject_isolated", "reject_spill_over", "spill_over_features"]
+
+logger = logging.getLogger(__name__)
+
+#: opposite 4-neighbour pairs of the enclosure test (north/south, west/east)
+_PAIRS = (((-1, 0), (1, 0)), ((0, -1), (0, 1)))
+#: the 8 neighbours searched for a source
+_NEIGHBOURS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc)
+
+
+def _dense(row, col, image_shape, values, fill):
+    """Candidates per pixel as a dense (R + 2, C + 2, K, ...) array with a 1-pixel pad.
+
+    Returns the array and each candidate's slot ``k``.
+    """
+    R, C = image_shape
+    pix = row * C + col
+    order = np.argsort(pix, kind="stable")
+    ps = pix[order]
+    first = np.searchsorted(ps, ps, side="left")
+    slot = np.empty(row.size, np.int64)
+    slot[order] = np.arange(row.size) - first
+    K = int(slot.max()) + 1 if row.size else 1
+    out = np.full((R + 2, C + 2, K) + values.shape[1:], fill, dtype=values.dtype)
+    out[row + 1, col + 1, slot] = values
+    return out, slot
+
+
+def _shifted_irf(irf, peak, depth_w, W):
+    """``g_l(t - d)`` on the window ``t = 0..W-1`` with the peak on ``d``: (S, L, W)."""
+    L, n = irf.shape
+    t = np.arange(W, dtype=np.float64)
+    out = np.empty((depth_w.size, L, W), np.float64)
+    for l in range(L):
+        x = t[None, :] - depth_w[:, None] + peak[l]
+        out[:, l] = np.interp(x, np.arange(n), irf[l], left=0.0, right=0.0)
+    return out
+
+
+def spill_over_features(
+    surf: dict, keep: np.ndarray, *, irf: np.ndarray, peak: np.ndarray, fwhm: float
+) -> dict:
+    """Source, enclosure and source-intensity log-likelihood ratio of each candidate.
+
+    Parameters
+    ----------
+    surf : dict
+        Candidate table: ``row``, ``col`` (S,) int, ``depth_bin`` (S,) float (bins),
+        ``offset`` (S,) int (first bin of the window), ``own_counts`` (S, L, W) int
+        (the pixel's raw counts over the window, zero outside the support) and
+        ``own_background`` (S, L, W) float (the background ``bhat`` there, zero outside
+        the support), and ``image_shape`` (R, C).
+    keep : (S,) bool
+        Candidates that take part (sources and tested ones).
+    irf : (L, n) float
+        Normalised IRF.
+    peak : (L,) int
+        Sample of each IRF's peak (the depth reference).
+    fwhm : float
+        Depth tolerance (bins): the IRF's full width at half maximum.
+
+    Returns
+    -------
+    dict
+        ``has_source`` (S,) bool, ``enclosed`` (S,) bool, ``source_signal`` (S, L) float
+        (the source's own-pixel signal, photons), ``llr_source`` (S,) float (``+inf``
+        without a source) and ``own_signal`` (S, L) float.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from splidar.irf import gaussian_irf
+    >>> g = np.asarray(gaussian_irf(3.0), float)[None]
+    >>> W = 9
+    >>> cnt = np.zeros((2, 1, W), np.int32)
+    >>> cnt[0, 0, 3:6] = [3, 6, 3]  # a bright pixel, an empty neighbour
+    >>> surf = dict(row=np.array([0, 0]), col=np.array([0, 1]), depth_bin=np.array([4.0, 4.0]),
+    ...             offset=np.array([0, 0]), own_counts=cnt,
+    ...             own_background=np.full((2, 1, W), 0.05, np.float32), image_shape=(1, 2))
+    >>> f = spill_over_features(surf, np.ones(2, bool), irf=g, peak=np.array([g.argmax()]),
+    ...                         fwhm=3.0)
+    >>> f["has_source"].tolist(), f["enclosed"].tolist(), bool(f["llr_source"][1] < -5)
+    ([True, True], [False, False], True)
+    """
+    R, C = surf["image_shape"]
+    idx = np.flatnonzero(keep)
+    S = surf["row"].size
+    L = irf.shape[0]
+    has_source = np.zeros(S, bool)
+    enclosed = np.zeros(S, bool)
+    src_sig = np.zeros((S, L))
+    llr = np.full(S, np.inf)
+    counts = np.asarray(surf["own_counts"])
+    bkg = np.asarray(surf["own_background"], np.float64)
+    own = np.maximum(counts.sum(axis=-1, dtype=np.float64) - bkg.sum(axis=-1), 0.0)  # (S, L)
+    out = dict(
+        has_source=has_source,
+        enclosed=enclosed,
+        source_signal=src_sig,
+        llr_source=llr,
+        own_signal=own,
+    )
+    if idx.size == 0:
+        return out
+    row = np.asarray(surf["row"])[idx]
+    col = np.asarray(surf["col"])[idx]
+    d = np.asarray(surf["depth_bin"], np.float64)[idx]
+    D, _ = _dense(row, col, (R, C), d, np.nan)  # (R+2, C+2, K)
+    SIG, _ = _dense(row, col, (R, C), own[idx], 0.0)  # (R+2, C+2, K, L)
+    r1, c1 = row + 1, col + 1
+    # 1. source: the same-depth neighbour of largest own-pixel signal (summed over L)
+    best = np.full(idx.size, -np.inf)
+    sig = np.zeros((idx.size, L))
+    for dr, dc in _NEIGHBOURS:
+        dn = D[r1 + dr, c1 + dc]  # (n, K)
+        sn = SIG[r1 + dr, c1 + dc]  # (n, K, L)
+        tot = np.where(np.abs(dn - d[:, None]) <= fwhm, sn.sum(axis=-1), -np.inf)
+        k = tot.argmax(axis=1)
+        tk = tot[np.arange(idx.size), k]
+        better = tk > best
+        best = np.where(better, tk, best)
+        sig[better] = sn[np.arange(idx.size), k][better]
+    has = np.isfinite(best)
+    # 2. enclosure: an opposite pair of 4-neighbours interpolates to the candidate's depth
+    enc = np.zeros(idx.size, bool)
+    for (ar, ac), (br, bc) in _PAIRS:
+        a = D[r1 + ar, c1 + ac]  # (n, K)
+        b = D[r1 + br, c1 + bc]
+        mid = 0.5 * (a[:, :, None] + b[:, None, :])
+        enc |= np.any(np.abs(mid - d[:, None, None]) <= fwhm, axis=(1, 2))
+    # 3. own-pixel log-likelihood ratio of a return as bright as the source
+    W = counts.shape[-1]
+    sub = idx[has]
+    g = _shifted_irf(irf, peak, d[has] - np.asarray(surf["offset"])[sub], W)
+    g *= bkg[sub] > 0  # the support
+    s = np.maximum(sig[has], 1e-9)  # (m, L)
+    b_t = np.maximum(bkg[sub], 1e-9)
+    y = counts[sub].astype(np.float64)
+    llr_s = (y * np.log1p(s[:, :, None] * g / b_t)).sum(axis=(1, 2)) - (s * g.sum(axis=-1)).sum(
+        axis=1
+    )
+    has_source[idx] = has
+    enclosed[idx] = enc
+    src_sig[idx] = sig
+    llr[sub] = llr_s
+    return out
+
+
+def reject_spill_over(
+    surf: dict,
+    keep: np.ndarray,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    llr_level: float,
+    max_iter: int = 10,
+) -> np.ndarray:
+    """Candidates that are a neighbour's return spread by the coarse scales.
+
+    A kept candidate is rejected when it has a same-depth source among its 8
+    neighbours, is not enclosed by that surface (no opposite 4-neighbour pair
+    interpolating to its depth) and its own counts give a log-likelihood ratio below
+    ``llr_level`` for a return as bright as the source (see the module docstring).
+
+    Parameters
+    ----------
+    surf : dict
+        Candidate table (see :func:`spill_over_features`); ``image_shape`` (R, C).
+    keep : (S,) bool
+        Candidates kept so far; the others are neither sources nor tested.
+    irf : (L, n) float
+        Normalised IRF.
+    peak : (L,) int
+        Sample of each IRF's peak.
+    fwhm : float
+        Same-depth tolerance (bins).
+    llr_level : float
+        Natural log of the likelihood ratio below which the own counts reject a return
+        of the source's intensity (0: the counts favour "no return").
+    max_iter : int
+        Most passes; each one removes the spread one pixel further from the sources.
+
+    Returns
+    -------
+    (S,) bool
+        True for the candidates to reject (always False where ``keep`` is False).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from splidar.irf import gaussian_irf
+    >>> g = np.asarray(gaussian_irf(3.0), float)[None]
+    >>> cnt = np.zeros((2, 1, 9), np.int32)
+    >>> cnt[0, 0, 3:6] = [3, 6, 3]
+    >>> surf = dict(row=np.array([0, 0]), col=np.array([0, 1]), depth_bin=np.array([4.0, 4.0]),
+    ...             offset=np.array([0, 0]), own_counts=cnt,
+    ...             own_background=np.full((2, 1, 9), 0.05, np.float32), image_shape=(1, 2))
+    >>> reject_spill_over(surf, np.ones(2, bool), irf=g, peak=np.array([g.argmax()]),
+    ...                   fwhm=3.0, llr_level=0.0).tolist()
+    [False, True]
+    """
+    rej = np.zeros(keep.size, bool)
+    # repeated until no change: a rejected candidate is neither a source nor part of an
+    # enclosing pair any more, so the spread two or more pixels from its source (coarse
+    # boxes reach max(k) // 2 pixels) is tested next
+    for _ in range(max_iter):
+        f = spill_over_features(surf, keep & ~rej, irf=irf, peak=peak, fwhm=fwhm)
+        new = keep & ~rej & f["has_source"] & ~f["enclosed"] & (f["llr_source"] < llr_level)
+        if not new.any():
+            break
+        rej |= new
+    logger.debug(
+        "spill-over: %d of %d kept candidates rejected (%d with a source, %d enclosed)",
+        int(rej.sum()),
+        int(keep.sum()),
+        int((keep & f["has_source"]).sum()),
+        int((keep & f["enclosed"]).sum()),
+    )
+    return rej
+
+
+def reject_isolated(
+    surf: dict,
+    keep: np.ndarray,
+    *,
+    fwhm: float,
+    pfa: float,
+    only_extra: bool = False,
+    n_bins: int | None = None,
+) -> np.ndarray:
+    """Candidates no neighbour shares whose own counts are not significant on their own.
+
+    The spatial pooling of the coarse scales is evidence for a surface that extends
+    over several pixels. A candidate with no kept candidate at the same depth (within
+    ``fwhm``) among its 8 neighbours gets no such support: it is kept only when its own
+    pixel is significant by itself, i.e. the Poisson probability of at least the
+    observed counts n over its support under the background alone, ``p = P(N >= n |
+    B)``, is at most ``pfa``; with ``n_bins`` given, ``p`` is first corrected for the
+    free depth (look-elsewhere): ``1 - (1 - p)^(n_bins / w)`` for a support of ``w``
+    bins, the chance that a background-only pixel shows such a count in any of its
+    windows, so that ``pfa`` is a per-pixel rate (``detect`` passes ``surface_pfa``).
+
+    Parameters
+    ----------
+    surf : dict
+        Candidate table (see :func:`spill_over_features`).
+    keep : (S,) bool
+        Candidates kept so far (only they count as neighbours and are tested).
+    fwhm : float
+        Same-depth tolerance (bins).
+    pfa : float
+        Significance required of an isolated candidate's own counts.
+    only_extra : bool
+        Test only isolated candidates in pixels holding another kept candidate.
+    n_bins : int, optional
+        T, the pixel's number of time bins (look-elsewhere correction); None: none.
+
+    Returns
+    -------
+    (S,) bool
+        True for the candidates to reject.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> cnt = np.zeros((2, 1, 9), np.int32)
+    >>> cnt[0, 0, 4] = 1  # one photon over a background of 0.45: not significant
+    >>> cnt[1, 0, 3:6] = [2, 4, 2]
+    >>> surf = dict(row=np.array([0, 4]), col=np.array([0, 4]), depth_bin=np.array([4.0, 4.0]),
+    ...             own_counts=cnt, own_background=np.full((2, 1, 9), 0.05, np.float32),
+    ...             image_shape=(5, 5))
+    >>> reject_isolated(surf, np.ones(2, bool), fwhm=3.0, pfa=1e-3).tolist()
+    [True, False]
+    """
+    from scipy import stats
+
+    R, C = surf["image_shape"]
+    S = surf["row"].size
+    rej = np.zeros(S, bool)
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return rej
+    row = np.asarray(surf["row"])[idx]
+    col = np.asarray(surf["col"])[idx]
+    d = np.asarray(surf["depth_bin"], np.float64)[idx]
+    D, _ = _dense(row, col, (R, C), d, np.nan)
+    r1, c1 = row + 1, col + 1
+    shared = np.zeros(idx.size, bool)
+    for dr, dc in _NEIGHBOURS:
+        shared |= np.any(np.abs(D[r1 + dr, c1 + dc] - d[:, None]) <= fwhm, axis=1)
+    n_own = np.isfinite(D[r1, c1]).sum(axis=1)  # candidates in the pixel (itself included)
+    test = ~shared & ((n_own > 1) if only_extra else True)
+    sub = idx[test]
+    n = np.asarray(surf["own_counts"])[sub].sum(axis=(1, 2))
+    B = np.asarray(surf["own_background"], np.float64)[sub].sum(axis=(1, 2))
+    p = stats.poisson.sf(n - 1, np.maximum(B, 1e-12))  # P(N >= n | B)
+    if n_bins is not None:
+        # the candidate's depth was free: any of the T / width windows of the pixel
+        # could have held such a count (look-elsewhere), so the chance that a
+        # background-only pixel shows one somewhere is 1 - (1 - p)^(T / width)
+        support = np.asarray(surf["own_background"])[sub] > 0  # (m, L, W)
+        width = np.maximum(support.any(axis=1).sum(axis=1), 1)
+        p = -np.expm1(np.log1p(-np.minimum(p, 1 - 1e-12)) * (n_bins / width))
+    rej[sub] = p > pfa
+    logger.debug("isolated: %d tested, %d rejected", int(test.sum()), int(rej.sum()))
+    return rej
