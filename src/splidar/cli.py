@@ -183,7 +183,7 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--presence",
         choices=("auto", "adaptive", "none", "pixel"),
-        help="own-pixel presence check of candidates (default auto)",
+        help="own-pixel presence check of candidates (default adaptive)",
     )
     g.add_argument(
         "--min-separation",
