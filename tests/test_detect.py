@@ -462,3 +462,43 @@ def test_reject_isolated_needs_significant_own_counts():
     counts[4, 4] = 8
     surf, _, _ = _table(depth, counts, bg=0.05)
     assert not reject_isolated(surf, keep, fwhm=3.0, pfa=0.01, n_bins=200).any()
+
+
+def test_reject_spill_over_matches_numpy_reference_on_random_tables():
+    # the numba kernel against the vectorised definition (spill_over_features), iterated
+    from splidar.detection._quality import reject_spill_over, spill_over_features
+
+    g = np.asarray(IRF, float)[None]
+    pk = np.array([int(g.argmax())])
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        R, C, W = 12, 12, 11
+        row = np.repeat(np.arange(R * C) // C, 2)
+        col = np.repeat(np.arange(R * C) % C, 2)
+        present = rng.random(row.size) < 0.7
+        row, col = row[present], col[present]
+        depth = rng.choice([20.0, 21.5, 40.0], row.size) + rng.normal(0, 0.7, row.size)
+        cnt = rng.poisson(rng.choice([0.05, 0.6], (row.size, 1, 1)), (row.size, 1, W))
+        cnt = cnt.astype(np.int32)
+        bkg = np.full((row.size, 1, W), 0.05, np.float32)
+        bkg[:, :, :2] = 0.0  # outside the support
+        surf = dict(
+            row=row,
+            col=col,
+            depth_bin=depth,
+            offset=np.round(depth).astype(int) - W // 2,
+            own_counts=cnt,
+            own_background=bkg,
+            image_shape=(R, C),
+        )
+        keep = rng.random(row.size) < 0.9
+        ref = np.zeros(row.size, bool)
+        for _ in range(24):
+            f = spill_over_features(surf, keep & ~ref, irf=g, peak=pk, fwhm=3.0)
+            new = keep & ~ref & f["has_source"] & ~f["enclosed"] & (f["llr_source"] < 0.0)
+            if not new.any():
+                break
+            ref |= new
+        got = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=24)
+        assert ref.any()
+        np.testing.assert_array_equal(got, ref)

@@ -43,6 +43,9 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from numba import njit
+
+from ._kernels import _interp_irf
 
 __all__ = ["reject_isolated", "reject_spill_over", "spill_over_features"]
 
@@ -246,24 +249,173 @@ def reject_spill_over(
     ...                   fwhm=3.0, llr_level=0.0).tolist()
     [False, True]
     """
+    R, C = surf["image_shape"]
+    idx = np.flatnonzero(keep)
     rej = np.zeros(keep.size, bool)
-    # repeated until no change: a rejected candidate is neither a source nor part of an
-    # enclosing pair any more, so the spread two or more pixels from its source (coarse
-    # boxes reach max(k) // 2 pixels) is tested next
-    for _ in range(max_iter):
-        f = spill_over_features(surf, keep & ~rej, irf=irf, peak=peak, fwhm=fwhm)
-        new = keep & ~rej & f["has_source"] & ~f["enclosed"] & (f["llr_source"] < llr_level)
-        if not new.any():
-            break
-        rej |= new
+    if idx.size == 0:
+        return rej
+    counts = np.asarray(surf["own_counts"])[idx]
+    bkg = np.asarray(surf["own_background"], np.float32)[idx]
+    own = np.maximum(
+        counts.sum(axis=-1, dtype=np.float64) - bkg.sum(axis=-1, dtype=np.float64), 0.0
+    )
+    row = np.asarray(surf["row"], np.int64)[idx]
+    col = np.asarray(surf["col"], np.int64)[idx]
+    # candidates grouped by pixel (stable: a pixel's candidates keep their table order)
+    pix = row * C + col
+    order = np.argsort(pix, kind="stable")
+    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    out = np.zeros(idx.size, bool)
+    n_pass = _spill_kernel(
+        row,
+        col,
+        np.asarray(surf["depth_bin"], np.float64)[idx],
+        np.asarray(surf["offset"], np.int64)[idx],
+        np.ascontiguousarray(counts),
+        np.ascontiguousarray(bkg),
+        own,
+        order,
+        starts,
+        int(R),
+        int(C),
+        np.ascontiguousarray(irf, np.float64),
+        np.ascontiguousarray(peak, np.float64),
+        float(fwhm),
+        float(llr_level),
+        int(max_iter),
+        out,
+    )
+    rej[idx] = out
     logger.debug(
-        "spill-over: %d of %d kept candidates rejected (%d with a source, %d enclosed)",
+        "spill-over: %d of %d kept candidates rejected in %d passes",
         int(rej.sum()),
         int(keep.sum()),
-        int((keep & f["has_source"]).sum()),
-        int((keep & f["enclosed"]).sum()),
+        n_pass,
     )
     return rej
+
+
+@njit(cache=True, nogil=True)
+def _spill_kernel(
+    row,
+    col,
+    d,
+    offset,
+    counts,
+    bkg,
+    own,
+    order,
+    starts,
+    R,
+    C,
+    irf,
+    peak,
+    fwhm,
+    level,
+    max_iter,
+    rej,
+):
+    """Iterated spill-over test of :func:`reject_spill_over` on ``n`` candidates.
+
+    ``order`` sorts the candidates by pixel, ``starts`` (R * C + 1) delimits each
+    pixel's run in it. Each pass tests every active candidate against the active ones
+    of the previous pass (all at once, as :func:`spill_over_features`). Returns the
+    number of passes.
+    """
+    n = row.size
+    L = counts.shape[1]
+    W = counts.shape[2]
+    active = np.ones(n, np.bool_)
+    new = np.zeros(n, np.bool_)
+    # only candidates whose 3 x 3 neighbourhood lost a candidate in the last pass can
+    # change their verdict: test those (all of them in the first pass)
+    dirty = np.ones(R * C, np.bool_)
+    sig = np.empty(L, np.float64)
+    passes = 0
+    for _ in range(max_iter):
+        passes += 1
+        n_new = 0
+        for i in range(n):
+            new[i] = False
+            if not active[i] or not dirty[row[i] * C + col[i]]:
+                continue
+            r = row[i]
+            c = col[i]
+            # 1. source: the same-depth neighbour of largest own signal (first max in the
+            # order of the 8 neighbours, then of the pixel's candidates)
+            best = -np.inf
+            src = -1
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    rr = r + dr
+                    cc = c + dc
+                    if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                        continue
+                    p = rr * C + cc
+                    for kk in range(starts[p], starts[p + 1]):
+                        j = order[kk]
+                        if not active[j] or abs(d[j] - d[i]) > fwhm:
+                            continue
+                        tot = 0.0
+                        for l in range(L):
+                            tot += own[j, l]
+                        if tot > best:
+                            best = tot
+                            src = j
+            if src < 0:
+                continue
+            # 2. enclosure: opposite 4-neighbours whose mean depth is the candidate's
+            enclosed = False
+            for pair in range(2):
+                ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
+                if ra < 0 or ca < 0 or rb >= R or cb >= C:
+                    continue
+                pa = ra * C + ca
+                pb = rb * C + cb
+                for ka in range(starts[pa], starts[pa + 1]):
+                    ja = order[ka]
+                    if not active[ja]:
+                        continue
+                    for kb in range(starts[pb], starts[pb + 1]):
+                        jb = order[kb]
+                        if active[jb] and abs(0.5 * (d[ja] + d[jb]) - d[i]) <= fwhm:
+                            enclosed = True
+                            break
+                    if enclosed:
+                        break
+                if enclosed:
+                    break
+            if enclosed:
+                continue
+            # 3. own-pixel log-likelihood ratio of a return as bright as the source
+            for l in range(L):
+                sig[l] = max(own[src, l], 1e-9)
+            dw = d[i] - offset[i]
+            llr = 0.0
+            for l in range(L):
+                for w in range(W):
+                    b = bkg[i, l, w]
+                    if not b > 0:
+                        continue  # outside the support
+                    g = _interp_irf(irf[l], w - dw + peak[l])
+                    llr += counts[i, l, w] * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
+                    llr -= sig[l] * g
+            if llr < level:
+                new[i] = True
+                n_new += 1
+        if n_new == 0:
+            break
+        dirty[:] = False
+        for i in range(n):
+            if new[i]:
+                rej[i] = True
+                active[i] = False
+                for rr in range(max(row[i] - 1, 0), min(row[i] + 2, R)):
+                    for cc in range(max(col[i] - 1, 0), min(col[i] + 2, C)):
+                        dirty[rr * C + cc] = True
+    return passes
 
 
 def reject_isolated(
