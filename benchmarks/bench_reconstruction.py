@@ -16,7 +16,7 @@ true depth, counts from the exact Poisson model: measures the reconstruction alo
 (b) the simulator's scenes through :func:`splidar.detect` (the whole chain). Then the
 Art scene (3 wavelengths) and the real files in ``../shared/data`` when present.
 
-Run: ``python benchmarks/bench_reconstruction.py [--quick] [--figures DIR]``.
+Run: ``python benchmarks/bench_reconstruction.py [--quick] [--figures DIR] [--alpha auto]``.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from splidar.detection import detect
 from splidar.reconstruction import irf_fraction, nearest_signature, reconstruct, synthetic_detection
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+REC_KW: dict = {}  # options passed to every reconstruct call (--alpha)
 
 
 def raw_intensity(det):
@@ -50,6 +51,14 @@ def iae_matched(est_i, true_i, est_idx, true_idx, n_true, est_un=None, true_un=N
     if true_un is not None:
         tot += np.abs(true_i[true_un]).sum()
     return tot / n_true
+
+
+def min_objective_step(history):
+    """Smallest sweep-to-sweep objective change, except where alpha="auto" changed the model."""
+    d = np.diff(history.objective)
+    keep = np.ones(d.size, bool)
+    keep[[i - 1 for i in history.alpha_updates if 0 < i <= d.size]] = False
+    return float(d[keep].min()) if np.any(keep) else 0.0
 
 
 def report(name, det, rec, truth, *, t_detect=None):
@@ -71,8 +80,7 @@ def report(name, det, rec, truth, *, t_detect=None):
     phot = det.surfaces.photons
     iae_ph = iae_matched(phot, truth.intensity, ei, ti, n, m.unmatched_est, m.unmatched_true)
     inside = np.abs(p.intensity[ei] - truth.intensity[ti]) <= p.intensity_std[ei]
-    obj = rec.history.objective
-    drop = float(np.min(np.diff(obj))) if obj.size > 1 else 0.0
+    drop = min_objective_step(rec.history)
     per_layer = []
     if truth.layer is not None and truth.layer.max() > 0:
         for layer in range(int(truth.layer.max()) + 1):
@@ -123,7 +131,7 @@ def fabricated(quick):
             det, truth = synthetic_detection(
                 shape=(size, size), layers=layers, ppp=10, sbr=1, patch_size=12, rng=seed
             )
-            rec = reconstruct(det)
+            rec = reconstruct(det, **REC_KW)
             covs.append(report(f"synthetic {layers}-layer seed {seed}", det, rec, truth))
     cov = np.concatenate([c[0].ravel() for c in covs])
     tru = np.concatenate([c[1].ravel() for c in covs])
@@ -137,7 +145,7 @@ def fabricated(quick):
             det, truth = synthetic_detection(
                 shape=(size, size), layers=layers, variability=var, patch_size=12, rng=9
             )
-            rec = reconstruct(det)
+            rec = reconstruct(det, **REC_KW)
             covs.append(report(f"synthetic {layers}L variability {var}", det, rec, truth))
         cov = np.concatenate([c[0].ravel() for c in covs])
         tru = np.concatenate([c[1].ravel() for c in covs])
@@ -157,12 +165,15 @@ def simulated(quick, figures):
             t0 = time.perf_counter()
             det = detect(sim.cube, rng=seed)
             t_det = time.perf_counter() - t0
-            rec = reconstruct(det)
+            rec = reconstruct(det, **REC_KW)
             name = f"multispectral {'2' if two else '1'}-layer s{seed}"
             inside, tru = report(name, det, rec, sim.truth, t_detect=t_det)
             print("  coverage by true intensity (photons): " + coverage_bins(inside, tru))
             if figures and seed == 0:
-                plot(rec, sim.truth, Path(figures) / f"recon_{name.replace(' ', '_')}.png")
+                plot(
+                    rec, Path(figures) / f"recon_{name.replace(' ', '_')}.png", name,
+                    truth=sim.truth,
+                )  # fmt: skip
 
 
 def timing():
@@ -173,7 +184,7 @@ def timing():
         ts, cpu = [], []
         for _ in range(3):
             c0 = time.process_time()
-            rec = reconstruct(det, links=links)
+            rec = reconstruct(det, links=links, **REC_KW)
             cpu.append(time.process_time() - c0)
             ts.append(rec.timings["total"])
         print(
@@ -190,6 +201,9 @@ def timing():
     )
 
 
+TIMINGS = []  # (scene, cube shape, surfaces, detect s, reconstruct s, sweeps)
+
+
 def art(quick, figures):
     from splidar.scenes import art_scene
 
@@ -197,39 +211,37 @@ def art(quick, figures):
     if not folder.is_dir():
         print("\n(d) Art scene: ../shared/data/middlebury-art absent, skipped")
         return
-    print("\n(d) Art scene (185 x 232, two copies, L = 3), PPP 10, SBR 1")
+    print("\n(d) Art scene (185 x 232, two surfaces per pixel, L = 3), PPP 10, SBR 1")
     header()
     scene = art_scene(folder)
     sim = scene.simulate(ppp=10, sbr=1, rng=0)
     t0 = time.perf_counter()
     det = detect(sim.cube, rng=0)
     t_det = time.perf_counter() - t0
-    rec = reconstruct(det)
+    rec = reconstruct(det, **REC_KW)
     report("art 2-layer", det, rec, sim.truth, t_detect=t_det)
+    TIMINGS.append(
+        ("art (simulated)", sim.cube.shape, len(rec.points), t_det, rec.timings["total"],
+         rec.history.n_iter)
+    )  # fmt: skip
     if figures:
-        plot(rec, sim.truth, Path(figures) / "recon_art.png")
+        plot(
+            rec, Path(figures) / "recon_art.png", "Art (simulated, PPP 10, SBR 1)", truth=sim.truth
+        )
 
 
 def real(figures):
+    """The real files of ../shared/data, with the loader options of benchmarks/real_data.py."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from real_data import REAL
+
     print("\n(e) real data (../shared/data): detection + reconstruction, one class")
-    # coarse bins keep the cubes to about 100 M voxels (the raw timing resolution would
-    # give several GB); the IRF width is estimated from the data by splidar.load
-    cases = [
-        ("face", SHARED / "face" / "data_face.mat", {"bin_width": 16}),
-        (
-            "tower",
-            SHARED / "tower" / "tower.mat",
-            {"bin_width": 64, "time_unit": "ps", "window": (5_180_000, 5_380_000)},
-        ),
-        (
-            "longrange-21km",
-            SHARED / "longrange-21km" / "21km_K11_night.mat",
-            {"bin_width": 256, "time_unit": "ps"},
-        ),
-    ]
-    for name, path, kw in cases:
+    for name, (rel, kw, desc) in REAL.items():
+        path = SHARED / rel
         if not path.exists():
-            print(f"{name}: absent, skipped")
+            print(f"{name}: {path} absent, skipped")
             continue
         try:
             t0 = time.perf_counter()
@@ -238,49 +250,100 @@ def real(figures):
             t0 = time.perf_counter()
             det = detect(cube, rng=0)
             t_det = time.perf_counter() - t0
-            rec = reconstruct(det)
+            rec = reconstruct(det, **REC_KW)
         except Exception as exc:  # report and carry on with the other files
             print(f"{name}: failed: {type(exc).__name__}: {exc}")
             continue
-        obj = rec.history.objective
-        drop = float(np.min(np.diff(obj))) if obj.size > 1 else 0.0
+        drop = min_objective_step(rec.history)
+        rel_std = rec.points.intensity_std.sum(1) / np.maximum(rec.points.intensity.sum(1), 1e-12)
         print(
-            f"{name:16s} cube {cube.shape} load {t_load:.2f} s | {len(rec.points)} surfaces | "
-            f"detect {t_det:.2f} s | reconstruct {rec.timings['total']:.3f} s "
+            f"{name:6s} ({desc}) cube {cube.shape} load {t_load:.2f} s | {len(rec.points)} "
+            f"surfaces | detect {t_det:.2f} s | reconstruct {rec.timings['total']:.3f} s "
             f"({rec.history.n_iter} sweeps, {rec.history.reason}) | min dObj {drop:+.2e} | "
-            f"median intensity {np.median(rec.points.intensity.sum(1)):.2f}, median rel. std "
-            f"{np.median(rec.points.intensity_std.sum(1) / rec.points.intensity.sum(1)):.2f}"
+            f"median intensity {np.median(rec.points.intensity.sum(1)):.2f} photons, median "
+            f"rel. std {np.median(rel_std):.2f}"
+        )
+        TIMINGS.append(
+            (name, cube.shape, len(rec.points), t_det, rec.timings["total"], rec.history.n_iter)
         )
         if figures:
-            plot(rec, None, Path(figures) / f"recon_{name}.png")
+            plot(rec, Path(figures) / f"recon_{name}.png", f"{name}: {desc}")
 
 
-def plot(rec, truth, path):
+def timing_table():
+    if not TIMINGS:
+        return
+    load = os.getloadavg()[0]
+    print(f"\nTiming (wall s; load average {load:.1f} on {os.cpu_count()} cores)")
+    print(f"{'scene':18s} {'cube (rows, cols, L, T)':26s} {'surfaces':>9s} {'detect s':>9s} "
+          f"{'reconstruct s':>14s} {'sweeps':>7s}")  # fmt: skip
+    for name, shape, n, td, tr, it in TIMINGS:
+        print(f"{name:18s} {str(shape):26s} {n:9d} {td:9.2f} {tr:14.3f} {it:7d}")
+
+
+SPEED = 299_792_458.0
+
+
+def depth_limits(img):
+    """Colour limits of a depth map: median +- 5 robust sd, within the 1-99th percentiles."""
+    v = img[np.isfinite(img)]
+    if v.size == 0:
+        return 0.0, 1.0
+    p1, med, p99 = np.percentile(v, [1, 50, 99])
+    sd = 1.4826 * np.median(np.abs(v - med))
+    lo, hi = max(p1, med - 5 * sd), min(p99, med + 5 * sd)
+    return (float(lo), float(hi)) if hi > lo else (float(p1), float(max(p99, p1 + 1e-9)))
+
+
+def plot(rec, path, title, truth=None):
+    """Depth, intensity and (with several classes) label maps per surface layer.
+
+    Each depth panel has its own colour scale, median +- 5 robust standard deviations
+    (1.4826 MAD) of its depths clipped to the 1st-99th percentiles: the 1st-99th
+    percentiles alone span face and wall on the face data and flatten the face's relief
+    into one colour. Intensity panels: 0 to the 99th percentile. Pixels without a surface
+    are grey. With ``truth`` a last row shows the true nearest layer on the colour scales
+    of the reconstructed one.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from splidar import plotting as sp
+
     path.parent.mkdir(parents=True, exist_ok=True)
     K = rec.n_layers
-    fig, ax = plt.subplots(K, 3, figsize=(11, 3.4 * K), squeeze=False)
+    labels = int(rec.hyperparameters["n_classes"]) > 1
+    n_col = 3 if labels else 2
+    n_row = K + (1 if truth is not None and labels else 0)
+    fig, ax = plt.subplots(n_row, n_col, figsize=(5.2 * n_col, 4.0 * n_row), squeeze=False)
+    scale = 1.0 if rec.bin_width_ps is None else rec.bin_width_ps * 1e-12 * SPEED / 2.0
+    lims = []
     for k in range(K):
-        d = rec.depth_map[:, :, k]
-        im = ax[k, 0].imshow(d, cmap="viridis")
-        fig.colorbar(im, ax=ax[k, 0])
-        ax[k, 0].set_title(f"depth (bins), layer {k}")
-        inten = rec.intensity_map[:, :, k].sum(-1)
-        im = ax[k, 1].imshow(inten, cmap="gray")
-        fig.colorbar(im, ax=ax[k, 1])
-        ax[k, 1].set_title("intensity (photons, all L)")
-        lab = np.where(rec.label_map[:, :, k] >= 0, rec.label_map[:, :, k], np.nan)
-        ax[k, 2].imshow(lab, cmap="tab10", vmin=0, vmax=9, interpolation="nearest")
-        ax[k, 2].set_title("label")
-    for a in ax.ravel():
-        a.set_xticks([])
-        a.set_yticks([])
+        lims.append(depth_limits(rec.depth_map[:, :, k] * scale))
+        sp.plot_depth(rec, layer=k, ax=ax[k, 0], vmin=lims[k][0], vmax=lims[k][1])
+        sp.plot_intensity(rec, layer=k, ax=ax[k, 1])
+        if labels:
+            sp.plot_labels(rec, layer=k, ax=ax[k, 2])
+    if n_row > K:
+        sp.plot_depth(
+            truth, layer=0, ax=ax[K, 0], bin_width_ps=rec.bin_width_ps, vmin=lims[0][0],
+            vmax=lims[0][1],
+        )  # fmt: skip
+        ax[K, 0].set_title("True depth, 1st surface per pixel", fontsize=10)
+        inten = rec.intensity_map[:, :, 0].sum(-1)
+        sp.plot_intensity(truth, layer=0, ax=ax[K, 1], vmax=np.nanpercentile(inten, 99))
+        ax[K, 1].set_title("True intensity, 1st surface per pixel", fontsize=10)
+        sp.plot_labels(truth, layer=0, ax=ax[K, 2], class_names=rec.class_names)
+        ax[K, 2].set_title("True class, 1st surface per pixel", fontsize=10)
+    fig.suptitle(
+        f"{title}\n{len(rec.points)} surfaces, reconstruction {rec.timings['total']:.2f} s "
+        f"({rec.history.n_iter} sweeps)",
+        fontsize=11,
+    )
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
     print(f"  figure: {path}")
 
@@ -290,7 +353,11 @@ def main():
     ap.add_argument("--quick", action="store_true", help="smaller scenes, fewer seeds")
     ap.add_argument("--figures", default=None, help="folder for PNG figures")
     ap.add_argument("--skip", default="", help="comma list of parts to skip: a,b,c,d,e")
+    ap.add_argument("--alpha", default=None, help='reconstruct alpha: a number or "auto"')
     a = ap.parse_args()
+    if a.alpha is not None:
+        REC_KW["alpha"] = a.alpha if a.alpha == "auto" else float(a.alpha)
+        print(f"reconstruct options: {REC_KW}")
     skip = set(a.skip.split(","))
     if "a" not in skip:
         fabricated(a.quick)
@@ -302,6 +369,7 @@ def main():
         art(a.quick, a.figures)
     if "e" not in skip:
         real(a.figures)
+    timing_table()
 
 
 if __name__ == "__main__":

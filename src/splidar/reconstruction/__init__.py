@@ -1,6 +1,6 @@
 """Bayesian 3D reconstruction and spectral classification (Algorithm 2)."""
 
-from ._core import irf_fraction, kmeans_signatures, nearest_signature, reconstruct
+from ._core import estimate_alpha, irf_fraction, kmeans_signatures, nearest_signature, reconstruct
 from ._graph import SurfaceGraph, build_graph, irf_fwhm
 from ._result import ConvergenceHistory, Reconstruction
 from ._synthetic import synthetic_detection
@@ -10,6 +10,7 @@ __all__ = [
     "Reconstruction",
     "SurfaceGraph",
     "build_graph",
+    "estimate_alpha",
     "irf_fraction",
     "irf_fwhm",
     "kmeans_signatures",

@@ -14,6 +14,12 @@ Notation (per surface s, wavelength l, class k)::
     h    shading (gamma-MRF), w auxiliary                  (S,)
     u    label                                             (S,)
     alpha, ups, eps : class hyperparameters                (K, L)
+
+The per-surface loops run in parallel (``prange``): within one colour of the red-black
+order no two surfaces are linked, and every other update reads only arrays it does not
+write (h from w, w from h, r and beta per surface), so the result does not depend on the
+number of threads (only the sums of the objective and of the change are reduced in a
+thread-dependent order when compiled parallel).
 """
 
 from __future__ import annotations
@@ -21,19 +27,20 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+# The loops are written with prange (safe, see above) but compiled serial: on 2 cores
+# shared with other work, numba's thread pool measured slower than one thread (a
+# parallel region waits for its slowest thread; Art-size labels 18-27 ms with 2 threads
+# against 12-24 ms with one, h 0.4-7.9 ms against 0.6 ms, under a load of 3-4).
+_PARALLEL = False
 
 
-@njit(cache=True)
-def _lgamma(x):
-    return math.lgamma(x)
-
-
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def estep(y, b, eta, r, h, z, q):
     """EM split of the counts: ``z = y * q``, ``q = eta h r / (eta h r + b)``."""
     S, L = y.shape
-    for s in range(S):
+    for s in prange(S):
         for l in range(L):
             sig = eta[s, l] * h[s] * r[s, l]
             tot = sig + b[s, l]
@@ -45,134 +52,141 @@ def estep(y, b, eta, r, h, z, q):
 
 
 @njit(cache=True)
-def block_score(s, k, z, eta, h, alpha, ups, eps, cst, r0, lr0, n_inner, r_out, beta_out):
-    """Best (r_s, beta_s) under class k and its complete-data log posterior terms.
-
-    Starts from ``r0`` (``lr0 = log r0``), sets beta to its conditional mode, then
-    alternates the exact conditional modes of r and beta ``n_inner`` times (each step
-    increases the value; ``reconstruct`` uses 0: beta profiled out, r kept). Returns
-    ``sum_l [z log(r) - eta h r + log G(r; alpha_k, beta) + log IG(beta; ups_k, eps_k)]``,
-    the block's complete-data posterior up to terms common to all classes.
-    """
-    L = z.shape[1]
-    tot = 0.0
-    hs = h[s]
-    for l in range(L):
-        a = alpha[k, l]
-        v = ups[k, l]
-        e = eps[k, l]
-        rl = r0[l]
-        lr = lr0[l]
-        lam = eta[s, l] * hs
-        bt = (rl + e) / (a + v + 1.0)
-        for _ in range(n_inner):
-            rl = (z[s, l] + a - 1.0) / (lam + 1.0 / bt)
-            bt = (rl + e) / (a + v + 1.0)
-            lr = math.log(rl)
-        r_out[l] = rl
-        beta_out[l] = bt
-        lb = math.log(bt)
-        # z log(eta h) is the same for every class: left out
-        tot += z[s, l] * lr - lam * rl
-        # log G(r; a, scale bt) (eq:4.4) + log IG(bt; v, e) (eq:4.3); cst holds
-        # -lgamma(a) + v log(e) - lgamma(v)
-        tot += (a - 1.0) * lr - (rl + e) / bt - (a + v + 1.0) * lb + cst[k, l]
-    return tot
+def class_cst(alpha, ups, eps):
+    """``-lgamma(alpha) + ups log(eps) - lgamma(ups)`` per class and wavelength, (K, L)."""
+    K, L = alpha.shape
+    cst = np.empty((K, L))
+    for k in range(K):
+        for l in range(L):
+            v = ups[k, l]
+            cst[k, l] = -math.lgamma(alpha[k, l]) + v * math.log(eps[k, l]) - math.lgamma(v)
+    return cst
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def update_labels(
-    parity,
-    colour,
-    indptr,
-    indices,
-    z,
-    eta,
-    h,
-    r,
-    beta,
-    u,
-    alpha,
-    ups,
-    eps,
-    cst,
-    gamma,
-    n_inner,
-    conf,
+    parity, colour, indptr, indices, r, beta, u, alpha, ups, eps, cst2, gamma, conf, buf
 ):
     """Block update of ``(u_s, beta_s)`` for the surfaces whose pixel parity is ``colour``.
 
-    For each class k, beta_s takes its conditional mode given r_s under k (see
-    :func:`block_score`; with ``n_inner > 0`` r_s is refined too); the class with the
+    For each class k, beta_s takes its conditional mode given r_s under k,
+    ``beta = (r + eps_k) / c_k`` with ``c_k = alpha_k + ups_k + 1``; the class with the
     highest complete-data posterior plus ``gamma * #(agreeing neighbours)`` wins
-    (``eq:4.umax``), ties keeping the current label. This is an exact maximisation over
-    the block, so it never lowers the posterior. No two surfaces of one colour are
+    (``eq:4.umax``), ties keeping the current label. With r held, the likelihood terms of
+    the counts are the same for every class, so the class score is the prior part only::
+
+        sum_l [(alpha_k - 1) log r - (r + eps_k) / beta - c_k log beta + cst_k]
+          = sum_l [(alpha_k - 1) log r - c_k log(r + eps_k) + cst2_k]   at the mode of beta
+
+    with ``cst2 = cst - c + c log c`` (:func:`label_cst`). This is an exact maximisation
+    over the block, so it never lowers the posterior. No two surfaces of one colour are
     linked (links join 4-neighbour pixels only), so all of them are updated at once
     exactly (red-black order: labels cannot oscillate). Returns the number of labels
-    that changed; ``conf`` receives the softmax probability of the chosen label.
+    that changed; ``conf`` receives the softmax probability of the chosen label; ``buf``
+    (S, K) is scratch space.
     """
     S, L = r.shape
     K = alpha.shape[0]
-    scores = np.empty(K)
-    rk = np.empty((K, L))
-    bk = np.empty((K, L))
-    r0 = np.empty(L)
-    lr0 = np.empty(L)
-    rt = np.empty(L)
-    bt = np.empty(L)
     changed = 0
-    for s in range(S):
+    for s in prange(S):
         if parity[s] != colour:
             continue
+        for k in range(K):
+            buf[s, k] = 0.0
         for l in range(L):
-            r0[l] = r[s, l]
-            lr0[l] = math.log(r0[l])
-        for k in range(K):
-            scores[k] = block_score(s, k, z, eta, h, alpha, ups, eps, cst, r0, lr0, n_inner, rt, bt)
-            for l in range(L):
-                rk[k, l] = rt[l]
-                bk[k, l] = bt[l]
+            rl = r[s, l]
+            lr = math.log(rl)
+            for k in range(K):
+                a = alpha[k, l]
+                buf[s, k] += (a - 1.0) * lr - (a + ups[k, l] + 1.0) * math.log(rl + eps[k, l])
+                buf[s, k] += cst2[k, l]
         for j in range(indptr[s], indptr[s + 1]):
-            scores[u[indices[j]]] += gamma
-        best = u[s]
+            buf[s, u[indices[j]]] += gamma
+        cur = u[s]
+        best = cur
         for k in range(K):
-            if scores[k] > scores[best]:
+            if buf[s, k] > buf[s, best]:
                 best = k
-        mx = scores[best]
+        mx = buf[s, best]
         den = 0.0
         for k in range(K):
-            den += math.exp(scores[k] - mx)
+            den += math.exp(buf[s, k] - mx)
         conf[s] = 1.0 / den
-        if best != u[s]:
+        if best != cur:
             changed += 1
         u[s] = best
         for l in range(L):
-            r[s, l] = rk[best, l]
-            beta[s, l] = bk[best, l]
+            beta[s, l] = (r[s, l] + eps[best, l]) / (alpha[best, l] + ups[best, l] + 1.0)
     return changed
 
 
 @njit(cache=True)
+def label_cst(alpha, ups, cst):
+    """``cst - c + c log c`` with ``c = alpha + ups + 1`` (see :func:`update_labels`)."""
+    K, L = alpha.shape
+    out = np.empty((K, L))
+    for k in range(K):
+        for l in range(L):
+            c = alpha[k, l] + ups[k, l] + 1.0
+            out[k, l] = cst[k, l] - c + c * math.log(c)
+    return out
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def potts_icm(score, parity, indptr, indices, gamma, n_sweeps, u):
+    """Labels maximising ``score[s, u_s] + gamma * #(agreeing links)`` by red-black ICM.
+
+    ``u`` (S,) holds the start labels and receives the result (ties keep the current
+    label). Returns the sweeps done.
+    """
+    S, K = score.shape
+    buf = np.empty((S, K))
+    done = 0
+    for _ in range(n_sweeps):
+        changed = 0
+        for colour in range(2):
+            for s in prange(S):
+                if parity[s] != colour:
+                    continue
+                for k in range(K):
+                    buf[s, k] = score[s, k]
+                for j in range(indptr[s], indptr[s + 1]):
+                    buf[s, u[indices[j]]] += gamma
+                cur = u[s]
+                best = cur
+                for k in range(K):
+                    if buf[s, k] > buf[s, best]:
+                        best = k
+                if best != cur:
+                    changed += 1
+                u[s] = best
+        done += 1
+        if changed == 0:
+            break
+    return done
+
+
+@njit(cache=True, parallel=_PARALLEL)
 def update_r(z, eta, h, beta, u, alpha, r):
     """Mode of the gamma conditional of r (``eqt:Modes_Param_top`` left, EM data z)."""
     S, L = r.shape
-    for s in range(S):
+    for s in prange(S):
         k = u[s]
         for l in range(L):
             r[s, l] = (z[s, l] + alpha[k, l] - 1.0) / (eta[s, l] * h[s] + 1.0 / beta[s, l])
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def update_beta(r, u, alpha, ups, eps, beta):
     """Mode of the inverse-gamma conditional of beta (``eqt:Modes_Param_top`` right)."""
     S, L = r.shape
-    for s in range(S):
+    for s in prange(S):
         k = u[s]
         for l in range(L):
             beta[s, l] = (r[s, l] + eps[k, l]) / (alpha[k, l] + ups[k, l] + 1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def update_h(z, eta, r, w, indptr, indices, rho, h):
     """Mode of the gamma conditional of h (``eqt:Modes_Param_bottom`` left).
 
@@ -180,13 +194,12 @@ def update_h(z, eta, r, w, indptr, indices, rho, h):
     ``theta1 = rho (1 + deg_s)``, ``theta2 = rho (1/w_s + sum_{s'} 1/w_s')``.
     """
     S, L = r.shape
-    inv_w = 1.0 / w
-    for s in range(S):
+    for s in prange(S):
         deg = indptr[s + 1] - indptr[s]
         t1 = rho * (1.0 + deg)
-        t2 = inv_w[s]
+        t2 = 1.0 / w[s]
         for j in range(indptr[s], indptr[s + 1]):
-            t2 += inv_w[indices[j]]
+            t2 += 1.0 / w[indices[j]]
         t2 *= rho
         zz = 0.0
         er = 0.0
@@ -196,7 +209,7 @@ def update_h(z, eta, r, w, indptr, indices, rho, h):
         h[s] = (zz + t1) / (er + t2)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def update_w(h, indptr, indices, w):
     """Mode of the inverse-gamma conditional of w (``eqt:Modes_Param_bottom`` right).
 
@@ -204,7 +217,7 @@ def update_w(h, indptr, indices, w):
     ``theta2 = rho (h_s + sum_{s'} h_s')``: the mode is the mean of the linked h.
     """
     S = h.shape[0]
-    for s in range(S):
+    for s in prange(S):
         deg = indptr[s + 1] - indptr[s]
         t = h[s]
         for j in range(indptr[s], indptr[s + 1]):
@@ -212,7 +225,7 @@ def update_w(h, indptr, indices, w):
         w[s] = t / (1.0 + deg)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=_PARALLEL)
 def objective(y, b, eta, r, beta, h, w, u, indptr, indices, alpha, ups, eps, cst, rho, gamma):
     """Log posterior up to a constant (``eqt:Posterior``), background marginalised.
 
@@ -221,36 +234,58 @@ def objective(y, b, eta, r, beta, h, w, u, indptr, indices, alpha, ups, eps, cst
     and neighbour links); Potts ``gamma * #(agreeing unordered links)``.
     """
     S, L = r.shape
-    log_w = np.log(w)
-    inv_w = 1.0 / w
     tot = 0.0
-    for s in range(S):
+    for s in prange(S):
         k = u[s]
+        part = 0.0
         for l in range(L):
             lam = eta[s, l] * h[s] * r[s, l] + b[s, l]
             if y[s, l] > 0.0:
-                tot += y[s, l] * math.log(lam)
-            tot -= lam
+                part += y[s, l] * math.log(lam)
+            part -= lam
             a = alpha[k, l]
             v = ups[k, l]
             e = eps[k, l]
             bt = beta[s, l]
             lb = math.log(bt)
             rl = r[s, l]
-            tot += (a - 1.0) * math.log(rl) - (rl + e) / bt - (a + v + 1.0) * lb + cst[k, l]
+            part += (a - 1.0) * math.log(rl) - (rl + e) / bt - (a + v + 1.0) * lb + cst[k, l]
         hs = h[s]
         deg = indptr[s + 1] - indptr[s]
         # own link h_s - w_s, then the neighbour links
-        acc_lw = log_w[s]
-        acc_iw = inv_w[s]
+        acc_lw = math.log(w[s])
+        acc_iw = 1.0 / w[s]
         for j in range(indptr[s], indptr[s + 1]):
             t = indices[j]
-            acc_lw += log_w[t]
-            acc_iw += inv_w[t]
+            acc_lw += math.log(w[t])
+            acc_iw += 1.0 / w[t]
             if t > s and u[t] == k:
-                tot += gamma
-        tot += rho * ((1.0 + deg) * math.log(hs) - acc_lw - hs * acc_iw)
+                part += gamma
+        part += rho * ((1.0 + deg) * math.log(hs) - acc_lw - hs * acc_iw)
+        tot += part
     return tot
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def _rms_change(h, r, old):
+    """RMS change of ``h r`` against ``old`` relative to the RMS of ``old``."""
+    S, L = r.shape
+    num = 0.0
+    den = 0.0
+    for s in prange(S):
+        for l in range(L):
+            v = h[s] * r[s, l]
+            num += (v - old[s, l]) ** 2
+            den += old[s, l] ** 2
+    return math.sqrt(num / max(den, 1e-300))
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def _store(h, r, old):
+    S, L = r.shape
+    for s in prange(S):
+        for l in range(L):
+            old[s, l] = h[s] * r[s, l]
 
 
 @njit(cache=True)
@@ -269,7 +304,6 @@ def run(
     max_iter,
     tol,
     update_classes,
-    n_inner,
     r,
     beta,
     h,
@@ -280,62 +314,134 @@ def run(
     q,
     obj_out,
     change_out,
+    label_out,
+    n_inner=1,
     n_hw=1,
+    label_tol=0,
 ):
     """Coordinate descent (Algorithm 2): returns the number of sweeps done.
 
-    One sweep: E-step (split y into signal and background), labels with their beta
-    (red then black pixels), r, beta, then ``n_hw`` passes of h, w. Every step
-    maximises the complete-data posterior in its block, so the marginal log posterior
-    never decreases (generalised EM). ``obj_out[0]`` holds the start value,
-    ``obj_out[i]`` the value after sweep i.
-    ``change_out[i-1]`` is the RMS change of the intensity ``h r`` relative to its RMS.
+    One sweep: E-step (split y into signal and background), labels with their beta (red
+    then black pixels), then ``n_inner`` rounds of [r, beta, ``n_hw`` passes of (h, w),
+    E-step]. Every step maximises the complete-data posterior in its block (the E-step
+    is EM's), so the marginal log posterior never decreases (generalised EM).
+    ``obj_out[0]`` holds the start value, ``obj_out[i]`` the value after sweep i;
+    ``change_out[i-1]`` is the RMS change of the intensity ``h r`` relative to its RMS and
+    ``label_out[i-1]`` the number of labels changed at sweep i. Stops when that change is
+    below ``tol`` and at most ``label_tol`` labels changed.
     """
     S, L = y.shape
-    K = alpha.shape[0]
-    cst = np.empty((K, L))
-    for k in range(K):
-        for l in range(L):
-            a = alpha[k, l]
-            v = ups[k, l]
-            cst[k, l] = -_lgamma(a) + v * math.log(eps[k, l]) - _lgamma(v)
+    cst = class_cst(alpha, ups, eps)
+    cst2 = label_cst(alpha, ups, cst)
+    buf = np.empty((S, alpha.shape[0]))
     obj_out[0] = objective(
         y, b, eta, r, beta, h, w, u, indptr, indices, alpha, ups, eps, cst, rho, gamma
     )
     old = np.empty((S, L))
     n_iter = 0
     for it in range(max_iter):
-        for s in range(S):
-            for l in range(L):
-                old[s, l] = h[s] * r[s, l]
+        _store(h, r, old)
         estep(y, b, eta, r, h, z, q)
         changed = 0
         if update_classes:
             for colour in range(2):
                 changed += update_labels(
-                    parity, colour, indptr, indices, z, eta, h, r, beta, u, alpha, ups, eps,
-                    cst, gamma, n_inner, conf,
+                    parity, colour, indptr, indices, r, beta, u, alpha, ups, eps, cst2, gamma,
+                    conf, buf,
                 )  # fmt: skip
-        update_r(z, eta, h, beta, u, alpha, r)
-        update_beta(r, u, alpha, ups, eps, beta)
-        # the gamma-MRF couples h and w strongly when rho is large: a few h-w passes per
-        # sweep (each an exact block maximisation, cheap) speed up convergence
-        for _ in range(n_hw):
-            update_h(z, eta, r, w, indptr, indices, rho, h)
-            update_w(h, indptr, indices, w)
+        # the continuous blocks are cheap against the labels: several rounds per sweep
+        # (the EM split and the gamma-MRF both mix slowly at SBR ~ 1 and large rho)
+        for i in range(n_inner):
+            if i > 0:
+                estep(y, b, eta, r, h, z, q)
+            update_r(z, eta, h, beta, u, alpha, r)
+            update_beta(r, u, alpha, ups, eps, beta)
+            for _ in range(n_hw):
+                update_h(z, eta, r, w, indptr, indices, rho, h)
+                update_w(h, indptr, indices, w)
         n_iter = it + 1
         obj_out[n_iter] = objective(
             y, b, eta, r, beta, h, w, u, indptr, indices, alpha, ups, eps, cst, rho, gamma
         )
-        num = 0.0
-        den = 0.0
-        for s in range(S):
-            for l in range(L):
-                v = h[s] * r[s, l]
-                num += (v - old[s, l]) ** 2
-                den += old[s, l] ** 2
-        ch = math.sqrt(num / max(den, 1e-300))
+        ch = _rms_change(h, r, old)
         change_out[it] = ch
-        if ch < tol and changed == 0:
+        label_out[it] = changed
+        if ch < tol and changed <= label_tol:
             break
     return n_iter
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def posterior(y, eta, z, q, r, beta, h, w, u, alpha, indptr, indices, rho, inten, std):
+    """Intensity ``h r`` and its posterior std (see ``reconstruct``'s notes), in place.
+
+    ``r | h, beta`` is a mixture over the signal/background split ``z ~ Bin(y, q)`` of
+    ``G(z + alpha, rate eta h + 1/beta)``: variance ``h**2 (E z + alpha + Var z) / rate**2``;
+    plus the uncertainty of h (delta method) from its gamma conditional
+    ``G(sum_l z + rho (1 + deg) + 1, sum_l eta r + rho (1/w_s + sum 1/w_s'))``
+    (``eqt:Modes_Param_bottom``), with ``dE[I | h] / dh = (z + alpha) / beta / rate**2``.
+    """
+    S, L = r.shape
+    for s in prange(S):
+        deg = indptr[s + 1] - indptr[s]
+        t2 = 1.0 / w[s]
+        for j in range(indptr[s], indptr[s + 1]):
+            t2 += 1.0 / w[indices[j]]
+        zz = 0.0
+        er = 0.0
+        for l in range(L):
+            zz += z[s, l]
+            er += eta[s, l] * r[s, l]
+        a_h = zz + rho * (1.0 + deg) + 1.0
+        b_h = er + rho * t2
+        var_h = a_h / (b_h * b_h)
+        hs = h[s]
+        k = u[s]
+        for l in range(L):
+            rate = eta[s, l] * hs + 1.0 / beta[s, l]
+            shape = z[s, l] + alpha[k, l]
+            var = hs * hs * (shape + y[s, l] * q[s, l] * (1.0 - q[s, l])) / (rate * rate)
+            d_i = shape / beta[s, l] / (rate * rate)
+            inten[s, l] = hs * r[s, l]
+            std[s, l] = math.sqrt(var + d_i * d_i * var_h)
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def dispersion_sums(y, b, eta, h, u, sig, v, num, den):
+    """Per-class sums of the weighted moment estimator of the reflectivity dispersion.
+
+    Under the prior, ``y_{s,l}`` has mean ``mu = lam + b`` with ``lam = eta h m_{u_s,l}``
+    and variance ``mu + v lam**2`` (Poisson noise plus a reflectivity of relative variance
+    ``v = CV**2`` about its signature), so ``e = (y - mu)**2 - mu`` is an unbiased
+    estimate of ``v lam**2``. Each term is weighted by the inverse of its approximate
+    variance, ``2 (mu + v lam**2)**2``: ``num_k += lam**2 e / (mu + v lam**2)**2``,
+    ``den_k += lam**4 / (mu + v lam**2)**2`` (``v_k = num_k / den_k``). ``v`` (K,) is
+    the current estimate, ``num``, ``den`` (K,) are overwritten.
+    """
+    S, L = y.shape
+    K = sig.shape[0]
+    nt = 64
+    part_n = np.zeros((nt, K))
+    part_d = np.zeros((nt, K))
+    chunk = (S + nt - 1) // nt
+    for c in prange(nt):
+        for s in range(c * chunk, min(S, (c + 1) * chunk)):
+            k = u[s]
+            for l in range(L):
+                lam = eta[s, l] * h[s] * sig[k, l]
+                if not lam > 0.0:
+                    continue
+                mu = lam + b[s, l]
+                dev = y[s, l] - mu
+                e = dev * dev - mu
+                l2 = lam * lam
+                vv = mu + v[k] * l2
+                wgt = l2 / (vv * vv)
+                part_n[c, k] += wgt * e
+                part_d[c, k] += wgt * l2
+    for k in range(K):
+        num[k] = 0.0
+        den[k] = 0.0
+        for c in range(nt):
+            num[k] += part_n[c, k]
+            den[k] += part_d[c, k]

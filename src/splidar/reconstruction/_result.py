@@ -34,6 +34,13 @@ class ConvergenceHistory:
         True when the change fell below ``tol`` before ``max_iter``.
     reason : str
         ``"tol"`` or ``"max_iter"`` (or ``"no surfaces"``).
+    label_changes : ndarray (n_iter,), int64, optional
+        Number of labels changed at each sweep.
+    alpha_updates : tuple of int
+        Sweeps i after which the empirical-Bayes estimate of (alpha, upsilon) replaced the
+        previous value (``reconstruct(alpha="auto")``). ``objective[i]`` is then evaluated under
+        the new alpha (the model changed), so ``objective[i] - objective[i - 1]`` may be
+        negative there; between updates the objective never decreases.
     """
 
     objective: np.ndarray
@@ -41,6 +48,8 @@ class ConvergenceHistory:
     n_iter: int
     converged: bool
     reason: str
+    alpha_updates: tuple[int, ...] = ()
+    label_changes: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
