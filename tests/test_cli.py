@@ -395,3 +395,15 @@ def test_main_run_with_store_keeps_arrays_on_disk(simulated, run_out, tmp_path):
     assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(
         p.name for p in (run_out / "figures").iterdir()
     )
+
+
+def test_main_run_alpha_auto_and_bad_alpha(simulated, tmp_path, capsys):
+    cube, _ = simulated
+    out = tmp_path / "auto"
+    rc = main(["run", str(cube), "-q", "--alpha", "auto", "--no-figures", "--out", str(out)])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert "auto" in json.dumps(summary)
+    capsys.readouterr()
+    assert main(["run", str(cube), "--alpha", "0.5", "--out", str(tmp_path / "x")]) == 2
+    assert "--alpha" in _error_line(capsys.readouterr().err)

@@ -96,6 +96,19 @@ def _probability(text: str) -> float:
     return x
 
 
+def _alpha(text: str):
+    """``--alpha``: a number > 1 or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 1 or 'auto', got {text!r}") from None
+    if not v > 1:
+        raise argparse.ArgumentTypeError(f"expected a number > 1 or 'auto', got {text!r}")
+    return v
+
+
 def _positive(kind):
     def conv(text: str):
         try:
@@ -211,6 +224,17 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--gamma", type=float, help="Potts granularity, >= 0 (default 2)")
     g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
+    g.add_argument(
+        "--alpha",
+        type=_alpha,
+        help="gamma shape of the reflectivity prior, > 1, or 'auto' (estimated from the data; "
+        "default 6)",
+    )
+    g.add_argument(
+        "--signature-scale",
+        choices=("shape", "absolute"),
+        help="compare spectra by shape or absolute level (default: shape when L > 1)",
+    )
     g.add_argument("--links", choices=("depth", "all"), help="graph links (default depth-gated)")
     g.add_argument("--max-iter", type=_positive(int), metavar="N", help="iterations (default 200)")
     g.add_argument("--tol", type=_positive(float), help="convergence tolerance (default 1e-3)")
@@ -537,7 +561,17 @@ _DETECT_OPTS = (
     "min_separation",
     "store",
 )
-_RECON_OPTS = ("classes", "n_classes", "gamma", "rho", "links", "max_iter", "tol")
+_RECON_OPTS = (
+    "classes",
+    "n_classes",
+    "gamma",
+    "rho",
+    "alpha",
+    "signature_scale",
+    "links",
+    "max_iter",
+    "tol",
+)
 
 
 def _pipeline(cube, args, stages: _Stages, *, library=None):
