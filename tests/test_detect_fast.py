@@ -4,10 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage, signal
 
-from splidar.detection._background import CLIP, robust_level
-from splidar.detection._fast import poisson_background, saliency_wavelength
-from splidar.detection._filters import box
+from splidar import gaussian_irf
+from splidar.detection import _background
+from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temporal_shape
+from splidar.detection._fast import (
+    _median_scratch,
+    poisson_background,
+    saliency_wavelength,
+    window_means,
+)
+from splidar.detection._filters import Correlator, box
 
 
 def _reference(c, keep, scales, weights, dev, var_factor, quantum, spatial=None):
@@ -107,3 +115,113 @@ def test_poisson_background_mean_variance_and_reproducible():
         lam[0, 0, 1].reshape(10, 50).mean(1),
         atol=0.03,
     )
+
+
+@pytest.mark.parametrize("layout", ["view", "t_strided"])
+def test_saliency_wavelength_any_layout_matches_reference(layout):
+    # the kernel reads the block as a flat buffer: a view of one wavelength of a
+    # (R, C, L, T) block (no copy), or a contiguous copy when t is not contiguous
+    rng = np.random.default_rng(3)
+    c4 = rng.gamma(0.5, 1.0, (14, 9, 3, 150)).astype(np.float32)
+    c = c4[:, :, 1, :] if layout == "view" else np.asfortranarray(c4[:, :, 1, :])
+    scales = np.array([1, 3, 7])
+    w = scales / scales.sum()
+    dev = (0.05 * rng.normal(size=150)).astype(np.float32)
+    keep = slice(2, 12)
+    ref = _reference(c, keep, scales, w, dev, 0.02, 0.003)
+    acc = [np.zeros((10, 9, 150), np.float32) for _ in range(3)]
+    sp = saliency_wavelength(c, keep, scales, w, dev, *acc, var_factor=0.02, quantum=0.003)
+    # float32 rounding, as in test_saliency_wavelength_matches_reference
+    np.testing.assert_allclose(sp, ref[0], rtol=0, atol=1e-5)
+    for got, want in zip(acc, ref[1:], strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 75, 76, 375])
+@pytest.mark.parametrize("ties", [False, True])
+def test_median_scratch_equals_numpy_median(n, ties):
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=n).astype(np.float32)
+    if ties:  # few distinct values, as in sparse coarse counts
+        x = np.round(x * 2).astype(np.float32) / 4
+    want = np.median(x)
+    got = _median_scratch(x.copy(), n)
+    assert got == np.float64(want)  # the order statistic: exact
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.int64, np.float32])
+def test_window_means_exact(dtype):
+    rng = np.random.default_rng(4)
+    y = rng.poisson(3.0, (5, 23, 2, 40)).astype(dtype)
+    cols = np.array([0, 1, 7, 18])
+    got = window_means(y, cols, 5)
+    ref = np.stack([y[:, a : a + 5].astype(np.float64).mean(axis=(0, 1)) for a in cols])
+    assert got.dtype == np.float32
+    # integer sums are exact in float64: the float32 rounding of the exact mean
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+
+
+def test_window_means_rejects_windows_outside():
+    with pytest.raises(ValueError, match="columns"):
+        window_means(np.zeros((3, 10, 1, 4), np.uint16), np.array([0, 8]), 3)
+
+
+def _temporal_reference(counts, corr, k, smooth, n_samples=2000):
+    """temporal_shape as first written: numpy row sums, cumsum, successive draws."""
+    R, C, L, T = counts.shape
+    kr, kc = min(k, R), min(k, C)
+    n_pos_r, n_pos_c = R - kr + 1, C - kc + 1
+    step_r = kr if n_pos_r * n_pos_c > 4 * n_samples else 1
+    row_starts = np.arange(0, n_pos_r, step_r)
+    step_c = max(1, int(row_starts.size * n_pos_c // n_samples))
+    col_starts = np.arange(0, n_pos_c, step_c)
+    sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
+    for i, a in enumerate(row_starts):
+        rs = counts[a : a + kr].sum(axis=0, dtype=np.float32)
+        cs = np.concatenate([np.zeros((1, L, T)), np.cumsum(rs, axis=0, dtype=np.float64)])
+        sampled[i] = (cs[col_starts + kc] - cs[col_starts]) / (kr * kc)
+    coarse = corr(sampled).reshape(-1, L, T)
+    n = coarse.shape[0]
+    m = max(1, int(np.ceil(LOW_FRACTION * n)))
+    low = np.partition(coarse, m - 1, axis=0)[:m] if m < n else coarse
+    prof = np.median(low, axis=0).astype(np.float64)
+    if smooth > 1:
+        prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
+    var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
+    rng = np.random.default_rng(_background._DEBIAS_SEED)
+    for l in range(L):
+        x, mm = coarse[:, l], m
+        if n > 600:
+            x = x[rng.choice(n, 600, replace=False)]
+            mm = max(1, int(np.ceil(LOW_FRACTION * 600)))
+        vf = float(var_factor[l])
+        dev = (prof[l] - prof[l].mean()).astype(np.float32)
+        q = float(corr.irf[l].max()) / (kr * kc)
+        lvl = robust_level(x, dev, vf, quantum=q).astype(np.float64)
+        mu = np.maximum(lvl[:, None] + dev[None, :], 0.0)
+        bias = np.zeros(T)
+        for _ in range(4):
+            sim = vf * rng.poisson(mu / vf)
+            low = np.partition(sim, mm - 1, axis=0)[:mm]
+            bias += np.median(low, axis=0) - mu.mean(axis=0)
+        bias /= 4
+        if smooth > 1:
+            bias = ndimage.median_filter(bias, size=smooth, mode="nearest")
+        est = prof[l] - bias
+        win = min(max(5, smooth | 1), T if T % 2 else T - 1)
+        prof[l] = signal.savgol_filter(est, win, 2, mode="interp") if win >= 5 else est
+    return prof.astype(np.float32)
+
+
+def test_temporal_shape_identical_to_reference():
+    # window sums in numba and the draws taken at once (pixels last) are the same
+    # arithmetic and the same random stream: the result must be bit-identical
+    rng = np.random.default_rng(6)
+    T = 90
+    lam = np.full((40, 60, 2, T), 0.3) * np.linspace(1.5, 0.5, T)
+    lam[10:30, 20:50, :, 40:45] += 2.0  # returns in part of the image
+    counts = rng.poisson(lam).astype(np.uint16)
+    irf = np.stack([gaussian_irf(3.0), gaussian_irf(4.0, length=13)])
+    corr = Correlator(irf, T)
+    got = temporal_shape(counts, corr, 7, smooth=9)
+    np.testing.assert_array_equal(got, _temporal_reference(counts, corr, 7, smooth=9))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage, signal
 
+from ._fast import window_means
 from ._filters import Correlator
 
 __all__ = ["robust_level", "temporal_shape"]
@@ -20,6 +21,12 @@ LOW_FRACTION = 0.10
 #: Symmetric, so the clipped mean of background-only values is unbiased; returns
 #: leaking in from neighbours (weak, positive) are cut beyond it.
 CLIP = 2.5
+#: Seed of the (fixed) simulation that measures the low-quantile bias (_debias_profile).
+_DEBIAS_SEED = 12345
+#: Pixels simulated per wavelength in _debias_profile (a subsample when more are sampled).
+_DEBIAS_PIXELS = 600
+#: Simulated draws per pixel and bin in _debias_profile.
+_DEBIAS_SIMS = 4
 
 
 def temporal_shape(
@@ -62,11 +69,8 @@ def temporal_shape(
     col_starts = np.arange(0, n_pos_c, step_c)
     sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
     for i, a in enumerate(row_starts):
-        rows = np.asarray(counts[a : a + kr])
-        rs = rows.sum(axis=0, dtype=np.float32)  # (C, L, T)
-        cs = np.cumsum(rs, axis=0, dtype=np.float64)
-        cs = np.concatenate([np.zeros((1, L, T)), cs], axis=0)
-        sampled[i] = (cs[col_starts + kc] - cs[col_starts]) / (kr * kc)
+        # exact window sums in one numba pass over the rows (_fast.window_means)
+        sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
     n = coarse.shape[0]
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
@@ -76,7 +80,7 @@ def temporal_shape(
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     if refine:
         var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
-        rng = np.random.default_rng(12345)
+        rng = np.random.default_rng(_DEBIAS_SEED)
         for l in range(L):
             quantum = float(corr.irf[l].max()) / (kr * kc)
             prof[l] = _debias_profile(
@@ -85,7 +89,7 @@ def temporal_shape(
     return prof.astype(np.float32)
 
 
-def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=4, quantum=0.0):
+def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=None, quantum=0.0):
     """Remove the low-quantile bias of ``eq:background_1`` (robust to signal).
 
     The median of the lowest 10 % sits below the background mean by an amount that
@@ -97,11 +101,12 @@ def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=4, quan
     robustness to returns in up to 90 % of the pixels.
     """
     n, T = x.shape
-    if n > 600:
+    n_sim = _DEBIAS_SIMS if n_sim is None else n_sim
+    if n > _DEBIAS_PIXELS:
         # the bias is a property of the estimator at this sample size: simulate it on a
         # subsample of the pixels with the same 10 % fraction (cost)
-        x = x[rng.choice(n, 600, replace=False)]
-        n = 600
+        x = x[rng.choice(n, _DEBIAS_PIXELS, replace=False)]
+        n = _DEBIAS_PIXELS
         m = max(1, int(np.ceil(LOW_FRACTION * n)))
     est = prof.copy()
     for _ in range(n_iter):
@@ -109,10 +114,14 @@ def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=4, quan
         lvl = robust_level(x, dev, var_factor, quantum=quantum).astype(np.float64)  # (n,)
         mu = np.maximum(lvl[:, None] + dev[None, :], 0.0)  # (n, T)
         bias = np.zeros(T)
-        for _ in range(n_sim):
-            sim = var_factor * rng.poisson(mu / var_factor)
-            low = np.partition(sim, m - 1, axis=0)[:m] if m < n else sim
-            bias += np.median(low, axis=0) - mu.mean(axis=0)
+        mu_mean = mu.mean(axis=0)
+        # all draws in one call (the same stream as n_sim successive (n, T) draws); each
+        # is transposed so that the selection and the median run along contiguous memory
+        draws = rng.poisson(mu / var_factor, size=(n_sim, n, T))
+        for i in range(n_sim):
+            sim = var_factor * np.ascontiguousarray(draws[i].T)  # (T, n)
+            low = np.partition(sim, m - 1, axis=-1)[:, :m] if m < n else sim
+            bias += np.median(low, axis=-1) - mu_mean
         bias /= n_sim
         if smooth > 1:
             bias = ndimage.median_filter(bias, size=smooth, mode="nearest")

@@ -11,6 +11,13 @@ The box filters reproduce :func:`~splidar.detection._filters.box` (``mode="refle
 separable: a float32 pass along rows, then one along columns with float64 running
 sums), so the results agree with the scipy reference up to float32 rounding
 (``tests/test_detect_fast.py``).
+
+Speed (issue 6): the block is read through a flat contiguous view with explicit
+row/column strides, so every inner loop runs over contiguous 1-d slices and vectorises
+(a strided 3-d view compiled to scalar code); the level's median is a branchless
+quickselect on a scratch buffer and its clipped sums vectorise. Each change keeps the
+arithmetic of every element, so the output is the same as before bit for bit (the
+clipped float64 sums are reassociated, which moves them by float64 rounding only).
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
-__all__ = ["poisson_background", "poisson_scaled", "saliency_wavelength"]
+__all__ = ["poisson_background", "poisson_scaled", "saliency_wavelength", "window_means"]
 
 #: Time bins per tile of the column pass (keeps the per-scale row sums in cache).
 _T_TILE = 256
@@ -38,33 +45,102 @@ def _refl(i, n):
 
 
 @njit(cache=True, nogil=True)
+def _select_inplace(a, n, k):
+    """``k``-th smallest of ``a[:n]`` (quickselect, median-of-3 pivot); ``a`` is permuted.
+
+    On return ``a[:k] <= a[k] <= a[k + 1 : n]``. The value is the order statistic, so
+    it does not depend on the algorithm (same as :func:`numpy.median`'s selection).
+    """
+    lo = 0
+    hi = n - 1
+    while hi > lo:
+        mid = (lo + hi) >> 1
+        # median of three as pivot, moved to a[hi]
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[mid] < a[hi]:
+            a[mid], a[hi] = a[hi], a[mid]
+        pivot = a[hi]
+        # branchless Lomuto partition: a[lo:i] < pivot <= a[i:j] (no mispredictions)
+        i = lo
+        for j in range(lo, hi):
+            v = a[j]
+            a[j] = a[i]
+            a[i] = v
+            i += v < pivot
+        a[i], a[hi] = a[hi], a[i]
+        if i == k:
+            break
+        if i < k:
+            lo = i + 1
+        else:
+            hi = i - 1
+    return a[k]
+
+
+@njit(cache=True, nogil=True)
+def _median_scratch(a, n):
+    """Median of ``a[:n]`` (float32), as ``np.median`` computes it in numba; ``a`` permuted."""
+    half = n >> 1
+    if n & 1:
+        return np.float64(_select_inplace(a, n, half))
+    lo = _select_inplace(a, n, half - 1)
+    hi = a[half]
+    for t in range(half + 1, n):
+        if a[t] < hi:
+            hi = a[t]
+    return np.float64(lo + hi) / 2  # float32 sum, then halved in float64 (numba's median)
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
+def _clipped_sum(x, lo, hi):
+    """Count and float64 sum of the ``x`` in ``[lo, hi]``.
+
+    Reassociation (``fastmath``, this function only) lets the float64 sum vectorise
+    instead of a chain of T dependent additions; it changes the sum only at float64
+    rounding (about 1e-16 relative), far below the float32 level returned.
+    """
+    s = 0.0
+    n = 0
+    for t in range(x.size):
+        v = x[t]
+        inside = (v >= lo) & (v <= hi)
+        s += np.float64(v) if inside else 0.0
+        n += inside
+    return n, s
+
+
+@njit(cache=True, nogil=True)
 def _level_pixel(x, step, var_factor, quantum, clip, n_iter, scratch):
-    """Robust level of one pixel's detrended coarse series ``x`` (T,), as robust_level."""
+    """Robust level of one pixel's detrended coarse series ``x`` (T,), as robust_level.
+
+    ``eq:background_2`` (index n,l): start from the median of every ``step``-th bin,
+    then ``n_iter`` clipped means within ``level +- clip`` Poisson sigmas (at least 3
+    quanta). The mean over t is only needed when the median is 0 (sparse counts).
+    """
     T = x.size
     ns = 0
     for t in range(0, T, step):
         scratch[ns] = x[t]
         ns += 1
-    med = np.float64(np.median(scratch[:ns]))
-    mean = 0.0
-    for t in range(T):
-        mean += x[t]
-    mean /= T
+    med = _median_scratch(scratch, ns)
     level = max(med, 0.0)
-    sig_base = level if level > 0 else mean
+    if level > 0:
+        sig_base = level
+    else:
+        mean = 0.0
+        for t in range(T):
+            mean += x[t]
+        sig_base = mean / T
     for it in range(n_iter):
         base = sig_base if it == 0 else level
         half = max(clip * np.sqrt(max(base, 1e-12) * var_factor), 3.0 * quantum)
         half32 = np.float32(half)
         lo = np.float32(level - half32)
         hi = np.float32(level + half32)
-        n = 0
-        s = 0.0
-        for t in range(T):
-            v = x[t]
-            if v >= lo and v <= hi:
-                n += 1
-                s += v
+        n, s = _clipped_sum(x, lo, hi)
         if n > 0:
             level = s / n
         level = max(level, 0.0)
@@ -72,8 +148,115 @@ def _level_pixel(x, step, var_factor, quantum, clip, n_iter, scratch):
 
 
 @njit(cache=True, nogil=True)
+def _filter_row(cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse):
+    """``m = sum_q lambda_q Box_q(c)`` and the coarsest scale (minus ``dev`` when
+    ``estimate``) of block row ``i``; element ``(i, j, t)`` of ``c`` is
+    ``cf[base + i * sr + j * sc + t]``. ``V`` (Q, C, tile) and ``acc`` (tile,) are work
+    buffers; ``m`` and ``coarse`` (C, T) are written.
+    """
+    Q = scales.size
+    tile = V.shape[2]
+    for t0 in range(0, T, tile):
+        tn = min(tile, T - t0)
+        dv = dev[t0 : t0 + tn]
+        # pass along rows (axis 0): nested, scale q reuses scale q-1's rows
+        for q in range(Q):
+            h = scales[q] // 2
+            if q == 0:
+                for j in range(C):
+                    vr = V[0, j, :tn]
+                    off = base + i * sr + j * sc + t0
+                    cr = cf[off : off + tn]
+                    for t in range(tn):
+                        vr[t] = cr[t]
+                hp = 0
+            else:
+                for j in range(C):
+                    vr = V[q, j, :tn]
+                    vp = V[q - 1, j, :tn]
+                    for t in range(tn):
+                        vr[t] = vp[t]
+                hp = scales[q - 1] // 2
+            for di in range(hp + 1, h + 1):
+                ia = _refl(i - di, R)
+                ib = _refl(i + di, R)
+                for j in range(C):
+                    vr = V[q, j, :tn]
+                    oa = base + ia * sr + j * sc + t0
+                    ob = base + ib * sr + j * sc + t0
+                    ca = cf[oa : oa + tn]
+                    cb = cf[ob : ob + tn]
+                    for t in range(tn):
+                        vr[t] += ca[t] + cb[t]
+        # pass along columns (axis 1): running float64 sums of the row-pass results
+        # divided by k in float32 (as uniform_filter1d stores them), reflected borders
+        for q in range(Q):
+            k = scales[q]
+            h = k // 2
+            w = np.float32(weights[q])
+            first = q == 0
+            last = q == Q - 1
+            if k == 1:
+                for j in range(C):
+                    vr = V[q, j, :tn]
+                    mr = m[j, t0 : t0 + tn]
+                    if first:
+                        for t in range(tn):
+                            mr[t] = w * vr[t]
+                    elif w != 0:
+                        for t in range(tn):
+                            mr[t] += w * vr[t]
+                    if last:
+                        cr = coarse[j, t0 : t0 + tn]
+                        if estimate:
+                            for t in range(tn):
+                                cr[t] = vr[t] - dv[t]
+                        else:
+                            for t in range(tn):
+                                cr[t] = vr[t]
+                continue
+            inv32 = np.float32(1.0 / k)
+            ac = acc[:tn]
+            for t in range(tn):
+                ac[t] = 0.0
+            for u in range(-h, h + 1):
+                vr = V[q, _refl(u, C), :tn]
+                for t in range(tn):
+                    ac[t] += np.float32(vr[t] * inv32)
+            inv = 1.0 / k
+            for j in range(C):
+                if j > 0:
+                    va = V[q, _refl(j + h, C), :tn]
+                    vb = V[q, _refl(j - h - 1, C), :tn]
+                    for t in range(tn):
+                        ac[t] += np.float64(np.float32(va[t] * inv32)) - np.float64(
+                            np.float32(vb[t] * inv32)
+                        )
+                mr = m[j, t0 : t0 + tn]
+                if first:
+                    for t in range(tn):
+                        mr[t] = w * np.float32(ac[t] * inv)
+                elif w != 0:
+                    for t in range(tn):
+                        mr[t] += w * np.float32(ac[t] * inv)
+                if last:
+                    cr = coarse[j, t0 : t0 + tn]
+                    if estimate:
+                        for t in range(tn):
+                            cr[t] = np.float32(ac[t] * inv) - dv[t]
+                    else:
+                        for t in range(tn):
+                            cr[t] = np.float32(ac[t] * inv)
+
+
+@njit(cache=True, nogil=True)
 def _rows_kernel(
-    c,
+    cf,
+    R,
+    C,
+    T,
+    sr,
+    sc,
     i_start,
     i_stop,
     keep0,
@@ -91,114 +274,57 @@ def _rows_kernel(
     d,
     level,
 ):
-    """Output rows ``[i_start, i_stop)`` (block coordinates) of one wavelength."""
-    R, C, T = c.shape
+    """Output rows ``[i_start, i_stop)`` (block coordinates) of one wavelength.
+
+    ``cf`` is the correlated block as a flat contiguous float32 buffer: element
+    ``(i, j, t)`` at ``i * sr + j * sc + t``. Contiguous 1-d slices of it (rather than
+    a strided 3-d view) let the row pass vectorise.
+    """
     Q = scales.size
     tile = min(_T_TILE, T)
-    V = np.empty((Q, C, tile), np.float32)  # row-pass sums of each scale (/k)
+    V = np.empty((Q, C, tile), np.float32)  # row-pass sums of each scale (not yet / k)
     acc = np.empty(tile, np.float64)
     m = np.empty((C, T), np.float32)
-    coarse = np.empty((C, T), np.float32)
-    xs = np.empty(T, np.float32)
+    coarse = np.empty((C, T), np.float32)  # coarsest scale minus dev (when estimating)
     scratch = np.empty(T, np.float32)
     for i in range(i_start, i_stop):
         o = i - keep0
-        for t0 in range(0, T, tile):
-            tn = min(tile, T - t0)
-            # pass along rows (axis 0): nested, scale q reuses scale q-1's rows
-            for q in range(Q):
-                h = scales[q] // 2
-                if q == 0:
-                    for j in range(C):
-                        vr = V[0, j]
-                        cr = c[i, j]
-                        for t in range(tn):
-                            vr[t] = cr[t0 + t]
-                    hp = 0
-                else:
-                    for j in range(C):
-                        vr = V[q, j]
-                        vp = V[q - 1, j]
-                        for t in range(tn):
-                            vr[t] = vp[t]
-                    hp = scales[q - 1] // 2
-                for di in range(hp + 1, h + 1):
-                    ia = _refl(i - di, R)
-                    ib = _refl(i + di, R)
-                    for j in range(C):
-                        vr = V[q, j]
-                        ca = c[ia, j]
-                        cb = c[ib, j]
-                        for t in range(tn):
-                            vr[t] += ca[t0 + t] + cb[t0 + t]
-            # float32 row-pass result divided by k, as uniform_filter1d stores it
-            for q in range(Q):
-                k = scales[q]
-                if k == 1:
-                    continue
-                inv = np.float32(1.0 / k)
-                for j in range(C):
-                    vr = V[q, j]
-                    for t in range(tn):
-                        vr[t] = vr[t] * inv
-            for j in range(C):
-                mr = m[j]
-                for t in range(tn):
-                    mr[t0 + t] = 0.0
-            # pass along columns (axis 1): running float64 sums, reflected borders
-            for q in range(Q):
-                k = scales[q]
-                h = k // 2
-                w = np.float32(weights[q])
-                last = q == Q - 1
-                if k == 1:
-                    for j in range(C):
-                        vr = V[q, j]
-                        mr = m[j]
-                        if w != 0:
-                            for t in range(tn):
-                                mr[t0 + t] += w * vr[t]
-                        if last:
-                            cr = coarse[j]
-                            for t in range(tn):
-                                cr[t0 + t] = vr[t]
-                    continue
-                for t in range(tn):
-                    acc[t] = 0.0
-                for u in range(-h, h + 1):
-                    vr = V[q, _refl(u, C)]
-                    for t in range(tn):
-                        acc[t] += vr[t]
-                inv = 1.0 / k
-                for j in range(C):
-                    if j > 0:
-                        va = V[q, _refl(j + h, C)]
-                        vb = V[q, _refl(j - h - 1, C)]
-                        for t in range(tn):
-                            acc[t] += np.float64(va[t]) - np.float64(vb[t])
-                    mr = m[j]
-                    if w != 0:
-                        for t in range(tn):
-                            mr[t0 + t] += w * np.float32(acc[t] * inv)
-                    if last:
-                        cr = coarse[j]
-                        for t in range(tn):
-                            cr[t0 + t] = np.float32(acc[t] * inv)
+        _filter_row(cf, 0, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse)
         # background level, bhat and saliency of each pixel of the row
         for j in range(C):
             if estimate:
-                for t in range(T):
-                    xs[t] = coarse[j, t] - dev[t]
-                sp[o, j] = _level_pixel(xs, step, var_factor, quantum, clip, n_iter, scratch)
+                sp[o, j] = _level_pixel(coarse[j], step, var_factor, quantum, clip, n_iter, scratch)
             s0 = sp[o, j]
+            dr = d[o, j]
+            sr_ = sal[o, j]
+            lr = level[o, j]
+            mr = m[j]
             for t in range(T):
                 bh = s0 + dev[t]
                 if bh < 0:
                     bh = np.float32(0.0)  # eq:background_3
-                level[o, j, t] += bh
-                x = m[j, t] - bh
-                d[o, j, t] += x
-                sal[o, j, t] += abs(x)  # eq:4.s1
+                lr[t] += bh
+                x = mr[t] - bh
+                dr[t] += x
+                sr_[t] += abs(x)  # eq:4.s1
+
+
+def _flat_rows(c: np.ndarray):
+    """``c`` (R, C, T) float32 as a flat contiguous buffer and its row/column strides.
+
+    A view of the same memory when ``t`` is contiguous (the usual ``c[:, :, l, :]`` of a
+    C-ordered block), a contiguous copy otherwise.
+    """
+    it = c.itemsize
+    R, C, T = c.shape
+    st = c.strides
+    if c.dtype != np.float32 or st[2] != it or st[0] < 0 or st[1] < 0 or st[0] % it or st[1] % it:
+        c = np.ascontiguousarray(c, dtype=np.float32)
+        st = c.strides
+    sr, sc = st[0] // it, st[1] // it
+    span = (R - 1) * sr + (C - 1) * sc + T
+    flat = np.lib.stride_tricks.as_strided(c, shape=(span,), strides=(it,), writeable=False)
+    return flat, sr, sc
 
 
 def saliency_wavelength(
@@ -280,15 +406,19 @@ def saliency_wavelength(
         level,
     )
     n = i1 - i0
+    if n <= 0 or C == 0 or T == 0:
+        return sp
     n_threads = max(1, min(int(n_threads), n))
+    cf, sr, sc = _flat_rows(c)
+    head = (cf, R, C, T, sr, sc)
     if n_threads == 1:
-        _rows_kernel(c, i0, i1, i0, *args)
+        _rows_kernel(*head, i0, i1, i0, *args)
     else:
         cuts = np.linspace(i0, i1, n_threads + 1).round().astype(int)
         with ThreadPoolExecutor(n_threads) as ex:
             list(
                 ex.map(
-                    lambda ab: _rows_kernel(c, ab[0], ab[1], i0, *args),
+                    lambda ab: _rows_kernel(*head, ab[0], ab[1], i0, *args),
                     zip(cuts[:-1], cuts[1:], strict=True),
                 )
             )
@@ -364,4 +494,68 @@ def poisson_scaled(lam: np.ndarray, scale: float, rng) -> np.ndarray:
     lam = np.ascontiguousarray(lam, dtype=np.float64)
     out = np.empty(lam.shape, np.float64)
     _poisson_scaled_kernel(lam, float(scale), int(rng.integers(2**62)), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _window_means_kernel(rows, col_starts, kc, out):
+    kr, C, L, T = rows.shape
+    norm = np.float64(kr * kc)
+    rs = np.empty(T, np.float64)
+    cs = np.empty((C + 1, T), np.float64)
+    for l in range(L):
+        for t in range(T):
+            cs[0, t] = 0.0
+        for j in range(C):
+            for t in range(T):
+                rs[t] = 0.0
+            for a in range(kr):
+                src = rows[a, j, l]
+                for t in range(T):
+                    rs[t] += src[t]
+            for t in range(T):
+                cs[j + 1, t] = cs[j, t] + rs[t]
+        for u in range(col_starts.size):
+            b0 = col_starts[u]
+            for t in range(T):
+                out[u, l, t] = (cs[b0 + kc, t] - cs[b0, t]) / norm
+
+
+def window_means(rows: np.ndarray, col_starts: np.ndarray, kc: int) -> np.ndarray:
+    """Means of the counts over ``kr x kc`` pixel windows (all ``kr`` rows of ``rows``).
+
+    Integer counts are summed exactly in float64 (up to 2**53), so the result is the
+    float32 rounding of the exact window mean, whatever the order of the sums.
+
+    Parameters
+    ----------
+    rows : ndarray (kr, C, L, T)
+        Counts of ``kr`` consecutive image rows (any numeric dtype).
+    col_starts : ndarray (n,) int
+        First column of each window; ``col_starts + kc <= C``.
+    kc : int
+        Window width (columns).
+
+    Returns
+    -------
+    means : ndarray (n, L, T) float32
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> y = np.arange(2 * 5 * 1 * 3).reshape(2, 5, 1, 3)
+    >>> m = window_means(y, np.array([0, 2]), 3)
+    >>> bool(np.allclose(m[1, 0], y[:, 2:5, 0].mean(axis=(0, 1))))
+    True
+    """
+    rows = np.ascontiguousarray(rows)
+    kr, C, L, T = rows.shape
+    cols = np.ascontiguousarray(col_starts, dtype=np.int64)
+    kc = int(kc)
+    if cols.size and (cols.min() < 0 or cols.max() + kc > C):
+        raise ValueError(
+            f"windows of {kc} columns starting at {cols.min()}..{cols.max()} leave C = {C}"
+        )
+    out = np.empty((cols.size, L, T), np.float32)
+    _window_means_kernel(rows, cols, kc, out)
     return out
