@@ -526,23 +526,30 @@ def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> lis
     R = counts.shape[0]
     h = int(ctx.scales.max()) // 2
     res = []
-    carry, carry0 = None, 0  # correlated rows [carry0, carry0 + len(carry))
+    # one buffer per run: a block's correlated rows, the halo it shares with the next
+    # block moved to the front afterwards (no concatenation, no per-block allocation)
+    shape = tuple(counts.shape)
+    buf = np.empty((min(block_rows + 2 * h, R),) + shape[1:], np.float32)
+    have0, n_have = 0, 0  # buf[:n_have] holds correlated rows [have0, have0 + n_have)
     for r0 in range(a, b, block_rows):
         r1 = min(b, r0 + block_rows)
         e0, e1 = max(0, r0 - h), min(R, r1 + h)
         y = np.asarray(counts[e0:e1])
-        if carry is not None and carry0 <= e0 < carry0 + carry.shape[0]:
-            have = carry[e0 - carry0 :]
-            n_have = have.shape[0]
-            if e0 + n_have >= e1:
-                c_ext = have[: e1 - e0]
-            else:
-                c_ext = np.concatenate([have, ctx.corr(y[n_have:], workers=ctx.workers)])
+        n = e1 - e0
+        if n_have and have0 == e0:
+            k = min(n_have, n)
         else:
-            c_ext = ctx.corr(y, workers=ctx.workers)
+            k = 0
+        if k < n:
+            ctx.corr(y[k:], workers=ctx.workers, out=buf[k:n])
+        c_ext = buf[:n]
         res.append(_block(y, c_ext, e0, r0, r1, ctx, table, opts, out))
-        carry0 = max(e0, r1 - h)
-        carry = c_ext[carry0 - e0 :].copy()
+        # rows [r1 - h, e1) are the next block's top halo
+        have0 = max(e0, r1 - h)
+        n_have = e1 - have0
+        src = have0 - e0
+        if n_have and src:
+            buf[:n_have] = buf[src : src + n_have].copy() if src < n_have else buf[src:n]
         del c_ext, y
     return res
 

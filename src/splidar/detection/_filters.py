@@ -43,12 +43,13 @@ class Correlator:
         self.irf = irf
         self.peak = peak
 
-    def __call__(self, y: np.ndarray, *, workers: int = 1) -> np.ndarray:
+    def __call__(self, y: np.ndarray, *, workers: int = 1, out=None) -> np.ndarray:
         """Correlate ``y`` (..., L, T) with the IRF; returns float32 of the same shape.
 
         The window is extended by mirroring (half-sample symmetric, like
         :func:`scipy.ndimage` ``mode="reflect"``) rather than with zeros, so that a
         background keeps its level up to the window edges instead of dropping there.
+        ``out`` (float32, the shape of ``y``) receives the result when given.
         """
         x = np.asarray(y)
         T, N = self.n_bins, self.n_fft
@@ -66,9 +67,12 @@ class Correlator:
         f = sfft.rfft(pad, axis=-1, workers=workers)
         del pad
         f *= self.spectrum
-        out = sfft.irfft(f, n=N, axis=-1, workers=workers)
+        res = sfft.irfft(f, n=N, axis=-1, workers=workers)
         del f
-        return np.ascontiguousarray(out[..., :T], dtype=np.float32)
+        if out is None:
+            return np.ascontiguousarray(res[..., :T], dtype=np.float32)
+        np.copyto(out, res[..., :T], casting="same_kind")
+        return out
 
 
 def box(x: np.ndarray, k: int) -> np.ndarray:
