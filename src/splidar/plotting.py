@@ -142,6 +142,21 @@ def _robust_limits(values: np.ndarray, lo: float = 1.0, hi: float = 99.0):
     return float(a), float(b)
 
 
+def _depth_limits(values: np.ndarray):
+    """Depth colour limits: median +- 5 robust standard deviations (1.4826 MAD), within
+    the 1st-99th percentiles. The percentiles alone span a nearby object and the wall
+    behind it and flatten the object's relief into one colour."""
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return 0.0, 1.0
+    p1, med, p99 = np.percentile(v, [1, 50, 99])
+    sd = 1.4826 * float(np.median(np.abs(v - med)))
+    lo, hi = max(p1, med - 5 * sd), min(p99, med + 5 * sd)
+    if not hi > lo:
+        return _robust_limits(values)
+    return float(lo), float(hi)
+
+
 def _new_ax(ax, **kw):
     if ax is not None:
         return ax
@@ -171,7 +186,9 @@ def plot_depth(
     ax : matplotlib Axes, optional
         Where to draw; a new figure when None.
     vmin, vmax : float, optional
-        Colour limits in the displayed unit (default: 1st and 99th percentiles).
+        Colour limits in the displayed unit (default: the median +- 5 robust standard
+        deviations of the layer's depths, within their 1st and 99th percentiles, so that
+        an object's relief shows in front of a distant wall).
     bin_width_ps : float, optional
         Overrides the result's bin width (depths in metres when known, else bins).
 
@@ -191,7 +208,7 @@ def plot_depth(
     m = _Maps(result, bin_width_ps)
     k = m.layer(layer)
     img = m.depth[:, :, k] * m.scale
-    lo, hi = _robust_limits(img)
+    lo, hi = _depth_limits(img)
     ax = _new_ax(ax)
     _image(
         ax,
@@ -793,9 +810,10 @@ def save_figures(
         plt.close(fig)
         out[name] = path
 
-    # depth: one shared colour scale across layers so that layers compare
+    # depth: one shared colour scale across layers so that layers compare (robust: the
+    # relief of a near object shows in front of a far wall)
     fig, axes = _grid(1, K)
-    lo, hi = _robust_limits(m.depth * m.scale)
+    lo, hi = _depth_limits(m.depth * m.scale)
     for k in range(K):
         plot_depth(reconstruction, layer=k, ax=axes[0, k], vmin=lo, vmax=hi)
     fig.tight_layout()
