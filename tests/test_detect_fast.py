@@ -167,7 +167,8 @@ def test_window_means_rejects_windows_outside():
 
 
 def _temporal_reference(counts, corr, k, smooth, n_samples=2000):
-    """temporal_shape as first written: numpy row sums, cumsum, successive draws."""
+    """temporal_shape as first written (numpy row sums, cumsum, successive draws), with one
+    random stream per wavelength."""
     R, C, L, T = counts.shape
     kr, kc = min(k, R), min(k, C)
     n_pos_r, n_pos_c = R - kr + 1, C - kc + 1
@@ -188,8 +189,9 @@ def _temporal_reference(counts, corr, k, smooth, n_samples=2000):
     if smooth > 1:
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
-    rng = np.random.default_rng(_background._DEBIAS_SEED)
+    rngs = np.random.default_rng(_background._DEBIAS_SEED).spawn(L)  # a stream per wavelength
     for l in range(L):
+        rng = rngs[l]
         x, mm = coarse[:, l], m
         if n > 600:
             x = x[rng.choice(n, 600, replace=False)]
@@ -225,3 +227,5 @@ def test_temporal_shape_identical_to_reference():
     corr = Correlator(irf, T)
     got = temporal_shape(counts, corr, 7, smooth=9)
     np.testing.assert_array_equal(got, _temporal_reference(counts, corr, 7, smooth=9))
+    # wavelengths on threads: the same result
+    np.testing.assert_array_equal(temporal_shape(counts, corr, 7, smooth=9, workers=2), got)

@@ -7,6 +7,8 @@ estimate from the correlated cube.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from scipy import ndimage, signal
 
@@ -80,12 +82,23 @@ def temporal_shape(
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     if refine:
         var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
-        rng = np.random.default_rng(_DEBIAS_SEED)
-        for l in range(L):
+        # one independent stream per wavelength (spawned from a fixed seed), so the
+        # wavelengths run on threads (numpy's Poisson draws release the GIL) and the
+        # result does not depend on the number of threads
+        rngs = np.random.default_rng(_DEBIAS_SEED).spawn(L)
+
+        def one(l):
             quantum = float(corr.irf[l].max()) / (kr * kc)
-            prof[l] = _debias_profile(
-                coarse[:, l], prof[l], float(var_factor[l]), m, smooth, rng, quantum=quantum
+            return _debias_profile(
+                coarse[:, l], prof[l], float(var_factor[l]), m, smooth, rngs[l], quantum=quantum
             )
+
+        n_thr = max(1, min(int(workers), L))
+        if n_thr > 1:
+            with ThreadPoolExecutor(n_thr) as ex:
+                prof = np.stack(list(ex.map(one, range(L))))
+        else:
+            prof = np.stack([one(l) for l in range(L)])
     return prof.astype(np.float32)
 
 
