@@ -124,6 +124,56 @@ def test_kernels_estep_splits_counts():
     assert z[0, 0] == pytest.approx(3.0)
 
 
+def _joint_mode_one_surface(z, h, alpha, ups, eps):
+    """r and beta at their joint conditional mode for one surface (eta = 1, L = 1)."""
+    r, beta = 1.0, 1.0
+    for _ in range(2000):
+        r = (z + alpha - 1.0) / (h + 1.0 / beta)
+        beta = (r + eps) / (alpha + ups + 1.0)
+    return r, beta
+
+
+def _posterior_std_one(z, h, alpha, ups, eps, marginal):
+    # rho = 1e12 pins h (its conditional variance ~ w**2 / rho): the std is r's part only
+    r, beta = _joint_mode_one_surface(z, h, alpha, ups, eps)
+    one = np.ones((1, 1))
+    inten = np.empty((1, 1))
+    std = np.empty((1, 1))
+    kern.posterior(
+        np.array([[z]]), one, np.array([[z]]), one, np.array([[r]]), np.array([[beta]]),
+        np.array([h]), np.array([h]), np.zeros(1, np.int64), np.array([[alpha]]),
+        np.array([[ups]]), np.array([[eps]]), np.array([0, 0]), np.zeros(0, np.int64), 1e12,
+        marginal, np.zeros(0), inten, std,
+    )  # fmt: skip
+    assert inten[0, 0] == pytest.approx(h * r)
+    return std[0, 0]
+
+
+def test_kernels_posterior_marginal_beta_limits():
+    # beta pinned (upsilon huge, eps giving the same mode): integrating beta out changes
+    # nothing but the gamma's shape offset, z + alpha - 1 against z + alpha (0.1 % here)
+    z, h, alpha, beta0 = 400.0, 2.0, 6.0, 0.5
+    ups = 1e9
+    eps = beta0 * (alpha + ups + 1.0)
+    a = _posterior_std_one(z, h, alpha, ups, eps, True)
+    b = _posterior_std_one(z, h, alpha, ups, eps, False)
+    assert a == pytest.approx(b, rel=2e-3)
+    # beta free (upsilon 3): its spread adds to r's. Exact sd of the marginal
+    # p(r | h = 1, z) ~ r**(z + 5) exp(-r) (r + 1)**-9 by quadrature; the Laplace value is
+    # below it (the marginal's right tail is heavy: measured 0.69 of it at z = 5, 0.97 at
+    # z = 50) but above the beta-at-its-mode value (measured x1.32 and x1.08)
+    for z, lo in ((5.0, 0.6), (50.0, 0.9)):
+        a = _posterior_std_one(z, 1.0, 6.0, 3.0, 1.0, True)
+        b = _posterior_std_one(z, 1.0, 6.0, 3.0, 1.0, False)
+        x = np.linspace(1e-6, 40.0 * (z + 5.0), 400_001)
+        logp = (z + 5.0) * np.log(x) - x - 9.0 * np.log(x + 1.0)
+        p = np.exp(logp - logp.max())
+        mean = (x * p).sum() / p.sum()
+        exact = np.sqrt(((x - mean) ** 2 * p).sum() / p.sum())
+        assert lo * exact < a <= exact, (z, a, exact)
+        assert a > 1.05 * b, (z, a, b)
+
+
 # --- the whole algorithm -----------------------------------------------------------------
 
 
@@ -406,6 +456,27 @@ def test_reconstruct_alpha_auto_estimates_variability_and_is_monotone_between_up
     assert _iae(rec.points.intensity, truth.intensity) < 1.02 * _iae(
         fixed.points.intensity, truth.intensity
     )
+
+
+@pytest.mark.parametrize("var", [0.0, 0.4])
+def test_reconstruct_alpha_auto_std_calibrated(var):
+    # alpha="auto": r's prior as wide as the data's spectral variability (beta, which
+    # carries half of it, integrated out of the std) and h's variance the empirical-Bayes
+    # MSE of the smoother (sampling variance + measured squared bias), so the coverage of
+    # +-1 std is near 0.68 with and without variability. Measured on three 40 x 40 seeds:
+    # CV 0: 0.69-0.71 (0.82-0.87 on the 64-96 px bench scenes with h's conditional
+    # variance); CV 0.4: 0.64-0.66 (0.61-0.63 with beta held at its mode). 6400
+    # correlated values, fixed seed: band 0.62-0.75.
+    det, truth = synthetic_detection(
+        shape=(40, 40), layers=1, variability=var, patch_size=12, rng=21
+    )
+    rec = reconstruct(det, alpha="auto")
+    p = rec.points
+    inside = np.abs(p.intensity - truth.intensity) <= p.intensity_std
+    assert 0.62 <= inside.mean() <= 0.75, inside.mean()
+    # the squared smoothing bias: small without variability (smooth shading), >= 0
+    assert 0.0 <= rec.hyperparameters["shading_bias2"] < 0.02
+    assert reconstruct(det).hyperparameters["shading_bias2"] is None
 
 
 def test_reconstruct_alpha_auto_lowers_iae_without_variability():

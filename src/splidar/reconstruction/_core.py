@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
@@ -216,14 +217,78 @@ def _split_variability(alpha_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 2.0 / v, 2.0 + 2.0 / v
 
 
-def _posterior_intensity(y, eta, z, q, r, beta, h, u, alpha, graph, rho, w):
-    """Intensity (MAP, ``h r``) and posterior std from the conjugate conditionals."""
+def _posterior_intensity(
+    y, eta, z, q, r, beta, h, u, alpha, ups, eps, graph, rho, w, marginal, var_h=None
+):
+    """Intensity (MAP, ``h r``) and posterior std (see :func:`kern.posterior`)."""
     inten = np.empty_like(r)
     std = np.empty_like(r)
+    var_h = np.zeros(0) if var_h is None else np.ascontiguousarray(var_h, np.float64)
     kern.posterior(
-        y, eta, z, q, r, beta, h, w, u, alpha, graph.indptr, graph.indices, rho, inten, std
-    )
+        y, eta, z, q, r, beta, h, w, u, alpha, ups, eps, graph.indptr, graph.indices, rho,
+        bool(marginal), var_h, inten, std,
+    )  # fmt: skip
     return inten, std
+
+
+@functools.lru_cache(maxsize=1)
+def _lattice_tables(n: int = 128):
+    """Fourier averages of the linearised gamma-MRF on a 4-neighbour lattice.
+
+    In ``x = log h`` each MRF link is a spring of precision rho (the curvature of
+    ``rho (x - log w - h / w)`` at ``h = w``); integrating w out leaves, per closed
+    neighbourhood N[j] (5 sites), ``rho / 2 sum_{i in N[j]} (x_i - mean)**2``, whose
+    Fourier symbol is ``rho q(k)``, ``q = 5 - (1 + 2 cos k1 + 2 cos k2)**2 / 5``. With N
+    photons' worth of data per site the MAP is the linear smoother ``N / (N + rho q)``;
+    per unit ``t = N / rho`` returns the grid ``t`` and the lattice means of
+    ``t / (t + q)**2`` (its sampling variance times rho) and ``(q / (t + q))**2`` (the
+    noise left in ``x_raw - x_map``).
+    """
+    k = 2.0 * np.pi * np.arange(n) / n
+    phi = 1.0 + 2.0 * np.cos(k)[:, None] + 2.0 * np.cos(k)[None, :]
+    q = (5.0 - phi**2 / 5.0).ravel()
+    t = np.logspace(-4.0, 5.0, 181)
+    sw = np.array([np.mean(ti / (ti + q) ** 2) for ti in t])
+    ka = np.array([np.mean((q / (ti + q)) ** 2) for ti in t])
+    return np.log(t), sw, ka
+
+
+def _h_variance_eb(y, b, eta, r, h, alpha_u, graph, rho, n_iter: int = 5):
+    """Empirical-Bayes mean squared error of the MAP shading: ``h**2 (V_s + B)``.
+
+    ``V_s`` is the sampling variance of ``log h_s`` under the linearised MRF smoother
+    (:func:`_lattice_tables`) with ``N_s = sum_l n alpha / (n + alpha)`` photons of
+    information (``n = lam**2 / (lam + b)``, the Fisher information of the log intensity,
+    combined with r's prior precision alpha in the log) and the coupling scaled by the
+    surface's links, ``rho (1 + deg) / 5``. ``B`` is the mean squared smoothing bias (relative),
+    one number per scene: the raw shading ``h_raw = sum_l (y - b) / sum_l eta r`` differs
+    from the MAP by bias plus the part ``kappa_s`` of its noise ``nv_s`` the smoother
+    leaves, so ``B`` is the weighted moment estimate of ``(h_raw / h - 1)**2 - kappa_s
+    nv_s`` (weights ``1 / (kappa nv + B)**2``, iterated), floored at 0. Surfaces without
+    links get the data's variance ``1 / N_s``. Returns ``(var_h (S,), B)``.
+    """
+    deg = np.diff(graph.indptr)
+    lam = eta * h[:, None] * r
+    n = lam * lam / np.maximum(lam + b, 1e-300)
+    n = n * alpha_u / (n + alpha_u)
+    N = np.maximum(n.sum(axis=1), 1e-12)
+    rho_e = rho * (1.0 + deg) / 5.0
+    lt, sw, ka = _lattice_tables()
+    x = np.log(N / rho_e)
+    V = np.interp(x, lt, sw) / rho_e
+    kappa = np.interp(x, lt, ka)
+    E = np.maximum((eta * r).sum(axis=1), 1e-300)
+    e = ((y - b).sum(axis=1) / E - h) / h
+    nv = (lam + b).sum(axis=1) / (E * h) ** 2  # expected Poisson variance of h_raw / h
+    ok = deg > 0
+    B = 0.0
+    if np.any(ok):
+        e2, knv = e[ok] ** 2, (kappa * nv)[ok]
+        B = float(np.mean(np.maximum(e2 - knv, 0.0)))  # start
+        for _ in range(n_iter):
+            wgt = 1.0 / (knv + B + 1e-12) ** 2
+            B = max(float(np.sum(wgt * (e2 - knv)) / np.sum(wgt)), 0.0)
+    return h**2 * np.where(ok, V + B, 1.0 / N), B
 
 
 def kmeans_signatures(
@@ -387,7 +452,41 @@ def reconstruct(
     is ``(E[z] + alpha + Var[z]) / rate^2`` with ``z ~ Binomial(y, q)`` (law of total
     variance). ``intensity_std**2 = h**2`` times that, plus the uncertainty of h carried
     by the delta method (``(dE[I | h] / dh)**2 Var(h | .)``, with the gamma conditional
-    of h), which matters where the prior dominates (few photons).
+    of h), which matters where the prior dominates (few photons). With ``alpha="auto"``
+    beta is integrated out instead of held at its mode (the inverse gamma is conjugate:
+    ``p(r | h, z) ~ r**(z + alpha - 1) exp(-eta h r) (r + eps)**-(alpha + upsilon)``) and
+    r's variance is the Laplace one of that marginal (see ``_kernels.posterior``): there
+    beta carries half of the prior's variance by construction, and holding it fixed
+    under-covered scenes with spectral variability (CV 0.4: 0.63 -> 0.68). With a fixed
+    alpha the beta-at-its-mode form is kept: integrating beta out of the default
+    (vague, upsilon = 3) prior widened the std everywhere the prior matters, pooled
+    coverage 0.85 -> 0.88 without variability, 0.73 -> 0.79 at CV 0.4 (only CV 0.6 came
+    nearer: 0.64 -> 0.69).
+
+    Why scenes with no spectral variability over-cover with h's conditional variance
+    (0.82-0.87, flat over intensity, with ``alpha="auto"``): the h term. Measured on
+    64 x 64 fabricated scenes: without it coverage is 0.19-0.34, without the binomial
+    term unchanged. The conditional variance given the neighbours' w is, relative,
+    ``1 / (sum z + rho (1 + deg))`` (sd 0.18 at 10 photons); the model's full marginal
+    (Gibbs sampling of z, r, beta, h, w) is wider still (the formula's sd is 0.54-0.77 of
+    it), but the MAP's actual error is 0.136, the sampling sd of the linearised MRF
+    smoother (0.134): the difference is the prior's own spread of h about its neighbours
+    (its expected squared smoothing bias), which a smooth true shading does not have.
+    Empirical Bayes on rho does not cure it: the error of h_s predicted from its
+    neighbours, measured in the data, is about that of rho = 4 (1 / 0.04-0.05 = 20-25
+    pseudo-photons against rho (1 + deg) = 20), and a rho matched to the true shading's
+    increments (~200) over-smooths its curvature: at rho = 64 coverage 0.66 / 0.59 (one /
+    two layers) but IAE 1.01 / 0.76 against 1.11 / 0.65 at rho = 4 and 0.67 / 0.50 at
+    rho = 16 (with the marginal variance of h, coverage of the 0.5-1 photon bin fell to
+    0.2 at rho = 64 and 0.08 at rho = 200: bias). A first-order MRF cannot say "smooth
+    but curved". So with ``alpha="auto"`` the h term is instead the empirical-Bayes
+    mean squared error of the MAP shading (``_h_variance_eb``): the sampling variance of
+    the linearised smoother (4-neighbour lattice, Fourier, at the surface's own photons
+    and links) plus one squared smoothing bias per scene, measured as the excess of
+    ``(h_raw - h)**2`` over the noise the smoother leaves in it
+    (``hyperparameters["shading_bias2"]``, relative; 0.0014-0.008 on scenes without
+    variability). That is an estimate of the estimator's error, not the model's
+    posterior of h; no constant is fitted to the coverage.
 
     Calibration, measured (``benchmarks/bench_reconstruction.py``, fabricated scenes,
     PPP 10, SBR 1, fraction of true intensities within +-1 std; 0.68 is the Gaussian
@@ -432,22 +531,35 @@ def reconstruct(
         predict (:func:`estimate_alpha`), set ``alpha = 2 / v`` and ``upsilon = 2 + 2 / v``
         (the compound prior of r then has relative variance v, half from each) and run
         again to convergence with the labels kept. Measured (``bench_reconstruction``,
-        64 x 64, PPP 10, SBR 1; labels identical to alpha = 6):
+        PPP 10, SBR 1; labels identical to alpha = 6; IAE on 64 x 64 scenes, coverage of
+        +-1 std pooled on the bench's 96 x 96 scenes, 2-4 seeds):
 
-        ====================  ===========  ============  ============================
-        scene                 IAE 6 / auto  +-1 std cov   estimated alpha (true)
-        ====================  ===========  ============  ============================
-        simulator 2 layers    2.48 / 1.80  0.78 / 0.70   36-79 (no variability)
-        simulator 1 layer     2.80 / 1.39  0.79 / 0.82   150-2000
-        CV 0 (fabricated)     2.55 / 1.14  0.82 / 0.83   300-2000
-        CV 0.4                2.89 / 2.65  0.73 / 0.62   12-15 (2 / 0.16 = 12.5)
-        CV 0.6                3.15 / 3.14  0.65 / 0.65   5.6-6.3 (2 / 0.36 = 5.6)
-        Art (PPP 30)          4.31 / 3.16  0.70 / -
-        ====================  ===========  ============  ============================
+        ====================  ============  ===========  ==========================
+        scene                 IAE 6 / auto  cov 6 / auto estimated alpha (true)
+        ====================  ============  ===========  ==========================
+        simulator 2 layers    2.48 / 1.80   0.79 / 0.65  36-79 (no variability)
+        simulator 1 layer     2.80 / 1.39   0.80 / 0.70  150-2000
+        CV 0 (fabricated)     2.55 / 1.14   0.85 / 0.72  300-2000
+        CV 0.2                              0.81 / 0.66
+        CV 0.4                2.89 / 2.65   0.73 / 0.65  12-15 (2 / 0.16 = 12.5)
+        CV 0.6                3.15 / 3.14   0.64 / 0.65  5.6-6.3 (2 / 0.36 = 5.6)
+        Art (PPP 30)          4.31 / 3.16
+        ====================  ============  ===========  ==========================
 
-        It costs more sweeps (80,000 surfaces: 11 -> 26, Art: 14 -> 19). The std holds
-        beta at its mode, which is why it stays about 0.6 at CV 0.4 and over-covers
-        (0.82-0.85, flat over intensities) without variability.
+        Coverage by bin of true intensity (auto): CV 0 0.71-0.72 in every bin, simulator
+        one layer 0.68-0.72, two layers 0.56-0.58 below 0.5 photon and 0.63-0.73 above,
+        CV 0.4 / 0.6 0.56-0.58 below 0.5 photon and 0.60-0.73 above. It costs more
+        sweeps (80,000 surfaces: 11 -> 26, Art: 14 -> 19). The std differs from the
+        fixed-alpha one in two ways (see the notes above): beta is integrated out of r's
+        part, and h's part is the empirical-Bayes MSE of the smoother; with the former
+        formula (beta at its mode, h's conditional variance) the "auto" coverage was
+        0.84 / 0.69 / 0.63 / 0.64 at CV 0 / 0.2 / 0.4 / 0.6 and 0.82-0.83 / 0.68-0.70 on
+        the one- / two-layer simulator scenes. On the Art scene through detection (PPP
+        10) it under-covers: 0.38 (0.53 with the former formula, 0.75 with alpha = 6).
+        There the error is the detection's (IAE 1.57, the same as the detection's own
+        clean photons, 1.56: supports and close layers share photons), which the counts
+        cannot reveal to the smoothing-bias estimate (0.002); the estimated alpha
+        (700-2000) matches the truth's small within-class spectral spread (CV 0.05-0.19).
     upsilon : float or array (K, L)
         Inverse-gamma shape of beta (> 1, so that its mean exists); replaced by the
         estimate with ``alpha="auto"``.
@@ -630,8 +742,11 @@ def reconstruct(
         n_iter, converged, reason = 0, True, "no surfaces"
     t_iter = time.perf_counter()
 
+    var_h = None
+    if auto_alpha and S:
+        var_h, bias2 = _h_variance_eb(y, b, eta, r, h, alpha_a[u], graph, rho)
     intensity, intensity_std = _posterior_intensity(
-        y, eta, z, q, r, beta, h, u, alpha_a, graph, rho, w
+        y, eta, z, q, r, beta, h, u, alpha_a, ups_a, eps_a, graph, rho, w, auto_alpha, var_h
     )
 
     depth_m = None
@@ -668,6 +783,7 @@ def reconstruct(
         "rho": rho,
         "alpha": alpha_a,
         "alpha_mode": "auto" if auto_alpha else "fixed",
+        "shading_bias2": bias2 if var_h is not None else None,
         "upsilon": ups_a,
         "epsilon": eps_a,
         "links": links,

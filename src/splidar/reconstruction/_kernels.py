@@ -372,16 +372,39 @@ def run(
 
 
 @njit(cache=True, parallel=_PARALLEL)
-def posterior(y, eta, z, q, r, beta, h, w, u, alpha, indptr, indices, rho, inten, std):
+def posterior(
+    y, eta, z, q, r, beta, h, w, u, alpha, ups, eps, indptr, indices, rho, marginal, var_h_ext,
+    inten, std,
+):  # fmt: skip
     """Intensity ``h r`` and its posterior std (see ``reconstruct``'s notes), in place.
 
-    ``r | h, beta`` is a mixture over the signal/background split ``z ~ Bin(y, q)`` of
-    ``G(z + alpha, rate eta h + 1/beta)``: variance ``h**2 (E z + alpha + Var z) / rate**2``;
-    plus the uncertainty of h (delta method) from its gamma conditional
+    ``marginal=True``: r given (h, z), with beta integrated out exactly (the inverse
+    gamma is conjugate)::
+
+        log p(r | h, z) = (z + alpha - 1) log r - eta h r - (alpha + upsilon) log(r + eps)
+
+    Its variance is taken from the curvature at r (Laplace), ``1 / c`` with
+    ``c = (z + alpha - 1) / r**2 - (alpha + upsilon) / (r + eps)**2`` (> 0 at the joint
+    mode, see below); the unknown signal/background split ``z ~ Bin(y, q)`` adds
+    ``(dr/dz)**2 Var z`` with ``dr/dz = 1 / (r c)`` (law of total variance). The
+    uncertainty of h is carried by the delta method from its gamma conditional
     ``G(sum_l z + rho (1 + deg) + 1, sum_l eta r + rho (1/w_s + sum 1/w_s'))``
-    (``eqt:Modes_Param_bottom``), with ``dE[I | h] / dh = (z + alpha) / beta / rate**2``.
+    (``eqt:Modes_Param_bottom``) with ``dI / dh = r + h dr/dh = r - h eta / c`` (r
+    follows h through its mode). ``c > 0``: at the joint mode ``(z + alpha - 1) / r =
+    eta h + (alpha + upsilon + 1) / (r + eps)``, so ``(z + alpha - 1) / r**2 > (alpha +
+    upsilon) / (r (r + eps)) > (alpha + upsilon) / (r + eps)**2``.
+
+    ``marginal=False``: beta held at its mode, ``r | h, beta`` a mixture over z of
+    ``G(z + alpha, rate eta h + 1/beta)``: variance ``(E z + alpha + Var z) / rate**2``,
+    ``dI / dh = (z + alpha) / beta / rate**2``. This drops the part of the prior's spread
+    that beta carries (half of it under ``alpha="auto"``, where it under-covered scenes
+    with spectral variability).
+
+    ``var_h_ext`` (S,): when not empty, used as ``Var(h)`` instead of the conditional
+    variance (``_core._h_variance_eb``).
     """
     S, L = r.shape
+    ext = var_h_ext.shape[0] == S
     for s in prange(S):
         deg = indptr[s + 1] - indptr[s]
         t2 = 1.0 / w[s]
@@ -394,16 +417,27 @@ def posterior(y, eta, z, q, r, beta, h, w, u, alpha, indptr, indices, rho, inten
             er += eta[s, l] * r[s, l]
         a_h = zz + rho * (1.0 + deg) + 1.0
         b_h = er + rho * t2
-        var_h = a_h / (b_h * b_h)
+        var_h = var_h_ext[s] if ext else a_h / (b_h * b_h)
         hs = h[s]
         k = u[s]
         for l in range(L):
-            rate = eta[s, l] * hs + 1.0 / beta[s, l]
-            shape = z[s, l] + alpha[k, l]
-            var = hs * hs * (shape + y[s, l] * q[s, l] * (1.0 - q[s, l])) / (rate * rate)
-            d_i = shape / beta[s, l] / (rate * rate)
-            inten[s, l] = hs * r[s, l]
-            std[s, l] = math.sqrt(var + d_i * d_i * var_h)
+            rl = r[s, l]
+            a = alpha[k, l]
+            inten[s, l] = hs * rl
+            if not marginal:
+                rate = eta[s, l] * hs + 1.0 / beta[s, l]
+                shape = z[s, l] + a
+                var = hs * hs * (shape + y[s, l] * q[s, l] * (1.0 - q[s, l])) / (rate * rate)
+                d_i = shape / beta[s, l] / (rate * rate)
+                std[s, l] = math.sqrt(var + d_i * d_i * var_h)
+                continue
+            re = rl + eps[k, l]
+            c = (z[s, l] + a - 1.0) / (rl * rl) - (a + ups[k, l]) / (re * re)
+            c = max(c, 1e-300)
+            dz = 1.0 / (rl * c)
+            var_r = 1.0 / c + dz * dz * y[s, l] * q[s, l] * (1.0 - q[s, l])
+            d_i = rl - hs * eta[s, l] / c
+            std[s, l] = math.sqrt(hs * hs * var_r + d_i * d_i * var_h)
 
 
 @njit(cache=True, parallel=_PARALLEL)
