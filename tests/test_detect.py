@@ -324,6 +324,7 @@ def small_cube():
         (dict(split_ratio=1.5), "split_ratio"),
         (dict(spill_llr="high"), "spill_llr"),
         (dict(spill_llr=float("nan")), "spill_llr"),
+        (dict(slopes="yes"), "slopes"),
     ],
 )
 def test_detect_bad_options_raise(small_cube, kwargs, match):
@@ -502,3 +503,128 @@ def test_reject_spill_over_matches_numpy_reference_on_random_tables():
         got = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=24)
         assert ref.any()
         np.testing.assert_array_equal(got, ref)
+
+
+# ----------------------------------------------------------------------------------------
+# slope recovery (_slopes.py, issue #3)
+# ----------------------------------------------------------------------------------------
+
+
+def _ramp_with_disc(shape=(32, 32), T=200, bright=4.0, dim=0.8, bg=0.08):
+    """A ramp of 5 bins per row (0.3 per column) with a dim disc of radius 5 on it."""
+    r, c = np.mgrid[0 : shape[0], 0 : shape[1]]
+    depth = 20.0 + 5.0 * r + 0.3 * c
+    disc = (r - shape[0] // 2) ** 2 + (c - shape[1] // 2) ** 2 <= 25
+    ph = np.where(disc, dim, bright)[..., None]
+    lam = np.full(shape + (1, T), float(bg))
+    t = np.arange(T)
+    g = np.exp(-0.5 * ((t - depth[..., None]) / (3.0 / 2.3548)) ** 2)
+    lam[:, :, 0, :] += ph * g / g.sum(axis=-1, keepdims=True)
+    return lam, depth, disc
+
+
+def _slope_args(shape, T, bg):
+    return dict(
+        spatial=np.full(shape + (1,), bg, np.float32),
+        dev=np.zeros((1, T), np.float32),
+        irf=np.asarray(IRF, np.float64)[None],
+        scales=np.array([1, 3, 7, 11]),
+        width=13,
+        fwhm=3.0,
+        surface_pfa=0.01,
+        presence_llr=3.0,
+        max_surfaces=2,
+        qloc=1,
+    )
+
+
+def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
+    # 0.8 signal photons per pixel on a ramp of 5 bins per row: the square boxes smear
+    # the return over ~25 bins and the main pass finds 2-6 of the 81 disc pixels (seeds
+    # 0-2); the sheared pooled test finds all 81 in each of those seeds
+    lam, depth, disc = _ramp_with_disc()
+    cube = _cube(lam, rng=0)
+    res = {}
+    for slopes in (False, True):
+        det = detect(cube, rng=0, slopes=slopes)
+        p = det.points
+        ok = np.abs(p.depth_bin - depth[p.row, p.col]) <= 3
+        hit = np.zeros(disc.shape, bool)
+        hit[p.row[ok], p.col[ok]] = True
+        res[slopes] = ((hit & disc).sum(), (~ok).sum(), det)
+    assert res[False][0] <= 20
+    assert res[True][0] >= 70
+    # recovered surfaces replace biased ones: no more wrong-depth surfaces than before
+    assert res[True][1] <= res[False][1]
+    det = res[True][2]
+    assert det.options["n_slopes"] > 0 and "slopes" in det.timings
+    s = det.surfaces
+    assert np.all(np.isfinite(s.presence_llr)) and np.all(np.isfinite(s.evidence))
+
+
+def test_recover_slopes_no_surfaces_in_background_only_holes():
+    # the plane is known all around the hole but the hole holds background only: each
+    # tested pixel may pass at rate <= surface_pfa (0.01, Bonferroni: conservative), so
+    # over the ~81 pixels tested about 0.8 at most; 2 allows for the region growing
+    from splidar.detection._slopes import recover_slopes
+
+    lam, depth, disc = _ramp_with_disc(dim=0.0)
+    y = np.random.default_rng(5).poisson(lam)
+    rr, cc = np.nonzero(~disc)
+    surf = dict(row=rr, col=cc, depth_bin=depth[rr, cc])
+    new = recover_slopes(y, surf, **_slope_args(disc.shape, 200, 0.08))
+    assert new["n_tested"] >= disc.sum()
+    assert len(new["row"]) <= 2
+
+
+def test_recover_slopes_skips_gentle_slopes_and_surface_edges():
+    from splidar.detection._slopes import recover_slopes
+
+    lam, depth, disc = _ramp_with_disc(dim=4.0)
+    y = np.random.default_rng(6).poisson(lam)
+    args = _slope_args(disc.shape, 200, 0.08)
+    # a flat surface: square boxes work there, nothing is tested
+    rr, cc = np.nonzero(~disc)
+    flat = recover_slopes(y, dict(row=rr, col=cc, depth_bin=np.full(rr.size, 50.0)), **args)
+    assert flat["n_tested"] == 0 and len(flat["row"]) == 0
+    # only the left half detected: the pixels beyond its edge are not enclosed by the
+    # plane, so it is not extrapolated into them (their returns are real here)
+    rr, cc = np.nonzero(np.ones(disc.shape, bool))
+    left = cc < 12
+    edge = recover_slopes(
+        y, dict(row=rr[left], col=cc[left], depth_bin=depth[rr[left], cc[left]]), **args
+    )
+    assert edge["n_tested"] == 0 and len(edge["row"]) == 0
+
+
+def test_recover_slopes_fields_match_box_filter_reference():
+    # recovered surfaces carry every Surfaces field; histograms as in the main pass
+    from scipy import ndimage
+
+    from splidar.detection._slopes import recover_slopes
+
+    lam, depth, disc = _ramp_with_disc(shape=(24, 24))
+    y = np.random.default_rng(7).poisson(lam)
+    rr, cc = np.nonzero(~disc)
+    args = _slope_args(disc.shape, 200, 0.08)
+    new = recover_slopes(y, dict(row=rr, col=cc, depth_bin=depth[rr, cc]), **args)
+    S = len(new["row"])
+    assert S >= 0.8 * disc.sum()  # 0.8 photons per pixel pooled over the disc
+    assert np.all(disc[new["row"], new["col"]])
+    assert np.all(np.abs(new["depth_bin"] - depth[new["row"], new["col"]]) <= 3)
+    W = 13
+    assert new["histograms"].shape == (S, 4, 1, W)
+    np.testing.assert_array_equal(new["start"], new["offset"])
+    np.testing.assert_array_equal(new["stop"], new["offset"] + W)
+    c = Correlator(IRF[None], 200)(y)[:, :, 0, :].astype(np.float64)
+    tt = new["offset"][:, None] + np.arange(W)
+    for q, k in enumerate((1, 3, 7, 11)):
+        box = ndimage.uniform_filter(c, size=(k, k, 1), mode="reflect")
+        ref = np.maximum(box[new["row"][:, None], new["col"][:, None], tt] - 0.08, 0)
+        # float32 FFT correlation vs direct sums: 1e-4 relative
+        np.testing.assert_allclose(new["histograms"][:, q, 0], ref, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(new["signal"][:, q, 0], ref.sum(axis=1), rtol=1e-4, atol=1e-4)
+    raw = y[new["row"][:, None], new["col"][:, None], 0, tt]
+    np.testing.assert_array_equal(new["counts"][:, 0], raw.sum(axis=1))
+    np.testing.assert_allclose(new["background"][:, 0], 0.08 * W, rtol=1e-5)
+    assert np.all(new["presence_llr"] >= -3.0) and np.all(np.isfinite(new["presence_z"]))

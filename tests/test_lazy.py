@@ -58,3 +58,17 @@ def test_detect_store_refuses_existing_directory(tmp_path):
     with pytest.raises(splidar.SplidarError, match="not an empty directory"):
         splidar.detect(sim.cube, store=tmp_path / "busy")
     assert (tmp_path / "busy" / "file.txt").read_text() == "keep me"
+
+
+def test_detect_lazy_cube_with_slope_recovery_matches_memory(tmp_path):
+    # the slope pass reads a lazy cube by bands of rows: same surfaces as in memory
+    sim = single_surface_scene((48, 48)).simulate(ppp=4, sbr=0.25, rng=0)
+    save(sim.cube, tmp_path / "c.zarr", chunks=(8, 48))
+    lazy = load(tmp_path / "c.zarr")
+    a = splidar.detect(sim.cube, rng=0, slopes=True)
+    b = splidar.detect(lazy, rng=0, store=tmp_path / "det", slopes=True)
+    assert a.options["n_slopes"] > 0
+    assert b.options["n_slopes"] == a.options["n_slopes"]
+    np.testing.assert_array_equal(b.surfaces.depth_bin, a.surfaces.depth_bin)
+    np.testing.assert_array_equal(b.surfaces.histograms, a.surfaces.histograms)
+    np.testing.assert_array_equal(b.surfaces.evidence, a.surfaces.evidence)

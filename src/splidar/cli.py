@@ -205,6 +205,12 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         help="peaks closer than this are one surface (default: IRF FWHM)",
     )
     g.add_argument(
+        "--slopes",
+        action="store_true",
+        default=None,
+        help="also recover surfaces on steep slopes (sheared pooled tests; slower)",
+    )
+    g.add_argument(
         "--store",
         metavar="DIR",
         help="write saliency, map and threshold to this new Zarr directory instead of "
@@ -559,6 +565,7 @@ _DETECT_OPTS = (
     "null",
     "presence",
     "min_separation",
+    "slopes",
     "store",
 )
 _RECON_OPTS = (
