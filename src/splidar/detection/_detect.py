@@ -1059,6 +1059,7 @@ def detect(
     out.clear()
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
 
+    t0 = time.perf_counter()
     keys = outs[0].surf.keys()
     surf = {k: np.concatenate([o.surf[k] for o in outs], axis=0) for k in keys}
     # global passes over the candidate table of the whole image (_quality.py: they need
@@ -1148,6 +1149,7 @@ def detect(
         image_shape=(R, C),
         n_slots=max_surfaces,
     )
+    timings["quality_and_selection"] = time.perf_counter() - t0
     n_ph = sum(o.n_photons for o in outs)
     n_kept = sum(o.n_photons_kept for o in outs)
     n_vox = sum(o.n_voxels for o in outs)
