@@ -499,3 +499,23 @@ def test_reconstruct_signature_scale_shape_is_scale_free():
     c = reconstruct(det, library=m * np.array([[0.5], [1.0], [2.0]]), signature_scale="absolute")
     assert c.hyperparameters["signature_scale"] == "absolute"
     assert not np.array_equal(c.points.intensity, a.points.intensity)
+
+
+def test_reconstruct_from_several_threads_matches_serial():
+    # the parallel kernels are entered one reconstruction at a time (any numba threading
+    # layer): concurrent calls give the serial result
+    from concurrent.futures import ThreadPoolExecutor
+
+    from splidar.reconstruction import reconstruct as rec_fn
+    from splidar.scenes import multispectral_scene
+
+    sim = multispectral_scene((20, 20), n_bins=120).simulate(ppp=10, sbr=1, rng=3)
+    import splidar
+
+    det = splidar.detect(sim.cube, rng=0)
+    ref = rec_fn(det, rng=0)
+    with ThreadPoolExecutor(3) as ex:
+        outs = list(ex.map(lambda _: rec_fn(det, rng=0), range(3)))
+    for o in outs:
+        np.testing.assert_array_equal(o.points.label, ref.points.label)
+        np.testing.assert_array_equal(o.points.intensity, ref.points.intensity)

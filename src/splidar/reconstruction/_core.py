@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
 import time
 
 import numpy as np
@@ -361,6 +362,21 @@ def _as_class_array(x, name: str, K: int, L: int, *, minimum: float) -> np.ndarr
     return a
 
 
+#: numba's parallel kernels may not be entered from two threads at once when its only
+#: threading layer is "workqueue" (no OpenMP or TBB): reconstructions run one at a time.
+_KERNEL_LOCK = threading.RLock()
+
+
+def _one_at_a_time(func):
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with _KERNEL_LOCK:
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
+@_one_at_a_time
 def reconstruct(
     detection: Detection,
     *,
