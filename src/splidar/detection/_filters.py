@@ -12,6 +12,9 @@ from scipy import ndimage
 
 __all__ = ["Correlator", "box", "reflect_index"]
 
+#: Bytes of padded float32 input per FFT call of :class:`Correlator` (a few MB: in cache).
+_CHUNK_BYTES = 4 << 20
+
 
 class Correlator:
     """Matched filter along t: ``C[t] = sum_j g[j] Y[t - p + j]`` (``p`` = IRF peak).
@@ -52,6 +55,21 @@ class Correlator:
         ``out`` (float32, the shape of ``y``) receives the result when given.
         """
         x = np.asarray(y)
+        if out is None:
+            out = np.empty(x.shape, np.float32)
+        if x.ndim < 2 or x.shape[0] <= 1:
+            self._correlate(x, out, workers)
+            return out
+        # chunks of rows of a few MB: the FFT temporaries stay in cache and are reused by
+        # the allocator instead of being faulted in afresh for every block (each 1-D
+        # transform is computed the same way whatever the chunk: identical output)
+        per_row = int(np.prod(x.shape[1:-1], dtype=np.int64)) * self.n_fft * 4
+        step = max(1, int(_CHUNK_BYTES // max(per_row, 1)))
+        for a in range(0, x.shape[0], step):
+            self._correlate(x[a : a + step], out[a : a + step], workers)
+        return out
+
+    def _correlate(self, x, out, workers: int) -> None:
         T, N = self.n_bins, self.n_fft
         n = self.irf.shape[1]
         left = int(self.peak.max())
@@ -64,15 +82,12 @@ class Correlator:
         if left:
             m = min(left, T)
             pad[..., N - m :] = x[..., m - 1 :: -1] if m <= T else x[..., ::-1]
-        f = sfft.rfft(pad, axis=-1, workers=workers)
+        f = sfft.rfft(pad, axis=-1, workers=workers, overwrite_x=True)
         del pad
         f *= self.spectrum
-        res = sfft.irfft(f, n=N, axis=-1, workers=workers)
+        res = sfft.irfft(f, n=N, axis=-1, workers=workers, overwrite_x=True)
         del f
-        if out is None:
-            return np.ascontiguousarray(res[..., :T], dtype=np.float32)
         np.copyto(out, res[..., :T], casting="same_kind")
-        return out
 
 
 def box(x: np.ndarray, k: int) -> np.ndarray:
