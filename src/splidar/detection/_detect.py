@@ -116,7 +116,7 @@ class _Ctx:
     quantum: np.ndarray = None  # (L,) max g / K^2: one photon in a coarse voxel
 
 
-def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None):
+def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None):
     """Correlated cube, saliency and signed response of a block of pixels.
 
     Parameters
@@ -152,8 +152,13 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None):
     else:
         sal = sal_out
         sal[...] = 0.0
-    d = np.zeros((r, cc, T), np.float32)
-    level = np.zeros((r, cc, T), np.float32)
+    if work is None:
+        d = np.zeros((r, cc, T), np.float32)
+        level = np.zeros((r, cc, T), np.float32)
+    else:  # reused buffers of a run of blocks (no fresh pages per block)
+        d, level = work["d"][:r], work["level"][:r]
+        d[...] = 0.0
+        level[...] = 0.0
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,
@@ -459,7 +464,7 @@ def _evidence(sal, thr):
     return e
 
 
-def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out) -> _BlockOut:
+def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out, work=None) -> _BlockOut:
     """Saliency, map and surfaces of image rows ``[r0, r1)``.
 
     ``y`` and ``c_ext`` hold the raw and correlated rows ``[e0, e0 + len(y))`` (the
@@ -470,11 +475,14 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out) -> _BlockOut:
     # in memory the block writes straight into the outputs; with a store it writes
     # into buffers copied to the (chunk-aligned) store at the end
     sal_out = out["saliency"][r0:r1] if in_ram else None
-    _, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out)
+    _, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work)
     xs, ys, store_thr = table
     r, C, T = sal.shape
-    cand = np.empty((r, C, T), bool)
-    ev_vox = np.empty((r, C, T), np.float32)
+    if work is None:
+        cand = np.empty((r, C, T), bool)
+        ev_vox = np.empty((r, C, T), np.float32)
+    else:
+        cand, ev_vox = work["cand"][:r], work["ev"][:r]
     if store_thr:
         thr = out["threshold"][r0:r1] if in_ram else np.empty((r, C, T), np.float32)
     else:
@@ -531,6 +539,13 @@ def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> lis
     # block moved to the front afterwards (no concatenation, no per-block allocation)
     shape = tuple(counts.shape)
     buf = np.empty((min(block_rows + 2 * h, R),) + shape[1:], np.float32)
+    nb = min(block_rows, R)
+    work = dict(
+        d=np.empty((nb, shape[1], shape[3]), np.float32),
+        level=np.empty((nb, shape[1], shape[3]), np.float32),
+        cand=np.empty((nb, shape[1], shape[3]), bool),
+        ev=np.empty((nb, shape[1], shape[3]), np.float32),
+    )
     have0, n_have = 0, 0  # buf[:n_have] holds correlated rows [have0, have0 + n_have)
     for r0 in range(a, b, block_rows):
         r1 = min(b, r0 + block_rows)
@@ -544,7 +559,7 @@ def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> lis
         if k < n:
             ctx.corr(y[k:], workers=ctx.workers, out=buf[k:n])
         c_ext = buf[:n]
-        res.append(_block(y, c_ext, e0, r0, r1, ctx, table, opts, out))
+        res.append(_block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work))
         # rows [r1 - h, e1) are the next block's top halo
         have0 = max(e0, r1 - h)
         n_have = e1 - have0
