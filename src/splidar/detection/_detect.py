@@ -771,9 +771,10 @@ def detect(
         ``benchmarks/bench_detection.py``. Off by default because of its cost and
         because it does not help everywhere: on the Art scene (PPP 10, SBR 1) it
         recovers 2,085 surfaces for F_true 0.912 -> 0.909 and false 1.6 -> 2.3 %; it
-        adds 1.6 s to ``detect`` on the 200 x 200 x 4 x 1500 cube (5.4 s without),
-        3.8 s on the Art-size cube (1.5 s without) and 5-6 s on the face data (wide
-        IRF); most of it is the robust plane fits around every pixel.
+        adds about 1.6 s to ``detect`` on the 200 x 200 x 4 x 1500 cube (4-5 s
+        without), 2.5 s on the Art-size cube (1.3 s without) and 5-6 s on the face data
+        (wide IRF); most of it is the robust plane fits around every pixel (on
+        ``n_jobs`` threads; results do not depend on them).
     min_separation : float, optional
         Peaks closer than this (bins) are one surface. Default: the IRF's FWHM.
     split_ratio : float
@@ -1123,6 +1124,7 @@ def detect(
             max_surfaces=max_surfaces,
             qloc=_local_scale(scales_arr),
             seed=int(rng.integers(2**31)),
+            n_jobs=n_jobs,
         )
         n_slopes = int(rec["row"].size)
         if n_slopes:

@@ -107,7 +107,7 @@ def _solve3(A, v):
 
 
 @njit(cache=True, nogil=True)
-def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, out):
+def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, out, h0=0):
     """Local planes of the kept surfaces around each hole (sequential RANSAC + LSQ).
 
     Parameters
@@ -126,6 +126,9 @@ def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, 
         none; ``enclosed`` 1.0 when, in each of 8 directions, an inlier lies beyond the
         hole or the image ends: the hole is inside the plane's patch, not beyond its
         edge).
+    h0 : int
+        Index of ``hr[0]`` among all the holes of the call's round (the per-hole seed is
+        ``seed * 1000003 + h0 + h``): a split over threads gives the same planes.
     """
     R, C, K = D.shape
     nmax = (2 * radius + 1) * (2 * radius + 1) * K
@@ -154,7 +157,7 @@ def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, 
                         pd[n] = D[i, j, k]
                         used[n] = False
                         n += 1
-        st = np.int64(seed) * 1000003 + h  # per hole: reproducible, order-free
+        st = np.int64(seed) * 1000003 + h0 + h  # per hole: reproducible, order-free
         for p in range(max_planes):
             avail = 0
             for s in range(n):
@@ -412,6 +415,7 @@ def recover_slopes(
     qloc: int,
     n_iter: int = 4,
     seed: int = 0,
+    n_jobs: int = 1,
 ) -> dict:
     """Surfaces missed on steep slopes, found by sheared pooled tests (module docstring).
 
@@ -446,6 +450,8 @@ def recover_slopes(
         Rounds of region growing.
     seed : int
         Seed of the random triples.
+    n_jobs : int
+        Threads for the plane fits and the surface fields (results do not depend on it).
 
     Returns
     -------
@@ -548,9 +554,14 @@ def recover_slopes(
         if hr.size == 0:
             break
         planes = np.zeros((hr.size, K, 5))
-        fit_planes(
-            D, hr, hc, h_max, float(fwhm), K, MIN_INLIERS, N_TRIALS, seed + 7919 * it, planes
-        )
+        _split(
+            hr.size,
+            n_jobs,
+            lambda a, b, it=it, hr=hr, hc=hc, planes=planes: fit_planes(
+                D, hr[a:b], hc[a:b], h_max, float(fwhm), K, MIN_INLIERS, N_TRIALS,
+                seed + 7919 * it, planes[a:b], a,
+            ),
+        )  # fmt: skip
         # a plane is tested at a pixel when it is steep (the coarsest square box spreads
         # a return over more than the FWHM: square boxes already work on gentler ones),
         # no surface of the pixel lies on it (within the FWHM: a hole of that plane),
@@ -667,31 +678,21 @@ def recover_slopes(
         presence_llr=np.empty(S),
         presence_z=np.empty(S),
     )
+    keys = ("offset", "histograms", "signal", "counts", "background", "presence_llr")
+    keys = keys + ("presence_z",)
     for sel, y, y0 in _row_bands(counts, rows, h_max):
         part = {k: np.empty((sel.size,) + v.shape[1:], v.dtype) for k, v in o.items()}
-        surface_fields(
-            y,
-            y0,
-            sp,
-            dev,
-            rows[sel],
-            cols[sel],
-            depth[sel],
-            np.ascontiguousarray(s_pool[sel]),
-            scales.astype(np.int64),
-            irf,
-            irf_peak,
-            gsq,
-            int(width),
-            int(qloc),
-            part["offset"],
-            part["histograms"],
-            part["signal"],
-            part["counts"],
-            part["background"],
-            part["presence_llr"],
-            part["presence_z"],
-        )
+        r_s, c_s, d_s = rows[sel], cols[sel], depth[sel]
+        sp_s = np.ascontiguousarray(s_pool[sel])
+
+        def fields(a, b, y=y, y0=y0, part=part, r_s=r_s, c_s=c_s, d_s=d_s, sp_s=sp_s):
+            surface_fields(
+                y, y0, sp, dev, r_s[a:b], c_s[a:b], d_s[a:b], sp_s[a:b],
+                scales.astype(np.int64), irf, irf_peak, gsq, int(width), int(qloc),
+                *(part[k][a:b] for k in keys),
+            )  # fmt: skip
+
+        _split(sel.size, n_jobs, fields)
         for k in o:
             o[k][sel] = part[k]
     # own-pixel check (presence_llr). Requiring a replacement to fit the own counts at
@@ -715,6 +716,19 @@ def recover_slopes(
         int((~keep).sum()),
     )
     return out
+
+
+def _split(n: int, n_jobs: int, fn) -> None:
+    """Call ``fn(a, b)`` over ``[0, n)`` in ``n_jobs`` contiguous parts on threads."""
+    n_jobs = max(1, min(int(n_jobs), n // 256 or 1))
+    if n_jobs == 1:
+        fn(0, n)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    cuts = np.linspace(0, n, n_jobs + 1).round().astype(int)
+    with ThreadPoolExecutor(n_jobs) as ex:
+        list(ex.map(lambda ab: fn(int(ab[0]), int(ab[1])), zip(cuts[:-1], cuts[1:], strict=True)))
 
 
 def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
