@@ -755,21 +755,30 @@ def support_sums(saliency, threshold, rows, cols, start, stop) -> tuple[np.ndarr
     """Saliency mass and evidence of surfaces over their supports ``[start, stop)``.
 
     ``saliency`` (R, C, T) (array or Zarr); ``threshold`` a float, (1, 1, T) or
-    (R, C, T). Evidence as in the main pass: ``sum max(S / threshold - 1, 0)``.
+    (R, C, T). Evidence as in the main pass: ``sum max(S / threshold - 1, 0)``. Arrays
+    on disk are read a band of rows at a time (not once per surface).
     """
+    rows = np.asarray(rows, np.int64)
     S = rows.size
     mass = np.zeros(S)
     ev = np.zeros(S)
     thr_arr = None if np.isscalar(threshold) else threshold
-    for s in range(S):
-        a, b = int(start[s]), int(stop[s])
-        sal = np.asarray(saliency[rows[s], cols[s], a:b], np.float64)
-        if thr_arr is None:
-            thr = float(threshold)
-        elif thr_arr.shape[0] == 1:
-            thr = np.asarray(thr_arr[0, 0, a:b], np.float64)
-        else:
-            thr = np.asarray(thr_arr[rows[s], cols[s], a:b], np.float64)
-        mass[s] = sal.sum()
-        ev[s] = np.maximum(sal / np.maximum(thr, 1e-12) - 1.0, 0.0).sum()
+    per_voxel = thr_arr is not None and thr_arr.shape[0] != 1
+    thr_t = None
+    if thr_arr is not None and not per_voxel:
+        thr_t = np.asarray(thr_arr[0, 0], np.float64)
+    for sel, sal_b, r0 in _row_bands(saliency, rows, 0):
+        thr_b = np.asarray(thr_arr[r0 : r0 + sal_b.shape[0]]) if per_voxel else None
+        for s in sel:
+            a, b = int(start[s]), int(stop[s])
+            i, j = rows[s] - r0, cols[s]
+            sal = np.asarray(sal_b[i, j, a:b], np.float64)
+            if thr_arr is None:
+                thr = float(threshold)
+            elif per_voxel:
+                thr = np.asarray(thr_b[i, j, a:b], np.float64)
+            else:
+                thr = thr_t[a:b]
+            mass[s] = sal.sum()
+            ev[s] = np.maximum(sal / np.maximum(thr, 1e-12) - 1.0, 0.0).sum()
     return mass, ev
