@@ -30,6 +30,7 @@ import numpy as np
 
 import splidar
 from splidar.detection import detect
+from splidar.plotting import _depth_limits  # the library's depth colour limits
 from splidar.reconstruction import irf_fraction, nearest_signature, reconstruct, synthetic_detection
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -284,17 +285,6 @@ def timing_table():
 SPEED = 299_792_458.0
 
 
-def depth_limits(img):
-    """Colour limits of a depth map: median +- 5 robust sd, within the 1-99th percentiles."""
-    v = img[np.isfinite(img)]
-    if v.size == 0:
-        return 0.0, 1.0
-    p1, med, p99 = np.percentile(v, [1, 50, 99])
-    sd = 1.4826 * np.median(np.abs(v - med))
-    lo, hi = max(p1, med - 5 * sd), min(p99, med + 5 * sd)
-    return (float(lo), float(hi)) if hi > lo else (float(p1), float(max(p99, p1 + 1e-9)))
-
-
 def plot(rec, path, title, truth=None):
     """Depth, intensity and (with several classes) label maps per surface layer.
 
@@ -321,7 +311,7 @@ def plot(rec, path, title, truth=None):
     scale = 1.0 if rec.bin_width_ps is None else rec.bin_width_ps * 1e-12 * SPEED / 2.0
     lims = []
     for k in range(K):
-        lims.append(depth_limits(rec.depth_map[:, :, k] * scale))
+        lims.append(_depth_limits(rec.depth_map[:, :, k] * scale))
         sp.plot_depth(rec, layer=k, ax=ax[k, 0], vmin=lims[k][0], vmax=lims[k][1])
         sp.plot_intensity(rec, layer=k, ax=ax[k, 1])
         if labels:
