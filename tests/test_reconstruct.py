@@ -519,3 +519,26 @@ def test_reconstruct_from_several_threads_matches_serial():
     for o in outs:
         np.testing.assert_array_equal(o.points.label, ref.points.label)
         np.testing.assert_array_equal(o.points.intensity, ref.points.intensity)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (dict(background=np.zeros((5, 3))), "background"),
+        (dict(h=np.ones(4)), "`h`"),
+        (dict(label=np.array([0, 0, 0, 0, 2])), "label"),
+        (dict(signatures=np.ones((2, 3))), "signatures"),
+    ],
+)
+def test_estimate_alpha_bad_inputs_raise(change, match):
+    args = dict(
+        y=np.ones((5, 2)),
+        background=np.zeros((5, 2)),
+        eta=np.ones((5, 2)),
+        h=np.ones(5),
+        label=np.zeros(5, np.int64),
+        signatures=np.ones((2, 2)),
+    )
+    args.update(change)
+    with pytest.raises(SplidarError, match=match):
+        estimate_alpha(**args)

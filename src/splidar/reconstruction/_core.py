@@ -169,6 +169,12 @@ def estimate_alpha(
     -------
     alpha : ndarray (K, L), the same value on every wavelength of a class.
 
+    Raises
+    ------
+    SplidarError
+        ``y``, ``background`` and ``eta`` not of one shape (S, L); ``h`` or ``label``
+        not (S,); ``signatures`` not (K, L); a label outside ``0..K-1``.
+
     Examples
     --------
     >>> rng = np.random.default_rng(0)
@@ -180,10 +186,28 @@ def estimate_alpha(
     True
     """
     sig = np.asarray(signatures, dtype=np.float64)
+    y = np.ascontiguousarray(y, np.float64)
+    if sig.ndim != 2 or y.ndim != 2 or sig.shape[1] != y.shape[1]:
+        raise SplidarError(
+            f"`signatures` must be (K, L) and `y` (S, L) with the same L; got {sig.shape} and "
+            f"{y.shape}."
+        )
+    for name, a in (("background", background), ("eta", eta)):
+        if np.shape(a) != y.shape:
+            raise SplidarError(f"`{name}` must have the shape of `y` {y.shape}; got {np.shape(a)}.")
+    for name, a in (("h", h), ("label", label)):
+        if np.shape(a) != y.shape[:1]:
+            raise SplidarError(
+                f"`{name}` must be ({y.shape[0]},), one per surface; got {np.shape(a)}."
+            )
+    if y.shape[0] and (np.min(label) < 0 or np.max(label) >= sig.shape[0]):
+        raise SplidarError(
+            f"`label` must index the {sig.shape[0]} signatures (0..{sig.shape[0] - 1}); got values "
+            f"{int(np.min(label))}..{int(np.max(label))}."
+        )
     K, L = sig.shape
     lo, hi = _ALPHA_BOUNDS
     v = 1.0 / (np.full(K, 6.0) if start is None else np.asarray(start, dtype=np.float64))
-    y = np.ascontiguousarray(y, np.float64)
     b = np.ascontiguousarray(background, np.float64)
     eta = np.ascontiguousarray(eta, np.float64)
     h = np.ascontiguousarray(h, np.float64)
