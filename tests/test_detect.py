@@ -253,10 +253,15 @@ def test_detect_steep_slope_keeps_own_pixel_depth():
     assert m.f_true >= 0.99  # 0.981 when windows stayed on the coarse peak
 
 
-def test_detect_histograms_match_box_filter_reference():
-    # independent reference: scipy's uniform_filter of the correlated cube minus bhat
+@pytest.mark.parametrize("store_boxes", [True, False])
+def test_detect_histograms_match_box_filter_reference(store_boxes, monkeypatch):
+    # independent reference: scipy's uniform_filter of the correlated cube minus bhat,
+    # whether the box means come from the saliency pass or are summed per candidate
     from scipy import ndimage
 
+    from splidar.detection import _detect
+
+    monkeypatch.setattr(_detect, "_store_boxes", lambda *a: store_boxes)
     lam, _ = _tilted(shape=(20, 24), T=100)
     lam[::3, ::2, 0, 70] += 4.0  # a second, sparse return in some pixels
     cube = _cube(lam, rng=3)
@@ -275,6 +280,15 @@ def test_detect_histograms_match_box_filter_reference():
         np.testing.assert_allclose(s.histograms[:, q, 0], ref, rtol=1e-4, atol=1e-5)
     raw = cube.counts[s.row[:, None], s.col[:, None], 0, tt]
     np.testing.assert_array_equal(s.counts[:, 0], np.where(inside, raw, 0).sum(axis=1))
+
+
+def test_store_boxes_depends_on_sizes_only():
+    from splidar.detection._detect import _store_boxes
+
+    sc = np.array([1, 3, 7, 11])
+    assert _store_boxes(sc, 13, 164)  # Art-size: few bins, keep the box means
+    assert not _store_boxes(sc, 13, 1500)  # long histograms: sum about candidates
+    assert not _store_boxes(np.array([1]), 13, 10)  # no box above 1 pixel
 
 
 def test_detect_same_result_whatever_blocks_and_threads():

@@ -16,6 +16,7 @@ from splidar.detection._fast import (
     window_means,
 )
 from splidar.detection._filters import Correlator, box
+from splidar.detection._null import _equal_count_groups
 
 
 def _reference(c, keep, scales, weights, dev, var_factor, quantum, spatial=None):
@@ -62,6 +63,48 @@ def test_saliency_wavelength_matches_reference(shape, scales, weights, keep, giv
     np.testing.assert_allclose(sp, ref[0], rtol=0, atol=1e-5)
     for got, want in zip(acc, ref[1:], strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("scales", [(1, 3, 7, 11), (3, 5), (1, 9)])
+def test_saliency_wavelength_box_output_matches_box_filters(scales):
+    # the box means handed to surface extraction are scipy's uniform_filter (reflect)
+    rng = np.random.default_rng(3)
+    c = rng.gamma(0.5, 1.0, (14, 13, 150)).astype(np.float32)
+    keep = slice(3, 12)
+    scales = np.asarray(scales)
+    big = scales[scales > 1]
+    T = c.shape[-1]
+    acc = [np.zeros((9, 13, T), np.float32) for _ in range(3)]
+    out = np.full((big.size, 9, 13, T), np.nan, np.float32)
+    saliency_wavelength(
+        c, keep, scales, scales / scales.sum(), np.zeros(T, np.float32), *acc, box=out
+    )
+    for i, k in enumerate(big):
+        # float32 sums of up to 121 values of order 1: a few 1e-7 relative
+        np.testing.assert_allclose(out[i], box(c, int(k))[keep], rtol=0, atol=2e-5)
+    with pytest.raises(ValueError, match="box"):
+        saliency_wavelength(
+            c, keep, scales, scales / scales.sum(), np.zeros(T, np.float32), *acc, box=out[:, :5]
+        )
+
+
+@pytest.mark.parametrize("n, g", [(10, 3), (5, 1), (12345, 5), (200_000, 12)])
+@pytest.mark.parametrize("ties", [False, True])
+def test_equal_count_groups_match_stable_sort(n, g, ties):
+    rng = np.random.default_rng(n)
+    if ties:  # many equal values, some straddling group boundaries
+        v = rng.integers(0, max(n // 3, 1) + 1, n).astype(np.float64)
+    else:
+        v = rng.random(n).astype(np.float32).astype(np.float64)
+    want = np.array_split(np.argsort(v, kind="stable"), g)
+    got = _equal_count_groups(v, g)
+    assert len(got) == len(want)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.sort(a), np.sort(b))
+    v = np.repeat(np.arange(5.0), 200)  # one value spans whole groups
+    plain = np.array_split(np.argsort(v, kind="stable"), 7)
+    for a, b in zip(_equal_count_groups(v, 7), plain, strict=True):
+        np.testing.assert_array_equal(np.sort(a), np.sort(b))
 
 
 def test_saliency_wavelength_threads_do_not_change_result():
@@ -229,3 +272,57 @@ def test_temporal_shape_identical_to_reference():
     np.testing.assert_array_equal(got, _temporal_reference(counts, corr, 7, smooth=9))
     # wavelengths on threads: the same result
     np.testing.assert_array_equal(temporal_shape(counts, corr, 7, smooth=9, workers=2), got)
+
+
+def _select_reference(row, col, mass, depth, keep, k_max):
+    # the stable-lexsort selection that select_sorted replaces
+    idx = np.flatnonzero(keep)
+    order = np.lexsort((-mass[idx], col[idx], row[idx]))
+    idx = idx[order]
+    r, c = row[idx], col[idx]
+    new = np.ones(idx.size, bool)
+    new[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+    rank = np.arange(idx.size) - np.flatnonzero(new)[np.cumsum(new) - 1]
+    idx = idx[rank < k_max]
+    idx = idx[np.lexsort((depth[idx], col[idx], row[idx]))]
+    r, c = row[idx], col[idx]
+    new = np.ones(idx.size, bool)
+    new[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+    slot = np.arange(idx.size) - np.flatnonzero(new)[np.cumsum(new) - 1]
+    return idx, slot, rank
+
+
+@pytest.mark.parametrize("k_max", [1, 2, 3])
+def test_select_sorted_matches_lexsort_selection(k_max):
+    from splidar.detection._detect import _rank_in_pixel, _select
+
+    rng = np.random.default_rng(k_max)
+    n = 5000
+    pix = np.sort(rng.integers(0, 900, n))  # raster order, 0-12 candidates per pixel
+    row, col = pix // 30, pix % 30
+    mass = rng.integers(0, 4, n).astype(float)  # many ties
+    depth = rng.integers(0, 6, n).astype(float)
+    keep = rng.random(n) < 0.8
+    surf = dict(row=row, col=col, saliency_mass=mass, depth_bin=depth)
+    idx, slot = _select(surf, keep, k_max)
+    ref_idx, ref_slot, _ = _select_reference(row, col, mass, depth, keep, k_max)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_array_equal(slot, ref_slot)
+    # rank within the pixel: the stable lexsort's
+    rank = _rank_in_pixel(row, col, mass, keep)
+    k = np.flatnonzero(keep)
+    order = np.lexsort((-mass[k], col[k], row[k]))
+    r, c = row[k][order], col[k][order]
+    new = np.ones(k.size, bool)
+    new[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+    want = np.full(n, -1)
+    want[k[order]] = np.arange(k.size) - np.flatnonzero(new)[np.cumsum(new) - 1]
+    np.testing.assert_array_equal(rank, want)
+    # out of raster order (slope recovery appends): the lexsort path; without ties (they
+    # are broken by position, which the permutation changes) the same choice
+    surf = dict(row=row, col=col, saliency_mass=rng.random(n), depth_bin=rng.random(n))
+    idx, slot = _select(surf, keep, k_max)
+    perm = rng.permutation(n)
+    idx_p, slot_p = _select({key: v[perm] for key, v in surf.items()}, keep[perm], k_max)
+    np.testing.assert_array_equal(perm[idx_p], idx)
+    np.testing.assert_array_equal(slot_p, slot)

@@ -25,7 +25,13 @@ from ..cube import Cube
 from ._background import CLIP, temporal_shape
 from ._fast import poisson_background, saliency_wavelength
 from ._filters import Correlator
-from ._kernels import extract_surfaces, find_segments, threshold_pass
+from ._kernels import (
+    extract_surfaces,
+    find_segments,
+    rank_in_pixel_sorted,
+    select_sorted,
+    threshold_pass,
+)
 from ._null import fit_gamma_quantiles, threshold_table
 from ._quality import reject_isolated, reject_spill_over
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
@@ -116,7 +122,7 @@ class _Ctx:
     quantum: np.ndarray = None  # (L,) max g / K^2: one photon in a coarse voxel
 
 
-def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None):
+def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None, box=None):
     """Correlated cube, saliency and signed response of a block of pixels.
 
     Parameters
@@ -133,6 +139,8 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None
         block); computed from ``y`` when None.
     sal_out : (r_keep, c, T) float32, optional
         Where to write the saliency (zeroed here); a new array when None.
+    box : (L, Qb, r_keep, c, T) float32, optional
+        Receives the box means of every scale above 1 pixel (for surface extraction).
 
     Returns
     -------
@@ -177,6 +185,7 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None
             quantum=float(ctx.quantum[l]),
             clip=CLIP,
             n_threads=ctx.workers,
+            box=None if box is None else box[l],
         )
         if spatial is None:
             sp_out[:, :, l] = sp_l
@@ -294,15 +303,20 @@ class _BlockOut:
     surf: dict
     n_candidates: int
     n_rejected: int
+    # the block's histograms of every extracted candidate (not subset: the large array
+    # is gathered once, for the selected surfaces) and the rows of the kept ones
+    histograms: np.ndarray = None
+    kept: np.ndarray = None
 
 
-def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
+def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
     """Per-candidate clean histograms at every scale, scale selection, depth, presence.
 
     Runs the numba kernel :func:`~splidar.detection._kernels.extract_surfaces` over the
     candidates (split over ``ctx.workers`` threads; each candidate is computed the same
     way whatever the split). For each candidate: box means of the correlated block at
-    every scale over a window of ``width`` bins about its peak, minus ``bhat``
+    every scale (``box``, written by the saliency pass) over a window of ``width`` bins
+    about its peak, minus ``bhat``
     (``eq:background_3``), kept positive inside the support (``eq:background_final``);
     the global and per-scale depths (argmax of the clean matched-filter response,
     ``eq:depth_global`` / ``eq:depth_scale``) and the selected scale (``eq:scale_sel``);
@@ -336,9 +350,16 @@ def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx,
     # isolated-candidate passes (_quality.py); not part of Surfaces
     o["own_counts"] = np.empty((S, L, W), np.int32)
     o["own_background"] = np.empty((S, L, W), np.float32)
+    bidx = np.full(ctx.scales.size, -1, np.int64)
+    if box is None:  # boxes summed about each candidate by the kernel
+        box = np.empty((L, 0, 1, 1, 1), np.float32)
+    else:
+        bidx[ctx.scales > 1] = np.arange(int((ctx.scales > 1).sum()))
     args = (
         y,
         c_ext,
+        box,
+        bidx,
         int(e0),
         int(r0),
         np.ascontiguousarray(rows, np.int64),
@@ -406,15 +427,49 @@ def _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx,
     return o, keep
 
 
+def _store_boxes(scales: np.ndarray, width: int, n_bins: int) -> bool:
+    """Whether the saliency pass should keep its box means for surface extraction.
+
+    Keeping them costs ``Qb`` float32 writes per voxel (``Qb`` scales above 1 pixel);
+    summing the boxes about each candidate costs ``sum_q k_q^2`` additions per window
+    bin, for a few (about 3) candidates per pixel, each ``width`` bins long. A write
+    to memory costs about 5 additions (measured on the 200 x 200 x 4 x 1500 and
+    Art-size cubes: keeping them is 1.3x slower on the first, 2.5x faster on the
+    second), hence the rule. It depends on the sizes only, never on the data or the
+    blocks, so every block takes the same path (the two differ by float32 rounding).
+    """
+    qb = int((scales > 1).sum())
+    if qb == 0:
+        return False
+    return 3 * width * float((scales.astype(np.float64) ** 2).sum()) >= 5 * n_bins * qb
+
+
 def _local_scale(scales: np.ndarray) -> int:
     """Index of the local scale of the presence check: the finest one above 1 pixel."""
     above = np.flatnonzero(scales > 1)
     return int(above[0]) if above.size else 0
 
 
+def _raster_ordered(row, col) -> bool:
+    """Whether candidates come in raster order of ``(row, col)`` (as blocks emit them)."""
+    if row.size < 2:
+        return True
+    dr = np.diff(row)
+    return bool(np.all((dr > 0) | ((dr == 0) & (np.diff(col) >= 0))))
+
+
 def _rank_in_pixel(row, col, score, keep):
     """Rank (0 = largest ``score``) of each kept candidate among its pixel's kept ones."""
     rank = np.full(row.size, -1, np.int64)
+    if _raster_ordered(row, col):
+        rank_in_pixel_sorted(
+            np.ascontiguousarray(row, np.int64),
+            np.ascontiguousarray(col, np.int64),
+            np.ascontiguousarray(score, np.float64),
+            np.ascontiguousarray(keep, np.bool_),
+            rank,
+        )
+        return rank
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return rank
@@ -430,6 +485,20 @@ def _rank_in_pixel(row, col, score, keep):
 
 def _select(surf: dict, keep: np.ndarray, k_max: int):
     """Keep at most ``k_max`` candidates per pixel (largest saliency mass), depth order."""
+    if _raster_ordered(surf["row"], surf["col"]):
+        n = surf["row"].size
+        idx, slot = np.empty(n, np.int64), np.empty(n, np.int64)
+        m = select_sorted(
+            np.ascontiguousarray(surf["row"], np.int64),
+            np.ascontiguousarray(surf["col"], np.int64),
+            np.ascontiguousarray(surf["saliency_mass"], np.float64),
+            np.ascontiguousarray(surf["depth_bin"], np.float64),
+            np.ascontiguousarray(keep, np.bool_),
+            int(k_max),
+            idx,
+            slot,
+        )
+        return idx[:m], slot[:m]
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return idx, np.zeros(0, np.int64)
@@ -475,7 +544,17 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out, work=None) -> _Blo
     # in memory the block writes straight into the outputs; with a store it writes
     # into buffers copied to the (chunk-aligned) store at the end
     sal_out = out["saliency"][r0:r1] if in_ram else None
-    _, sal, d, sp, level = _core(y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work)
+    L, T = ctx.dev.shape
+    if opts["store_boxes"]:
+        Qb = int((ctx.scales > 1).sum())
+        n_box = L * Qb * (i1 - i0) * y.shape[1] * T
+        box = np.empty(n_box, np.float32) if work is None else work["box"][:n_box]
+        box = box.reshape(L, Qb, i1 - i0, y.shape[1], T)
+    else:
+        box = None
+    _, sal, d, sp, level = _core(
+        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box
+    )
     xs, ys, store_thr = table
     r, C, T = sal.shape
     if work is None:
@@ -511,7 +590,8 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out, work=None) -> _Blo
     rows, cols, start, stop, peak, mass, ev = (
         a[pre] for a in (rows, cols, start, stop, peak, mass, ev)
     )
-    surf, keep = _extract(y, c_ext, e0, r0, rows, cols, start, stop, peak, mass, sp, ctx, opts)
+    surf, keep = _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp, ctx, opts)
+    del box
     surf["evidence"] = ev
     if opts["presence"] in ("auto", "adaptive") and keep.any():
         # a pixel's strongest candidate is supported by the scene's continuity; any
@@ -546,6 +626,10 @@ def _run_rows(counts, a, b, ctx: _Ctx, table, opts, out, block_rows: int) -> lis
         cand=np.empty((nb, shape[1], shape[3]), bool),
         ev=np.empty((nb, shape[1], shape[3]), np.float32),
     )
+    if opts["store_boxes"]:
+        # box means of the scales above 1 pixel (flat: reshaped per block)
+        n_box = shape[2] * int((ctx.scales > 1).sum()) * nb * shape[1] * shape[3]
+        work["box"] = np.empty(n_box, np.float32)
     have0, n_have = 0, 0  # buf[:n_have] holds correlated rows [have0, have0 + n_have)
     for r0 in range(a, b, block_rows):
         r1 = min(b, r0 + block_rows)
@@ -575,7 +659,7 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     # passes of _quality.py on them (they need neighbours across block borders), then
     # _select (K_s per pixel)
     idx = np.flatnonzero(keep)
-    out = {k: v[idx] for k, v in surf.items()}
+    out = {k: v[idx] for k, v in surf.items() if k != "histograms"}
     return _BlockOut(
         n_voxels=n_vox,
         n_photons_kept=kept,
@@ -583,6 +667,8 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
         surf=out,
         n_candidates=n_cand,
         n_rejected=n_cand - int(keep.sum()),
+        histograms=surf["histograms"],
+        kept=idx,
     )
 
 
@@ -999,17 +1085,20 @@ def detect(
     # --- main pass over blocks of rows -------------------------------------------------
     t0 = time.perf_counter()
     h_max = K // 2
+    width = min(2 * wh + 1, T)
+    store_boxes = _store_boxes(scales_arr, width, T)
     if block_rows is None:
-        # ~256 MB of float32 per block: the halo (max(k) // 2 rows on each side) then
-        # costs little extra filtering
-        per_row = C * T * 4 * (L + 6)
-        block_rows = int(np.clip(256e6 // per_row, max(8, 4 * h_max), R))
+        # ~64 MB of work buffers per block (reused by the blocks of a run, so no fresh
+        # pages); halo rows are correlated once per run, so small blocks cost little
+        per_row = C * T * 4 * (L + 6 + (L * int((scales_arr > 1).sum()) if store_boxes else 0))
+        block_rows = int(np.clip(64e6 // per_row, max(8, 4 * h_max), R))
     else:
         block_rows = check_int(block_rows, "block_rows", minimum=1)
     block_rows = min(block_rows, R)
     opts = dict(
         image_shape=(R, C),
-        width=min(2 * wh + 1, T),
+        width=width,
+        store_boxes=store_boxes,
         min_separation=min_sep,
         split_ratio=split_ratio,
         presence=presence,
@@ -1078,6 +1167,11 @@ def detect(
     t0 = time.perf_counter()
     keys = outs[0].surf.keys()
     surf = {k: np.concatenate([o.surf[k] for o in outs], axis=0) for k in keys}
+    # where each candidate's histograms are: block and row in that block's array
+    hist_block = np.concatenate([np.full(o.kept.size, b, np.int64) for b, o in enumerate(outs)])
+    hist_row = np.concatenate([o.kept for o in outs])
+    if slopes:
+        surf["histograms"] = np.concatenate([o.histograms[o.kept] for o in outs], axis=0)
     # global passes over the candidate table of the whole image (_quality.py: they need
     # the neighbours across block borders), then K_s per pixel
     keep = np.ones(surf["row"].size, bool)
@@ -1142,6 +1236,18 @@ def detect(
     idx, slot = _select(surf, keep, max_surfaces)
     surf = {k: v[idx] for k, v in surf.items()}
     surf["slot"] = slot
+    if not slopes:
+        # one gather of the selected surfaces' histograms from the blocks' arrays
+        hist = np.empty((idx.size,) + outs[0].histograms.shape[1:], np.float32)
+        hb, hr = hist_block[idx], hist_row[idx]
+        for b, o in enumerate(outs):
+            sel = np.flatnonzero(hb == b)
+            if sel.size:
+                hist[sel] = o.histograms[hr[sel]]
+        surf["histograms"] = hist
+    del hist_block, hist_row
+    for o in outs:
+        o.histograms = None
     Q = scales_arr.size
     W = opts["width"]
     if surf["row"].size == 0:

@@ -148,11 +148,14 @@ def _level_pixel(x, step, var_factor, quantum, clip, n_iter, scratch):
 
 
 @njit(cache=True, nogil=True)
-def _filter_row(cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse):
+def _filter_row(
+    cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse, box, bidx, o
+):
     """``m = sum_q lambda_q Box_q(c)`` and the coarsest scale (minus ``dev`` when
     ``estimate``) of block row ``i``; element ``(i, j, t)`` of ``c`` is
     ``cf[base + i * sr + j * sc + t]``. ``V`` (Q, C, tile) and ``acc`` (tile,) are work
-    buffers; ``m`` and ``coarse`` (C, T) are written.
+    buffers; ``m`` and ``coarse`` (C, T) are written. When ``bidx[q] >= 0`` the box
+    mean of scale ``q`` is also written to ``box[bidx[q], o]`` (C, T).
     """
     Q = scales.size
     tile = V.shape[2]
@@ -224,6 +227,7 @@ def _filter_row(cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V,
                 for t in range(tn):
                     ac[t] += np.float32(vr[t] * inv32)
             inv = 1.0 / k
+            bq = bidx[q]
             for j in range(C):
                 if j > 0:
                     va = V[q, _refl(j + h, C), :tn]
@@ -232,6 +236,10 @@ def _filter_row(cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V,
                         ac[t] += np.float64(np.float32(va[t] * inv32)) - np.float64(
                             np.float32(vb[t] * inv32)
                         )
+                if bq >= 0:
+                    br = box[bq, o, j, t0 : t0 + tn]
+                    for t in range(tn):
+                        br[t] = np.float32(ac[t] * inv)
                 mr = m[j, t0 : t0 + tn]
                 if first:
                     for t in range(tn):
@@ -273,6 +281,8 @@ def _rows_kernel(
     sal,
     d,
     level,
+    box,
+    bidx,
 ):
     """Output rows ``[i_start, i_stop)`` (block coordinates) of one wavelength.
 
@@ -289,7 +299,27 @@ def _rows_kernel(
     scratch = np.empty(T, np.float32)
     for i in range(i_start, i_stop):
         o = i - keep0
-        _filter_row(cf, 0, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse)
+        _filter_row(
+            cf,
+            0,
+            R,
+            C,
+            T,
+            sr,
+            sc,
+            i,
+            scales,
+            weights,
+            dev,
+            estimate,
+            V,
+            acc,
+            m,
+            coarse,
+            box,
+            bidx,
+            o,
+        )
         # background level, bhat and saliency of each pixel of the row
         for j in range(C):
             if estimate:
@@ -343,6 +373,7 @@ def saliency_wavelength(
     clip: float = 2.5,
     n_iter: int = 2,
     n_threads: int = 1,
+    box: np.ndarray | None = None,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -368,6 +399,10 @@ def saliency_wavelength(
     n_threads : int
         Threads over output rows (the kernel releases the GIL); results do not depend
         on it (every output row is computed the same way).
+    box : ndarray (Qb, r, C, T) float32, optional
+        When given, receives the box means ``Box_q(c)`` of the kept rows for every scale
+        ``k_q > 1`` (in increasing order; scale 1 is ``c`` itself): surface extraction
+        reads them instead of summing the boxes again.
 
     Returns
     -------
@@ -389,9 +424,17 @@ def saliency_wavelength(
         raise ValueError("keep must be a contiguous slice")
     estimate = spatial is None
     sp = np.empty((i1 - i0, C), np.float32) if estimate else spatial
+    sc_arr = np.ascontiguousarray(scales, dtype=np.int64)
+    bidx = np.full(sc_arr.size, -1, np.int64)
+    if box is None:
+        box = np.empty((1, 1, 1, 1), np.float32)
+    else:
+        bidx[sc_arr > 1] = np.arange(int((sc_arr > 1).sum()))
+        if box.shape != (int((sc_arr > 1).sum()), i1 - i0, C, T) or box.dtype != np.float32:
+            raise ValueError("box must be float32 (scales > 1, kept rows, C, T)")
     step = max(1, min(4, T // 64))
     args = (
-        np.ascontiguousarray(scales, dtype=np.int64),
+        sc_arr,
         np.ascontiguousarray(weights, dtype=np.float64),
         sp,
         estimate,
@@ -404,6 +447,8 @@ def saliency_wavelength(
         sal,
         d,
         level,
+        box,
+        bidx,
     )
     n = i1 - i0
     if n <= 0 or C == 0 or T == 0:

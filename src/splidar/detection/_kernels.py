@@ -7,7 +7,13 @@ from numba import njit
 
 from ._fast import _refl as _reflect  # one reflect rule for every kernel
 
-__all__ = ["extract_surfaces", "find_segments", "threshold_pass"]
+__all__ = [
+    "extract_surfaces",
+    "find_segments",
+    "rank_in_pixel_sorted",
+    "select_sorted",
+    "threshold_pass",
+]
 
 
 @njit(cache=True, nogil=True)
@@ -230,6 +236,8 @@ def _llr_one(raw, bh, inside, dw, s, irf, peak, L, W):
 def extract_surfaces(
     y,
     c,
+    box,
+    bidx,
     e0,
     r0,
     rows,
@@ -277,15 +285,16 @@ def extract_surfaces(
     ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
     ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``). ``o_own_counts``
     and ``o_own_background`` (S, L, W) receive the pixel's raw counts and ``bhat`` over
-    the window, zero outside the support.
+    the window, zero outside the support. ``box`` (L, Qb, r, C, T), when ``Qb > 0``,
+    holds the box means of the block's rows (from ``r0``) at the scales ``q`` with
+    ``bidx[q] >= 0`` (written by the saliency pass; scale 1 is read from ``c``);
+    otherwise (``Qb = 0``) the boxes are summed here, about each candidate.
     """
     Q = scales.size
     L = c.shape[2]
     T = c.shape[3]
     W = width
     wh = W // 2
-    hmax = scales[Q - 1] // 2
-    acc = np.zeros((Q, L, W), np.float64)
     resp = np.empty((Q, L, W), np.float32)
     bh = np.empty((L, W), np.float32)
     inside = np.empty(W, np.bool_)
@@ -296,6 +305,16 @@ def extract_surfaces(
     raw = np.empty((L, W), np.float64)
     d_q = np.empty(Q, np.int64)
     s_tmp = np.empty(L, np.float64)
+    use_box = box.shape[1] > 0
+    hmax = scales[Q - 1] // 2
+    acc = np.zeros((Q, L, W), np.float64)
+    hv_buf = np.empty(W, np.float32)
+    qring = np.empty(hmax + 1, np.int64)  # smallest scale whose box holds ring m
+    for m in range(hmax + 1):
+        q = 0
+        while scales[q] // 2 < m:
+            q += 1
+        qring[m] = q
     for s in range(i_begin, i_end):
         irow = rows[s] + r0
         jcol = cols[s]
@@ -329,20 +348,6 @@ def extract_surfaces(
         hi = min(stop[s], off + W)
         for w in range(W):
             inside[w] = (off + w >= lo) and (off + w < hi)
-        # box sums of every scale in one sweep of the largest box (same order per scale)
-        acc[:] = 0.0
-        for di in range(-hmax, hmax + 1):
-            ri = _reflect(irow + di, n_rows_img) - e0
-            for dj in range(-hmax, hmax + 1):
-                cj = _reflect(jcol + dj, n_cols_img)
-                for q in range(Q):
-                    h = scales[q] // 2
-                    if abs(di) > h or abs(dj) > h:
-                        continue
-                    for l in range(L):
-                        cr = c[ri, cj, l]
-                        for w in range(W):
-                            acc[q, l, w] += cr[off + w]
         for l in range(L):
             spl = sp[rows[s], jcol, l]
             for w in range(W):
@@ -350,14 +355,43 @@ def extract_surfaces(
                 if b < 0:
                     b = np.float32(0.0)  # eq:background_3
                 bh[l, w] = b
+        if not use_box:
+            # box sums of every scale in one sweep of the largest box: each pixel adds
+            # to the smallest box holding it (a ring), rings summed outwards
+            acc[:] = 0.0
+            for di in range(-hmax, hmax + 1):
+                ri = _reflect(irow + di, n_rows_img) - e0
+                for dj in range(-hmax, hmax + 1):
+                    cj = _reflect(jcol + dj, n_cols_img)
+                    q = qring[max(abs(di), abs(dj))]
+                    for l in range(L):
+                        cr = c[ri, cj, l]
+                        for w in range(W):
+                            acc[q, l, w] += cr[off + w]
+            for q in range(1, Q):
+                for l in range(L):
+                    for w in range(W):
+                        acc[q, l, w] += acc[q - 1, l, w]
         for q in range(Q):
+            bq = bidx[q]
             inv = 1.0 / (scales[q] * scales[q])
             for w in range(W):
                 per_scale[q, w] = 0.0
             for l in range(L):
+                if not use_box:
+                    for w in range(W):
+                        hv_buf[w] = np.float32(acc[q, l, w] * inv)
+                elif bq < 0:  # scale 1: the correlated block itself
+                    cr = c[irow - e0, jcol, l]
+                    for w in range(W):
+                        hv_buf[w] = cr[off + w]
+                else:  # box means computed once per voxel by the saliency pass
+                    cr = box[l, bq, rows[s], jcol]
+                    for w in range(W):
+                        hv_buf[w] = cr[off + w]
                 ssum = 0.0
                 for w in range(W):
-                    hv = np.float32(acc[q, l, w] * inv)
+                    hv = hv_buf[w]
                     r = hv - bh[l, w]
                     resp[q, l, w] = r
                     cv = r if (r > 0 and inside[w]) else np.float32(0.0)  # eq:background_final
@@ -529,3 +563,91 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
                     if mask[i, j, t]:
                         n_kept += v
     return n_ph, n_kept
+
+
+@njit(cache=True, nogil=True)
+def _before(score, a, b):
+    """Candidate ``b`` ranks before ``a``: larger score, ties in index order."""
+    return score[b] > score[a] or (score[b] == score[a] and b < a)
+
+
+@njit(cache=True, nogil=True)
+def rank_in_pixel_sorted(row, col, score, keep, rank):
+    """Rank (0 = largest ``score``, ties in index order) of each kept candidate among its
+    pixel's kept ones; -1 for the others.
+
+    The candidates must come in raster order of ``(row, col)`` (as the blocks emit
+    them): a pixel's candidates are then consecutive and ranked in one pass (the same
+    ranks as a stable ``lexsort((-score, col, row))``).
+    """
+    n = row.size
+    i = 0
+    while i < n:
+        j = i + 1
+        while j < n and row[j] == row[i] and col[j] == col[i]:
+            j += 1
+        for a in range(i, j):
+            if not keep[a]:
+                rank[a] = -1
+                continue
+            r = 0
+            for b in range(i, j):
+                if b != a and keep[b] and _before(score, a, b):
+                    r += 1
+            rank[a] = r
+        i = j
+
+
+@njit(cache=True, nogil=True)
+def select_sorted(row, col, mass, depth, keep, k_max, out_idx, out_slot):
+    """At most ``k_max`` kept candidates per pixel (largest ``mass``), in depth order.
+
+    Candidates in raster order of ``(row, col)``. Writes the chosen indices, by pixel
+    and then increasing depth (equal depths in the mass order), to ``out_idx`` and
+    their rank in depth to ``out_slot``; returns how many. The same choice and order as
+    the stable lexsorts of :func:`splidar.detection._detect._select`.
+    """
+    n = row.size
+    m = 0
+    i = 0
+    buf = np.empty(64, np.int64)
+    mrank = np.empty(64, np.int64)
+    while i < n:
+        j = i + 1
+        while j < n and row[j] == row[i] and col[j] == col[i]:
+            j += 1
+        if j - i > buf.size:
+            buf = np.empty(2 * (j - i), np.int64)
+            mrank = np.empty(2 * (j - i), np.int64)
+        # the kept ones with a mass rank below k_max
+        nb = 0
+        for a in range(i, j):
+            if not keep[a]:
+                continue
+            r = 0
+            for b in range(i, j):
+                if b != a and keep[b] and _before(mass, a, b):
+                    r += 1
+            if r < k_max:
+                buf[nb] = a
+                mrank[nb] = r
+                nb += 1
+        # insertion sort by (depth, mass rank)
+        for u in range(1, nb):
+            a = buf[u]
+            ra = mrank[u]
+            v = u - 1
+            while v >= 0 and (
+                depth[buf[v]] > depth[a] or (depth[buf[v]] == depth[a] and mrank[v] > ra)
+            ):
+                buf[v + 1] = buf[v]
+                mrank[v + 1] = mrank[v]
+                v -= 1
+            buf[v + 1] = a
+            mrank[v + 1] = ra
+        for u in range(nb):
+            out_idx[m] = buf[u]
+            out_slot[m] = u
+            m += 1
+        i = j
+    return m
