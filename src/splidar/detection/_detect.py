@@ -138,7 +138,7 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None
         ``Y (*) g`` when already computed (halo rows carried over from the previous
         block); computed from ``y`` when None.
     sal_out : (r_keep, c, T) float32, optional
-        Where to write the saliency (zeroed here); a new array when None.
+        Where to write the saliency (overwritten); a new array when None.
     box : (L, Qb, r_keep, c, T) float32, optional
         Receives the box means of every scale above 1 pixel (for surface extraction).
 
@@ -155,18 +155,13 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None
     keep = slice(None) if keep is None else keep
     r_all, cc, L, T = c.shape
     r = len(range(*keep.indices(r_all)))
-    if sal_out is None:
-        sal = np.zeros((r, cc, T), np.float32)
-    else:
-        sal = sal_out
-        sal[...] = 0.0
+    # the first wavelength writes sal, d and level, the others add to them
+    sal = np.empty((r, cc, T), np.float32) if sal_out is None else sal_out
     if work is None:
-        d = np.zeros((r, cc, T), np.float32)
-        level = np.zeros((r, cc, T), np.float32)
+        d = np.empty((r, cc, T), np.float32)
+        level = np.empty((r, cc, T), np.float32)
     else:  # reused buffers of a run of blocks (no fresh pages per block)
         d, level = work["d"][:r], work["level"][:r]
-        d[...] = 0.0
-        level[...] = 0.0
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,
@@ -186,6 +181,7 @@ def _core(y, ctx: _Ctx, spatial=None, keep=None, c=None, sal_out=None, work=None
             clip=CLIP,
             n_threads=ctx.workers,
             box=None if box is None else box[l],
+            overwrite=l == 0,
         )
         if spatial is None:
             sp_out[:, :, l] = sp_l

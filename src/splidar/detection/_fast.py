@@ -283,6 +283,7 @@ def _rows_kernel(
     level,
     box,
     bidx,
+    overwrite,
 ):
     """Output rows ``[i_start, i_stop)`` (block coordinates) of one wavelength.
 
@@ -329,14 +330,24 @@ def _rows_kernel(
             sr_ = sal[o, j]
             lr = level[o, j]
             mr = m[j]
-            for t in range(T):
-                bh = s0 + dev[t]
-                if bh < 0:
-                    bh = np.float32(0.0)  # eq:background_3
-                lr[t] += bh
-                x = mr[t] - bh
-                dr[t] += x
-                sr_[t] += abs(x)  # eq:4.s1
+            if overwrite:  # the first wavelength: no zeroing pass before
+                for t in range(T):
+                    bh = s0 + dev[t]
+                    if bh < 0:
+                        bh = np.float32(0.0)  # eq:background_3
+                    lr[t] = bh
+                    x = mr[t] - bh
+                    dr[t] = x
+                    sr_[t] = abs(x)  # eq:4.s1
+            else:
+                for t in range(T):
+                    bh = s0 + dev[t]
+                    if bh < 0:
+                        bh = np.float32(0.0)  # eq:background_3
+                    lr[t] += bh
+                    x = mr[t] - bh
+                    dr[t] += x
+                    sr_[t] += abs(x)  # eq:4.s1
 
 
 def _flat_rows(c: np.ndarray):
@@ -374,6 +385,7 @@ def saliency_wavelength(
     n_iter: int = 2,
     n_threads: int = 1,
     box: np.ndarray | None = None,
+    overwrite: bool = False,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -403,6 +415,9 @@ def saliency_wavelength(
         When given, receives the box means ``Box_q(c)`` of the kept rows for every scale
         ``k_q > 1`` (in increasing order; scale 1 is ``c`` itself): surface extraction
         reads them instead of summing the boxes again.
+    overwrite : bool
+        Write ``sal``, ``d`` and ``level`` instead of adding to them (the first
+        wavelength; saves zeroing them first).
 
     Returns
     -------
@@ -449,6 +464,7 @@ def saliency_wavelength(
         level,
         box,
         bidx,
+        bool(overwrite),
     )
     n = i1 - i0
     if n <= 0 or C == 0 or T == 0:
