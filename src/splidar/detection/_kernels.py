@@ -543,48 +543,25 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
     L = y.shape[2]
     n_ph = 0
     n_kept = 0
-    G = xs.size
     for i in range(r):
         for j in range(C):
-            lo = 0  # interval of the table used at the previous t (levels vary slowly)
             for t in range(T):
-                x = np.float64(level[i, j, t])
-                if G == 1 or x <= xs[0]:
-                    thv = ys[0]
-                elif x >= xs[G - 1]:
-                    thv = ys[G - 1]
-                else:
-                    if not (xs[lo] <= x < xs[lo + 1]):
-                        lo = 0
-                        hi = G - 1
-                        while hi - lo > 1:
-                            mid = (lo + hi) // 2
-                            if xs[mid] <= x:
-                                lo = mid
-                            else:
-                                hi = mid
-                    # as _interp_table
-                    slope = (ys[lo + 1] - ys[lo]) / (xs[lo + 1] - xs[lo])
-                    thv = slope * (x - xs[lo]) + ys[lo]
-                th = np.float32(thv)
+                th = np.float32(_interp_table(np.float64(level[i, j, t]), xs, ys))
                 if store_thr:
                     thr_out[i, j, t] = th
                 s = sal[i, j, t]
-                if s > th:
-                    mask[i, j, t] = True
-                    cand[i, j, t] = d[i, j, t] > 0
-                    e = s / max(th, np.float32(1e-12)) - np.float32(1.0)
-                    ev[i, j, t] = e if e > 0 else np.float32(0.0)
-                    for l in range(L):
-                        n_kept += np.int64(y[y_row0 + i, j, l, t])
-                else:  # S <= threshold: no evidence
-                    mask[i, j, t] = False
-                    cand[i, j, t] = False
-                    ev[i, j, t] = np.float32(0.0)
+                m = s > th
+                mask[i, j, t] = m
+                cand[i, j, t] = m and d[i, j, t] > 0
+                e = s / max(th, np.float32(1e-12)) - np.float32(1.0)
+                ev[i, j, t] = e if e > 0 else np.float32(0.0)
             for l in range(L):
                 yr = y[y_row0 + i, j, l]
                 for t in range(T):
-                    n_ph += np.int64(yr[t])
+                    v = np.int64(yr[t])
+                    n_ph += v
+                    if mask[i, j, t]:
+                        n_kept += v
     return n_ph, n_kept
 
 
