@@ -873,8 +873,9 @@ def detect(
         which drifts off the return beside brightness changes (single surface, PPP 50,
         SBR 10: F_true 0.980 -> 0.994).
     block_rows : int, optional
-        Rows per block (memory/time trade-off). Default: about 256 MB of float32 per
-        block (at least ``4 x max(k) // 2`` rows, so the halo costs little).
+        Rows per block (memory/time trade-off; results do not depend on it). Default:
+        about 64 MB of work buffers per block, at least ``4 x max(k) // 2`` rows (halo
+        rows are matched-filtered once per run of blocks, so small blocks cost little).
     n_jobs : int, optional
         Threads (default: CPU count, at most 4).
     store : str or path, optional
