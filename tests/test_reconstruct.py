@@ -177,14 +177,30 @@ def test_kernels_posterior_marginal_beta_limits():
 # --- the whole algorithm -----------------------------------------------------------------
 
 
-@pytest.mark.parametrize("links", ["depth", "all"])
-def test_reconstruct_objective_never_decreases(links):
+def _assert_ascent(history):
+    """The objective never decreases between evaluated sweeps, except across an alpha
+    update (the model changed there). Evaluated at the start, every few sweeps and at the
+    end (NaN in between)."""
+    obj = history.objective
+    assert obj.size == history.n_iter + 1
+    ok = np.flatnonzero(np.isfinite(obj))
+    assert ok[0] == 0 and ok[-1] == obj.size - 1
+    n = 0
+    for i0, i1 in zip(ok[:-1], ok[1:], strict=True):
+        if any(i0 < i <= i1 for i in history.alpha_updates):
+            continue
+        # each block update maximises its conditional exactly: only rounding can lower it
+        assert obj[i1] >= obj[i0] - 1e-9 * abs(obj[i1]), (i0, i1, obj[i0], obj[i1])
+        n += 1
+    return n
+
+
+@pytest.mark.parametrize(("links", "alpha"), [("depth", "auto"), ("all", "auto"), ("depth", 6.0)])
+def test_reconstruct_objective_never_decreases(links, alpha):
     det, _ = synthetic_detection(shape=(24, 24), layers=2, rng=3)
-    rec = reconstruct(det, links=links, tol=1e-8, max_iter=60)
+    rec = reconstruct(det, links=links, alpha=alpha, tol=1e-8, max_iter=60)
+    assert _assert_ascent(rec.history) >= 3
     obj = rec.history.objective
-    assert obj.size == rec.history.n_iter + 1
-    # each block update maximises its conditional exactly: only rounding can lower it
-    assert np.all(np.diff(obj) >= -1e-9 * np.abs(obj[1:]))
     assert obj[-1] > obj[0]
 
 
@@ -224,23 +240,25 @@ def test_reconstruct_uncertainty_coverage(one_layer, two_layer):
         p = rec.points
         inside = np.abs(p.intensity - truth.intensity) <= p.intensity_std
         cov = inside.mean()
-        # measured 0.80-0.84 on 64 x 64 scenes; ~6400-12800 values but spatially
-        # correlated, so a loose band: neither overconfident (< 0.6) nor vacuous (> 0.92)
-        assert 0.6 <= cov <= 0.92, cov
+        # measured 0.75 (one layer) and 0.63 (two layers) on these 40 x 40 seeds, 0.64-0.72
+        # on the bench's 96 x 96 scenes; 6400-12800 values but spatially correlated, so a
+        # loose band: neither overconfident (< 0.58) nor vacuous (> 0.82)
+        assert 0.58 <= cov <= 0.82, cov
 
 
-def test_reconstruct_uncertainty_coverage_with_spectral_variability():
-    # The over-coverage of scenes whose surfaces carry their signature exactly comes from
-    # the prior being wider than the truth: when the reflectivity varies about its class
-    # signature as widely as the prior allows (CV 0.6), the pooled coverage falls to the
-    # Gaussian 0.68 (measured 0.64-0.66 on 64 x 64 scenes), and where the data dominate
-    # (true intensity >= 2 photons) it is near 0.68 with or without variability
-    # (measured 0.61-0.75). 40 x 40 x 4 values, spatially correlated: loose bands.
+def test_reconstruct_fixed_alpha_coverage_with_spectral_variability():
+    # With a fixed alpha = 6 (the former default), scenes whose surfaces carry their
+    # signature exactly over-cover: the prior is wider than the truth. When the reflectivity
+    # varies about its class signature as widely as the prior allows (CV 0.6), the pooled
+    # coverage falls to the Gaussian 0.68 (measured 0.64-0.66 on 64 x 64 scenes), and where
+    # the data dominate (true intensity >= 2 photons) it is near 0.68 with or without
+    # variability (measured 0.61-0.75). 40 x 40 x 4 values, spatially correlated: loose
+    # bands.
     for var in (0.0, 0.6):
         det, truth = synthetic_detection(
             shape=(40, 40), layers=1, variability=var, patch_size=12, rng=21
         )
-        p = reconstruct(det).points
+        p = reconstruct(det, alpha=6.0).points
         inside = np.abs(p.intensity - truth.intensity) <= p.intensity_std
         bright = truth.intensity >= 2.0
         assert 0.55 <= inside[bright].mean() <= 0.8, (var, inside[bright].mean())
@@ -436,7 +454,7 @@ def test_reconstruct_alpha_auto_estimates_variability_and_is_monotone_between_up
     det, truth = synthetic_detection(
         shape=(40, 40), layers=1, variability=0.6, patch_size=12, rng=21
     )
-    fixed = reconstruct(det)
+    fixed = reconstruct(det, alpha=6.0)
     rec = reconstruct(det, alpha="auto", tol=1e-6, max_iter=40)
     h = rec.history
     assert len(h.alpha_updates) == 1 and 1 <= h.alpha_updates[0] <= 20
@@ -445,43 +463,45 @@ def test_reconstruct_alpha_auto_estimates_variability_and_is_monotone_between_up
     a = rec.hyperparameters["alpha"]
     assert np.all((a > 3.5) & (a < 9.0))
     np.testing.assert_allclose(rec.hyperparameters["upsilon"], a + 2.0)
-    d = np.diff(h.objective)
-    keep = np.ones(d.size, bool)
-    keep[h.alpha_updates[0] - 1] = False  # the model changed there
-    assert np.all(d[keep] >= -1e-9 * np.abs(h.objective[1:][keep]))
+    _assert_ascent(h)
     assert h.label_changes.shape == (h.n_iter,)
-    # labels are those of the first phase; intensities not worse than with alpha = 6
-    # (measured equal at CV 0.6, 10-55 % lower IAE with less variability)
-    np.testing.assert_array_equal(rec.points.label, fixed.points.label)
+    assert np.all(h.label_changes[h.alpha_updates[0] :] == 0)  # labels kept in phase 2
+    # labels are those of the first phase (alpha = 6, stopped once the labels settled:
+    # measured identical here, >= 99.9 % on other seeds); intensities not worse than with
+    # alpha = 6 (measured equal at CV 0.6, 10-55 % lower IAE with less variability)
+    assert np.mean(rec.points.label == fixed.points.label) >= 0.995
     assert _iae(rec.points.intensity, truth.intensity) < 1.02 * _iae(
         fixed.points.intensity, truth.intensity
     )
 
 
-@pytest.mark.parametrize("var", [0.0, 0.4])
-def test_reconstruct_alpha_auto_std_calibrated(var):
-    # alpha="auto": r's prior as wide as the data's spectral variability (beta, which
-    # carries half of it, integrated out of the std) and h's variance the empirical-Bayes
-    # MSE of the smoother (sampling variance + measured squared bias), so the coverage of
-    # +-1 std is near 0.68 with and without variability. Measured on three 40 x 40 seeds:
-    # CV 0: 0.69-0.71 (0.82-0.87 on the 64-96 px bench scenes with h's conditional
-    # variance); CV 0.4: 0.64-0.66 (0.61-0.63 with beta held at its mode). 6400
-    # correlated values, fixed seed: band 0.62-0.75.
+@pytest.mark.parametrize("var", [0.0, 0.2, 0.4, 0.6])
+def test_reconstruct_std_calibrated_by_default(var):
+    # The default alpha="auto": r's prior as wide as the data's spectral variability (beta,
+    # which carries half of it, integrated out of the std) and h's variance the
+    # empirical-Bayes MSE of the smoother (sampling variance + measured squared bias), so
+    # the coverage of +-1 std is near 0.68 with and without variability. Measured on this
+    # seed (40 x 40, CV 0 / 0.2 / 0.4 / 0.6): 0.70 / 0.66 / 0.64 / 0.67, and 0.64-0.71 on
+    # two more seeds (alpha = 6: 0.81 / 0.78 / 0.72 / 0.64). 6400 values, correlated
+    # through patches and shading (a few hundred independent ones: sd ~0.02-0.03), so the
+    # band 0.62-0.75 is about 2 sd either side of the measured values.
     det, truth = synthetic_detection(
         shape=(40, 40), layers=1, variability=var, patch_size=12, rng=21
     )
-    rec = reconstruct(det, alpha="auto")
+    rec = reconstruct(det)
+    assert rec.hyperparameters["alpha_mode"] == "auto"
     p = rec.points
     inside = np.abs(p.intensity - truth.intensity) <= p.intensity_std
     assert 0.62 <= inside.mean() <= 0.75, inside.mean()
     # the squared smoothing bias: small without variability (smooth shading), >= 0
     assert 0.0 <= rec.hyperparameters["shading_bias2"] < 0.02
-    assert reconstruct(det).hyperparameters["shading_bias2"] is None
+    if var == 0.0:
+        assert reconstruct(det, alpha=6.0).hyperparameters["shading_bias2"] is None
 
 
 def test_reconstruct_alpha_auto_lowers_iae_without_variability():
     det, truth = synthetic_detection(shape=(32, 32), layers=1, patch_size=12, rng=22)
-    iae6 = _iae(reconstruct(det).points.intensity, truth.intensity)
+    iae6 = _iae(reconstruct(det, alpha=6.0).points.intensity, truth.intensity)
     auto = _iae(reconstruct(det, alpha="auto").points.intensity, truth.intensity)
     # measured 2.55 -> 1.14 on 64 x 64 (r pinned to the signature shape): require 25 %
     assert auto < 0.75 * iae6, (auto, iae6)
@@ -542,3 +562,172 @@ def test_estimate_alpha_bad_inputs_raise(change, match):
     args.update(change)
     with pytest.raises(SplidarError, match=match):
         estimate_alpha(**args)
+
+
+# --- fused and lazy kernels give the elementary results -----------------------------------
+
+
+def _random_state(rng, S=300, L=3, K=4):
+    det, _ = synthetic_detection(shape=(15, 10), layers=2, n_wavelengths=L, rng=rng)
+    s = det.surfaces
+    S = len(s)
+    g = build_graph(s.row, s.col, s.slot, s.depth_bin, s.image_shape, int(s.n_slots), gate=9.0)
+    gen = np.random.default_rng(rng)
+    return dict(
+        g=g,
+        S=S,
+        y=gen.poisson(4.0, (S, L)).astype(float),
+        b=gen.uniform(0.5, 2.0, (S, L)),
+        eta=gen.uniform(0.6, 1.0, (S, L)),
+        r=gen.uniform(0.3, 3.0, (S, L)),
+        beta=gen.uniform(0.1, 1.0, (S, L)),
+        h=gen.uniform(1.0, 8.0, S),
+        w=gen.uniform(1.0, 8.0, S),
+        u=gen.integers(0, K, S).astype(np.int64),
+        alpha=np.full((K, L), 6.0),
+        ups=np.full((K, L), 3.0),
+        eps=gen.uniform(0.5, 2.0, (K, L)),
+    )
+
+
+def test_kernels_fused_round_matches_elementary():
+    st = _random_state(1)
+    g, S = st["g"], st["S"]
+    L = st["y"].shape[1]
+    ref = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
+    z, q = np.empty((S, L)), np.empty((S, L))
+    kern.estep(ref["y"], ref["b"], ref["eta"], ref["r"], ref["h"], z, q)
+    kern.update_r(z, ref["eta"], ref["h"], ref["beta"], ref["u"], ref["alpha"], ref["r"])
+    kern.update_beta(ref["r"], ref["u"], ref["alpha"], ref["ups"], ref["eps"], ref["beta"])
+    kern.update_h(z, ref["eta"], ref["r"], ref["w"], g.indptr, g.indices, 4.0, ref["h"])
+    kern.update_w(ref["h"], g.indptr, g.indices, ref["w"])
+    r, beta, h, w = st["r"].copy(), st["beta"].copy(), st["h"].copy(), st["w"].copy()
+    z2, q2, zs, er, iw = np.empty((S, L)), np.empty((S, L)), np.empty(S), np.empty(S), 1 / w
+    kern.local_round(
+        st["y"], st["b"], st["eta"], h, st["u"], st["alpha"], st["ups"], st["eps"], True, r,
+        beta, z2, q2, zs, er,
+    )  # fmt: skip
+    kern.update_h_iw(zs, er, iw, g.indptr, g.indices, 4.0, h)
+    kern.update_w_iw(h, g.indptr, g.indices, w, iw)
+    for a, b in ((z2, z), (r, ref["r"]), (beta, ref["beta"]), (h, ref["h"]), (w, ref["w"])):
+        np.testing.assert_allclose(a, b, rtol=1e-13)
+    np.testing.assert_allclose(iw, 1 / w, rtol=1e-15)
+
+
+def test_kernels_lazy_labels_match_full_update():
+    # the skip test is a bound, so lazy updates must reproduce the full ones exactly over
+    # a run of sweeps where r drifts (small steps: most surfaces skipped) and jumps
+    st = _random_state(2)
+    g, S, r = st["g"], st["S"], st["r"]
+    K, L = st["alpha"].shape
+    gen = np.random.default_rng(5)
+    alpha = st["alpha"].copy()
+    alpha[1] = 4.0  # one class with another alpha: the log r term counts too
+    cst2 = kern.label_cst(alpha, st["ups"], kern.class_cst(alpha, st["ups"], st["eps"]))
+    u_full, u_lazy = st["u"].copy(), st["u"].copy()
+    b_full, b_lazy = st["beta"].copy(), st["beta"].copy()
+    r_eval, margin = np.empty((S, L)), np.full(S, -1.0)
+    eval_at, changed_at = np.zeros(S, np.int64), np.zeros(S, np.int64)
+    slope = max(
+        max(alpha[k, l] + st["ups"][k, l], alpha[j, l] + st["ups"][j, l]) + 1.0
+        + abs(alpha[k, l] - alpha[j, l])
+        for k in range(K) for j in range(K) for l in range(L)
+    )  # fmt: skip
+    stamp, skipped = 0, 0
+    for sweep in range(12):
+        r = r * np.exp(gen.normal(0.0, 0.3 if sweep % 4 == 0 else 0.01, r.shape))
+        for colour in range(2):
+            stamp += 1
+            n_full = kern.update_labels(
+                g.parity, colour, g.indptr, g.indices, r, b_full, u_full, alpha, st["ups"],
+                st["eps"], cst2, 0.7, np.empty(0), np.empty((S, K)),
+            )  # fmt: skip
+            n_lazy = kern.update_labels_lazy(
+                g.parity, colour, g.indptr, g.indices, r, b_lazy, u_lazy, alpha, st["ups"],
+                st["eps"], cst2, 0.7, np.empty((S, K)), r_eval, margin, eval_at, changed_at,
+                stamp, slope,
+            )  # fmt: skip
+            skipped += int(np.sum((g.parity == colour) & (eval_at != stamp)))
+            assert n_full == n_lazy
+            np.testing.assert_array_equal(u_full, u_lazy)
+        # beta of skipped surfaces is left as it was: compare after an r-beta round, as in run
+        kern.update_beta(r, u_full, alpha, st["ups"], st["eps"], b_full)
+        kern.update_beta(r, u_lazy, alpha, st["ups"], st["eps"], b_lazy)
+    assert skipped > 0  # the test exercises the skip
+
+
+def test_kernels_label_confidence_is_the_conditional_probability():
+    st = _random_state(3)
+    g, S, r, u = st["g"], st["S"], st["r"], st["u"]
+    K = st["alpha"].shape[0]
+    cst2 = kern.label_cst(st["alpha"], st["ups"], kern.class_cst(st["alpha"], st["ups"], st["eps"]))
+    conf = np.empty(S)
+    kern.label_confidence(
+        g.indptr, g.indices, r, u, st["alpha"], st["ups"], st["eps"], cst2, 0.7, conf
+    )
+    c = st["alpha"] + st["ups"] + 1.0
+    score = np.stack(
+        [(cst2[k] - c[k] * np.log(r + st["eps"][k])).sum(1) for k in range(K)], axis=1
+    )  # the (alpha - 1) log r term is the same for every class here
+    for s in range(S):
+        for t in g.indices[g.indptr[s] : g.indptr[s + 1]]:
+            score[s, u[t]] += 0.7
+    p = np.exp(score - score.max(1, keepdims=True))
+    np.testing.assert_allclose(conf, p[np.arange(S), u] / p.sum(1), rtol=1e-10)
+
+
+def test_build_graph_matches_brute_force():
+    det, _ = synthetic_detection(shape=(9, 7), layers=2, depth_jitter=3.0, rng=8)
+    s = det.surfaces
+    for links, gate in (("depth", 4.0), ("all", np.inf)):
+        g = build_graph(
+            s.row, s.col, s.slot, s.depth_bin, s.image_shape, int(s.n_slots), links=links,
+            gate=gate,
+        )  # fmt: skip
+        for i in range(len(s)):
+            near = (np.abs(s.row - s.row[i]) + np.abs(s.col - s.col[i])) == 1
+            ok = near & (np.abs(s.depth_bin - s.depth_bin[i]) <= gate)
+            np.testing.assert_array_equal(
+                g.indices[g.indptr[i] : g.indptr[i + 1]], np.flatnonzero(ok)
+            )
+
+
+def test_irf_fraction_matches_interpolated_cumulative():
+    rng = np.random.default_rng(0)
+    irf = np.stack([gaussian_irf(3.0, length=41), gaussian_irf(6.0, length=41)])
+    d = rng.uniform(-10, 120, 500)
+    start = np.floor(d - rng.uniform(0, 20, 500)).astype(np.int64)
+    stop = start + rng.integers(1, 40, 500)
+    eta = irf_fraction(irf, d, start, stop)
+    for l in range(2):
+        cum = np.concatenate([[0.0], np.cumsum(irf[l])])
+        p, x = int(np.argmax(irf[l])), np.arange(cum.size)
+        want = np.interp(stop - d + p, x, cum, left=0.0, right=cum[-1]) - np.interp(
+            start - d + p, x, cum, left=0.0, right=cum[-1]
+        )
+        np.testing.assert_allclose(eta[:, l], np.clip(want, 0.0, 1.0), atol=1e-14)
+
+
+def test_free_cores_within_limits():
+    from splidar.reconstruction._core import _free_cores
+
+    for n in (1, 2, 8):
+        assert 1 <= _free_cores(n) <= n
+
+
+def test_kernels_objective_change_matches_reference():
+    st = _random_state(4)
+    g, S = st["g"], st["S"]
+    cst = kern.class_cst(st["alpha"], st["ups"], st["eps"])
+    args = (st["y"], st["b"], st["eta"], st["r"], st["beta"], st["h"])
+    tail = (st["alpha"], st["ups"], st["eps"], cst, 4.0, 0.7)
+    ref = kern.objective(*args, st["w"], st["u"], g.indptr, g.indices, *tail)
+    old = st["h"][:, None] * st["r"] * np.random.default_rng(0).uniform(0.9, 1.1, st["r"].shape)
+    obj, ch = kern.objective_change(
+        *args, np.log(st["w"]), 1.0 / st["w"], st["u"], g.indptr, g.indices, *tail, old
+    )
+    assert obj == pytest.approx(ref, rel=1e-12)
+    new = st["h"][:, None] * st["r"]
+    assert ch == pytest.approx(np.sqrt(((new - old) ** 2).sum() / (old**2).sum()), rel=1e-12)
+    assert ch == pytest.approx(kern._rms_change(st["h"], st["r"], old), rel=1e-12)
+    assert S > 100

@@ -233,8 +233,8 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--alpha",
         type=_alpha,
-        help="gamma shape of the reflectivity prior, > 1, or 'auto' (estimated from the data; "
-        "default 6)",
+        help="gamma shape of the reflectivity prior, > 1, or 'auto' (default: estimated "
+        "from the data, which calibrates the uncertainties; 6 was the former fixed prior)",
     )
     g.add_argument(
         "--signature-scale",

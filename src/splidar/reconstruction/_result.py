@@ -26,7 +26,10 @@ class ConvergenceHistory:
     Attributes
     ----------
     objective : ndarray (n_iter + 1,)
-        Log posterior (up to a constant) after initialisation and after each sweep.
+        Log posterior (up to a constant) after initialisation, after every 5th sweep of
+        each phase, at the start and end of each phase; NaN after the other sweeps (it
+        costs about a fifth of a sweep). Never decreases between finite values except
+        across an alpha update (below).
     change : ndarray (n_iter,)
         RMS change of the parameters at each sweep (``eq:criter``).
     n_iter : int
