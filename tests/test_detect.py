@@ -452,6 +452,36 @@ def test_detect_spill_over_removes_net_spread():
     assert m_on.f_true > m_off.f_true - 0.01
 
 
+def test_reject_isolated_shared_neighbours_match_dense_reference():
+    # the numba neighbour search against the dense-array form it replaced
+    from splidar.detection import _quality
+
+    rng = np.random.default_rng(11)
+    R, C, n = 17, 13, 600
+    row, col = rng.integers(0, R, n), rng.integers(0, C, n)
+    d = rng.integers(20, 60, n).astype(float) + rng.random(n)
+    keep = rng.random(n) < 0.7
+    idx = np.flatnonzero(keep)
+    D, _ = _quality._dense(row[idx], col[idx], (R, C), d[idx], np.nan)
+    r1, c1 = row[idx] + 1, col[idx] + 1
+    want = np.zeros(idx.size, bool)
+    for dr, dc in _quality._NEIGHBOURS:
+        want |= np.any(np.abs(D[r1 + dr, c1 + dc] - d[idx][:, None]) <= 3.0, axis=1)
+    want_own = np.isfinite(D[r1, c1]).sum(axis=1)
+    pix = row[idx] * C + col[idx]
+    order = np.argsort(pix, kind="stable")
+    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    got = np.zeros(idx.size, bool)
+    own = np.zeros(idx.size, np.int64)
+    _quality._shared_kernel(
+        row[idx].astype(np.int64), col[idx].astype(np.int64), d[idx], order, starts, R, C,
+        3.0, got, own,
+    )  # fmt: skip
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(own, want_own)
+    assert 0 < got.sum() < got.size
+
+
 def test_reject_isolated_needs_significant_own_counts():
     from splidar.detection._quality import reject_isolated
 

@@ -418,6 +418,37 @@ def _spill_kernel(
     return passes
 
 
+@njit(cache=True, nogil=True)
+def _shared_kernel(row, col, depth, order, starts, R, C, fwhm, shared, n_own):
+    """For each candidate: a candidate at the same depth (within ``fwhm``) among its 8
+    neighbours (``shared``), and the number of candidates in its pixel (``n_own``).
+    Candidates of pixel ``p`` are ``order[starts[p]:starts[p + 1]]``."""
+    for i in range(row.size):
+        r = row[i]
+        c = col[i]
+        p = r * C + c
+        n_own[i] = starts[p + 1] - starts[p]
+        found = False
+        for dr in range(-1, 2):
+            rr = r + dr
+            if rr < 0 or rr >= R:
+                continue
+            for dc in range(-1, 2):
+                cc = c + dc
+                if (dr == 0 and dc == 0) or cc < 0 or cc >= C:
+                    continue
+                q = rr * C + cc
+                for k in range(starts[q], starts[q + 1]):
+                    if abs(depth[order[k]] - depth[i]) <= fwhm:
+                        found = True
+                        break
+                if found:
+                    break
+            if found:
+                break
+        shared[i] = found
+
+
 def reject_isolated(
     surf: dict,
     keep: np.ndarray,
@@ -479,15 +510,16 @@ def reject_isolated(
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return rej
-    row = np.asarray(surf["row"])[idx]
-    col = np.asarray(surf["col"])[idx]
+    row = np.asarray(surf["row"], np.int64)[idx]
+    col = np.asarray(surf["col"], np.int64)[idx]
     d = np.asarray(surf["depth_bin"], np.float64)[idx]
-    D, _ = _dense(row, col, (R, C), d, np.nan)
-    r1, c1 = row + 1, col + 1
+    # candidates grouped by pixel; a neighbour at the same depth (within fwhm) shares
+    pix = row * C + col
+    order = np.argsort(pix, kind="stable")
+    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
     shared = np.zeros(idx.size, bool)
-    for dr, dc in _NEIGHBOURS:
-        shared |= np.any(np.abs(D[r1 + dr, c1 + dc] - d[:, None]) <= fwhm, axis=1)
-    n_own = np.isfinite(D[r1, c1]).sum(axis=1)  # candidates in the pixel (itself included)
+    n_own = np.zeros(idx.size, np.int64)  # candidates in the pixel (itself included)
+    _shared_kernel(row, col, d, order, starts, int(R), int(C), float(fwhm), shared, n_own)
     test = ~shared & ((n_own > 1) if only_extra else True)
     sub = idx[test]
     n = np.asarray(surf["own_counts"])[sub].sum(axis=(1, 2))
