@@ -291,12 +291,34 @@ def test_store_boxes_depends_on_sizes_only():
     assert not _store_boxes(np.array([1]), 13, 10)  # no box above 1 pixel
 
 
+def test_threshold_field_indexes_like_the_array_it_stands_for():
+    from splidar.detection._threshold import ThresholdField
+
+    rng = np.random.default_rng(4)
+    sp = rng.random((7, 5, 2)).astype(np.float32)
+    dev = (rng.random((2, 9)) - 0.5).astype(np.float32)
+    f = ThresholdField(sp, dev, np.array([0.2, 0.8, 1.5]), np.array([1.0, 2.0, 2.5]))
+    full = np.asarray(f)
+    assert f.shape == full.shape == (7, 5, 9) and np.ndim(f) == 3 and full.dtype == np.float32
+    # the level is sum_l max(b + dev, 0) and the table is interpolated (clamped at the ends)
+    level = np.maximum(sp[..., None] + dev[None, None], 0).sum(axis=2)
+    want = np.interp(level, [0.2, 0.8, 1.5], [1.0, 2.0, 2.5]).astype(np.float32)
+    np.testing.assert_allclose(full, want, rtol=1e-6)
+    keys = [np.s_[2:5], np.s_[::2], np.s_[::-1], np.s_[5:1:-2], np.s_[3], np.s_[-1, 2],
+            np.s_[1:3, 2:4, ::3], np.s_[...], np.s_[[1, 3]], np.s_[0:0]]  # fmt: skip
+    for key in keys:
+        np.testing.assert_array_equal(f[key], full[key])
+    assert (full + 0.1 > f).all()  # comparisons go through np.asarray
+
+
 def test_detect_same_result_whatever_blocks_and_threads():
     lam, _ = _tilted(shape=(40, 20), T=90)
     lam[..., :] += np.linspace(0.0, 0.2, 40)[:, None, None, None]  # spatially varying bg
     cube = _cube(lam, rng=4)
     ref = detect(cube, rng=2, n_jobs=1, block_rows=40)
+    # a spatially varying level: the threshold is per voxel, kept as its factors
     assert np.ndim(ref.threshold) == 3 and ref.threshold.shape == (40, 20, 90)
+    assert type(ref.threshold).__name__ == "ThresholdField"
     np.testing.assert_array_equal(ref.mask, ref.saliency > ref.threshold)
     for kw in (dict(n_jobs=1, block_rows=6), dict(n_jobs=3, block_rows=7), dict(n_jobs=2)):
         other = detect(cube, rng=2, **kw)

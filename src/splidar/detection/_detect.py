@@ -37,6 +37,7 @@ from ._null import fit_gamma_quantiles, threshold_table
 from ._quality import reject_isolated, reject_spill_over
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 from ._slopes import recover_slopes, support_sums
+from ._threshold import ThresholdField
 
 __all__ = ["detect"]
 
@@ -1115,15 +1116,20 @@ def detect(
     if null == "gamma":
         table = (np.zeros(1), np.array([float(np.float32(thr_gamma))]), False)
     else:
-        # a threshold varying with the level is written by the main pass (and reduced
-        # to its variation with t alone if the background turns out spatially flat)
-        table = (np.asarray(xs, np.float64), np.asarray(ys, np.float64), xs.size > 1)
+        # a threshold varying with the level is computed by the main pass and kept as
+        # its factors (ThresholdField; written out only to a store), or reduced to its
+        # variation with t alone if the background turns out spatially flat
+        table = (
+            np.asarray(xs, np.float64),
+            np.asarray(ys, np.float64),
+            xs.size > 1 and store is not None,
+        )
     if store is None:
         out = dict(
             saliency=np.empty((R, C, T), np.float32),
             mask=np.empty((R, C, T), bool),
             spatial=np.empty((R, C, L), np.float32),
-            threshold=np.empty((R, C, T), np.float32) if table[2] else None,
+            threshold=None,
         )
     else:
         out = _open_store(store, (R, C, T), block_rows, table[2])
@@ -1161,8 +1167,10 @@ def detect(
             # spatially flat background: the threshold varies with t only
             lev_t = np.maximum(spatial[0, 0][:, None] + dev, 0).sum(axis=0)
             threshold = thr_fn(lev_t)[None, None, :]
-        else:
+        elif store is not None:
             threshold = out["threshold"]
+        else:
+            threshold = ThresholdField(spatial, dev, table[0], table[1])
     out.clear()
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
 

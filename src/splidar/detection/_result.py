@@ -203,8 +203,11 @@ class Detection:
     saliency : ndarray (rows, cols, T), float32
         ``S`` of ``eq:4.s1``.
     null : NullModel
-    threshold : float or ndarray broadcastable to (rows, cols, T)
-        Voxels with ``saliency > threshold`` form ``mask`` (before surface checks).
+    threshold : float, ndarray broadcastable to (rows, cols, T), or ThresholdField
+        Voxels with ``saliency > threshold`` form ``mask`` (before surface checks). A
+        threshold that varies with the pixel is a read-only ``ThresholdField`` (rows
+        computed from the background factors on access; ``np.asarray`` gives the
+        (rows, cols, T) float32 cube), or a Zarr array with ``store=``.
     mask : ndarray (rows, cols, T), bool
         The 3D binary map M.
     reduction : DataReduction
