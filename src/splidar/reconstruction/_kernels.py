@@ -139,6 +139,40 @@ def class_cst(alpha, ups, eps):
     return cst
 
 
+@njit(cache=True)
+def _same_alpha(alpha):
+    """(L,) bool: alpha is the same for every class at wavelength l (a cheaper score)."""
+    K, L = alpha.shape
+    same = np.ones(L, np.bool_)
+    for l in range(L):
+        for k in range(1, K):
+            if alpha[k, l] != alpha[0, l]:
+                same[l] = False
+    return same
+
+
+@njit(cache=True)
+def _label_scores(s, r, alpha, ups, eps, cst2, same, indptr, indices, u, gamma, sc):
+    """Score of every class for surface ``s`` (beta at its conditional mode), in ``sc``
+    (K,): the reflectivity term and ``gamma`` per neighbour of that class."""
+    K, L = alpha.shape
+    for k in range(K):
+        sc[k] = 0.0
+    for l in range(L):
+        rl = r[s, l]
+        if same[l]:
+            for k in range(K):
+                sc[k] += cst2[k, l] - (alpha[k, l] + ups[k, l] + 1.0) * math.log(rl + eps[k, l])
+        else:
+            lr = math.log(rl)
+            for k in range(K):
+                a = alpha[k, l]
+                sc[k] += (a - 1.0) * lr - (a + ups[k, l] + 1.0) * math.log(rl + eps[k, l])
+                sc[k] += cst2[k, l]
+    for j in range(indptr[s], indptr[s + 1]):
+        sc[u[indices[j]]] += gamma
+
+
 @njit(cache=True, parallel=_PARALLEL)
 def update_labels(
     parity, colour, indptr, indices, r, beta, u, alpha, ups, eps, cst2, gamma, conf, buf
@@ -165,33 +199,13 @@ def update_labels(
     """
     S, L = r.shape
     K = alpha.shape[0]
-    same = np.ones(L, np.bool_)
-    for l in range(L):
-        for k in range(1, K):
-            if alpha[k, l] != alpha[0, l]:
-                same[l] = False
+    same = _same_alpha(alpha)
     want_conf = conf.shape[0] == S
     changed = 0
     for s in prange(S):
         if parity[s] != colour:
             continue
-        for k in range(K):
-            buf[s, k] = 0.0
-        for l in range(L):
-            rl = r[s, l]
-            if same[l]:
-                for k in range(K):
-                    buf[s, k] += cst2[k, l] - (alpha[k, l] + ups[k, l] + 1.0) * math.log(
-                        rl + eps[k, l]
-                    )
-            else:
-                lr = math.log(rl)
-                for k in range(K):
-                    a = alpha[k, l]
-                    buf[s, k] += (a - 1.0) * lr - (a + ups[k, l] + 1.0) * math.log(rl + eps[k, l])
-                    buf[s, k] += cst2[k, l]
-        for j in range(indptr[s], indptr[s + 1]):
-            buf[s, u[indices[j]]] += gamma
+        _label_scores(s, r, alpha, ups, eps, cst2, same, indptr, indices, u, gamma, buf[s])
         cur = u[s]
         best = cur
         for k in range(K):
@@ -232,11 +246,7 @@ def update_labels_lazy(
     """
     S, L = r.shape
     K = alpha.shape[0]
-    same = np.ones(L, np.bool_)
-    for l in range(L):
-        for k in range(1, K):
-            if alpha[k, l] != alpha[0, l]:
-                same[l] = False
+    same = _same_alpha(alpha)
     changed = 0
     for s in prange(S):
         if parity[s] != colour:
@@ -253,24 +263,9 @@ def update_labels_lazy(
                     bound += 2.0 * gamma
             if bound < margin[s]:
                 continue
-        for k in range(K):
-            buf[s, k] = 0.0
         for l in range(L):
-            rl = r[s, l]
-            r_eval[s, l] = rl
-            if same[l]:
-                for k in range(K):
-                    buf[s, k] += cst2[k, l] - (alpha[k, l] + ups[k, l] + 1.0) * math.log(
-                        rl + eps[k, l]
-                    )
-            else:
-                lr = math.log(rl)
-                for k in range(K):
-                    a = alpha[k, l]
-                    buf[s, k] += (a - 1.0) * lr - (a + ups[k, l] + 1.0) * math.log(rl + eps[k, l])
-                    buf[s, k] += cst2[k, l]
-        for j in range(indptr[s], indptr[s + 1]):
-            buf[s, u[indices[j]]] += gamma
+            r_eval[s, l] = r[s, l]
+        _label_scores(s, r, alpha, ups, eps, cst2, same, indptr, indices, u, gamma, buf[s])
         cur = u[s]
         best = cur
         for k in range(K):
@@ -301,11 +296,7 @@ def label_confidence(indptr, indices, r, u, alpha, ups, eps, cst2, gamma, conf):
     """
     S, L = r.shape
     K = alpha.shape[0]
-    same = np.ones(L, np.bool_)
-    for l in range(L):
-        for k in range(1, K):
-            if alpha[k, l] != alpha[0, l]:
-                same[l] = False
+    same = _same_alpha(alpha)
     for s in prange(S):
         sc = np.zeros(K)
         for l in range(L):
