@@ -560,10 +560,9 @@ def _block(y, c_ext, e0, r0, r1, ctx: _Ctx, table, opts, out, work=None) -> _Blo
         ev_vox = np.empty((r, C, T), np.float32)
     else:
         cand, ev_vox = work["cand"][:r], work["ev"][:r]
-    if store_thr:
-        thr = out["threshold"][r0:r1] if in_ram else np.empty((r, C, T), np.float32)
-    else:
-        thr = np.empty((1, 1, 1), np.float32)
+    # a per-voxel threshold is written out only to a store (in memory it is kept as
+    # the background factors: ThresholdField)
+    thr = np.empty((r, C, T) if store_thr else (1, 1, 1), np.float32)
     mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
     # threshold, M, candidate voxels, evidence and photon counts in one pass
     n_ph, kept = threshold_pass(sal, d, level, xs, ys, y, i0, thr, store_thr, mask, cand, ev_vox)
