@@ -311,6 +311,21 @@ def test_threshold_field_indexes_like_the_array_it_stands_for():
     assert (full + 0.1 > f).all()  # comparisons go through np.asarray
 
 
+@pytest.mark.parametrize(
+    ("spatial", "dev", "xs", "ys", "match"),
+    [
+        (np.ones((3, 4)), np.zeros((1, 5)), [0.0, 1.0], [1.0, 2.0], "spatial"),
+        (np.ones((3, 4, 2)), np.zeros((1, 5)), [0.0, 1.0], [1.0, 2.0], "dev"),
+        (np.ones((3, 4, 1)), np.zeros((1, 5)), [0.0, 1.0], [1.0], "levels"),
+    ],
+)
+def test_threshold_field_rejects_bad_inputs(spatial, dev, xs, ys, match):
+    from splidar.detection import ThresholdField
+
+    with pytest.raises(SplidarError, match=match):
+        ThresholdField(spatial, dev, np.asarray(xs), np.asarray(ys))
+
+
 def test_detect_same_result_whatever_blocks_and_threads():
     lam, _ = _tilted(shape=(40, 20), T=90)
     lam[..., :] += np.linspace(0.0, 0.2, 40)[:, None, None, None]  # spatially varying bg

@@ -2,5 +2,14 @@
 
 from ._detect import detect
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
+from ._threshold import ThresholdField
 
-__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces", "detect"]
+__all__ = [
+    "Background",
+    "DataReduction",
+    "Detection",
+    "NullModel",
+    "Surfaces",
+    "ThresholdField",
+    "detect",
+]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .._validation import SplidarError
 from ._kernels import _interp_table
 
 __all__ = ["ThresholdField"]
@@ -58,9 +59,16 @@ class ThresholdField:
     levels, thresholds : ndarray (G,)
         The threshold table (increasing levels).
 
+    Raises
+    ------
+    SplidarError
+        ``spatial`` not (rows, cols, L), ``dev`` not (L, T), or a table of unequal or
+        empty arrays.
+
     Examples
     --------
     >>> import numpy as np
+    >>> from splidar.detection import ThresholdField
     >>> f = ThresholdField(np.full((2, 3, 1), 1.0, np.float32), np.zeros((1, 4), np.float32),
     ...                    np.array([0.0, 2.0]), np.array([1.0, 3.0]))
     >>> f.shape, float(f[1, 2, 3]), np.asarray(f).mean().item()
@@ -72,9 +80,22 @@ class ThresholdField:
         self._dev = np.ascontiguousarray(dev, np.float32)
         self._xs = np.ascontiguousarray(levels, np.float64)
         self._ys = np.ascontiguousarray(thresholds, np.float64)
+        if self._sp.ndim != 3:
+            raise SplidarError(
+                f"`spatial` must be (rows, cols, L), the background level per pixel and "
+                f"wavelength; got shape {self._sp.shape}."
+            )
         R, C, L = self._sp.shape
-        if self._dev.shape[0] != L or self._xs.shape != self._ys.shape or self._xs.ndim != 1:
-            raise ValueError("spatial (R, C, L), dev (L, T) and a (G,) table are needed")
+        if self._dev.ndim != 2 or self._dev.shape[0] != L:
+            raise SplidarError(
+                f"`dev` must be (L, T) with the L = {L} wavelengths of `spatial` (rows, cols, L);"
+                f" got shape {self._dev.shape}."
+            )
+        if self._xs.ndim != 1 or self._xs.shape != self._ys.shape or self._xs.size == 0:
+            raise SplidarError(
+                "`levels` and `thresholds` must be 1-d arrays of one length >= 1 (the table); "
+                f"got shapes {self._xs.shape} and {self._ys.shape}."
+            )
         self.shape = (R, C, self._dev.shape[1])
         self.dtype = np.dtype(np.float32)
         self.ndim = 3
