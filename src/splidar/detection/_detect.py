@@ -456,6 +456,13 @@ def _raster_ordered(row, col) -> bool:
     return bool(np.all((dr > 0) | ((dr == 0) & (np.diff(col) >= 0))))
 
 
+def _position_in_pixel(row, col) -> np.ndarray:
+    """Position of each candidate among its pixel's, for candidates sorted by pixel."""
+    new = np.ones(row.size, bool)
+    new[1:] = (row[1:] != row[:-1]) | (col[1:] != col[:-1])
+    return np.arange(row.size) - np.flatnonzero(new)[np.cumsum(new) - 1]
+
+
 def _rank_in_pixel(row, col, score, keep):
     """Rank (0 = largest ``score``) of each kept candidate among its pixel's kept ones."""
     rank = np.full(row.size, -1, np.int64)
@@ -471,13 +478,8 @@ def _rank_in_pixel(row, col, score, keep):
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return rank
-    order = np.lexsort((-score[idx], col[idx], row[idx]))
-    idx = idx[order]
-    r, c = row[idx], col[idx]
-    new = np.ones(idx.size, bool)
-    new[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
-    grp = np.cumsum(new) - 1
-    rank[idx] = np.arange(idx.size) - np.flatnonzero(new)[grp]
+    idx = idx[np.lexsort((-score[idx], col[idx], row[idx]))]
+    rank[idx] = _position_in_pixel(row[idx], col[idx])
     return rank
 
 
@@ -500,26 +502,11 @@ def _select(surf: dict, keep: np.ndarray, k_max: int):
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return idx, np.zeros(0, np.int64)
-    row, col, mass = surf["row"][idx], surf["col"][idx], surf["saliency_mass"][idx]
-    order = np.lexsort((-mass, col, row))
-    idx = idx[order]
-    row, col = row[order], col[order]
-    new = np.ones(idx.size, bool)
-    new[1:] = (row[1:] != row[:-1]) | (col[1:] != col[:-1])
-    grp = np.cumsum(new) - 1
-    first = np.flatnonzero(new)
-    rank = np.arange(idx.size) - first[grp]
-    idx = idx[rank < k_max]
-    row, col = surf["row"][idx], surf["col"][idx]
-    order = np.lexsort((surf["depth_bin"][idx], col, row))
-    idx = idx[order]
-    row, col = row[order], col[order]
-    new = np.ones(idx.size, bool)
-    new[1:] = (row[1:] != row[:-1]) | (col[1:] != col[:-1])
-    grp = np.cumsum(new) - 1
-    first = np.flatnonzero(new)
-    slot = np.arange(idx.size) - first[grp]
-    return idx, slot
+    row, col = surf["row"], surf["col"]
+    idx = idx[np.lexsort((-surf["saliency_mass"][idx], col[idx], row[idx]))]
+    idx = idx[_position_in_pixel(row[idx], col[idx]) < k_max]
+    idx = idx[np.lexsort((surf["depth_bin"][idx], col[idx], row[idx]))]
+    return idx, _position_in_pixel(row[idx], col[idx])
 
 
 def _evidence(sal, thr):
