@@ -119,19 +119,16 @@ def find_segments(mask, d, s, e, min_sep, rho):
     row, col, start, stop, peak : int64 arrays; mass, evidence : float64 arrays
     """
     R, C, T = mask.shape
-    nmax = 0
-    for i in range(R):
-        for j in range(C):
-            for t in range(T):
-                if mask[i, j, t] and (t == 0 or not mask[i, j, t - 1]):
-                    nmax += 1
-    # each run gives at most ceil(len / min_sep) + 1 segments; bound generously
-    total = 0
+    nmax = 0  # runs of the mask along t
+    total = 0  # voxels of the mask
     for i in range(R):
         for j in range(C):
             for t in range(T):
                 if mask[i, j, t]:
                     total += 1
+                    if t == 0 or not mask[i, j, t - 1]:
+                        nmax += 1
+    # each run gives at most ceil(len / min_sep) + 1 segments; bound generously
     cap = min(total, nmax * (T // max(min_sep, 1) + 1)) + 1
     o_row = np.empty(cap, np.int64)
     o_col = np.empty(cap, np.int64)
