@@ -15,6 +15,7 @@ Usage::
     python benchmarks/bench_detection.py            # full grid, 64 x 64 scenes (minutes)
     python benchmarks/bench_detection.py --quick    # 16 cells, 32 x 32 scenes (seconds)
     python benchmarks/bench_detection.py --seed 3 --json results.json
+    python benchmarks/bench_detection.py --slopes   # splidar with the opt-in slope recovery
 
 Nothing is downloaded; everything is simulated.
 """
@@ -53,9 +54,9 @@ def _splidar_detect():
     return detect
 
 
-def _call_detect(detect, cube, pfa, max_surfaces):
+def _call_detect(detect, cube, pfa, max_surfaces, options=None):
     params = inspect.signature(detect).parameters
-    kw = {}
+    kw = dict(options or {})
     if "pfa" in params:
         kw["pfa"] = pfa
     for name in ("max_surfaces", "n_slots", "k_s", "K_s"):
@@ -73,11 +74,11 @@ def _oracle_shape(sim):
     return tm
 
 
-def _methods(detect, pfa, max_surfaces, coarse):
+def _methods(detect, pfa, max_surfaces, coarse, options=None):
     """Each method maps a Simulation to a PointSet."""
     out = {}
     if detect is not None:
-        out["splidar"] = lambda sim: _call_detect(detect, sim.cube, pfa, max_surfaces)
+        out["splidar"] = lambda sim: _call_detect(detect, sim.cube, pfa, max_surfaces, options)
     out["per-pixel"] = lambda sim: (
         per_pixel_detect(sim.cube, pfa=pfa, max_surfaces=max_surfaces).points
     )
@@ -157,7 +158,8 @@ def run(args) -> dict:
     detect = _splidar_detect()
     if detect is None:
         print("# splidar.detect is not available yet: only the baselines run\n")
-    methods = _methods(detect, args.pfa, 2, args.coarse)
+    options = {"slopes": True} if args.slopes else {}
+    methods = _methods(detect, args.pfa, 2, args.coarse, options)
     names = list(methods)
     rows = []
     wall = dict.fromkeys(names, 0.0)
@@ -354,6 +356,9 @@ def main(argv=None):
     ap.add_argument("--coarse", type=int, default=7, help="box size of the coarse baseline")
     ap.add_argument("--json", help="also write the results to this JSON file")
     ap.add_argument(
+        "--slopes", action="store_true", help="run splidar.detect with slopes=True (opt-in)"
+    )
+    ap.add_argument(
         "--no-sweep",
         action="store_true",
         help="skip the per-pixel pfa sweep (comparison at splidar's false rate)",
@@ -363,6 +368,7 @@ def main(argv=None):
     grid = QUICK if args.quick else FULL
     print(
         f"# bench_detection: tau = {TAU:g} bins, pfa = {args.pfa:g}, seed = {args.seed}, "
+        f"splidar options { ({'slopes': True} if args.slopes else 'default') }, "
         f"PPP {grid['ppp']} x SBR {grid['sbr']} x background {grid['bg']}; "
         "F_false given as % of true points and (raw count)\n"
     )

@@ -253,6 +253,8 @@ def extract_surfaces(
     n_cols_img,
     refine,
     refine_z,
+    fisher,
+    ici_gamma,
     qloc,
     want_llr_sel,
     i_begin,
@@ -421,29 +423,89 @@ def extract_surfaces(
             for l in range(L):
                 u[w] += resp[qbar, l, w]
         w0 = d_q[qbar]
-        if refine and Q > 1:
-            # the finest scale's own response, when significant, gives the depth
-            sdq = 0.0
-            for l in range(L):
-                mx = np.float32(0.0)
+        ici_done = False
+        if refine:
+            # depth by the intersection of confidence intervals (ICI) over the scales,
+            # finest first: each scale's peak d_q with its standard error (Fisher
+            # information of n signal photons over b background photons per bin,
+            # widened when the box smears the return); stop at the first scale whose
+            # interval misses the intersection of the finer ones, and take the most
+            # precise depth among the scales before it
+            lo_i = -np.inf
+            hi_i = np.inf
+            d_star = 0.0
+            sd_star = np.inf
+            q_star = -1
+            for q in range(Q):
+                wq = d_q[q]
+                if per_scale[q, wq] <= 0:
+                    continue
+                k2 = np.float64(scales[q] * scales[q])
+                if q == 0:
+                    # the own pixel takes part only when its peak is significant (z >=
+                    # refine_z): a peak of a few background photons claims a precision
+                    # it does not have, and would stop the intersection at once
+                    zn = 0.0
+                    zv = 0.0
+                    for l in range(L):
+                        zn += np.float64(resp[0, l, wq])
+                        zv += max(np.float64(bh[l, wq]), 1e-6) * gsq[l]
+                    if zn < refine_z * np.sqrt(zv / k2):
+                        continue
+                info = 0.0
                 for w in range(W):
-                    v = bh[l, w] if inside[w] else np.float32(0.0)
-                    if v > mx:
-                        mx = v
-                sdq += max(mx, np.float32(1e-6)) * gsq[l]
-            sdq = np.sqrt(sdq) / scales[0]
-            wq = 0
-            for w in range(W):
-                uq[w] = 0.0
+                    uq[w] = 0.0
                 for l in range(L):
-                    uq[w] += resp[0, l, w] if inside[w] else np.float32(0.0)
-                if uq[w] > uq[wq]:
-                    wq = w
-            if uq[wq] / max(sdq, 1e-9) >= refine_z:
-                w0 = wq
-                for w in range(W):
-                    u[w] = uq[w]
-        depth = off + w0 + _parabola(u, w0, W)
+                    for w in range(W):
+                        uq[w] += resp[q, l, w]
+                    n_sig = k2 * max(np.float64(resp[q, l, wq]), 0.0) / gsq[l]
+                    b_pool = k2 * max(np.float64(bh[l, wq]), 1e-6)
+                    if n_sig > 0:
+                        info += (n_sig * fisher[l, 0]) ** 2 / (
+                            n_sig * fisher[l, 1] + b_pool * fisher[l, 0]
+                        )
+                if info <= 0:
+                    continue
+                dq = wq + _parabola(uq, wq, W)
+                var_q = 1.0 / info
+                if q > 0 and 0 < wq < W - 1:
+                    # a response wider than the IRF's (a slope smeared by the box) locates
+                    # its peak less well: scale by the squared curvature deficit
+                    den = np.float64(uq[wq - 1]) - 2.0 * np.float64(uq[wq]) + np.float64(uq[wq + 1])
+                    model = 0.0
+                    for l in range(L):
+                        model += max(np.float64(resp[q, l, wq]), 0.0) * fisher[l, 2]
+                    if den >= 0:
+                        var_q = np.inf
+                    elif model > 0 and -den < model:
+                        rho = -den / model
+                        var_q /= rho * rho
+                        # plus the spread of depths within the box (the response's
+                        # variance above the IRF autocorrelation's) as a bound on the
+                        # bias of its peak: a slope, or a crease, under the box
+                        c0 = 0.0
+                        for l in range(L):
+                            c0 += fisher[l, 2] / L
+                        var_q += (1.0 / rho - 1.0) / max(c0, 1e-12)
+                if not np.isfinite(var_q):
+                    continue
+                sd = np.sqrt(var_q + 1.0 / 12.0)
+                a = max(lo_i, dq - ici_gamma * sd)
+                b = min(hi_i, dq + ici_gamma * sd)
+                if a > b:
+                    break
+                lo_i = a
+                hi_i = b
+                if q_star < 0 or sd <= sd_star:
+                    q_star = q
+                    d_star = dq
+                    sd_star = sd
+            if q_star >= 0:
+                ici_done = True
+        if ici_done:
+            depth = off + d_star
+        else:
+            depth = off + w0 + _parabola(u, w0, W)
         o_depth[s] = depth
         o_lo[s] = lo
         o_hi[s] = hi

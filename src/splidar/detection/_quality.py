@@ -47,7 +47,7 @@ from numba import njit
 
 from ._kernels import _interp_irf
 
-__all__ = ["reject_isolated", "reject_spill_over", "spill_over_features"]
+__all__ = ["reject_isolated", "reject_spill_over", "rescue_dark", "spill_over_features"]
 
 logger = logging.getLogger(__name__)
 
@@ -535,3 +535,213 @@ def reject_isolated(
     rej[sub] = p > pfa
     logger.debug("isolated: %d tested, %d rejected", int(test.sum()), int(rej.sum()))
     return rej
+
+
+@njit(cache=True, nogil=True)
+def _dark_pools(
+    row,
+    col,
+    d,
+    offset,
+    counts,
+    bkg,
+    keep,
+    ev,
+    order,
+    starts,
+    R,
+    C,
+    irf,
+    peak,
+    hw,
+    fwhm,
+    half,
+    weak_z,
+):
+    """Suspects of :func:`rescue_dark` and the sums of their pools.
+
+    Returns the suspects' indices (m,) and the pooled counts, background and IRF
+    fraction in the half-maximum windows, per wavelength ((m, L) each).
+    """
+    S = row.size
+    L = counts.shape[1]
+    W = counts.shape[2]
+    n_l = np.zeros((S, L))
+    b_l = np.zeros((S, L))
+    f_l = np.zeros((S, L))
+    member = np.zeros(S, np.bool_)
+    for i in range(S):
+        nt = 0.0
+        bt = 0.0
+        for l in range(L):
+            for w in range(W):
+                b = np.float64(bkg[i, l, w])
+                if b <= 0.0:
+                    continue
+                x = offset[i] + w - d[i]
+                if abs(x) <= hw:
+                    n_l[i, l] += counts[i, l, w]
+                    b_l[i, l] += b
+                    f_l[i, l] += _interp_irf(irf[l], x + peak[l])
+            nt += n_l[i, l]
+            bt += b_l[i, l]
+        if keep[i]:
+            member[i] = (nt - bt) < weak_z * np.sqrt(max(bt, 1e-9))
+    # one suspect per pixel with no kept candidate: its rejected candidate of largest
+    # evidence
+    sus = np.full(R * C, -1, np.int64)
+    for p in range(R * C):
+        best = -1
+        for j in range(starts[p], starts[p + 1]):
+            i = order[j]
+            if keep[i]:
+                best = -1
+                break
+            if best < 0 or ev[i] > ev[best]:
+                best = i
+        sus[p] = best
+    m = 0
+    for p in range(R * C):
+        if sus[p] >= 0:
+            member[sus[p]] = True
+            m += 1
+    idx = np.empty(m, np.int64)
+    pn = np.zeros((m, L))
+    pb = np.zeros((m, L))
+    pf = np.zeros((m, L))
+    k = 0
+    for p in range(R * C):
+        i = sus[p]
+        if i < 0:
+            continue
+        idx[k] = i
+        r0 = row[i]
+        c0 = col[i]
+        for rr in range(max(r0 - half, 0), min(r0 + half + 1, R)):
+            for cc in range(max(c0 - half, 0), min(c0 + half + 1, C)):
+                q = rr * C + cc
+                for j in range(starts[q], starts[q + 1]):
+                    a = order[j]
+                    if member[a] and abs(d[a] - d[i]) <= fwhm:
+                        for l in range(L):
+                            pn[k, l] += n_l[a, l]
+                            pb[k, l] += b_l[a, l]
+                            pf[k, l] += f_l[a, l]
+        k += 1
+    return idx, pn, pb, pf
+
+
+def rescue_dark(
+    surf: dict,
+    keep: np.ndarray,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    half: int,
+    pfa: float,
+    llr_level: float,
+    weak_z: float = 3.0,
+) -> np.ndarray:
+    """Rejected candidates of empty pixels that a dim surface around them explains.
+
+    A dark patch (low reflectivity) holds too few photons per pixel for the local
+    presence test, and beside bright pixels at the same depth it looks like their
+    spread. What tells the two apart is the pixels' own counts taken together: a dim
+    surface puts photons at its depth in every pixel of the patch, the spread of a
+    neighbour puts none. For each pixel with no kept candidate, its rejected candidate
+    of largest evidence (a *suspect*) is pooled with the other suspects and the kept
+    candidates whose own counts are weak (z < ``weak_z`` in the half-maximum window),
+    within ``half`` pixels and at the same depth (within ``fwhm``): their own counts
+    ``n`` and background ``B`` in the half-maximum window about each one's depth. It is
+    restored when ``P(N >= n | B) <= pfa`` and its own counts do not reject a return of
+    the pool's mean intensity (own log-likelihood ratio ``>= llr_level``).
+
+    Parameters
+    ----------
+    surf : dict
+        Candidate table (see :func:`spill_over_features`), with ``evidence`` (S,).
+    keep : (S,) bool
+        Candidates kept so far.
+    irf : (L, n) float
+        Normalised IRF.
+    peak : (L,) int
+        Sample of each IRF's peak.
+    fwhm : float
+        Same-depth tolerance (bins); the window is ``+-max(1, fwhm / 2)`` bins.
+    half : int
+        Half-size of the pool's square (pixels): ``detect`` passes the largest box's.
+    pfa : float
+        Significance required of the pool (``detect`` passes ``surface_pfa``).
+    llr_level : float
+        Lowest own log-likelihood ratio (``detect`` passes ``-presence_llr``).
+    weak_z : float
+        Kept candidates below this own z join the pools (``presence_z``).
+
+    Returns
+    -------
+    (S,) bool
+        True for the candidates to restore.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from splidar.irf import gaussian_irf
+    >>> g = np.asarray(gaussian_irf(2.0), float)[None]
+    >>> n, W = 25, 13  # a 5 x 5 dim patch: one photon per pixel at bin 6
+    >>> cnt = np.zeros((n, 1, W), np.int32)
+    >>> cnt[:, 0, 6] = 1
+    >>> r, c = np.divmod(np.arange(n), 5)
+    >>> surf = dict(row=r, col=c, depth_bin=np.full(n, 6.0), offset=np.zeros(n, int),
+    ...             own_counts=cnt, own_background=np.full((n, 1, W), 0.02, np.float32),
+    ...             evidence=np.ones(n), image_shape=(5, 5))
+    >>> res = rescue_dark(surf, np.zeros(n, bool), irf=g, peak=np.array([g.argmax()]),
+    ...                   fwhm=4.7, half=2, pfa=0.01, llr_level=-3.0)
+    >>> int(res.sum())
+    25
+    >>> surf["own_counts"] = np.zeros_like(cnt)  # the spread of a neighbour: no photons
+    >>> int(rescue_dark(surf, np.zeros(n, bool), irf=g, peak=np.array([g.argmax()]),
+    ...                 fwhm=4.7, half=2, pfa=0.01, llr_level=-3.0).sum())
+    0
+    """
+    from scipy import stats
+
+    R, C = surf["image_shape"]
+    S = keep.size
+    out = np.zeros(S, bool)
+    if S == 0 or keep.all():
+        return out
+    row = np.asarray(surf["row"], np.int64)
+    col = np.asarray(surf["col"], np.int64)
+    pix = row * C + col
+    order = np.argsort(pix, kind="stable")
+    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    d = np.asarray(surf["depth_bin"], np.float64)
+    off = np.asarray(surf["offset"], np.int64)
+    counts = np.ascontiguousarray(surf["own_counts"])
+    bkg = np.ascontiguousarray(surf["own_background"], np.float32)
+    hw = max(1.0, 0.5 * float(fwhm))
+    sus, pn, pb, pf = _dark_pools(
+        row, col, d, off, counts, bkg, np.ascontiguousarray(keep),
+        np.asarray(surf["evidence"], np.float64), order, starts, int(R), int(C),
+        np.ascontiguousarray(irf, np.float64), np.asarray(peak, np.float64), hw,
+        float(fwhm), int(half), float(weak_z),
+    )  # fmt: skip
+    if sus.size == 0:
+        return out
+    p = stats.poisson.sf(pn.sum(axis=1) - 1, np.maximum(pb.sum(axis=1), 1e-12))
+    sig = np.flatnonzero(p <= pfa)
+    if sig.size == 0:
+        return out
+    # own counts must not reject a return of the pool's mean intensity
+    i = sus[sig]
+    W = counts.shape[-1]
+    s_hat = np.maximum(pn[sig] - pb[sig], 0.0) / np.maximum(pf[sig], 1e-9)  # (k, L)
+    b = bkg[i].astype(np.float64)
+    g = _shifted_irf(irf, peak, d[i] - off[i], W) * (b > 0)
+    y = counts[i].astype(np.float64)
+    llr = (y * np.log1p(s_hat[:, :, None] * g / np.maximum(b, 1e-9))).sum(axis=(1, 2))
+    llr -= (s_hat * g.sum(axis=-1)).sum(axis=1)
+    out[i[llr >= llr_level]] = True
+    logger.debug("dark-region pass: %d of %d suspects restored", int(out.sum()), sus.size)
+    return out
