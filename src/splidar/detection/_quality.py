@@ -537,6 +537,11 @@ def reject_isolated(
     return rej
 
 
+#: fewest candidates in a dark-region pool (a patch, not a noise peak or two: each
+#: candidate's depth sits on its own counts' peak, so a small pool's counts are biased up)
+MIN_POOL = 6
+
+
 @njit(cache=True, nogil=True)
 def _dark_pools(
     row,
@@ -560,8 +565,8 @@ def _dark_pools(
 ):
     """Suspects of :func:`rescue_dark` and the sums of their pools.
 
-    Returns the suspects' indices (m,) and the pooled counts, background and IRF
-    fraction in the half-maximum windows, per wavelength ((m, L) each).
+    Returns the suspects' indices (m,), the pooled counts, background and IRF fraction
+    in the half-maximum windows, per wavelength ((m, L) each), and the pools' sizes.
     """
     S = row.size
     L = counts.shape[1]
@@ -609,6 +614,7 @@ def _dark_pools(
     pn = np.zeros((m, L))
     pb = np.zeros((m, L))
     pf = np.zeros((m, L))
+    size = np.zeros(m, np.int64)
     k = 0
     for p in range(R * C):
         i = sus[p]
@@ -623,12 +629,13 @@ def _dark_pools(
                 for j in range(starts[q], starts[q + 1]):
                     a = order[j]
                     if member[a] and abs(d[a] - d[i]) <= fwhm:
+                        size[k] += 1
                         for l in range(L):
                             pn[k, l] += n_l[a, l]
                             pb[k, l] += b_l[a, l]
                             pf[k, l] += f_l[a, l]
         k += 1
-    return idx, pn, pb, pf
+    return idx, pn, pb, pf, size
 
 
 def rescue_dark(
@@ -642,6 +649,7 @@ def rescue_dark(
     pfa: float,
     llr_level: float,
     weak_z: float = 3.0,
+    min_pool: int = MIN_POOL,
 ) -> np.ndarray:
     """Rejected candidates of empty pixels that a dim surface around them explains.
 
@@ -721,7 +729,7 @@ def rescue_dark(
     counts = np.ascontiguousarray(surf["own_counts"])
     bkg = np.ascontiguousarray(surf["own_background"], np.float32)
     hw = max(1.0, 0.5 * float(fwhm))
-    sus, pn, pb, pf = _dark_pools(
+    sus, pn, pb, pf, size = _dark_pools(
         row, col, d, off, counts, bkg, np.ascontiguousarray(keep),
         np.asarray(surf["evidence"], np.float64), order, starts, int(R), int(C),
         np.ascontiguousarray(irf, np.float64), np.asarray(peak, np.float64), hw,
@@ -730,7 +738,7 @@ def rescue_dark(
     if sus.size == 0:
         return out
     p = stats.poisson.sf(pn.sum(axis=1) - 1, np.maximum(pb.sum(axis=1), 1e-12))
-    sig = np.flatnonzero(p <= pfa)
+    sig = np.flatnonzero((p <= pfa) & (size >= min_pool))
     if sig.size == 0:
         return out
     # own counts must not reject a return of the pool's mean intensity
