@@ -407,3 +407,22 @@ def test_main_run_alpha_auto_and_bad_alpha(simulated, tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", str(cube), "--alpha", "0.5", "--out", str(tmp_path / "x")]) == 2
     assert "--alpha" in _error_line(capsys.readouterr().err)
+
+
+def test_main_run_no_dark_passes_dark_false(simulated, tmp_path, monkeypatch):
+    import splidar.detection as det_mod
+
+    seen = {}
+    real = det_mod.detect
+
+    def spy(cube, **kw):
+        seen.update(kw)
+        return real(cube, **kw)
+
+    monkeypatch.setattr(det_mod, "detect", spy)
+    cube, _ = simulated
+    rc = main(["run", str(cube), "-q", "--seed", "0", "--out", str(tmp_path / "o"), "--no-dark"])
+    assert rc == 0 and seen.get("dark") is False
+    seen.clear()
+    rc = main(["run", str(cube), "-q", "--seed", "0", "--out", str(tmp_path / "p")])
+    assert rc == 0 and "dark" not in seen  # the library's default

@@ -211,6 +211,13 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         help="also recover surfaces on steep slopes (sheared pooled tests; slower)",
     )
     g.add_argument(
+        "--no-dark",
+        dest="dark",
+        action="store_false",
+        default=None,
+        help="skip the dark-region pass (dim patches restored from their pooled counts)",
+    )
+    g.add_argument(
         "--store",
         metavar="DIR",
         help="write saliency, map and threshold to this new Zarr directory instead of "
@@ -566,6 +573,7 @@ _DETECT_OPTS = (
     "presence",
     "min_separation",
     "slopes",
+    "dark",
     "store",
 )
 _RECON_OPTS = (

@@ -880,16 +880,17 @@ def detect(
         interiors of dim regions fill in. A recovered surface replaces a kept one of its
         pixel within 2 FWHM of it (the same return, depth biased by the boxes). A lazy
         cube is read by bands of rows where pixels are tested.
-        Measured (64 x 64, seeds 0 and 1, F_true / false surfaces per 100 true ones):
-        single surface PPP 4, SBR 0.25: 0.906 / 4.3 -> 0.942 / 3.8; net scene PPP 10,
-        SBR 1: 0.955 / 3.1 -> 0.965 / 3.1; F_true up in 63 of the 64 cells of
-        ``benchmarks/bench_detection.py``. Off by default because of its cost and
-        because it does not help everywhere: on the Art scene (PPP 10, SBR 1) it
-        recovers 2,085 surfaces for F_true 0.912 -> 0.909 and false 1.6 -> 2.3 %; it
-        adds about 1.6 s to ``detect`` on the 200 x 200 x 4 x 1500 cube (4-5 s
-        without), 2.5 s on the Art-size cube (1.3 s without) and 5-6 s on the face data
-        (wide IRF); most of it is the robust plane fits around every pixel (on
-        ``n_jobs`` threads; results do not depend on them).
+        Measured with the other defaults (``benchmarks/bench_detection.py`` full grid,
+        seed 0, F_true / false surfaces per 100 true ones, off -> on): single surface
+        PPP 4, SBR 0.25: 0.924 / 6.0 -> 0.969 / 5.0 (decaying background: 0.926 / 4.8 ->
+        0.971 / 4.6); net scene PPP 10, SBR 1: 0.962 / 2.3 -> 0.973 / 2.3 (decaying: 0.940 /
+        3.3 -> 0.950 / 3.3); F_true up in 60 of the 64 cells and down in none, false
+        surfaces -3.6 to +0.8 per 100; at least as good as the per-pixel detector on both
+        figures in 55 cells instead of 47. Off by default because of its cost: about
+        +1.6 s on the 200 x 200 x 4 x 1500 cube (3-4 s without), +2.1 s on the Art-size
+        cube (0.8 s without) and 5-6 s on the face data (wide IRF), most of it the
+        robust plane fits around every pixel (on ``n_jobs`` threads; results do not
+        depend on them). On the Art scene it changes little (ART_SLOPES).
     min_separation : float, optional
         Peaks closer than this (bins) are one surface. Default: the IRF's FWHM.
     split_ratio : float

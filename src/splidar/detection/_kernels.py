@@ -453,10 +453,14 @@ def extract_surfaces(
                     if zn < refine_z * np.sqrt(zv / k2):
                         continue
                 info = 0.0
-                for w in range(W):
+                # the response summed over L at the peak and its two neighbours (all the
+                # parabola and the curvature need)
+                wa = max(wq - 1, 0)
+                wb = min(wq + 1, W - 1)
+                for w in range(wa, wb + 1):
                     uq[w] = 0.0
                 for l in range(L):
-                    for w in range(W):
+                    for w in range(wa, wb + 1):
                         uq[w] += resp[q, l, w]
                     n_sig = k2 * max(np.float64(resp[q, l, wq]), 0.0) / gsq[l]
                     b_pool = k2 * max(np.float64(bh[l, wq]), 1e-6)
