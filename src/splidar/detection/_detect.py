@@ -897,7 +897,9 @@ def detect(
         +1.6 s on the 200 x 200 x 4 x 1500 cube (3-4 s without), +2.1 s on the Art-size
         cube (0.8 s without) and 5-6 s on the face data (wide IRF), most of it the
         robust plane fits around every pixel (on ``n_jobs`` threads; results do not
-        depend on them). On the Art scene it changes little (ART_SLOPES).
+        depend on them). It does not help everywhere: on the Art scene (PPP 10, SBR 1,
+        tau 4 mm) it recovers 1,845 surfaces for F_true 0.904 -> 0.899 and false 2.0 ->
+        2.9 %.
     min_separation : float, optional
         Peaks closer than this (bins) are one surface. Default: the IRF's FWHM.
     split_ratio : float
