@@ -36,6 +36,13 @@ Isolated candidates
 -------------------
 A candidate no neighbour shares at its depth has no support from the pooling and must be
 significant on its own counts (:func:`reject_isolated`).
+
+Dark regions
+------------
+A dim patch beside bright pixels at the same depth fails the presence test and looks like
+their spread. After the two passes above, the rejected candidates of pixels left empty are
+pooled with the dim candidates around them at the same depth; a pool whose own counts
+together show a return restores them (:func:`rescue_dark`).
 """
 
 from __future__ import annotations
@@ -84,6 +91,22 @@ def _shifted_irf(irf, peak, depth_w, W):
         x = t[None, :] - depth_w[:, None] + peak[l]
         out[:, l] = np.interp(x, np.arange(n), irf[l], left=0.0, right=0.0)
     return out
+
+
+def _own_llr(counts, bkg, irf, peak, depth_w, s) -> np.ndarray:
+    """Own-pixel Poisson log-likelihood ratio of returns against background only: (n,).
+
+    ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` summed over L, over each
+    candidate's support (``bkg > 0``): ``counts`` (n, L, W) raw counts, ``bkg`` (n, L, W)
+    float background, ``depth_w`` (n,) depths in window coordinates, ``s`` (n, L)
+    signal photons.
+    """
+    W = counts.shape[-1]
+    g = _shifted_irf(irf, peak, depth_w, W) * (bkg > 0)
+    s = np.maximum(s, 1e-9)
+    y = counts.astype(np.float64)
+    llr = (y * np.log1p(s[:, :, None] * g / np.maximum(bkg, 1e-9))).sum(axis=(1, 2))
+    return llr - (s * g.sum(axis=-1)).sum(axis=1)
 
 
 def spill_over_features(
@@ -178,15 +201,9 @@ def spill_over_features(
         mid = 0.5 * (a[:, :, None] + b[:, None, :])
         enc |= np.any(np.abs(mid - d[:, None, None]) <= fwhm, axis=(1, 2))
     # 3. own-pixel log-likelihood ratio of a return as bright as the source
-    W = counts.shape[-1]
     sub = idx[has]
-    g = _shifted_irf(irf, peak, d[has] - np.asarray(surf["offset"])[sub], W)
-    g *= bkg[sub] > 0  # the support
-    s = np.maximum(sig[has], 1e-9)  # (m, L)
-    b_t = np.maximum(bkg[sub], 1e-9)
-    y = counts[sub].astype(np.float64)
-    llr_s = (y * np.log1p(s[:, :, None] * g / b_t)).sum(axis=(1, 2)) - (s * g.sum(axis=-1)).sum(
-        axis=1
+    llr_s = _own_llr(
+        counts[sub], bkg[sub], irf, peak, d[has] - np.asarray(surf["offset"])[sub], sig[has]
     )
     has_source[idx] = has
     enclosed[idx] = enc
@@ -743,13 +760,8 @@ def rescue_dark(
         return out
     # own counts must not reject a return of the pool's mean intensity
     i = sus[sig]
-    W = counts.shape[-1]
     s_hat = np.maximum(pn[sig] - pb[sig], 0.0) / np.maximum(pf[sig], 1e-9)  # (k, L)
-    b = bkg[i].astype(np.float64)
-    g = _shifted_irf(irf, peak, d[i] - off[i], W) * (b > 0)
-    y = counts[i].astype(np.float64)
-    llr = (y * np.log1p(s_hat[:, :, None] * g / np.maximum(b, 1e-9))).sum(axis=(1, 2))
-    llr -= (s_hat * g.sum(axis=-1)).sum(axis=1)
+    llr = _own_llr(counts[i], bkg[i].astype(np.float64), irf, peak, d[i] - off[i], s_hat)
     out[i[llr >= llr_level]] = True
     logger.debug("dark-region pass: %d of %d suspects restored", int(out.sum()), sus.size)
     return out
