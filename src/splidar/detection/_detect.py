@@ -121,7 +121,7 @@ class _Ctx:
     var_factor: np.ndarray  # (L,)
     workers: int
     gsq: np.ndarray = None  # (L,) sum of g^2
-    fisher: np.ndarray = None  # (L, 2) sum of g'^2 and of g g'^2
+    fisher: np.ndarray = None  # (L, 3): sum g'^2, sum g g'^2, peak curvature (_fisher_sums)
     quantum: np.ndarray = None  # (L,) max g / K^2: one photon in a coarse voxel
 
 
@@ -280,12 +280,13 @@ def _fisher_sums(irf: np.ndarray) -> np.ndarray:
 
     The Fisher information of a depth ``d`` from ``n`` signal photons over a background
     of ``b`` photons per bin is ``(n G1)^2 / (n G2 + b G1)`` (matched-filter peak,
-    first order), with ``G1 = sum g'^2`` and ``G2 = sum g g'^2``: (L, 2).
+    first order), with ``G1 = sum g'^2`` and ``G2 = sum g g'^2``. A third column holds
+    the second difference of the matched-filter response at its peak per unit of the
+    peak value, ``2 (A(0) - A(1)) / A(0)`` (``A``: the IRF's autocorrelation), against
+    which a smeared response is measured: (L, 3).
     """
     g = np.asarray(irf, np.float64)
     dg = np.gradient(g, axis=1)
-    # the second difference of the matched-filter response at its peak, per unit of the
-    # peak value (autocorrelation A: 2 (A(0) - A(1)) / A(0))
     a0 = (g * g).sum(axis=1)
     a1 = (g[:, 1:] * g[:, :-1]).sum(axis=1)
     return np.stack(
@@ -889,11 +890,11 @@ def detect(
         cube is read by bands of rows where pixels are tested.
         Measured with the other defaults (``benchmarks/bench_detection.py`` full grid,
         seed 0, F_true / false surfaces per 100 true ones, off -> on): single surface
-        PPP 4, SBR 0.25: 0.924 / 6.0 -> 0.969 / 5.0 (decaying background: 0.926 / 4.8 ->
-        0.971 / 4.6); net scene PPP 10, SBR 1: 0.962 / 2.3 -> 0.973 / 2.3 (decaying: 0.940 /
-        3.3 -> 0.950 / 3.3); F_true up in 60 of the 64 cells and down in none, false
-        surfaces -3.6 to +0.8 per 100; at least as good as the per-pixel detector on both
-        figures in 55 cells instead of 47. Off by default because of its cost: about
+        PPP 4, SBR 0.25: 0.922 / 6.0 -> 0.968 / 4.6 (decaying background: 0.925 / 5.8 ->
+        0.969 / 3.9); net scene PPP 10, SBR 1: 0.959 / 2.5 -> 0.970 / 2.5 (decaying: 0.940 /
+        3.5 -> 0.950 / 3.4); F_true up in 59 of the 64 cells and down in none, false
+        surfaces -3.2 to +0.8 per 100; at least as good as the per-pixel detector on
+        both figures in 53 cells instead of 47. Off by default because of its cost: about
         +1.6 s on the 200 x 200 x 4 x 1500 cube (3-4 s without), +2.1 s on the Art-size
         cube (0.8 s without) and 5-6 s on the face data (wide IRF), most of it the
         robust plane fits around every pixel (on ``n_jobs`` threads; results do not
