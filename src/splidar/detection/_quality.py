@@ -64,6 +64,15 @@ _PAIRS = (((-1, 0), (1, 0)), ((0, -1), (0, 1)))
 _NEIGHBOURS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc)
 
 
+def _by_pixel(row, col, image_shape):
+    """Candidates grouped by pixel: ``order`` sorts them by pixel (stable: a pixel's
+    candidates keep their table order), ``starts`` (R * C + 1) delimits each pixel's run."""
+    R, C = image_shape
+    pix = np.asarray(row, np.int64) * C + np.asarray(col, np.int64)
+    order = np.argsort(pix, kind="stable")
+    return order, np.searchsorted(pix[order], np.arange(R * C + 1))
+
+
 def _dense(row, col, image_shape, values, fill):
     """Candidates per pixel as a dense (R + 2, C + 2, K, ...) array with a 1-pixel pad.
 
@@ -278,10 +287,7 @@ def reject_spill_over(
     )
     row = np.asarray(surf["row"], np.int64)[idx]
     col = np.asarray(surf["col"], np.int64)[idx]
-    # candidates grouped by pixel (stable: a pixel's candidates keep their table order)
-    pix = row * C + col
-    order = np.argsort(pix, kind="stable")
-    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    order, starts = _by_pixel(row, col, (R, C))
     out = np.zeros(idx.size, bool)
     n_pass = _spill_kernel(
         row,
@@ -530,10 +536,8 @@ def reject_isolated(
     row = np.asarray(surf["row"], np.int64)[idx]
     col = np.asarray(surf["col"], np.int64)[idx]
     d = np.asarray(surf["depth_bin"], np.float64)[idx]
-    # candidates grouped by pixel; a neighbour at the same depth (within fwhm) shares
-    pix = row * C + col
-    order = np.argsort(pix, kind="stable")
-    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    # a neighbour at the same depth (within fwhm) shares
+    order, starts = _by_pixel(row, col, (R, C))
     shared = np.zeros(idx.size, bool)
     n_own = np.zeros(idx.size, np.int64)  # candidates in the pixel (itself included)
     _shared_kernel(row, col, d, order, starts, int(R), int(C), float(fwhm), shared, n_own)
@@ -738,9 +742,7 @@ def rescue_dark(
         return out
     row = np.asarray(surf["row"], np.int64)
     col = np.asarray(surf["col"], np.int64)
-    pix = row * C + col
-    order = np.argsort(pix, kind="stable")
-    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    order, starts = _by_pixel(row, col, (R, C))
     d = np.asarray(surf["depth_bin"], np.float64)
     off = np.asarray(surf["offset"], np.int64)
     counts = np.ascontiguousarray(surf["own_counts"])
