@@ -15,7 +15,7 @@ Usage::
     python benchmarks/bench_detection.py            # full grid, 64 x 64 scenes (minutes)
     python benchmarks/bench_detection.py --quick    # 16 cells, 32 x 32 scenes (seconds)
     python benchmarks/bench_detection.py --seed 3 --json results.json
-    python benchmarks/bench_detection.py --slopes   # splidar with the opt-in slope recovery
+    python benchmarks/bench_detection.py --slopes all   # slope recovery in every pixel
 
 Nothing is downloaded; everything is simulated.
 """
@@ -148,6 +148,13 @@ def _breakdown(pts, truth) -> dict:
     }
 
 
+def _options(args) -> dict:
+    """splidar.detect options given on the command line."""
+    if args.slopes is None:
+        return {}
+    return {"slopes": False if args.slopes == "off" else args.slopes}
+
+
 def run(args) -> dict:
     grid = QUICK if args.quick else FULL
     shape = (32, 32) if args.quick else (args.size, args.size)
@@ -158,7 +165,7 @@ def run(args) -> dict:
     detect = _splidar_detect()
     if detect is None:
         print("# splidar.detect is not available yet: only the baselines run\n")
-    options = {"slopes": True} if args.slopes else {}
+    options = _options(args)
     methods = _methods(detect, args.pfa, 2, args.coarse, options)
     names = list(methods)
     rows = []
@@ -356,7 +363,9 @@ def main(argv=None):
     ap.add_argument("--coarse", type=int, default=7, help="box size of the coarse baseline")
     ap.add_argument("--json", help="also write the results to this JSON file")
     ap.add_argument(
-        "--slopes", action="store_true", help="run splidar.detect with slopes=True (opt-in)"
+        "--slopes",
+        choices=("holes", "all", "off"),
+        help="splidar.detect's slope recovery (default: the library's, holes)",
     )
     ap.add_argument(
         "--no-sweep",
@@ -368,7 +377,7 @@ def main(argv=None):
     grid = QUICK if args.quick else FULL
     print(
         f"# bench_detection: tau = {TAU:g} bins, pfa = {args.pfa:g}, seed = {args.seed}, "
-        f"splidar options { ({'slopes': True} if args.slopes else 'default') }, "
+        f"splidar options {_options(args) or 'default'}, "
         f"PPP {grid['ppp']} x SBR {grid['sbr']} x background {grid['bg']}; "
         "F_false given as % of true points and (raw count)\n"
     )

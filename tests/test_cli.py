@@ -426,3 +426,28 @@ def test_main_run_no_dark_passes_dark_false(simulated, tmp_path, monkeypatch):
     seen.clear()
     rc = main(["run", str(cube), "-q", "--seed", "0", "--out", str(tmp_path / "p")])
     assert rc == 0 and "dark" not in seen  # the library's default
+    assert "slopes" not in seen
+
+
+def test_main_run_slopes_modes(simulated, tmp_path, monkeypatch, capsys):
+    import splidar.detection as det_mod
+
+    seen = []
+    real = det_mod.detect
+
+    def spy(cube, **kw):
+        seen.append(kw.get("slopes", "default"))
+        return real(cube, **kw)
+
+    monkeypatch.setattr(det_mod, "detect", spy)
+    cube, _ = simulated
+    for mode in ("off", "all"):
+        out = str(tmp_path / mode)
+        rc = main(
+            ["run", str(cube), "-q", "--seed", "0", "--no-figures", "--slopes", mode, "--out", out]
+        )
+        assert rc == 0
+    assert seen == [False, "all"]
+    capsys.readouterr()
+    assert main(["run", str(cube), "--slopes", "yes", "--out", str(tmp_path / "x")]) == 2
+    assert "--slopes" in capsys.readouterr().err

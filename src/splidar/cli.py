@@ -206,9 +206,11 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--slopes",
-        action="store_true",
+        choices=("holes", "all", "off"),
         default=None,
-        help="also recover surfaces on steep slopes (sheared pooled tests; slower)",
+        help="recover surfaces on steep slopes by sheared pooled tests: in the pixels "
+        "left empty (holes, the default), in every pixel (all: slower, replaces "
+        "depths the square boxes biased) or not at all (off)",
     )
     g.add_argument(
         "--no-dark",
@@ -594,6 +596,8 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     from .reconstruction import reconstruct
 
     det_kw = _given(args, _DETECT_OPTS)
+    if det_kw.get("slopes") == "off":
+        det_kw["slopes"] = False
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)

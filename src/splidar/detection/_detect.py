@@ -745,7 +745,7 @@ def detect(
     spill_llr: float | None = 0.0,
     isolated: bool = True,
     dark: bool = True,
-    slopes: bool = False,
+    slopes: str | bool = "holes",
     min_separation: float | None = None,
     split_ratio: float = 0.5,
     refine: bool = True,
@@ -875,32 +875,35 @@ def detect(
         own counts' peak, so a pool of one or two noise peaks would pass the test (pure
         background: 0.006-0.013 false surfaces per pixel without this rule, 0.003-0.008
         with it, as without the pass).
-    slopes : bool
+    slopes : {"holes", "all"} or bool
         (``"auto"``, ``"adaptive"``) Recover surfaces on steep slopes that the square
-        boxes miss (``_slopes.py``, issue #3): around each pixel with room for a surface,
-        local planes are fitted (robustly) to the kept surfaces within the largest box;
-        where a plane is steep (the coarsest box spreads a return over more than the
-        IRF's FWHM) and encloses the pixel, the raw counts along the plane (sheared
-        window) of the pixel and of its neighbours holding no surface near the plane
-        are tested against the background (exact Poisson, corrected for the planes,
-        boxes and depth shifts tried: ``surface_pfa`` per tested pixel), then the own
-        counts must not reject the return (``presence_llr``); repeated so that the
-        interiors of dim regions fill in. A recovered surface replaces a kept one of its
-        pixel within 2 FWHM of it (the same return, depth biased by the boxes). A lazy
-        cube is read by bands of rows where pixels are tested.
-        Measured with the other defaults (``benchmarks/bench_detection.py`` full grid,
-        seed 0, F_true / false surfaces per 100 true ones, off -> on): single surface
-        PPP 4, SBR 0.25: 0.922 / 6.0 -> 0.968 / 4.6 (decaying background: 0.925 / 5.8 ->
-        0.969 / 3.9); net scene PPP 10, SBR 1: 0.959 / 2.5 -> 0.970 / 2.5 (decaying: 0.940 /
-        3.5 -> 0.950 / 3.4); F_true up in 59 of the 64 cells and down in none, false
-        surfaces -3.2 to +0.8 per 100; at least as good as the per-pixel detector on
-        both figures in 53 cells instead of 47. Off by default because of its cost: about
-        +1.6 s on the 200 x 200 x 4 x 1500 cube (3-4 s without), +2.1 s on the Art-size
-        cube (0.8 s without) and 5-6 s on the face data (wide IRF), most of it the
-        robust plane fits around every pixel (on ``n_jobs`` threads; results do not
-        depend on them). It does not help everywhere: on the Art scene (PPP 10, SBR 1,
-        tau 4 mm) it recovers 1,845 surfaces for F_true 0.904 -> 0.899 and false 2.0 ->
-        2.9 %.
+        boxes miss (``_slopes.py``, issue #3): around each tested pixel, local planes
+        are fitted (robustly) to the kept surfaces within the largest box; where a
+        plane is steep (the coarsest box spreads a return over more than the IRF's
+        FWHM) and encloses the pixel, the raw counts along the plane (sheared window)
+        of the pixel and of its neighbours holding no surface near the plane are tested
+        against the background (exact Poisson, corrected for the planes, boxes and depth
+        shifts tried: ``surface_pfa`` per tested pixel), then the own counts must not
+        reject the return (``presence_llr``); repeated so that the interiors of dim
+        regions fill in. A lazy cube is read by bands of rows where pixels are tested.
+
+        - ``"holes"`` (default): the pixels left with no surface are tested.
+        - ``"all"`` (or ``True``): every pixel with room for a surface is tested, and a
+          recovered surface replaces a kept one of its pixel within 2 FWHM of it (the
+          same return, its depth biased by the boxes) unless the own counts reject it
+          against the kept one (log-likelihood ratio below the kept one's minus
+          ``presence_llr``).
+        - ``False``: no recovery.
+
+        Measured (``benchmarks/bench_detection.py`` cells, 64 x 64, 2 seeds, F_true
+        False / ``"holes"`` / ``"all"``): single surface PPP 4, SBR 0.25: 0.923 / 0.959
+        / 0.969 (decaying background: 0.921 / 0.957 / 0.968); PPP 1, SBR 1: 0.798 /
+        0.874 / 0.898; net scene PPP 10, SBR 1: 0.960 / 0.961 / 0.971. Cost on the
+        Art-size cube: +0.05 s (``"holes"``) and +2.2 s (``"all"``, the robust plane fits
+        around every pixel; on ``n_jobs`` threads, results do not depend on them); on
+        the 200 x 200 x 4 x 1500 cube +0.003 s and +1.0 s. On the Art scene (PPP 10,
+        SBR 1, tau 4 mm) F_true / false surfaces: 0.904 / 1.97 % without, 0.904 / 2.00 %
+        with ``"holes"``, 0.905 / 2.37 % with ``"all"``.
     min_separation : float, optional
         Peaks closer than this (bins) are one surface. Default: the IRF's FWHM.
     split_ratio : float
@@ -1017,8 +1020,13 @@ def detect(
     presence_secondary = float(presence_secondary)
     if not isinstance(isolated, (bool, np.bool_)):
         raise SplidarError(f"`isolated` must be True or False; got {describe(isolated)}.")
-    if not isinstance(slopes, (bool, np.bool_)):
-        raise SplidarError(f"`slopes` must be True or False; got {describe(slopes)}.")
+    if isinstance(slopes, (bool, np.bool_)):
+        slopes = "all" if slopes else False
+    elif slopes not in ("holes", "all"):
+        raise SplidarError(
+            f'`slopes` must be "holes", "all", True (= "all") or False; got '
+            f"{describe(slopes)}. Use slopes=False to switch the slope recovery off."
+        )
     if spill_llr is not None:
         spill_in = spill_llr
         try:
@@ -1239,8 +1247,6 @@ def detect(
     # where each candidate's histograms are: block and row in that block's array
     hist_block = np.concatenate([np.full(o.kept.size, b, np.int64) for b, o in enumerate(outs)])
     hist_row = np.concatenate([o.kept for o in outs])
-    if slopes:
-        surf["histograms"] = np.concatenate([o.histograms[o.kept] for o in outs], axis=0)
     # global passes over the candidate table of the whole image (_quality.py: they need
     # the neighbours across block borders), then K_s per pixel
     if "presence_ok" in surf:
@@ -1292,7 +1298,7 @@ def detect(
         t0 = time.perf_counter()
         rec = recover_slopes(
             cube.counts,
-            {k: surf[k][keep] for k in ("row", "col", "depth_bin")},
+            {k: surf[k][keep] for k in ("row", "col", "depth_bin", "presence_z", "presence_llr")},
             spatial=spatial,
             dev=dev,
             irf=irf,
@@ -1303,6 +1309,7 @@ def detect(
             presence_llr=presence_llr,
             max_surfaces=max_surfaces,
             qloc=_local_scale(scales_arr),
+            holes_only=slopes == "holes",
             seed=int(rng.integers(2**31)),
             n_jobs=n_jobs,
         )
@@ -1317,20 +1324,27 @@ def detect(
             for k in surf:
                 surf[k] = np.concatenate([surf[k], rec[k].astype(surf[k].dtype)])
             keep = np.concatenate([keep, np.ones(n_slopes, bool)])
+            # their histograms are the pass's own (block -1)
+            hist_block = np.concatenate([hist_block, np.full(n_slopes, -1, np.int64)])
+            hist_row = np.concatenate([hist_row, np.arange(n_slopes, dtype=np.int64)])
+            rec_hist = rec["histograms"]
         timings["slopes"] = time.perf_counter() - t0
     # --- end of slope recovery ---------------------------------------------------------
     idx, slot = _select(surf, keep, max_surfaces)
     surf = {k: v[idx] for k, v in surf.items()}
     surf["slot"] = slot
-    if not slopes:
-        # one gather of the selected surfaces' histograms from the blocks' arrays
-        hist = np.empty((idx.size,) + outs[0].histograms.shape[1:], np.float32)
-        hb, hr = hist_block[idx], hist_row[idx]
-        for b, o in enumerate(outs):
-            sel = np.flatnonzero(hb == b)
-            if sel.size:
-                hist[sel] = o.histograms[hr[sel]]
-        surf["histograms"] = hist
+    # one gather of the selected surfaces' histograms from the blocks' arrays (and the
+    # slope recovery's)
+    hist = np.empty((idx.size,) + outs[0].histograms.shape[1:], np.float32)
+    hb, hr = hist_block[idx], hist_row[idx]
+    for b, o in enumerate(outs):
+        sel = np.flatnonzero(hb == b)
+        if sel.size:
+            hist[sel] = o.histograms[hr[sel]]
+    sel = np.flatnonzero(hb == -1)
+    if sel.size:
+        hist[sel] = rec_hist[hr[sel]]
+    surf["histograms"] = hist
     del hist_block, hist_row
     for o in outs:
         o.histograms = None

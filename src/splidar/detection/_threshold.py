@@ -117,6 +117,22 @@ class ThresholdField:
             _threshold_rows(self._sp[r0:r1], self._dev, self._xs, self._ys, out)
         return out
 
+    def pixels(self, rows, cols) -> np.ndarray:
+        """The thresholds of single pixels, ``(S, T)`` float32 (only these are computed).
+
+        Parameters
+        ----------
+        rows, cols : array_like (S,) int
+            Pixel coordinates.
+        """
+        rows = np.asarray(rows, np.int64)
+        cols = np.asarray(cols, np.int64)
+        out = np.empty((rows.size, 1, self.shape[2]), np.float32)
+        if rows.size:
+            sp = np.ascontiguousarray(self._sp[rows, cols][:, None, :])
+            _threshold_rows(sp, self._dev, self._xs, self._ys, out)
+        return out[:, 0]
+
     def __getitem__(self, key):
         key = key if isinstance(key, tuple) else (key,)
         first = key[0] if key else slice(None)
