@@ -311,6 +311,28 @@ def pooled_counts(y, y0, D, tol, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi
 
 
 @njit(cache=True, nogil=True)
+def _n_pooled(D, r, c, hk, a, b, cc, tol):
+    """Pixels of the ``(2 hk + 1)^2`` box around ``(r, c)`` that :func:`pooled_counts`
+    pools for the plane ``a + b dr + cc dc``: the pixel itself and the neighbours with no
+    surface within ``tol`` of the plane."""
+    R, C, K = D.shape
+    n = 0
+    for i in range(max(r - hk, 0), min(r + hk + 1, R)):
+        for j in range(max(c - hk, 0), min(c + hk + 1, C)):
+            if i == r and j == c:
+                n += 1
+                continue
+            dm = a + b * (i - r) + cc * (j - c)
+            covered = False
+            for k in range(K):
+                if abs(D[i, j, k] - dm) <= tol:  # False for nan
+                    covered = True
+            if not covered:
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
 def surface_fields(
     y,
     y0,
@@ -666,12 +688,9 @@ def recover_slopes(
             ik, idl = np.unravel_index(best[h, pi], (nk, deltas.size))
             k = int(pool_k[ik])
             # pooled per-pixel intensity: the excess over the pixels pooled
-            hk = k // 2
-            npix = 0
-            for i in range(max(r - hk, 0), min(r + hk + 1, R)):
-                for j in range(max(c - hk, 0), min(c + hk + 1, C)):
-                    dm = planes[h, pi, 0] + planes[h, pi, 1] * (i - r) + planes[h, pi, 2] * (j - c)
-                    npix += (i == r and j == c) or not np.any(np.abs(D[i, j] - dm) <= excl)
+            npix = _n_pooled(
+                D, r, c, k // 2, planes[h, pi, 0], planes[h, pi, 1], planes[h, pi, 2], excl
+            )
             s_pool = np.maximum(n_arr[h, pi, ik, idl] - b_arr[h, pi, ik, idl], 0)
             s_pool = s_pool / max(npix, 1) / mass
             d_new = planes[h, pi, 0] + deltas[idl]
