@@ -34,7 +34,7 @@ from ._kernels import (
     threshold_pass,
 )
 from ._null import fit_gamma_quantiles, threshold_table
-from ._quality import reject_isolated, reject_spill_over, rescue_dark, restore_enclosed
+from ._quality import reject_isolated, reject_spill_over, rescue_dark
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 from ._slopes import recover_slopes, support_sums
 from ._threshold import ThresholdField
@@ -874,12 +874,7 @@ def detect(
         at least 6 candidates (``_quality.MIN_POOL``): each candidate's depth sits on its
         own counts' peak, so a pool of one or two noise peaks would pass the test (pure
         background: 0.006-0.013 false surfaces per pixel without this rule, 0.003-0.008
-        with it, as without the pass). Then a pixel still empty whose rejected
-        candidate both opposite pairs of 4-neighbours enclose (kept surfaces whose mean
-        depth is within the FWHM of it) and whose local scale is significant (z >=
-        ``presence_z``) keeps it, even with no own photons at its depth
-        (``_quality.restore_enclosed``; single surface PPP 4, SBR 0.25: F_true +0.002,
-        false surfaces unchanged; nets of 1-4 pixel holes and the Art scene unchanged).
+        with it, as without the pass).
     slopes : {"holes", "all"} or bool
         (``"auto"``, ``"adaptive"``) Recover surfaces on steep slopes that the square
         boxes miss (``_slopes.py``, issue #3): around each tested pixel, local planes
@@ -1298,14 +1293,6 @@ def detect(
         )
         n_dark = int(res.sum())
         keep |= res
-        # an empty pixel that a surface encloses (both opposite pairs of 4-neighbours)
-        # and whose local scale is significant keeps its candidate even with no own
-        # photons at its depth (_quality.restore_enclosed)
-        enc = restore_enclosed(
-            {**surf, "image_shape": (R, C)}, keep, fwhm=_irf_fwhm(irf), z_level=presence_z
-        )
-        n_dark += int(enc.sum())
-        keep |= enc
     del surf["own_counts"], surf["own_background"]
     # --- slope recovery (issue #3; _slopes.py): sheared pooled tests in the holes ----
     n_slopes = 0
