@@ -34,7 +34,7 @@ from ._kernels import (
     threshold_pass,
 )
 from ._null import fit_gamma_quantiles, threshold_table
-from ._quality import reject_isolated, reject_spill_over, rescue_dark
+from ._quality import align_depths, reject_isolated, reject_spill_over, rescue_dark
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 from ._slopes import recover_slopes, support_sums
 from ._threshold import ThresholdField
@@ -934,7 +934,17 @@ def detect(
         matched-filter peak in the run if that peak is significant (z >= sqrt(9 + 2 ln
         run length), the max of that many background bins), not on the coarse peak,
         which drifts off the return beside brightness changes (single surface, PPP 50,
-        SBR 10: F_true 0.980 -> 0.994).
+        SBR 10: F_true 0.980 -> 0.994). Last, on the selected surfaces, a depth that
+        its 4-neighbours place elsewhere (each opposite pair holding the same return
+        puts it more than the FWHM and at most 2 FWHM away, the pairs agreeing) moves to
+        the own clean histogram's peak near their prediction when the own counts favour
+        that peak over the current depth (``_quality.align_depths``: on a steep slope
+        the 3 x 3 box has a lobe per row and a low-count peak can fall on a neighbour
+        row's). Full grid (``benchmarks/bench_detection.py``, seed 0), without -> with:
+        F_true up in 36 of 64 cells (by up to 0.028), down in 3 (by at most 0.005),
+        false surfaces -2.2 to +1.0 per 100 true ones (summed over the cells -6.2);
+        single surface PPP 4, SBR 0.25 decaying background 0.957 / 5.4 -> 0.960 / 4.4;
+        the Art scene +0.0001 to +0.0002.
     block_rows : int, optional
         Rows per block (memory/time trade-off; results do not depend on it). Default:
         about 64 MB of work buffers per block, at least ``4 x max(k) // 2`` rows (halo
@@ -1348,6 +1358,15 @@ def detect(
         hist[sel] = rec_hist[hr[sel]]
     surf["histograms"] = hist
     del hist_block, hist_row
+    n_aligned = 0
+    if refine and presence in ("auto", "adaptive") and idx.size:
+        # a depth that its 4-neighbours and its own counts place elsewhere (a box's
+        # lobe of a neighbouring row on a steep slope) moves (_quality.align_depths)
+        surf["depth_bin"], n_aligned = align_depths(
+            surf["row"], surf["col"], surf["slot"], surf["depth_bin"], surf["offset"],
+            hist[:, 0].sum(axis=1), image_shape=(R, C), n_slots=max_surfaces,
+            fwhm=_irf_fwhm(irf),
+        )  # fmt: skip
     for o in outs:
         o.histograms = None
     Q = scales_arr.size
@@ -1414,6 +1433,7 @@ def detect(
             n_isolated=n_isolated,
             slopes=slopes,
             n_slopes=n_slopes,
+            n_aligned=n_aligned,
         )
     )
     logger.info(
