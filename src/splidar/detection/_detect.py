@@ -34,7 +34,13 @@ from ._kernels import (
     threshold_pass,
 )
 from ._null import fit_gamma_quantiles, threshold_table
-from ._quality import align_depths, reject_isolated, reject_spill_over, rescue_dark
+from ._quality import (
+    align_depths,
+    reject_isolated,
+    reject_spill_over,
+    rescue_dark,
+    restore_enclosed,
+)
 from ._result import Background, DataReduction, Detection, NullModel, Surfaces
 from ._slopes import recover_slopes, support_sums
 from ._threshold import ThresholdField
@@ -874,7 +880,14 @@ def detect(
         at least 6 candidates (``_quality.MIN_POOL``): each candidate's depth sits on its
         own counts' peak, so a pool of one or two noise peaks would pass the test (pure
         background: 0.006-0.013 false surfaces per pixel without this rule, 0.003-0.008
-        with it, as without the pass).
+        with it, as without the pass). Last (after the slope recovery), a pixel still
+        empty whose rejected candidate both opposite pairs of 4-neighbours enclose
+        (kept surfaces whose mean depth is within the FWHM of it) and whose local scale
+        is significant (z >= ``presence_z``) keeps it even with no own photons at its
+        depth (a return of ``s`` photons leaves none with probability ``exp(-s)``;
+        ``_quality.restore_enclosed``). Full grid, without -> with: F_true up in 35 of
+        64 cells, down in 14 (at most -0.004), false surfaces -1.4 per 100 true summed
+        over the cells; nets of 1-4 pixel holes and the Art scene unchanged.
     slopes : {"holes", "all"} or bool
         (``"auto"``, ``"adaptive"``) Recover surfaces on steep slopes that the square
         boxes miss (``_slopes.py``, issue #3): around each tested pixel, local planes
@@ -1342,6 +1355,16 @@ def detect(
             rec_hist = rec["histograms"]
         timings["slopes"] = time.perf_counter() - t0
     # --- end of slope recovery ---------------------------------------------------------
+    # an empty pixel that a surface encloses (both opposite pairs of 4-neighbours at its
+    # depth) and whose local scale is significant keeps its candidate even with no own
+    # photons there (_quality.restore_enclosed; after the slope recovery, which it would
+    # otherwise deprive of the holes it grows from)
+    if opts.get("keep_suspects") and keep.size and not keep.all():
+        enc = restore_enclosed(
+            {**surf, "image_shape": (R, C)}, keep, fwhm=_irf_fwhm(irf), z_level=presence_z
+        )
+        n_dark += int(enc.sum())
+        keep |= enc
     idx, slot = _select(surf, keep, max_surfaces)
     surf = {k: v[idx] for k, v in surf.items()}
     surf["slot"] = slot
