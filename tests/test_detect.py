@@ -872,3 +872,27 @@ def test_detect_refine_aligns_box_biased_depths_on_steep_ramp(monkeypatch):
         err[name] = int((np.abs(p.depth_bin - depth[p.row, p.col]) > 3).sum())
     assert on.options["n_aligned"] >= 10
     assert err["on"] <= err["off"] - 8
+
+
+def test_restore_enclosed_needs_own_counts_beside_a_kept_surface():
+    from splidar.detection._quality import restore_enclosed
+
+    # a 3 x 3 net: strands at depth 20 around a one-pixel hole that sees a wall at 80;
+    # the hole's rejected candidate at the net's depth is enclosed by the strands
+    r = np.r_[np.divmod(np.arange(9), 3)[0], 1]
+    c = np.r_[np.divmod(np.arange(9), 3)[1], 1]
+    d = np.r_[np.full(9, 20.0), 80.0]
+    keep = np.ones(10, bool)
+    keep[4] = False  # the hole's net-depth candidate
+    surf = dict(row=r, col=c, depth_bin=d, evidence=np.ones(10), presence_z=np.full(10, 5.0),
+                presence_llr=np.full(10, -2.0), image_shape=(3, 3))  # fmt: skip
+    kw = dict(fwhm=3.0, z_level=3.0, max_kept=2)
+    # its own counts do not favour it (log-ratio -2 < 0): it stays rejected
+    assert not restore_enclosed(surf, keep, llr_level=0.0, **kw).any()
+    surf["presence_llr"][4] = 0.5  # they do: restored as the pixel's second surface
+    assert np.flatnonzero(restore_enclosed(surf, keep, llr_level=0.0, **kw)).tolist() == [4]
+    # a full pixel takes nothing; an empty one needs no own-count support
+    assert not restore_enclosed(surf, keep, llr_level=0.0, fwhm=3.0, z_level=3.0, max_kept=1).any()
+    keep[9] = False
+    surf["presence_llr"][4] = -2.0
+    assert restore_enclosed(surf, keep, llr_level=0.0, **kw)[4]

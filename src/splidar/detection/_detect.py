@@ -672,12 +672,14 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     # passes of _quality.py on them (they need neighbours across block borders), then
     # _select (K_s per pixel)
     if opts.get("keep_suspects"):
-        # the rejected candidates of pixels left with none stay in the table (the
-        # dark-region pass may restore them); ``presence_ok`` tells them apart
+        # the rejected candidates of pixels left with room for a surface stay in the
+        # table (the dark-region passes may restore them); ``presence_ok`` tells them
+        # apart
         C = opts["image_shape"][1]
         pix = surf["row"] * C + surf["col"]
-        empty = ~np.isin(pix, pix[keep])
-        idx = np.flatnonzero(keep | empty)
+        u, cnt = np.unique(pix[keep], return_counts=True)
+        room = ~np.isin(pix, u[cnt >= opts["max_surfaces"]])
+        idx = np.flatnonzero(keep | room)
         surf["presence_ok"] = keep.copy()
     else:
         idx = np.flatnonzero(keep)
@@ -880,14 +882,15 @@ def detect(
         at least 6 candidates (``_quality.MIN_POOL``): each candidate's depth sits on its
         own counts' peak, so a pool of one or two noise peaks would pass the test (pure
         background: 0.006-0.013 false surfaces per pixel without this rule, 0.003-0.008
-        with it, as without the pass). Last (after the slope recovery), a pixel still
-        empty whose rejected candidate both opposite pairs of 4-neighbours enclose
-        (kept surfaces whose mean depth is within the FWHM of it) and whose local scale
-        is significant (z >= ``presence_z``) keeps it even with no own photons at its
-        depth (a return of ``s`` photons leaves none with probability ``exp(-s)``;
-        ``_quality.restore_enclosed``). Full grid, without -> with: F_true up in 35 of
-        64 cells, down in 14 (at most -0.004), false surfaces -1.4 per 100 true summed
-        over the cells; nets of 1-4 pixel holes and the Art scene unchanged.
+        with it, as without the pass). Last (after the slope recovery), a pixel with
+        room for a surface whose rejected candidate both opposite pairs of 4-neighbours
+        enclose (kept surfaces whose mean depth is within the FWHM of it) and whose
+        local scale is significant (z >= ``presence_z``) keeps it even with no own
+        photons at its depth (a return of ``s`` photons leaves none with probability
+        ``exp(-s)``); beside a kept surface of the pixel its own counts must favour it
+        (log-ratio >= ``presence_secondary``, the rule for further surfaces: a one-pixel
+        hole of a net is enclosed by the strands). ``_quality.restore_enclosed``. Full
+        grid: see the changelog; the Art scene (PPP 1, 4, 10) F_true within 0.001.
     slopes : {"holes", "all"} or bool
         (``"auto"``, ``"adaptive"``) Recover surfaces on steep slopes that the square
         boxes miss (``_slopes.py``, issue #3): around each tested pixel, local planes
@@ -1361,7 +1364,12 @@ def detect(
     # otherwise deprive of the holes it grows from)
     if opts.get("keep_suspects") and keep.size and not keep.all():
         enc = restore_enclosed(
-            {**surf, "image_shape": (R, C)}, keep, fwhm=_irf_fwhm(irf), z_level=presence_z
+            {**surf, "image_shape": (R, C)},
+            keep,
+            fwhm=_irf_fwhm(irf),
+            z_level=presence_z,
+            max_kept=max_surfaces,
+            llr_level=presence_secondary,
         )
         n_dark += int(enc.sum())
         keep |= enc

@@ -51,7 +51,8 @@ of ``s`` photons leaves none with probability ``exp(-s)``) fails the own-pixel c
 When both opposite pairs of its 4-neighbours hold kept surfaces through its depth and
 its local scale is significant, its candidate is restored (:func:`restore_enclosed`):
 the spread beside a thin structure or across a depth edge has same-depth neighbours on
-one side only.
+one side only. In a pixel that already holds a surface the own counts must favour the
+candidate too (a one-pixel hole of a net is enclosed by the strands).
 
 Depth alignment
 ---------------
@@ -926,26 +927,39 @@ def align_depths(
 
 
 @njit(cache=True, nogil=True)
-def _enclosed_kernel(row, col, depth, ev, z, keep, order, starts, R, C, fwhm, z_level, out):
-    """For each pixel with no kept candidate: its rejected candidate of largest evidence
-    among those with ``z >= z_level`` that both opposite pairs of 4-neighbours enclose
-    (kept candidates whose mean depth is within ``fwhm`` of its depth)."""
+def _enclosed_kernel(
+    row, col, depth, ev, z, llr, keep, order, starts, R, C, fwhm, z_level, max_kept, llr_level, out
+):
+    """For each pixel with fewer than ``max_kept`` kept candidates: its rejected
+    candidate of largest evidence among those with ``z >= z_level`` (and, beside a kept
+    one, ``llr >= llr_level``), none kept within ``fwhm`` of it, that both opposite
+    pairs of 4-neighbours enclose (kept candidates whose mean depth is within ``fwhm``
+    of its depth)."""
     for p in range(R * C):
         a, b = starts[p], starts[p + 1]
         if a == b:
             continue
-        empty = True
+        n_kept = 0
         for k in range(a, b):
             if keep[order[k]]:
-                empty = False
-        if not empty:
+                n_kept += 1
+        if n_kept >= max_kept:
             continue
         r = p // C
         c = p % C
         best = -1
         for k in range(a, b):
             i = order[k]
-            if z[i] < z_level or (best >= 0 and ev[i] <= ev[best]):
+            if keep[i] or z[i] < z_level or (best >= 0 and ev[i] <= ev[best]):
+                continue
+            if n_kept > 0 and llr[i] < llr_level:
+                continue
+            dup = False
+            for k in range(a, b):  # a kept surface of the pixel at this depth already
+                j = order[k]
+                if keep[j] and abs(depth[j] - depth[i]) <= fwhm:
+                    dup = True
+            if dup:
                 continue
             ok = True
             for u in range(2):
@@ -974,8 +988,16 @@ def _enclosed_kernel(row, col, depth, ev, z, keep, order, starts, R, C, fwhm, z_
             out[best] = True
 
 
-def restore_enclosed(surf: dict, keep: np.ndarray, *, fwhm: float, z_level: float) -> np.ndarray:
-    """Rejected candidates of empty pixels inside a surface that encloses them.
+def restore_enclosed(
+    surf: dict,
+    keep: np.ndarray,
+    *,
+    fwhm: float,
+    z_level: float,
+    max_kept: int = 1,
+    llr_level: float = -np.inf,
+) -> np.ndarray:
+    """Rejected candidates of pixels inside a surface that encloses them.
 
     A pixel inside a continuous surface (flat or sloped) whose own counts hold no photon
     at its depth fails the own-pixel check (a return of ``s`` photons leaves none with
@@ -983,19 +1005,29 @@ def restore_enclosed(surf: dict, keep: np.ndarray, *, fwhm: float, z_level: floa
     spread of a thin structure or of a depth edge: both opposite pairs of 4-neighbours
     (north/south and west/east) hold kept candidates whose mean depth is within ``fwhm``
     of its depth. Such a candidate, when its local scale is significant
-    (``presence_z >= z_level``), is restored (one per pixel: the largest evidence).
+    (``presence_z >= z_level``), is restored (one per pixel: the largest evidence) in a
+    pixel with fewer than ``max_kept`` kept candidates, none within ``fwhm`` of it. In a
+    pixel that holds a kept candidate already, its own counts must favour it as well
+    (``presence_llr >= llr_level``): a one-pixel hole of a net is enclosed by the
+    strands, and its own photons come from the surface seen through it.
 
     Parameters
     ----------
     surf : dict
         Candidate table with ``row``, ``col``, ``depth_bin``, ``evidence``,
-        ``presence_z`` (S,) and ``image_shape``.
+        ``presence_z``, ``presence_llr`` (S,) and ``image_shape``.
     keep : (S,) bool
         Candidates kept so far.
     fwhm : float
         Same-depth tolerance (bins).
     z_level : float
         Lowest local-scale z (``detect`` passes ``presence_z``).
+    max_kept : int
+        Pixels with this many kept candidates are full (``detect`` passes
+        ``max_surfaces``).
+    llr_level : float
+        Lowest own log-likelihood ratio in a pixel holding a kept candidate (``detect``
+        passes ``presence_secondary``, the rule for a pixel's further surfaces).
 
     Returns
     -------
@@ -1007,7 +1039,8 @@ def restore_enclosed(surf: dict, keep: np.ndarray, *, fwhm: float, z_level: floa
     >>> import numpy as np
     >>> r, c = np.divmod(np.arange(9), 3)  # a 3 x 3 patch at 5 + row bins, centre rejected
     >>> surf = dict(row=r, col=c, depth_bin=5.0 + r, evidence=np.ones(9),
-    ...             presence_z=np.full(9, 5.0), image_shape=(3, 3))
+    ...             presence_z=np.full(9, 5.0), presence_llr=np.full(9, -2.0),
+    ...             image_shape=(3, 3))
     >>> keep = np.arange(9) != 4
     >>> np.flatnonzero(restore_enclosed(surf, keep, fwhm=3.0, z_level=3.0)).tolist()
     [4]
@@ -1026,8 +1059,9 @@ def restore_enclosed(surf: dict, keep: np.ndarray, *, fwhm: float, z_level: floa
     _enclosed_kernel(
         row, col, np.asarray(surf["depth_bin"], np.float64),
         np.asarray(surf["evidence"], np.float64), np.asarray(surf["presence_z"], np.float64),
+        np.asarray(surf["presence_llr"], np.float64),
         np.ascontiguousarray(keep), order, starts, int(R), int(C), float(fwhm),
-        float(z_level), out,
+        float(z_level), int(max_kept), float(llr_level), out,
     )  # fmt: skip
     logger.debug("enclosed pass: %d candidates restored", int(out.sum()))
     return out
