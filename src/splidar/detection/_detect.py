@@ -912,16 +912,21 @@ def detect(
         - ``False``: no recovery.
 
         Measured (``benchmarks/bench_detection.py`` cells, 64 x 64, 2 seeds, F_true
-        False / ``"holes"`` / ``"all"``): single surface PPP 4, SBR 0.25: 0.923 / 0.959
-        / 0.969 (decaying background: 0.921 / 0.957 / 0.968); PPP 1, SBR 1: 0.798 /
-        0.874 / 0.898; net scene PPP 10, SBR 1: 0.960 / 0.961 / 0.971. Full grid (seed
-        0, False -> ``"holes"``): F_true up in 54 of 64 cells and down in none, false
-        surfaces -0.5 to +0.7 per 100 true ones; pure background unchanged. Cost on the
-        Art-size cube: +0.05 s (``"holes"``) and +2.2 s (``"all"``, the robust plane fits
-        around every pixel; on ``n_jobs`` threads, results do not depend on them); on
-        the 200 x 200 x 4 x 1500 cube +0.003 s and +1.0 s. On the Art scene (PPP 10,
-        SBR 1, tau 4 mm) F_true / false surfaces: 0.904 / 1.97 % without, 0.904 / 2.00 %
-        with ``"holes"``, 0.905 / 2.37 % with ``"all"``.
+        False / ``"holes"`` / ``"all"``, without the enclosed-pixel restore and the depth
+        alignment): single surface PPP 4, SBR 0.25: 0.923 / 0.959 / 0.969 (decaying
+        background: 0.921 / 0.957 / 0.968); PPP 1, SBR 1: 0.798 / 0.874 / 0.898; net
+        scene PPP 10, SBR 1: 0.960 / 0.961 / 0.971. Full grid (seed 0, False ->
+        ``"holes"``): F_true up in 54 of 64 cells and down in none, false surfaces -0.5
+        to +0.7 per 100 true ones; pure background unchanged. With every default pass,
+        full grid, ``"holes"`` / ``"all"``: single surface PPP 4, SBR 0.25 0.963 / 0.973
+        (decaying 0.964 / 0.976); net PPP 10, SBR 1 0.964 / 0.974 (decaying 0.942 /
+        0.951); at least as good as the per-pixel detector on both figures in 48 / 53
+        of 64 cells. Cost on the Art-size cube: +0.02-0.05 s (``"holes"``) and +1.5-2.2
+        s (``"all"``, the robust plane fits around every pixel; on ``n_jobs`` threads,
+        results do not depend on them); on the 200 x 200 x 4 x 1500 cube +0.004 s and
+        +1.0 s. On the Art scene (PPP 10, SBR 1, tau 4 mm) F_true / false surfaces:
+        0.904 / 1.97 % without, 0.904 / 2.00 % with ``"holes"``, 0.905 / 2.37 % with
+        ``"all"``.
     min_separation : float, optional
         Peaks closer than this (bins) are one surface. Default: the IRF's FWHM.
     split_ratio : float
