@@ -896,3 +896,22 @@ def test_restore_enclosed_needs_own_counts_beside_a_kept_surface():
     keep[9] = False
     surf["presence_llr"][4] = -2.0
     assert restore_enclosed(surf, keep, llr_level=0.0, **kw)[4]
+
+
+def test_align_depths_stays_within_half_a_bin_of_the_chosen_bin():
+    # the sub-bin step is a parabola's vertex: at the edge of the search range (not a
+    # local maximum) or on a nearly flat top it once jumped 13 bins out of the window
+    from splidar.detection._quality import align_depths
+
+    r, c = np.divmod(np.arange(9), 3)
+    d = 10.0 + 5 * r
+    d[4] = 20.0
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        own = rng.random((9, 13)) * (rng.random((9, 13)) < 0.5)
+        own[4, 6] = 0.0  # the current depth unsupported
+        new, n = align_depths(r, c, np.zeros(9, int), d, np.full(9, 14), own,
+                              image_shape=(3, 3), n_slots=1, fwhm=3.0)  # fmt: skip
+        if n:
+            # the prediction is 15: the bins searched are 13.5..16.5 (14..17)
+            assert 13.5 <= new[4] <= 17.5

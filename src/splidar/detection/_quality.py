@@ -853,10 +853,12 @@ def _align_kernel(row, col, slot, depth, offset, own, R, C, K, fwhm, out):
         if own[i, w] <= 0.0 or own[i, w] <= own[i, wo]:
             continue
         dw = 0.0
-        if 0 < w < W - 1:
+        if 0 < w < W - 1 and own[i, w] >= own[i, w - 1] and own[i, w] >= own[i, w + 1]:
+            # sub-bin: the vertex of the parabola through a local maximum (within
+            # half a bin of it)
             den = own[i, w - 1] - 2.0 * own[i, w] + own[i, w + 1]
             if den < 0.0:
-                dw = 0.5 * (own[i, w - 1] - own[i, w + 1]) / den
+                dw = min(max(0.5 * (own[i, w - 1] - own[i, w + 1]) / den, -0.5), 0.5)
         out[i] = offset[i] + w + dw
         moved += 1
     return moved
