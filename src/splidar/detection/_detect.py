@@ -514,20 +514,27 @@ def _rank_in_pixel(row, col, score, keep):
 
 def _select(surf: dict, keep: np.ndarray, k_max: int):
     """Keep at most ``k_max`` candidates per pixel (largest saliency mass), depth order."""
-    if _raster_ordered(surf["row"], surf["col"]):
-        n = surf["row"].size
+    row, col = surf["row"], surf["col"]
+    order = None
+    if not _raster_ordered(row, col) and keep.any():
+        # e.g. the slope recovery's surfaces appended at the end: one stable sort by
+        # pixel (a pixel's candidates keep their order), then the linear kernel
+        order = np.lexsort((col, row))
+    if order is not None or _raster_ordered(row, col):
+        n = row.size
+        take = (lambda a: a[order]) if order is not None else (lambda a: a)
         idx, slot = np.empty(n, np.int64), np.empty(n, np.int64)
         m = select_sorted(
-            np.ascontiguousarray(surf["row"], np.int64),
-            np.ascontiguousarray(surf["col"], np.int64),
-            np.ascontiguousarray(surf["saliency_mass"], np.float64),
-            np.ascontiguousarray(surf["depth_bin"], np.float64),
-            np.ascontiguousarray(keep, np.bool_),
+            np.ascontiguousarray(take(row), np.int64),
+            np.ascontiguousarray(take(col), np.int64),
+            np.ascontiguousarray(take(surf["saliency_mass"]), np.float64),
+            np.ascontiguousarray(take(surf["depth_bin"]), np.float64),
+            np.ascontiguousarray(take(keep), np.bool_),
             int(k_max),
             idx,
             slot,
         )
-        return idx[:m], slot[:m]
+        return (order[idx[:m]] if order is not None else idx[:m]), slot[:m]
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return idx, np.zeros(0, np.int64)
