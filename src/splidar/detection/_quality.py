@@ -341,6 +341,27 @@ def reject_spill_over(
 
 
 @njit(cache=True, nogil=True)
+def _pair_encloses(r, c, pair, depth_i, d, mask, order, starts, R, C, fwhm):
+    """Whether the opposite 4-neighbours of pixel ``(r, c)`` (``pair`` 0: north/south,
+    1: west/east) hold candidates of ``mask`` whose mean depth is within ``fwhm`` of
+    ``depth_i`` (False at the image border)."""
+    ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
+    if ra < 0 or ca < 0 or rb >= R or cb >= C:
+        return False
+    pa = ra * C + ca
+    pb = rb * C + cb
+    for ka in range(starts[pa], starts[pa + 1]):
+        ja = order[ka]
+        if not mask[ja]:
+            continue
+        for kb in range(starts[pb], starts[pb + 1]):
+            jb = order[kb]
+            if mask[jb] and abs(0.5 * (d[ja] + d[jb]) - depth_i) <= fwhm:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def _spill_kernel(
     row,
     col,
@@ -412,27 +433,9 @@ def _spill_kernel(
             if src < 0:
                 continue
             # 2. enclosure: opposite 4-neighbours whose mean depth is the candidate's
-            enclosed = False
-            for pair in range(2):
-                ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
-                if ra < 0 or ca < 0 or rb >= R or cb >= C:
-                    continue
-                pa = ra * C + ca
-                pb = rb * C + cb
-                for ka in range(starts[pa], starts[pa + 1]):
-                    ja = order[ka]
-                    if not active[ja]:
-                        continue
-                    for kb in range(starts[pb], starts[pb + 1]):
-                        jb = order[kb]
-                        if active[jb] and abs(0.5 * (d[ja] + d[jb]) - d[i]) <= fwhm:
-                            enclosed = True
-                            break
-                    if enclosed:
-                        break
-                if enclosed:
-                    break
-            if enclosed:
+            if _pair_encloses(r, c, 0, d[i], d, active, order, starts, R, C, fwhm) or (
+                _pair_encloses(r, c, 1, d[i], d, active, order, starts, R, C, fwhm)
+            ):
                 continue
             # 3. own-pixel log-likelihood ratio of a return as bright as the source
             for l in range(L):
@@ -963,28 +966,9 @@ def _enclosed_kernel(
                     dup = True
             if dup:
                 continue
-            ok = True
-            for u in range(2):
-                dr1, dc1 = (-1, 0) if u == 0 else (0, -1)
-                r1, c1, r2, c2 = r + dr1, c + dc1, r - dr1, c - dc1
-                if r1 < 0 or c1 < 0 or r2 >= R or c2 >= C:
-                    ok = False
-                    break
-                q1 = r1 * C + c1
-                q2 = r2 * C + c2
-                pair = False
-                for k1 in range(starts[q1], starts[q1 + 1]):
-                    j1 = order[k1]
-                    if not keep[j1]:
-                        continue
-                    for k2 in range(starts[q2], starts[q2 + 1]):
-                        j2 = order[k2]
-                        if keep[j2] and abs(0.5 * (depth[j1] + depth[j2]) - depth[i]) <= fwhm:
-                            pair = True
-                if not pair:
-                    ok = False
-                    break
-            if ok:
+            if _pair_encloses(r, c, 0, depth[i], depth, keep, order, starts, R, C, fwhm) and (
+                _pair_encloses(r, c, 1, depth[i], depth, keep, order, starts, R, C, fwhm)
+            ):
                 best = i
         if best >= 0:
             out[best] = True
