@@ -395,6 +395,10 @@ def test_threshold_field_indexes_like_the_array_it_stands_for():
     for key in keys:
         np.testing.assert_array_equal(f[key], full[key])
     assert (full + 0.1 > f).all()  # comparisons go through np.asarray
+    # single pixels, computed alone: the same values as the whole field
+    r, c = np.array([0, 6, 3, 3]), np.array([4, 0, 2, 2])
+    np.testing.assert_array_equal(f.pixels(r, c), full[r, c])
+    assert f.pixels([], []).shape == (0, 9)
 
 
 @pytest.mark.parametrize(

@@ -118,12 +118,26 @@ class ThresholdField:
         return out
 
     def pixels(self, rows, cols) -> np.ndarray:
-        """The thresholds of single pixels, ``(S, T)`` float32 (only these are computed).
+        """The thresholds of single pixels, computed for those pixels only.
 
         Parameters
         ----------
         rows, cols : array_like (S,) int
             Pixel coordinates.
+
+        Returns
+        -------
+        ndarray (S, T) float32
+            ``field[rows[i], cols[i], :]`` for each i (the same values).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from splidar.detection import ThresholdField
+        >>> f = ThresholdField(np.full((2, 3, 1), 1.0, np.float32), np.zeros((1, 4), np.float32),
+        ...                    np.array([0.0, 2.0]), np.array([1.0, 3.0]))
+        >>> f.pixels([1, 0], [2, 0]).shape
+        (2, 4)
         """
         rows = np.asarray(rows, np.int64)
         cols = np.asarray(cols, np.int64)
