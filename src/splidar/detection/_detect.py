@@ -1338,7 +1338,7 @@ def detect(
         t0 = time.perf_counter()
         rec = recover_slopes(
             cube.counts,
-            {k: surf[k][keep] for k in ("row", "col", "depth_bin", "presence_z", "presence_llr")},
+            {k: surf[k][keep] for k in ("row", "col", "depth_bin", "presence_llr")},
             spatial=spatial,
             dev=dev,
             irf=irf,

@@ -52,6 +52,8 @@ def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
     dr = (-1, 0, 0, 1)
     dc = (0, -1, 1, 0)
     indptr = np.zeros(S + 1, np.int64)
+    # count, then fill: the neighbour test is written out in both passes (a helper
+    # function, even inlined, made this 17x slower: 0.0017 -> 0.03 s for 80,000 surfaces)
     for s in range(S):
         n = 0
         for d in range(4):
