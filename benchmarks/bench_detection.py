@@ -364,8 +364,8 @@ def main(argv=None):
     ap.add_argument("--json", help="also write the results to this JSON file")
     ap.add_argument(
         "--slopes",
-        choices=("holes", "all", "off"),
-        help="splidar.detect's slope recovery (default: the library's, holes)",
+        choices=("weak", "holes", "all", "off"),
+        help="splidar.detect's slope recovery (default: the library's, weak)",
     )
     ap.add_argument(
         "--no-sweep",

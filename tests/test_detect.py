@@ -713,12 +713,13 @@ def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
     # 0.8 signal photons per pixel on a ramp of 5 bins per row: the square boxes smear
     # the return over ~25 bins and the main pass finds 2-6 of the 81 disc pixels (seeds
     # 0-2); the sheared pooled test finds 78-81 when it tests every pixel and 69-73 when
-    # it tests the empty ones only (the default: a disc pixel holding a wrong-depth
-    # surface is not tested)
+    # it tests the empty ones only (a disc pixel holding a wrong-depth surface is not
+    # tested); the default also tests the pixels whose surface their own counts do not
+    # confirm, which the wrong-depth ones are
     lam, depth, disc = _ramp_with_disc()
     cube = _cube(lam, rng=0)
     res = {}
-    for slopes in (False, "holes", "all"):
+    for slopes in (False, "holes", "weak", "all"):
         det = detect(cube, rng=0, slopes=slopes)
         p = det.points
         ok = np.abs(p.depth_bin - depth[p.row, p.col]) <= 3
@@ -727,10 +728,12 @@ def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
         res[slopes] = ((hit & disc).sum(), (~ok).sum(), det)
     assert res[False][0] <= 20
     assert res["holes"][0] >= 60 and res["all"][0] >= 72
+    assert res["weak"][0] >= max(res["holes"][0], 70)
     # recovered surfaces replace biased ones: no more wrong-depth surfaces than before
     assert res["all"][1] <= res[False][1]
     assert res["holes"][1] <= res[False][1]
-    assert detect(cube, rng=0).options["slopes"] == "holes"  # the default
+    assert res["weak"][1] <= res["holes"][1]
+    assert detect(cube, rng=0).options["slopes"] == "weak"  # the default
     assert detect(cube, rng=0, slopes=True).options["n_slopes"] == res["all"][2].options["n_slopes"]
     det = res["all"][2]
     assert det.options["n_slopes"] > 0 and "slopes" in det.timings
@@ -832,9 +835,40 @@ def test_recover_slopes_replacement_needs_own_counts_not_to_reject_it():
     assert abs(new["depth_bin"][(new["row"] == 16) & (new["col"] == 16)][0] - depth[16, 16]) <= 3
     assert out[50.0][0] == 0 and not out[50.0][1]
     # the other disc pixels are recovered either way, and by the holes-only pass too
-    holes = recover_slopes(y, surf, holes_only=True, **args)
+    holes = recover_slopes(y, surf, pixels="holes", **args)
     assert not np.any((holes["row"] == 16) & (holes["col"] == 16))
     assert holes["row"].size >= 70 and holes["replaces"].size == 0
+
+
+def test_recover_slopes_weak_tests_pixels_their_own_counts_do_not_confirm():
+    # as above, the disc's centre holds a box-biased surface. pixels="weak" tests it, and
+    # replaces it, when its own log-likelihood ratio is below presence_llr (3 nats: the
+    # own counts do not confirm it); above, the pixel is not tested at all
+    from splidar.detection._slopes import recover_slopes
+
+    lam, depth, disc = _ramp_with_disc(dim=1.5)
+    y = np.random.default_rng(3).poisson(lam)
+    rr, cc = np.nonzero(~disc)
+    rows, cols = np.r_[rr, 16], np.r_[cc, 16]
+    dep = np.r_[depth[rr, cc], depth[16, 16] + 4.5]
+    args = _slope_args(disc.shape, 200, 0.08)
+    res = {}
+    for own in (2.9, 3.1):
+        llr = np.r_[np.full(rr.size, 10.0), own]  # the ramp's surfaces are confirmed
+        surf = dict(row=rows, col=cols, depth_bin=dep, presence_llr=llr)
+        res[own] = recover_slopes(y, surf, pixels="weak", **args)
+    weak, strong = res[2.9], res[3.1]
+    assert rows.size - 1 in weak["replaces"] and weak["replaces"].size == 1
+    at = (weak["row"] == 16) & (weak["col"] == 16)
+    assert at.sum() == 1 and abs(weak["depth_bin"][at][0] - depth[16, 16]) <= 3
+    assert strong["replaces"].size == 0
+    assert not np.any((strong["row"] == 16) & (strong["col"] == 16))
+    # the empty disc pixels are tested either way; the confirmed ramp pixels never
+    for new in (weak, strong):
+        assert new["row"].size >= 70 and np.all(disc[new["row"], new["col"]])
+    # the weak pixel is one more tested pixel than the holes
+    holes = recover_slopes(y, surf, pixels="holes", **args)
+    assert weak["n_tested"] > holes["n_tested"] == strong["n_tested"]
 
 
 def test_align_depths_moves_only_where_neighbours_and_own_counts_agree():

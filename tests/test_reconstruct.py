@@ -811,3 +811,19 @@ def test_kernels_objective_change_matches_reference():
     assert ch == pytest.approx(np.sqrt(((new - old) ** 2).sum() / (old**2).sum()), rel=1e-12)
     assert ch == pytest.approx(kern._rms_change(st["h"], st["r"], old), rel=1e-12)
     assert S > 100
+
+
+def test_reconstruct_warns_when_depth_leaves_support(caplog):
+    # a surface whose support holds (almost) none of its IRF gets an intensity blown up
+    # by 1 / eta: reconstruct must say so rather than return it silently
+    det, _ = synthetic_detection(shape=(6, 6), rng=0)
+    s = det.surfaces
+    with caplog.at_level("WARNING", logger="splidar.reconstruction._core"):
+        reconstruct(det)
+    assert not [r for r in caplog.records if "support" in r.getMessage()]
+    far = s.depth_bin.copy()
+    far[0] = s.stop[0] + 20.0  # the first surface's depth well beyond its window
+    with caplog.at_level("WARNING", logger="splidar.reconstruction._core"):
+        reconstruct(replace(det, surfaces=replace(s, depth_bin=far)))
+    msgs = [r.getMessage() for r in caplog.records if "support" in r.getMessage()]
+    assert msgs and msgs[0].startswith(f"1 of {len(s)} surfaces")

@@ -206,11 +206,12 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--slopes",
-        choices=("holes", "all", "off"),
+        choices=("weak", "holes", "all", "off"),
         default=None,
         help="recover surfaces on steep slopes by sheared pooled tests: in the pixels "
-        "left empty (holes, the default), in every pixel (all: slower, replaces "
-        "depths the square boxes biased) or not at all (off)",
+        "left empty or holding a surface their own counts do not confirm (weak, the "
+        "default), only in the empty ones (holes), in every pixel (all: slower) or not "
+        "at all (off)",
     )
     g.add_argument(
         "--no-dark",

@@ -869,7 +869,19 @@ def reconstruct(
     if np.any(y < 0) or np.any(b < 0):
         raise SplidarError("`detection.surfaces.counts` and `.background` must be non-negative.")
     eta = irf_fraction(irf, surf.depth_bin, surf.start, surf.stop) if S else np.zeros((0, L))
-    eta = np.maximum(eta, 1e-6)  # a support that misses the IRF carries (almost) no signal
+    # a support that holds (almost) none of its IRF carries no information on the
+    # intensity: (y - b) / eta would blow the noise up by 1 / eta. The floor keeps the
+    # division finite; such surfaces are reported, not hidden
+    n_off = int(np.count_nonzero((eta < 0.01).any(axis=1))) if S else 0
+    if n_off:
+        log.warning(
+            "%d of %d surfaces hold less than 1 %% of their IRF inside their support "
+            "[start, stop) (depth outside it?): their intensities are unreliable. Check "
+            "detection.surfaces.depth_bin against start / stop.",
+            n_off,
+            S,
+        )
+    eta = np.maximum(eta, 1e-6)
     intensity_raw = (y - b) / eta
 
     rng = np.random.default_rng(rng)
