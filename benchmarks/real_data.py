@@ -78,7 +78,7 @@ def _report(name, desc, cube, args, truth=None):
     )
     print(f"   photons per pixel {cube.photons_per_pixel():.2f}")
     t0 = time.perf_counter()
-    det = detect(cube, pfa=args.pfa)
+    det = detect(cube, pfa=args.pfa, rng=args.seed)  # seeded null: reproducible runs
     t_det = time.perf_counter() - t0
     red = det.reduction
     pts = det.points
@@ -144,7 +144,9 @@ def main(argv=None):
     ap.add_argument("--pfa", type=float, default=1e-4, help="false-alarm rate per voxel")
     ap.add_argument("--art-ppp", type=float, default=4.0, help="Art scene photons per pixel")
     ap.add_argument("--art-sbr", type=float, default=1.0, help="Art scene SBR")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--seed", type=int, default=0, help="seed of the Art simulation and of the detection null"
+    )
     ap.add_argument("--no-reconstruct", action="store_true")
     ap.add_argument("-v", "--verbose", action="store_true", help="show library log messages")
     args = ap.parse_args(argv)
