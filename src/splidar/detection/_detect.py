@@ -767,7 +767,7 @@ def detect(
     block_rows: int | None = None,
     n_jobs: int | None = None,
     store=None,
-    rng=None,
+    rng=0,
 ) -> Detection:
     """Multiscale saliency detection of surfaces in a photon-count cube (Algorithm 1).
 
@@ -986,8 +986,12 @@ def detect(
         in RAM (with a lazy, Zarr- or Dask-backed cube, the counts are read block by
         block too). The result then holds ``zarr`` arrays; results are identical.
         Needs the ``zarr`` package (``pip install splidar[dask]``).
-    rng : None, int or Generator
-        Randomness of the simulated null.
+    rng : None, int or Generator, default 0
+        Seed of the Monte Carlo null (the background-only saliency simulated from the
+        estimated background to calibrate the threshold) and of the slope recovery's
+        robust plane fits. The default, a fixed seed, makes the same input give the
+        same result; ``None`` draws fresh entropy (results then vary slightly between
+        calls, within the null's Monte Carlo error).
 
     Returns
     -------
