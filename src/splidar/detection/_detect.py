@@ -1020,6 +1020,7 @@ def detect(
       (``benchmarks/bench_null.py``), where the gamma tail misses by up to 100x.
     * Candidates are positive excursions only, ranked by ``evidence`` and kept when it
       beats the simulated null at ``surface_pfa`` per pixel; then the presence check.
+
     ``eq:depth_global`` and ``eq:depth_scale`` correlate the clean histograms with g; in
     the paper the clean histograms of ``eq:background_final`` already are ``Y (*) g``, so
     correlating again would double-filter (and bias depths for asymmetric IRFs). We take

@@ -728,7 +728,7 @@ def reconstruct(
         two):
 
         ====================  ============  ===========  =====================
-        scene                 IAE 6 / auto  cov 6 / auto  sweeps 6 / auto
+        scene                 IAE 6 / auto  cov 6/auto    sweeps 6 / auto
         ====================  ============  ===========  =====================
         CV 0, 1 layer         2.55 / 1.15   0.85 / 0.72   8-10 / 7
         CV 0, 2 layers        1.39 / 0.64   (pooled)      10-14 / 10-11
