@@ -224,7 +224,10 @@ def _open(browser, path: Path):
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("request", lambda r: requests.append(r.url))
     page.goto(path.resolve().as_uri())
-    page.wait_for_function("window.splidarView.ready || window.splidarView.error", timeout=60000)
+    page.wait_for_function(
+        "() => window.splidarView && (window.splidarView.ready || window.splidarView.error)",
+        timeout=60000,
+    )
     assert page.evaluate("window.splidarView.error") is None
     return page, errors, requests
 
@@ -285,7 +288,7 @@ def test_view_in_browser_rotates_and_zooms(browser, rec, tmp_path):
     page.mouse.down()
     page.mouse.move(600, 340, steps=4)
     page.mouse.up()
-    page.wait_for_function("splidarView.frames > 3")
+    page.wait_for_function("() => window.splidarView.frames > 3")
     assert page.screenshot() != before
     page.mouse.wheel(0, -400)  # zoom in: the points spread over more pixels
     page.wait_for_timeout(100)
