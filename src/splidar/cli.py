@@ -6,10 +6,12 @@ Commands::
     splidar run       INPUT [--out DIR] [...]     process a file (cube or photon lists)
     splidar simulate  SCENE --out FILE [...]      write a simulated cube and its truth
     splidar evaluate  POINTS TRUTH [--tau BINS]   the paper's metrics
+    splidar view      RESULT [--out FILE]         an interactive 3D view (view.html)
 
 Every error is one line on stderr (``splidar: error: ...``) and a non-zero exit status:
 2 for a usage error, 1 for a failure while running, 130 when interrupted. ``--verbose``
-adds the traceback. Outputs of ``run`` and ``demo`` are written into a hidden
+adds the traceback; ``--json`` prints a machine-readable summary and nothing else
+on stdout. Outputs of ``run`` and ``demo`` are written into a hidden
 temporary folder beside ``--out`` and renamed at the end, so an interrupted run never
 leaves a folder that looks complete.
 """
@@ -24,6 +26,7 @@ import re
 import shutil
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Sequence
@@ -133,6 +136,7 @@ examples:
   splidar run scan.mat --irf-fwhm 10 --out scan-result
   splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
   splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
+  splidar view scene-splidar
 
 Run 'splidar COMMAND --help' for the options of a command.
 """
@@ -159,6 +163,7 @@ def _out_options(p: argparse.ArgumentParser, default: str) -> None:
         "--force", action="store_true", help="replace an existing output folder of splidar"
     )
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    g.add_argument("--no-view", action="store_true", help="skip view.html, the interactive 3D view")
     g.add_argument(
         "--pixel-size",
         type=_positive(float),
@@ -286,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--tau", type=_positive(float), default=2.0, help="matching distance, bins (default 2)"
     )
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "run",
@@ -335,6 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     _out_options(p, "INPUT-STEM-splidar beside the input")
     _pipeline_options(p)
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "simulate",
@@ -371,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--force", action="store_true", help="replace existing files")
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "evaluate",
@@ -389,7 +397,55 @@ def build_parser() -> argparse.ArgumentParser:
     tau.add_argument("--tau-m", type=_positive(float), help="matching distance in metres")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _common(p, top=False)
+    _view_parser(sub, fmt)
     return parser
+
+
+def _json_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print a JSON summary on stdout and nothing else there (messages go to stderr)",
+    )
+
+
+def _view_parser(sub, fmt) -> None:
+    p = sub.add_parser(
+        "view",
+        help="write (and open) an interactive 3D view of a result",
+        description="Write the interactive 3D point cloud of a result as one self-contained "
+        "HTML file (no network access needed: rotate, zoom, colour by depth, label, "
+        "intensity or uncertainty, one layer or all), print its path and open it in the "
+        "default browser. RESULT is an output folder of 'splidar run'/'demo', its "
+        "result.npz, or a point-set .npz.",
+        epilog="examples:\n"
+        "  splidar view scene-splidar\n"
+        "  splidar view scene-splidar/result.npz --color label --out scene.html --no-open\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("result", metavar="RESULT", help="output folder or .npz of points")
+    p.add_argument(
+        "-o",
+        "--out",
+        metavar="FILE",
+        help="HTML file (default: view.html in the output folder, else RESULT-STEM.html)",
+    )
+    p.add_argument(
+        "--color",
+        choices=("depth", "label", "intensity", "spectral", "uncertainty", "confidence"),
+        default="depth",
+        help="initial colouring (default depth; the page switches)",
+    )
+    p.add_argument(
+        "--pixel-size",
+        type=_positive(float),
+        metavar="M",
+        help="pixel footprint in metres: a metric view when the bin width is known",
+    )
+    p.add_argument("--no-open", action="store_true", help="write the file only")
+    p.add_argument("--force", action="store_true", help="replace a file splidar did not write")
+    _common(p, top=False)
+    _json_flag(p)
 
 
 # ----------------------------------------------------------------------------------------
@@ -453,6 +509,16 @@ class _Stages:
             bar_format="{desc:<28} {bar} {n_fmt}/{total_fmt} [{elapsed}]",
             leave=False,
         )
+        # redraw twice a second, so that the elapsed time of a long step keeps counting
+        self._stop = threading.Event()
+        self._ticker = None
+        if not disable:
+            self._ticker = threading.Thread(target=self._tick, name="splidar-progress", daemon=True)
+            self._ticker.start()
+
+    def _tick(self):
+        while not self._stop.wait(0.5):
+            self.bar.refresh()
 
     @contextmanager
     def stage(self, name: str):
@@ -465,6 +531,9 @@ class _Stages:
         self.bar.update(1)
 
     def close(self):
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join()
         self.bar.close()
 
 
@@ -541,6 +610,8 @@ def _write_outputs(
         )
         export.write_npz(rec, folder / "result.npz")
         files += ["points.csv", "points.ply", "result.npz"]
+        if not getattr(args, "no_view", False):
+            files.append(_write_view(rec, folder, args))
     if not args.no_figures:
         with stages.stage("drawing figures"):
             import matplotlib
@@ -675,6 +746,7 @@ def _cmd_demo(args) -> int:
     print(f"metrics against the truth ({len(sim.truth)} true surfaces):")
     print(_indent(str(metrics)))
     print(_timing_line(rec.detection, rec))
+    args.json_summary = _json_result(out)
     _say(args, f"outputs written to {out}/ (figures in {out}/figures/)")
     return EXIT_OK
 
@@ -730,6 +802,7 @@ def _cmd_run(args) -> int:
         stages.close()
     p = rec.points
     c = cube
+    args.json_summary = _json_result(out)
     _say(
         args,
         f"{inp}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} wavelength(s), {c.n_bins} bins",
@@ -796,6 +869,17 @@ def _cmd_simulate(args) -> int:
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
     c = sim.cube
+    args.json_summary = {
+        "command": "simulate",
+        "scene": scene.name,
+        "cube": str(out),
+        "truth": str(truth_out),
+        "shape": list(c.shape),
+        "true_surfaces": len(sim.truth),
+        "ppp": sim.ppp,
+        "sbr": sim.sbr,
+        "seed": args.seed,
+    }
     _say(
         args,
         f"simulated {scene.name}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} "
@@ -914,6 +998,12 @@ def _cmd_evaluate(args) -> int:
     return EXIT_OK
 
 
+def _json_result(out: Path) -> dict[str, Any]:
+    """``--json`` of run and demo: the output folder and its summary.json."""
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    return {"out": str(out), **summary}
+
+
 def _json_num(v):
     import math
 
@@ -922,11 +1012,67 @@ def _json_num(v):
     return v
 
 
+def _write_view(rec, folder: Path, args) -> str:
+    from .view import write_view
+
+    title = folder.name.split(".partial-")[0].lstrip(".") or folder.name
+    write_view(rec, folder / "view.html", pixel_size=getattr(args, "pixel_size", None), title=title)
+    return "view.html"
+
+
+def _cmd_view(args) -> int:
+    from .view import is_view_file, load_view_input, write_view
+
+    src = Path(args.result)
+    if args.out:
+        dest = Path(args.out)
+    elif src.is_dir():
+        dest = src / "view.html"
+    elif src.name == "result.npz":
+        dest = src.parent / "view.html"
+    else:
+        dest = src.with_name(src.name.split(".")[0] + ".html")
+    if dest.is_dir():
+        raise UsageError(f"--out '{dest}' is a folder; give a file name such as view.html")
+    if dest.exists() and not args.force and not is_view_file(dest):
+        raise UsageError(
+            f"'{dest}' exists and is not a view written by splidar; pass --force to replace "
+            "it or choose another --out"
+        )
+    stages = _Stages(["reading the points", "writing the view"], args.quiet)
+    try:
+        with stages.stage("reading the points"):
+            data = load_view_input(src)
+        with stages.stage("writing the view"):
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            write_view(data, dest, pixel_size=args.pixel_size, color=args.color)
+    finally:
+        stages.close()
+    opened = False
+    if not args.no_open:
+        import webbrowser
+
+        opened = bool(webbrowser.open(dest.resolve().as_uri()))
+        if not opened:
+            log.warning("no browser found; open %s yourself", dest)
+    args.json_summary = {
+        "command": "view",
+        "result": str(src),
+        "view": str(dest),
+        "points": len(data.points),
+        "bytes": dest.stat().st_size,
+        "opened": opened,
+    }
+    _say(args, str(dest))
+    return EXIT_OK
+
+
 _COMMANDS = {
     "demo": _cmd_demo,
     "run": _cmd_run,
     "simulate": _cmd_simulate,
     "evaluate": _cmd_evaluate,
+    "view": _cmd_view,
 }
 
 
@@ -989,7 +1135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     verbose = args.verbose > 0
-    with _logging(args):
+    with _json_output(args), _logging(args):
         try:
             return _COMMANDS[args.command](args)
         except UsageError as exc:
@@ -1004,6 +1150,38 @@ def main(argv: Sequence[str] | None = None) -> int:
         except Exception as exc:  # noqa: BLE001 - the CLI never shows a raw traceback
             _report(exc, verbose, unexpected=True)
             return EXIT_FAILURE
+
+
+_JSON_COMMANDS = ("demo", "run", "simulate", "view")
+
+
+@contextmanager
+def _json_output(args):
+    """``--json``: the command's summary alone on stdout; what it prints goes to stderr.
+
+    A command stores its summary as ``args.json_summary`` once it has succeeded; a failed
+    command leaves stdout empty (the error is on stderr, the exit status non-zero).
+    """
+    if not (getattr(args, "json", False) and args.command in _JSON_COMMANDS):
+        yield
+        return
+    from contextlib import redirect_stdout
+
+    stdout = sys.stdout
+    with redirect_stdout(sys.stderr):
+        yield
+    summary = getattr(args, "json_summary", None)
+    if summary is not None:
+        print(json.dumps(_json_clean(summary), indent=2, allow_nan=False), file=stdout)
+
+
+def _json_clean(x):
+    """JSON-ready copy: NaN and infinities become null, tuples lists."""
+    if isinstance(x, dict):
+        return {str(k): _json_clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_clean(v) for v in x]
+    return _json_num(x)
 
 
 def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:
