@@ -10,6 +10,7 @@ B&H software.
 
 from __future__ import annotations
 
+import json
 import sys
 
 import numpy as np
@@ -230,3 +231,27 @@ def test_load_npy_refuses_pickles(tmp_path):
     for reader in (splidar.load, load_irf, load_library):
         with pytest.raises(SplidarError, match="allow_pickle=False"):
             reader(tmp_path / "obj.npy")
+
+
+def test_main_run_ptu_with_npy_irf_and_library(scene_cube, tmp_path):
+    from splidar.cli import main
+
+    cube = scene_cube
+    ptu = _write_ptu(tmp_path / "scene.ptu", cube.counts.astype(np.uint16), cube.bin_width_ps)
+    np.save(tmp_path / "irf.npy", cube.irf)
+    np.save(tmp_path / "lib.npy", cube.library.signatures)
+    out = tmp_path / "out"
+    args = ["run", str(ptu), "--irf", str(tmp_path / "irf.npy"), "--library"]
+    args += [str(tmp_path / "lib.npy"), "--channels", "wavelengths", "--no-figures", "-q"]
+    assert main([*args, "-o", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["cube_shape"] == list(cube.shape)
+    expected = splidar.process(cube, library=cube.library.signatures, rng=0).points
+    with np.load(out / "result.npz") as z:
+        np.testing.assert_array_equal(z["points_depth_bin"], expected.depth_bin)
+        np.testing.assert_array_equal(z["points_label"], expected.label)
+    # --channels detectors: one wavelength, the channels' sum
+    out2 = tmp_path / "out2"
+    args2 = ["run", str(ptu), "--irf-fwhm", "3", "--channels", "detectors", "--no-figures"]
+    assert main([*args2, "-q", "-o", str(out2)]) == 0
+    assert json.loads((out2 / "summary.json").read_text())["cube_shape"][2] == 1
