@@ -110,6 +110,46 @@ def test_load_irf_ptu_sums_pixels(tmp_path):
     np.testing.assert_array_equal(irf, counts.sum(axis=(0, 1))[:, 10:15])
 
 
+def _write_phu(path, curves, resolution_s=8e-12):
+    """Assemble a PicoQuant histogram-mode .phu file with ptufile's own tag encoder.
+
+    ptufile writes no .phu files; this fixture follows the PicoQuant unified tag layout
+    (magic, version, tags, Header_End, then each curve as uint32 at its
+    HistResDscr_DataOffset). Not output of PicoQuant software.
+    """
+    pytest.importorskip("ptufile")
+    from ptufile.ptufile import encode_tag
+
+    n = len(curves)
+
+    def header(offsets):
+        tags = [
+            encode_tag("Measurement_Mode", 0),
+            encode_tag("Measurement_SubMode", 0),
+            encode_tag("MeasDesc_Resolution", float(resolution_s)),
+            encode_tag("HistoResult_NumberOfCurves", n),
+        ]
+        for i, (c, off) in enumerate(zip(curves, offsets, strict=True)):
+            tags.append(encode_tag("HistResDscr_DataOffset", int(off), i))
+            tags.append(encode_tag("HistResDscr_HistogramBins", len(c), i))
+        return b"PQHISTO\0" + b"1.0.00\0\0" + b"".join(tags) + encode_tag("Header_End", None)
+
+    size = len(header([0] * n))  # integer tags have a fixed size
+    offsets = np.cumsum([size] + [4 * len(c) for c in curves[:-1]])
+    data = b"".join(np.asarray(c, "<u4").tobytes() for c in curves)
+    path.write_bytes(header(offsets) + data)
+    return path
+
+
+def test_load_irf_phu_curves(tmp_path):
+    curves = [[0, 0, 5, 60, 20, 2, 0, 0], [0, 1, 9, 70, 10, 0, 0, 0]]
+    phu = _write_phu(tmp_path / "irf.phu", curves)
+    # all-zero ends trimmed over both curves
+    np.testing.assert_array_equal(load_irf(phu), np.asarray(curves, float)[:, 1:6])
+    with pytest.raises(SplidarError, match="hold no image.*can serve as the IRF"):
+        splidar.load(phu, irf_fwhm=2)
+
+
 def test_load_vendor_missing_extra_names_it(tmp_path, monkeypatch):
     f = tmp_path / "x.ptu"
     f.write_bytes(b"")

@@ -599,7 +599,7 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
     returned as stored (not normalised; :class:`~splidar.cube.Cube` normalises).
     A ``.npy`` file is one array (read with ``allow_pickle=False``); a vendor file
     (``.ptu``, ``.sdt``) gives its histograms summed over all pixels, one row per
-    channel (:func:`splidar.vendor.read_vendor_irf`).
+    channel, a PicoQuant ``.phu`` its curves (:func:`splidar.vendor.read_vendor_irf`).
 
     Parameters
     ----------
@@ -633,14 +633,14 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
         a = _irf_from_container(_read_container(p), p, variable)
     elif ext == ".npy":
         a = _read_npy(p)
-    elif ext in (".ptu", ".sdt"):
+    elif ext in (".ptu", ".sdt", ".phu"):
         from .vendor import read_vendor_irf
 
         a = read_vendor_irf(p)
     else:
         raise SplidarError(
             f"unknown IRF file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv, .txt, "
-            ".ptu or .sdt."
+            ".ptu, .sdt or .phu."
         )
     out = _trim_zeros(_orient_irf(a, f"'{p.name}'"))
     if not np.all(np.isfinite(out)) or np.any(out < 0) or out.sum() <= 0:

@@ -32,9 +32,10 @@ How the files map onto a cube ``(rows, cols, L, T)``:
   of one wavelength and sums them (L = 1); an int or a sequence of ints keeps those
   channels (PTU hardware channel numbers, SDT block indices) as wavelengths.
 
-Becker & Hickl ``.spc`` FIFO files are not read: sdtfile reads only ``.sdt``. PHU
-histogram files, T2 files (no delay times relative to a laser sync) and PTU files with
-no image, line or point structure are refused with a message saying so.
+Becker & Hickl ``.spc`` FIFO files are not read: sdtfile reads only ``.sdt``.
+PicoQuant ``.phu`` histogram files hold no image: they are read as IRFs only
+(:func:`read_vendor_irf`). T2 files (no delay times relative to a laser sync) are
+refused with a message saying so.
 """
 
 from __future__ import annotations
@@ -354,6 +355,22 @@ def read_sdt(path: str | os.PathLike, *, channels="wavelengths") -> VendorHistog
     return VendorHistograms(_compact(counts), bw, kept, info)
 
 
+def _phu_curves(p: Path) -> np.ndarray:
+    """The curves of a PicoQuant .phu histogram file, ``(n_curves, bins)`` float64."""
+    ptufile = _need("ptufile", "ptu")
+    try:
+        with ptufile.PhuFile(p) as f:
+            curves = [np.asarray(h, dtype=np.float64) for h in f.histograms()]
+    except Exception as exc:
+        raise SplidarError(f"ptufile cannot read '{p}' as a PicoQuant PHU file: {exc}") from None
+    lengths = sorted({c.size for c in curves})
+    if len(lengths) != 1:
+        raise SplidarError(
+            f"the curves of '{p.name}' have different lengths {lengths}; an IRF needs one."
+        )
+    return np.stack(curves)
+
+
 # --------------------------------------------------------------------------------------
 # dispatch
 # --------------------------------------------------------------------------------------
@@ -367,8 +384,8 @@ def _refuse(p: Path) -> None:
         )
     if ext == ".phu":
         raise SplidarError(
-            f"'{p.name}': PicoQuant .phu histogram files hold no image. Record images in T3 "
-            "mode (.ptu)."
+            f"'{p.name}': PicoQuant .phu histogram files hold no image (record images in T3 "
+            "mode, .ptu); a .phu curve can serve as the IRF (irf= / --irf)."
         )
 
 
@@ -395,9 +412,10 @@ def read_vendor_irf(path: str | os.PathLike) -> np.ndarray:
     """An IRF ``(L, n)`` from a vendor file: its histograms summed over all pixels.
 
     A measured IRF is often recorded like the data, on a reference target: ``.ptu``
-    (every pixel and frame, one row per channel) or ``.sdt`` (every data block, image
+    (every pixel and frame, one row per channel), ``.sdt`` (every data block, image
     or single decay curve, summed over its pixels; one row per block, all of one
-    length).
+    length) or a PicoQuant histogram-mode ``.phu`` file (one row per curve). Record it
+    at the TCSPC resolution of the data: the IRF is used bin for bin.
 
     Returns
     -------
@@ -410,8 +428,10 @@ def read_vendor_irf(path: str | os.PathLike) -> np.ndarray:
         lengths.
     """
     p = Path(path)
-    _refuse(p)
     ext = p.suffix.lower()
+    if ext == ".phu":
+        return _phu_curves(p)
+    _refuse(p)
     if ext == ".ptu":
         h = read_ptu(p)
         return h.counts.sum(axis=(0, 1), dtype=np.float64)
@@ -426,4 +446,4 @@ def read_vendor_irf(path: str | os.PathLike) -> np.ndarray:
                 "an IRF needs one length."
             )
         return np.stack([c.reshape(-1, c.shape[-1]).sum(axis=0) for c in curves])
-    raise SplidarError(f"'{p.name}' is not a vendor file splidar reads (.ptu, .sdt).")
+    raise SplidarError(f"'{p.name}' is not a vendor IRF file splidar reads (.ptu, .sdt, .phu).")
