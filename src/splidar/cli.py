@@ -341,8 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     irf.add_argument(
         "--irf",
         metavar="FILE",
-        help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, or a .ptu/.sdt "
-        "measurement summed over its pixels)",
+        help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, a .ptu/.sdt "
+        "measurement summed over its pixels, or a .phu histogram)",
     )
     irf.add_argument(
         "--irf-fwhm",
