@@ -163,16 +163,22 @@ def _read_npy(p: Path) -> np.ndarray:
         raise SplidarError(f"cannot read '{p}' as .npy: {exc}") from None
 
 
+def _check_channels_apply(p: Path, channels) -> Path:
+    from .vendor import VENDOR_SUFFIXES
+
+    if channels is not None and _ext(p) not in VENDOR_SUFFIXES:
+        raise SplidarError(
+            f"`channels` applies to vendor files ({', '.join(VENDOR_SUFFIXES)}); '{p.name}' is "
+            "not one."
+        )
+    return p
+
+
 def _read_any(p: Path, channels) -> dict[str, Any]:
     """The variables of a data file: containers, ``.npy`` (``counts``) or vendor files."""
     from .vendor import VENDOR_SUFFIXES
 
     ext = _ext(p)
-    if channels is not None and ext not in VENDOR_SUFFIXES:
-        raise SplidarError(
-            f"`channels` applies to vendor files ({', '.join(VENDOR_SUFFIXES)}); '{p.name}' is "
-            "not one."
-        )
     if ext == ".npy":
         return {"counts": _read_npy(p)}
     if ext in VENDOR_SUFFIXES:
@@ -878,12 +884,9 @@ def load(
     Parameters
     ----------
     path : str or path-like
-        ``.npz``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5``, a ``.zarr`` directory, a
-        ``.npy`` array of counts (read with ``allow_pickle=False``), or a vendor file:
-        PicoQuant T3 ``.ptu`` (extra ``splidar[ptu]``) or Becker & Hickl ``.sdt``
-        (extra ``splidar[sdt]``), read by :mod:`splidar.vendor` with the file's TCSPC
-        resolution as ``bin_width_ps``. ``.npz`` files are opened with pickle allowed
-        (photon lists are object arrays): open only files you trust.
+        ``.npz``, ``.npy``, ``.mat`` (v5, v7.3), ``.h5``, ``.zarr`` or vendor files (``.ptu``,
+        ``.sdt``: :mod:`splidar.vendor`). ``.npz`` is opened with pickle allowed (photon
+        lists are object arrays): open only files you trust.
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
         if present, else the only cell array of arrival times or numeric 3-D/4-D array;
@@ -915,9 +918,7 @@ def load(
     library : SpectralLibrary, array (K, L) or path, optional
         Overrides the file's spectral library.
     channels : {"wavelengths", "detectors"}, int or sequence of int, optional
-        Vendor files only: the detector channels as wavelengths (default), summed as
-        detectors of one wavelength, or only the given channels (see
-        :mod:`splidar.vendor`).
+        Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
 
     Returns
     -------
@@ -941,10 +942,8 @@ def load(
     ...              window=(5_180_000, 5_380_000), bin_width=100)  # doctest: +SKIP
     """
     check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
-    p = _check_path(path)
+    p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
-        if channels is not None:
-            raise SplidarError("`channels` applies to vendor files (.ptu, .sdt), not .zarr.")
         cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)

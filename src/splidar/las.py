@@ -63,6 +63,43 @@ def _decade(step: float) -> float:
     return float(10.0 ** np.floor(np.log10(step)))
 
 
+def _depth(p: PointSet, bin_width_ps: float | None) -> tuple[np.ndarray, str, float]:
+    """z = -depth (float64), its unit ("m" or "bin") and its LAS scale.
+
+    The scale is a thousandth of a bin rounded down to a power of ten (int32 coordinates
+    then span 2e6 bins); 10 um when only ``depth_m`` is known.
+    """
+    from .cube import SPEED_OF_LIGHT
+
+    bin_m = None if bin_width_ps is None else bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2.0
+    if p.depth_m is not None and np.all(np.isfinite(p.depth_m)):
+        return -p.depth_m, "m", 1e-5 if bin_m is None else _decade(bin_m * 1e-3)
+    if bin_m is not None:
+        return -p.depth_bin * bin_m, "m", _decade(bin_m * 1e-3)
+    return -p.depth_bin, "bin", 1e-3
+
+
+def _extra_dims(p: PointSet) -> list[tuple[str, np.ndarray]]:
+    """The LAS extra dimensions: name and values (their dtype is the stored type)."""
+    n = len(p)
+    out = [
+        ("row", p.row.astype(np.uint32)),
+        ("col", p.col.astype(np.uint32)),
+        ("depth_bin", p.depth_bin.astype(np.float64)),
+    ]
+    if p.depth_m is not None:
+        out.append(("depth_m", p.depth_m.astype(np.float64)))
+    out.append(("layer", (p.layer if p.layer is not None else np.full(n, -1)).astype(np.int16)))
+    for i in range(p.n_wavelengths):
+        out.append((f"intensity_{i}", p.intensity[:, i].astype(np.float32)))
+    if p.intensity_std is not None:
+        for i in range(p.intensity_std.shape[1]):
+            out.append((f"intensity_std_{i}", p.intensity_std[:, i].astype(np.float32)))
+    if p.label_confidence is not None:
+        out.append(("label_confidence", p.label_confidence.astype(np.float32)))
+    return out
+
+
 def _returns(p: PointSet) -> tuple[np.ndarray, np.ndarray]:
     """Return number (1 = nearest surface of the pixel) and surfaces in the pixel, 1..15."""
     n = len(p)
@@ -176,44 +213,15 @@ def write_las(
             f"LAS classification holds 0..255; the labels range over [{label.min()}, "
             f"{label.max()}]."
         )
-    if p.depth_m is not None and np.all(np.isfinite(p.depth_m)):
-        depth, z_unit = p.depth_m, "m"
-    elif bin_width_ps is not None:
-        from .cube import SPEED_OF_LIGHT
-
-        depth, z_unit = p.depth_bin * (bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2.0), "m"
-    else:
-        depth, z_unit = p.depth_bin, "bin"
+    z, z_unit, z_scale = _depth(p, bin_width_ps)
     xy = 1.0 if pixel_size is None else pixel_size
     x = p.col * xy
     y = (p.image_shape[0] - 1 - p.row) * xy
-    z = -np.asarray(depth, dtype=np.float64)
-
+    extra = _extra_dims(p)
     header = laspy.LasHeader(point_format=7, version="1.4")
-    # a thousandth of a pixel and of a bin, rounded down to a power of ten; int32
-    # coordinates then span 2e6 pixels or bins. depth_m without a bin width: 10 um.
-    z_scale = 1e-3
-    if z_unit == "m":
-        from .cube import SPEED_OF_LIGHT
-
-        bin_m = None if bin_width_ps is None else bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2
-        z_scale = 1e-5 if bin_m is None else _decade(bin_m * 1e-3)
     header.scales = [_decade(xy * 1e-3)] * 2 + [z_scale]
-    header.offsets = [
-        float(np.floor(v.min())) if n else 0.0 for v in (np.asarray(x), np.asarray(y), z)
-    ]
-    extra = [("row", np.uint32), ("col", np.uint32), ("depth_bin", np.float64)]
-    if p.depth_m is not None:
-        extra.append(("depth_m", np.float64))
-    extra.append(("layer", np.int16))
-    for i in range(p.n_wavelengths):
-        extra.append((f"intensity_{i}", np.float32))
-    if p.intensity_std is not None:
-        extra += [(f"intensity_std_{i}", np.float32) for i in range(p.intensity_std.shape[1])]
-    if p.label_confidence is not None:
-        extra.append(("label_confidence", np.float32))
-    header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=t) for k, t in extra])
-
+    header.offsets = [float(np.floor(v.min())) if n else 0.0 for v in (x, y, z)]
+    header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=v.dtype) for k, v in extra])
     total = p.intensity.sum(axis=1) if p.intensity is not None else np.zeros(n)
     top = float(total.max()) if n else 0.0
     scale = 65535.0 / top if top > 0 else 0.0
@@ -227,14 +235,8 @@ def write_las(
         "class_names": None if class_names is None else [str(c) for c in class_names],
         "coordinates": "x = col * pixel_size, y = (rows - 1 - row) * pixel_size, z = -depth",
     }
-    header.vlrs.append(
-        laspy.VLR(
-            user_id=VLR_USER_ID,
-            record_id=1,
-            description="units and class names",
-            record_data=json.dumps(info).encode(),
-        )
-    )
+    record = json.dumps(info).encode()
+    header.vlrs.append(laspy.VLR(VLR_USER_ID, 1, "units and class names", record))
     las = laspy.LasData(header)
     las.x, las.y, las.z = x, y, z
     las.classification = label.astype(np.uint8)
@@ -246,19 +248,8 @@ def write_las(
 
     rgb = point_colors(p).astype(np.uint16) * 257
     las.red, las.green, las.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    las.row = p.row.astype(np.uint32)
-    las.col = p.col.astype(np.uint32)
-    las.depth_bin = p.depth_bin
-    if p.depth_m is not None:
-        las.depth_m = p.depth_m
-    las.layer = (p.layer if p.layer is not None else np.full(n, -1)).astype(np.int16)
-    for i in range(p.n_wavelengths):
-        las[f"intensity_{i}"] = p.intensity[:, i].astype(np.float32)
-    if p.intensity_std is not None:
-        for i in range(p.intensity_std.shape[1]):
-            las[f"intensity_std_{i}"] = p.intensity_std[:, i].astype(np.float32)
-    if p.label_confidence is not None:
-        las.label_confidence = p.label_confidence.astype(np.float32)
+    for name, values in extra:
+        las[name] = values
     las.write(str(path))
     log.info("wrote %d points to %s (xy in %s, z in %s)", n, path, info["xy_unit"], z_unit)
     return path
