@@ -77,6 +77,17 @@ def _int_list(text: str) -> tuple[int, ...]:
     return vals
 
 
+def _channels(text: str):
+    if text in ("wavelengths", "detectors"):
+        return text
+    try:
+        return _int_list(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'wavelengths', 'detectors' or channel numbers such as 0,2; got {text!r}"
+        ) from None
+
+
 def _float_list(text: str) -> tuple[float, ...]:
     try:
         vals = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
@@ -168,7 +179,8 @@ def _out_options(p: argparse.ArgumentParser, default: str) -> None:
         "--pixel-size",
         type=_positive(float),
         metavar="M",
-        help="pixel footprint for points.ply x and y (default 1: pixel units)",
+        help="pixel footprint at the target in metres, for x and y of points.ply and "
+        "points.las (default: pixel units)",
     )
 
 
@@ -296,9 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "run",
         help="detect and reconstruct the surfaces of a file",
-        description="Process a cube file (.npz, .mat, .h5, .zarr) or photon lists "
-        "(a MATLAB cell array of arrival times) and write points.csv, points.ply, "
-        "result.npz, summary.json and figures/ into the output folder.",
+        description="Process a cube file (.npz, .npy, .mat, .h5, .zarr), a PicoQuant T3 "
+        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]) or photon "
+        "lists (a MATLAB cell array of arrival times) and write points.csv, points.ply, "
+        "points.las (with splidar[las]), result.npz, summary.json and figures/ into the "
+        "output folder.",
         epilog="examples:\n"
         "  splidar run scene.npz\n"
         "  splidar run data_face.mat --window 1000 8000 --irf-fwhm 8 --out face\n"
@@ -330,14 +344,31 @@ def build_parser() -> argparse.ArgumentParser:
         "--bin-width-ps", type=_positive(float), metavar="PS", help="bin width in picoseconds"
     )
     irf = g.add_mutually_exclusive_group()
-    irf.add_argument("--irf", metavar="FILE", help="instrument response file")
+    irf.add_argument(
+        "--irf",
+        metavar="FILE",
+        help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, a .ptu/.sdt "
+        "measurement summed over its pixels, or a .phu histogram)",
+    )
     irf.add_argument(
         "--irf-fwhm",
         type=_positive(float),
         metavar="BINS",
         help="use a Gaussian IRF of this FWHM in bins",
     )
-    g.add_argument("--library", metavar="FILE", help="spectral library file (K x L)")
+    g.add_argument(
+        "--library",
+        metavar="FILE",
+        help="spectral library file (K x L: .npy, .npz, .mat, .h5, .csv, .json)",
+    )
+    g.add_argument(
+        "--channels",
+        type=_channels,
+        metavar="C",
+        help="vendor files (.ptu, .sdt): 'wavelengths' (each detector channel a wavelength, "
+        "the default), 'detectors' (channels summed into one wavelength) or channel "
+        "numbers 0,2,..",
+    )
     _out_options(p, "INPUT-STEM-splidar beside the input")
     _pipeline_options(p)
     _common(p, top=False)
@@ -612,6 +643,7 @@ def _write_outputs(
         files += ["points.csv", "points.ply", "result.npz"]
         if not getattr(args, "no_view", False):
             files.append(_write_view(rec, folder, args))
+        files += _write_las(rec, folder, args)
     if not args.no_figures:
         with stages.stage("drawing figures"):
             import matplotlib
@@ -626,6 +658,17 @@ def _write_outputs(
     extra["files"] = files + ["summary.json"]
     export.write_summary(rec, folder / "summary.json", metrics=metrics, extra=extra)
     return files
+
+
+def _write_las(rec, folder: Path, args) -> list[str]:
+    """points.las when laspy is installed; otherwise a one-line note (not a failure)."""
+    from .las import las_available, write_las
+
+    if not las_available():
+        log.warning("points.las not written: laspy is not installed (pip install 'splidar[las]')")
+        return []
+    write_las(rec, folder / "points.las", pixel_size=getattr(args, "pixel_size", None))
+    return ["points.las"]
 
 
 def _given(args, names: Sequence[str]) -> dict[str, Any]:
@@ -768,7 +811,9 @@ def _cmd_run(args) -> int:
         + ([] if args.no_figures else ["drawing figures"]),
         args.quiet,
     )
-    load_kw = _given(args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps"))
+    load_kw = _given(
+        args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels")
+    )
     if args.window is not None:
         load_kw["window"] = tuple(args.window)
     if args.irf is not None:
@@ -1081,7 +1126,7 @@ _COMMANDS = {
 _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
-    + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable")
+    + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
 )
 _NAME_RE = re.compile(
     r"`("

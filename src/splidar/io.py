@@ -146,8 +146,48 @@ def _read_container(p: Path) -> dict[str, Any]:
         return _read_hdf5(p, matlab=False)
     raise SplidarError(
         f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
-        f"{', '.join(_CONTAINER_EXTS)} and .zarr directories."
+        f"{', '.join(_CONTAINER_EXTS)}, .npy, .ptu, .sdt and .zarr directories."
     )
+
+
+def _read_npy(p: Path) -> np.ndarray:
+    """One array from a ``.npy`` file (never unpickled: object arrays are refused)."""
+    try:
+        return np.load(p, allow_pickle=False)
+    except ValueError as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as a numeric .npy array ({exc}); splidar opens .npy files "
+            "with allow_pickle=False: save a numeric array (np.save(path, array))."
+        ) from None
+    except OSError as exc:
+        raise SplidarError(f"cannot read '{p}' as .npy: {exc}") from None
+
+
+def _check_channels_apply(p: Path, channels) -> Path:
+    from .vendor import VENDOR_SUFFIXES
+
+    if channels is not None and _ext(p) not in VENDOR_SUFFIXES:
+        raise SplidarError(
+            f"`channels` applies to vendor files ({', '.join(VENDOR_SUFFIXES)}); '{p.name}' is "
+            "not one."
+        )
+    return p
+
+
+def _read_any(p: Path, channels) -> dict[str, Any]:
+    """The variables of a data file: containers, ``.npy`` (``counts``) or vendor files."""
+    from .vendor import VENDOR_SUFFIXES
+
+    ext = _ext(p)
+    if ext == ".npy":
+        return {"counts": _read_npy(p)}
+    if ext in VENDOR_SUFFIXES:
+        from .vendor import read_vendor
+
+        h = read_vendor(p, channels="wavelengths" if channels is None else channels)
+        meta = {**h.metadata, "source": str(p)}
+        return {"counts": h.counts, "bin_width_ps": h.bin_width_ps, "metadata": json.dumps(meta)}
+    return _read_container(p)
 
 
 def _summary(d: dict[str, Any]) -> str:
@@ -556,13 +596,16 @@ def _orient_irf(a, source: str, n_wavelengths: int | None = None) -> np.ndarray:
 
 
 def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndarray:
-    """Read an IRF ``(L, n)`` from ``.npz``/``.mat``/``.h5``/``.csv``/``.txt``.
+    """Read an IRF ``(L, n)`` from an array, text or vendor file (.npy, .npz, .csv, .ptu, ...).
 
     The variable ``irf`` is used when present, otherwise the only 1-D (or thin
     ``(L, n)`` with L <= 16) numeric array, otherwise ``variable=`` is required. A 2-D
     array taller than wide is read as ``(n, L)`` columns. All-zero samples at both
     ends are trimmed (lossless: depths are referenced to the IRF peak). Values are
     returned as stored (not normalised; :class:`~splidar.cube.Cube` normalises).
+    A ``.npy`` file is one array (read with ``allow_pickle=False``); a vendor file
+    (``.ptu``, ``.sdt``) gives its histograms summed over all pixels, one row per
+    channel, a PicoQuant ``.phu`` its curves (:func:`splidar.vendor.read_vendor_irf`).
 
     Parameters
     ----------
@@ -594,9 +637,16 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
             a = np.loadtxt(p, delimiter=None if ext == ".csv" else ",", ndmin=1)
     elif ext in _CONTAINER_EXTS:
         a = _irf_from_container(_read_container(p), p, variable)
+    elif ext == ".npy":
+        a = _read_npy(p)
+    elif ext in (".ptu", ".sdt", ".phu"):
+        from .vendor import read_vendor_irf
+
+        a = read_vendor_irf(p)
     else:
         raise SplidarError(
-            f"unknown IRF file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .txt."
+            f"unknown IRF file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv, .txt, "
+            ".ptu, .sdt or .phu."
         )
     out = _trim_zeros(_orient_irf(a, f"'{p.name}'"))
     if not np.all(np.isfinite(out)) or np.any(out < 0) or out.sum() <= 0:
@@ -827,15 +877,16 @@ def load(
     bin_width_ps: float | None = None,
     wavelengths_nm=None,
     library=None,
+    channels=None,
 ) -> Cube:
     """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
 
     Parameters
     ----------
     path : str or path-like
-        ``.npz``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5`` or a ``.zarr`` directory.
-        ``.npz`` files are opened with pickle allowed (photon lists are object
-        arrays): open only files you trust.
+        ``.npz``, ``.npy``, ``.mat`` (v5, v7.3), ``.h5``, ``.zarr`` or vendor files (``.ptu``,
+        ``.sdt``: :mod:`splidar.vendor`). ``.npz`` is opened with pickle allowed (photon
+        lists are object arrays): open only files you trust.
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
         if present, else the only cell array of arrival times or numeric 3-D/4-D array;
@@ -866,6 +917,8 @@ def load(
         Overrides the file's wavelengths.
     library : SpectralLibrary, array (K, L) or path, optional
         Overrides the file's spectral library.
+    channels : {"wavelengths", "detectors"}, int or sequence of int, optional
+        Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
 
     Returns
     -------
@@ -889,11 +942,11 @@ def load(
     ...              window=(5_180_000, 5_380_000), bin_width=100)  # doctest: +SKIP
     """
     check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
-    p = _check_path(path)
+    p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
         cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
         return _override(cube, bin_width_ps, wavelengths_nm, library)
-    d = _read_container(p)
+    d = _read_any(p, channels)
     name = _pick_variable(d, p, variable, "data")
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
@@ -1162,6 +1215,8 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
 
     * ``.npz`` / ``.mat`` / ``.h5``: ``library`` (or ``signatures``) ``(K, L)`` and
       optional ``class_names``.
+    * ``.npy``: the signatures ``(K, L)`` alone (read with ``allow_pickle=False``;
+      classes are unnamed).
     * ``.csv``: one class per row, an optional leading name column, an optional header
       row (ignored) recognised by a non-numeric value after its first field or by a
       first field that is empty or one of "class", "name", "label", "material".
@@ -1192,6 +1247,8 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
             )
         names = _str_list(d.get("class_names"))
         return SpectralLibrary(np.asarray(d[key], dtype=np.float64), class_names=names)
+    if ext == ".npy":
+        return SpectralLibrary(np.asarray(_read_npy(p), dtype=np.float64))
     if ext == ".json":
         try:
             obj = json.loads(p.read_text())
@@ -1238,5 +1295,5 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
             raise SplidarError(f"'{p.name}': rows have different lengths.") from None
         return SpectralLibrary(sig, class_names=names)
     raise SplidarError(
-        f"unknown library file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .json."
+        f"unknown library file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv or .json."
     )
