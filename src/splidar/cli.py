@@ -8,7 +8,8 @@ Commands::
     splidar evaluate  POINTS TRUTH [--tau BINS]   the paper's metrics
 
 Every error is one line on stderr (``splidar: error: ...``) and a non-zero exit status:
-2 for a usage error, 1 for a failure while running, 130 when interrupted. ``--verbose``
+2 for a usage error, 1 for a failure while running, 130 when interrupted (Ctrl-C),
+143 when terminated (SIGTERM). ``--verbose``
 adds the traceback. Outputs of ``run`` and ``demo`` are written into a hidden
 temporary folder beside ``--out`` and renamed at the end, so an interrupted run never
 leaves a folder that looks complete.
@@ -28,6 +29,7 @@ import time
 import traceback
 from collections.abc import Sequence
 from contextlib import contextmanager
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +43,7 @@ log = logging.getLogger("splidar.cli")
 
 # exit statuses
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 #: The built-in demo scene: 64 x 64 pixels, 4 wavelengths, 200 bins, a net in front.
 DEMO = {"shape": (64, 64), "n_bins": 200, "ppp": 10.0, "sbr": 1.0}
@@ -487,6 +490,7 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
                 f"the output folder '{out}' would contain or replace the input '{p}'; "
                 "choose another --out"
             )
+    _check_writable_parent(out)
     if out.exists() or out.is_symlink():
         if not out.is_dir():
             raise UsageError(f"the output '{out}' exists and is not a folder; choose another --out")
@@ -502,12 +506,69 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
             )
 
 
+def _check_writable_parent(out: Path) -> None:
+    """Refuse, before any work, an output that lies under a file or in a read-only folder."""
+    anc = out.absolute().parent
+    while not (anc.exists() or anc.is_symlink()) and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(
+            f"the output '{out}' lies under '{anc}', which is a file, not a folder; choose "
+            "another --out"
+        )
+    try:  # a real probe: os.access says yes to root even on a read-only mount
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=anc)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot write into the folder '{anc}' ({exc.strerror or exc}); choose another "
+            "--out or fix its permissions"
+        ) from None
+    os.rmdir(probe)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def _clean_stale(out: Path) -> None:
+    """Remove what a killed run left beside ``out``; put back a previous output it moved.
+
+    A run stages into ``.NAME.partial-PID-*`` and, when replacing, moves the previous
+    output into ``.NAME.old-PID-*`` for the instant between two renames. Only folders
+    of processes that no longer run are touched.
+    """
+    parent = out.parent
+    if not parent.is_dir():
+        return
+    for kind in ("old", "partial"):
+        for d in sorted(parent.glob(f".{glob_escape(out.name)}.{kind}-*")):
+            try:
+                pid = int(d.name[len(out.name) + len(kind) + 3 :].split("-")[0])
+            except ValueError:
+                continue
+            if _pid_alive(pid) or not d.is_dir():
+                continue
+            prev = d / out.name
+            if kind == "old" and prev.is_dir() and not out.exists():
+                os.replace(prev, out)
+                log.warning("restored '%s' left aside by an interrupted run", out)
+            shutil.rmtree(d, ignore_errors=True)
+
+
 @contextmanager
 def _staging(out: Path):
     """Yield a temporary folder beside ``out``; rename it to ``out`` on success."""
     parent = out.parent
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    _clean_stale(out)
+    pid = os.getpid()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{pid}-", dir=parent))
     try:
         # mkdtemp makes a private (0700) folder; give the result the usual permissions
         umask = os.umask(0)
@@ -516,7 +577,7 @@ def _staging(out: Path):
         yield tmp
         old = None
         if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-{pid}-", dir=parent))
             os.replace(out, old / out.name)
         os.replace(tmp, out)
         if old is not None:
@@ -602,8 +663,10 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
+    _check_detect_memory(cube, det_kw)
     with stages.stage("detecting surfaces"):
         det = detect(cube, rng=args.seed, **det_kw)
+    _check_reconstruct_memory(det, library)
     log.info(
         "%d surfaces detected; %.3g %% of voxels kept",
         len(det.surfaces),
@@ -612,6 +675,38 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     with stages.stage("reconstructing"):
         rec = reconstruct(det, library=library, rng=args.seed, **rec_kw)
     return rec
+
+
+def _check_detect_memory(cube, det_kw) -> None:
+    """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
+    from ._memory import check_memory, detect_peak_bytes
+
+    if not cube.is_lazy and not cube.counts.any():
+        raise SplidarError(
+            f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
+            "photon: nothing to detect. Check the file, variable and --window"
+        )
+    if cube.is_lazy and det_kw.get("store"):
+        return  # chunk by chunk into the store
+    rows, cols, _, n_bins = cube.shape
+    check_memory(
+        detect_peak_bytes(cube.shape),
+        f"detection on {rows} x {cols} pixels x {n_bins} bins",
+        "process a crop (a smaller region, or --window START STOP over the bins), or save "
+        "the cube as Zarr (splidar simulate/io.save to .zarr) and pass --store DIR",
+    )
+
+
+def _check_reconstruct_memory(det, library) -> None:
+    from ._memory import check_memory, reconstruct_peak_bytes
+
+    n_l = int(det.background.spatial.shape[-1])
+    n_k = int(getattr(library, "n_classes", None) or 8)
+    check_memory(
+        reconstruct_peak_bytes(len(det.surfaces), n_l, n_k),
+        f"reconstruction of {len(det.surfaces)} surfaces",
+        "lower --max-surfaces, raise the detection threshold (--pfa) or process a crop",
+    )
 
 
 def _timing_line(det, rec) -> str:
@@ -968,7 +1063,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         0 on success, 1 when the command failed, 2 for a usage error, 130 when
-        interrupted.
+        interrupted, 143 when terminated.
 
     Examples
     --------
@@ -989,12 +1084,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     verbose = args.verbose > 0
-    with _logging(args):
+    with _logging(args), _on_sigterm():
         try:
             return _COMMANDS[args.command](args)
         except UsageError as exc:
             _report(exc, verbose)
             return EXIT_USAGE
+        except _Terminated:
+            print(f"{PROG}: terminated; no output was written", file=sys.stderr)
+            return EXIT_TERMINATED
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
             return EXIT_INTERRUPTED
@@ -1004,6 +1102,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         except Exception as exc:  # noqa: BLE001 - the CLI never shows a raw traceback
             _report(exc, verbose, unexpected=True)
             return EXIT_FAILURE
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that the staged output folder is removed."""
+
+
+@contextmanager
+def _on_sigterm():
+    """Turn SIGTERM into :class:`_Terminated` while a command runs (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:
