@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -122,9 +123,21 @@ def _positive(kind):
             ) from None
         if not x > 0:
             raise argparse.ArgumentTypeError(f"must be > 0; got {text!r}")
+        if not math.isfinite(x):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0; got {text!r}")
         return x
 
     return conv
+
+
+def _non_negative(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0; got {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be >= 0; got {text!r}")
+    return x
 
 
 # ----------------------------------------------------------------------------------------
@@ -241,7 +254,7 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--n-classes", type=_positive(int), metavar="K", help="classes for --classes cluster"
     )
-    g.add_argument("--gamma", type=float, help="Potts granularity, >= 0 (default 2)")
+    g.add_argument("--gamma", type=_non_negative, help="Potts granularity, >= 0 (default 2)")
     g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
     g.add_argument(
         "--alpha",
@@ -910,7 +923,6 @@ def read_points(path: str | os.PathLike):
     SplidarError
         Missing file, or a file that holds no point set.
     """
-    import numpy as np
 
     from .points import PointSet
 
@@ -924,23 +936,20 @@ def read_points(path: str | os.PathLike):
         raise SplidarError(f"file '{p}' does not exist")
     if p.suffix.lower() == ".csv":
         return _read_points_csv(p)
+    from .io import _read_npz  # never unpickles; checks sizes before allocating
+
     try:
-        z = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise SplidarError(
-            f"cannot read points from '{p}': not a .npz or .csv of points ({exc})"
-        ) from None
-    with z:
-        if not hasattr(z, "files"):
-            raise SplidarError(f"'{p}' holds a single array, not a point set")
-        if "row" in z.files:
-            return PointSet.from_dict(z)
-        if "points_row" in z.files:
-            return PointSet.from_dict({k[7:]: z[k] for k in z.files if k.startswith("points_")})
-        raise SplidarError(
-            f"'{p}' holds no point set (arrays: {', '.join(z.files[:8])}); pass a point set "
-            ".npz, a result.npz or a points.csv"
-        )
+        z = _read_npz(p)
+    except SplidarError as exc:
+        raise SplidarError(f"cannot read points from '{p}': {exc}") from None
+    if "row" in z:
+        return PointSet.from_dict(z)
+    if "points_row" in z:
+        return PointSet.from_dict({k[7:]: v for k, v in z.items() if k.startswith("points_")})
+    raise SplidarError(
+        f"'{p}' holds no point set (arrays: {', '.join(list(z)[:8])}); pass a point set "
+        ".npz, a result.npz or a points.csv"
+    )
 
 
 def _read_points_csv(p: Path):

@@ -469,7 +469,7 @@ def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) 
     if len(cands) == 1:  # a numeric array not named `counts`: never guess silently
         raise SplidarError(
             f"'{p.name}' has no `counts` array; it holds: {_summary(d)}. If '{cands[0]}' holds "
-            f"the photon counts, pass variable='{cands[0]}'."
+            f"the photon counts, select it with `variable` set to '{cands[0]}'."
         )
     what = "photon-list (cell) or count-cube" if want == "data" else "photon-list (cell)"
     if not cands:
