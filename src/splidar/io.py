@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ._files import savez
 from ._memory import check_memory, format_bytes
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube
@@ -1305,7 +1306,7 @@ def save(cube: Cube, path: str | os.PathLike, *, chunks: tuple[int, int] | None 
     if cube.library is not None:
         arrays["library"] = cube.library.signatures
         arrays["class_names"] = np.array(cube.library.class_names, dtype=str)
-    np.savez_compressed(p, **arrays)
+    savez(p, arrays)  # atomic, and the same cube gives the same bytes
 
 
 # --------------------------------------------------------------------------------------
