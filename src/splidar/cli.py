@@ -9,9 +9,10 @@ Commands::
     splidar view      RESULT [--out FILE]         an interactive 3D view (view.html)
 
 Every error is one line on stderr (``splidar: error: ...``) and a non-zero exit status:
-2 for a usage error, 1 for a failure while running, 130 when interrupted. ``--verbose``
-adds the traceback; ``--json`` prints a machine-readable summary and nothing else
-on stdout. Outputs of ``run`` and ``demo`` are written into a hidden
+2 for a usage error, 1 for a failure while running, 130 when interrupted (Ctrl-C),
+143 when terminated (SIGTERM). ``--verbose`` adds the traceback; ``--json`` prints a
+machine-readable summary and nothing else on stdout. Outputs of ``run`` and ``demo`` are
+written into a hidden
 temporary folder beside ``--out`` and renamed at the end, so an interrupted run never
 leaves a folder that looks complete.
 """
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -31,6 +33,7 @@ import time
 import traceback
 from collections.abc import Sequence
 from contextlib import contextmanager
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +47,7 @@ log = logging.getLogger("splidar.cli")
 
 # exit statuses
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 #: The built-in demo scene: 64 x 64 pixels, 4 wavelengths, 200 bins, a net in front.
 DEMO = {"shape": (64, 64), "n_bins": 200, "ppp": 10.0, "sbr": 1.0}
@@ -133,9 +137,21 @@ def _positive(kind):
             ) from None
         if not x > 0:
             raise argparse.ArgumentTypeError(f"must be > 0; got {text!r}")
+        if not math.isfinite(x):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0; got {text!r}")
         return x
 
     return conv
+
+
+def _non_negative(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0; got {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be >= 0; got {text!r}")
+    return x
 
 
 # ----------------------------------------------------------------------------------------
@@ -255,7 +271,7 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--n-classes", type=_positive(int), metavar="K", help="classes for --classes cluster"
     )
-    g.add_argument("--gamma", type=float, help="Potts granularity, >= 0 (default 2)")
+    g.add_argument("--gamma", type=_non_negative, help="Potts granularity, >= 0 (default 2)")
     g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
     g.add_argument(
         "--alpha",
@@ -587,6 +603,7 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
                 f"the output folder '{out}' would contain or replace the input '{p}'; "
                 "choose another --out"
             )
+    _check_writable_parent(out)
     if out.exists() or out.is_symlink():
         if not out.is_dir():
             raise UsageError(f"the output '{out}' exists and is not a folder; choose another --out")
@@ -602,12 +619,69 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
             )
 
 
+def _check_writable_parent(out: Path) -> None:
+    """Refuse, before any work, an output that lies under a file or in a read-only folder."""
+    anc = out.absolute().parent
+    while not (anc.exists() or anc.is_symlink()) and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(
+            f"the output '{out}' lies under '{anc}', which is a file, not a folder; choose "
+            "another --out"
+        )
+    try:  # a real probe: os.access says yes to root even on a read-only mount
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=anc)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot write into the folder '{anc}' ({exc.strerror or exc}); choose another "
+            "--out or fix its permissions"
+        ) from None
+    os.rmdir(probe)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def _clean_stale(out: Path) -> None:
+    """Remove what a killed run left beside ``out``; put back a previous output it moved.
+
+    A run stages into ``.NAME.partial-PID-*`` and, when replacing, moves the previous
+    output into ``.NAME.old-PID-*`` for the instant between two renames. Only folders
+    of processes that no longer run are touched.
+    """
+    parent = out.parent
+    if not parent.is_dir():
+        return
+    for kind in ("old", "partial"):
+        for d in sorted(parent.glob(f".{glob_escape(out.name)}.{kind}-*")):
+            try:
+                pid = int(d.name[len(out.name) + len(kind) + 3 :].split("-")[0])
+            except ValueError:
+                continue
+            if _pid_alive(pid) or not d.is_dir():
+                continue
+            prev = d / out.name
+            if kind == "old" and prev.is_dir() and not out.exists():
+                os.replace(prev, out)
+                log.warning("restored '%s' left aside by an interrupted run", out)
+            shutil.rmtree(d, ignore_errors=True)
+
+
 @contextmanager
 def _staging(out: Path):
     """Yield a temporary folder beside ``out``; rename it to ``out`` on success."""
     parent = out.parent
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    _clean_stale(out)
+    pid = os.getpid()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{pid}-", dir=parent))
     try:
         # mkdtemp makes a private (0700) folder; give the result the usual permissions
         umask = os.umask(0)
@@ -616,7 +690,7 @@ def _staging(out: Path):
         yield tmp
         old = None
         if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-{pid}-", dir=parent))
             os.replace(out, old / out.name)
         os.replace(tmp, out)
         if old is not None:
@@ -716,8 +790,10 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
+    _check_detect_memory(cube, det_kw)
     with stages.stage("detecting surfaces"):
         det = detect(cube, rng=args.seed, **det_kw)
+    _check_reconstruct_memory(det, library)
     log.info(
         "%d surfaces detected; %.3g %% of voxels kept",
         len(det.surfaces),
@@ -726,6 +802,38 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     with stages.stage("reconstructing"):
         rec = reconstruct(det, library=library, rng=args.seed, **rec_kw)
     return rec
+
+
+def _check_detect_memory(cube, det_kw) -> None:
+    """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
+    from ._memory import check_memory, detect_peak_bytes
+
+    if not cube.is_lazy and not cube.counts.any():
+        raise SplidarError(
+            f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
+            "photon: nothing to detect. Check the file, variable and --window"
+        )
+    if cube.is_lazy and det_kw.get("store"):
+        return  # chunk by chunk into the store
+    rows, cols, _, n_bins = cube.shape
+    check_memory(
+        detect_peak_bytes(cube.shape),
+        f"detection on {rows} x {cols} pixels x {n_bins} bins",
+        "process a crop (a smaller region, or --window START STOP over the bins), or save "
+        "the cube as Zarr (splidar simulate/io.save to .zarr) and pass --store DIR",
+    )
+
+
+def _check_reconstruct_memory(det, library) -> None:
+    from ._memory import check_memory, reconstruct_peak_bytes
+
+    n_l = int(det.background.spatial.shape[-1])
+    n_k = int(getattr(library, "n_classes", None) or 8)
+    check_memory(
+        reconstruct_peak_bytes(len(det.surfaces), n_l, n_k),
+        f"reconstruction of {len(det.surfaces)} surfaces",
+        "lower --max-surfaces, raise the detection threshold (--pfa) or process a crop",
+    )
 
 
 def _timing_line(det, rec) -> str:
@@ -944,7 +1052,6 @@ def read_points(path: str | os.PathLike):
     SplidarError
         Missing file, or a file that holds no point set.
     """
-    import numpy as np
 
     from .points import PointSet
 
@@ -958,23 +1065,20 @@ def read_points(path: str | os.PathLike):
         raise SplidarError(f"file '{p}' does not exist")
     if p.suffix.lower() == ".csv":
         return _read_points_csv(p)
+    from .io import _read_npz  # never unpickles; checks sizes before allocating
+
     try:
-        z = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise SplidarError(
-            f"cannot read points from '{p}': not a .npz or .csv of points ({exc})"
-        ) from None
-    with z:
-        if not hasattr(z, "files"):
-            raise SplidarError(f"'{p}' holds a single array, not a point set")
-        if "row" in z.files:
-            return PointSet.from_dict(z)
-        if "points_row" in z.files:
-            return PointSet.from_dict({k[7:]: z[k] for k in z.files if k.startswith("points_")})
-        raise SplidarError(
-            f"'{p}' holds no point set (arrays: {', '.join(z.files[:8])}); pass a point set "
-            ".npz, a result.npz or a points.csv"
-        )
+        z = _read_npz(p)
+    except SplidarError as exc:
+        raise SplidarError(f"cannot read points from '{p}': {exc}") from None
+    if "row" in z:
+        return PointSet.from_dict(z)
+    if "points_row" in z:
+        return PointSet.from_dict({k[7:]: v for k, v in z.items() if k.startswith("points_")})
+    raise SplidarError(
+        f"'{p}' holds no point set (arrays: {', '.join(list(z)[:8])}); pass a point set "
+        ".npz, a result.npz or a points.csv"
+    )
 
 
 def _read_points_csv(p: Path):
@@ -1159,7 +1263,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         0 on success, 1 when the command failed, 2 for a usage error, 130 when
-        interrupted.
+        interrupted, 143 when terminated.
 
     Examples
     --------
@@ -1180,12 +1284,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     verbose = args.verbose > 0
-    with _json_output(args), _logging(args):
+    with _json_output(args), _logging(args), _on_sigterm():
         try:
             return _COMMANDS[args.command](args)
         except UsageError as exc:
             _report(exc, verbose)
             return EXIT_USAGE
+        except _Terminated:
+            print(f"{PROG}: terminated; no output was written", file=sys.stderr)
+            return EXIT_TERMINATED
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
             return EXIT_INTERRUPTED
@@ -1227,6 +1334,30 @@ def _json_clean(x):
     if isinstance(x, list | tuple):
         return [_json_clean(v) for v in x]
     return _json_num(x)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that the staged output folder is removed."""
+
+
+@contextmanager
+def _on_sigterm():
+    """Turn SIGTERM into :class:`_Terminated` while a command runs (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:

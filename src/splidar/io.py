@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from ._files import savez
+from ._memory import check_memory, format_bytes
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube
 from .irf import gaussian_irf
@@ -107,42 +109,213 @@ def _h5_to_numpy(f, obj, matlab: bool):
 def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
     import h5py
 
+    kind = "a MATLAB v7.3 (HDF5) file" if matlab else "HDF5"
     out: dict[str, Any] = {}
-    with h5py.File(p, "r") as f:
+    try:
+        with h5py.File(p, "r") as f:
+            _check_hdf5_sizes(f, p)
 
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#, #subsystem#
-                out[name] = _h5_to_numpy(f, obj, matlab)
+            def visit(name, obj):
+                if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#
+                    out[name] = _h5_to_numpy(f, obj, matlab)
 
-        f.visititems(visit)
-        for k, v in f.attrs.items():
-            if k not in out and not k.startswith("MATLAB"):
-                out[k] = v.decode() if isinstance(v, bytes) else v
+            f.visititems(visit)
+            for k, v in f.attrs.items():
+                if k not in out and not k.startswith("MATLAB"):
+                    out[k] = v.decode() if isinstance(v, bytes) else v
+    except SplidarError:
+        raise
+    except Exception as exc:  # h5py raises OSError, KeyError, RuntimeError, ValueError
+        raise SplidarError(
+            f"cannot read '{p}' as {kind}: {_short(exc)}. The file is corrupt or truncated; "
+            "write it again or copy it again."
+        ) from None
     return out
 
 
+# --------------------------------------------------------------------------------------
+# untrusted files: sizes are checked before anything is allocated, nothing is unpickled
+# --------------------------------------------------------------------------------------
+#: Deflate (zip, MATLAB v5 compressed, HDF5 gzip) expands one byte to at most 1032.
+_MAX_EXPANSION = 1032
+_WAY_OUT_READ = (
+    "convert the data to a chunked Zarr cube (splidar.io.save(cube, 'x.zarr')), "
+    "crop it, or free memory"
+)
+
+
+def _short(exc: BaseException, n: int = 160) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    return msg if len(msg) <= n else msg[: n - 3] + "..."
+
+
+def _claims_too_much(p: Path, what: str, nbytes: int, holds: int, note: str = "") -> None:
+    if nbytes > holds:
+        raise SplidarError(
+            f"{what} in '{p.name}' claims {format_bytes(nbytes)} of data but the file can "
+            f"hold at most {format_bytes(holds)}{note}: the file is corrupt or truncated."
+        )
+
+
+def _npy_header(fp, p: Path, name: str):
+    """Read a ``.npy`` header: (shape, fortran_order, dtype); refuses object dtypes."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fp)
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = reader(fp)
+    except Exception as exc:
+        raise SplidarError(
+            f"array '{name}' of '{p.name}' has no valid .npy header ({_short(exc)}): the file "
+            "is corrupt or truncated."
+        ) from None
+    if dtype.hasobject:
+        raise SplidarError(
+            f"array '{name}' of '{p.name}' is an object (pickled) array; splidar never "
+            "unpickles files (it could run code). Store numbers only: counts as an integer "
+            "array, photon lists as `times` (n,), `pixel_index` (n,) and `shape` (rows, cols)."
+        )
+    return shape, fortran, dtype
+
+
+def _read_npz(p: Path) -> dict[str, Any]:
+    """Read every array of a ``.npz`` without pickle, checking each header's claim first."""
+    import zipfile
+    import zlib
+
+    out: dict[str, Any] = {}
+    try:
+        with zipfile.ZipFile(p) as zf:
+            infos = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            plan = []
+            for info in infos:
+                name = info.filename[:-4]
+                with zf.open(info) as fp:
+                    shape, fortran, dtype = _npy_header(fp, p, name)
+                    header = fp.tell()
+                nbytes = math.prod(shape) * dtype.itemsize
+                _claims_too_much(p, f"array '{name}' {shape}", nbytes, info.file_size - header)
+                if info.compress_type != zipfile.ZIP_STORED:
+                    _claims_too_much(
+                        p,
+                        f"array '{name}' {shape}",
+                        nbytes,
+                        info.compress_size * _MAX_EXPANSION,
+                        " once decompressed",
+                    )
+                plan.append((info, name, shape, fortran, dtype, nbytes))
+            check_memory(sum(x[-1] for x in plan), f"reading '{p.name}'", _WAY_OUT_READ)
+            for info, name, shape, fortran, dtype, nbytes in plan:
+                with zf.open(info) as fp:
+                    _npy_header(fp, p, name)
+                    a = np.empty(shape[::-1] if fortran else shape, dtype=dtype)
+                    view = memoryview(a.reshape(-1).view(np.uint8)) if nbytes else b""
+                    got = 0
+                    while got < nbytes:
+                        k = fp.readinto(view[got:])
+                        if not k:
+                            break
+                        got += k
+                    if got < nbytes:
+                        raise SplidarError(
+                            f"array '{name}' of '{p.name}' is truncated ({got} of {nbytes} "
+                            "bytes): the file is corrupt or was not completely written."
+                        )
+                out[name] = a.T if fortran else a
+    except SplidarError:
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as .npz ({_short(exc)}): the file is corrupt, truncated or "
+            "not a NumPy .npz; write it again with numpy.savez or splidar.io.save."
+        ) from None
+    if not out:
+        raise SplidarError(f"'{p}' is a zip file but holds no NumPy arrays (.npy members).")
+    return out
+
+
+#: bytes per element of MATLAB classes (as listed by scipy.io.whosmat)
+_MAT_ITEMSIZE = {
+    "double": 8, "single": 4, "int8": 1, "uint8": 1, "int16": 2, "uint16": 2,
+    "int32": 4, "uint32": 4, "int64": 8, "uint64": 8, "logical": 1, "char": 2,
+}  # fmt: skip
+
+
+def _read_mat5(p: Path) -> dict[str, Any]:
+    """Read a MATLAB v4/v5 file, checking the sizes its headers declare first."""
+    import scipy.io
+
+    kind = "a MATLAB (.mat v5) file"
+    try:
+        listing = scipy.io.whosmat(p)
+    except Exception as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as {kind} ({_short(exc)}): the file is corrupt, truncated "
+            "or not a MATLAB file; save it again from MATLAB (save -v7 or -v7.3)."
+        ) from None
+    size = p.stat().st_size
+    total = 0
+    for name, shape, cls in listing:
+        nbytes = math.prod(shape) * _MAT_ITEMSIZE.get(cls, 8)
+        _claims_too_much(
+            p, f"variable '{name}' {tuple(shape)}", nbytes, size * _MAX_EXPANSION,
+            " once decompressed",
+        )  # fmt: skip
+        total += nbytes
+    check_memory(total, f"reading '{p.name}'", _WAY_OUT_READ)
+    try:
+        d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
+    except Exception as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as {kind} ({_short(exc)}): the file is corrupt or truncated; "
+            "save it again from MATLAB."
+        ) from None
+    return {k: v for k, v in d.items() if not k.startswith("__")}
+
+
+def _check_hdf5_sizes(f, p: Path) -> None:
+    """Refuse datasets declaring more data than stored (beyond compression) or than fits."""
+    import h5py
+
+    total = 0
+
+    def visit(name, obj):
+        nonlocal total
+        if not isinstance(obj, h5py.Dataset) or obj.shape is None:
+            return
+        nbytes = math.prod(obj.shape) * obj.dtype.itemsize
+        total += nbytes
+        if nbytes > 2**20:
+            stored = obj.id.get_storage_size()
+            _claims_too_much(
+                p, f"dataset '{name}' {obj.shape}", nbytes, stored * _MAX_EXPANSION,
+                " (it stores " + format_bytes(stored) + ")",
+            )  # fmt: skip
+
+    f.visititems(visit)
+    check_memory(total, f"reading '{p.name}'", _WAY_OUT_READ)
+
+
 def _read_container(p: Path) -> dict[str, Any]:
-    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays)."""
+    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays).
+
+    Nothing is unpickled or executed: ``.npz`` members are read with their ``.npy``
+    header checked first (:func:`_read_npz`), and every declared size is checked
+    against the file's size and the free memory before anything is allocated.
+    """
     ext = _ext(p)
     if ext == ".npz":
-        try:
-            with np.load(p, allow_pickle=True) as z:
-                return {k: z[k] for k in z.files}
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as .npz: {exc}") from None
+        return _read_npz(p)
     if ext == ".mat":
         if _is_hdf5(p):
             return _read_hdf5(p, matlab=True)
-        import scipy.io
-
-        try:
-            d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as a MATLAB file: {exc}") from None
-        return {k: v for k, v in d.items() if not k.startswith("__")}
+        return _read_mat5(p)
     if ext in (".h5", ".hdf5"):
         if not _is_hdf5(p):
-            raise SplidarError(f"'{p}' is not an HDF5 file.")
+            raise SplidarError(
+                f"'{p}' is not an HDF5 file (no HDF5 signature): corrupt, truncated or of "
+                "another format."
+            )
         return _read_hdf5(p, matlab=False)
     raise SplidarError(
         f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
@@ -331,9 +504,14 @@ def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) 
             and min(v.shape) > 0
         ]
     cands = cells + cubes
-    if len(cands) == 1:
+    if len(cands) == 1 and cells:
         log.info("reading variable '%s' of '%s'", cands[0], p.name)
         return cands[0]
+    if len(cands) == 1:  # a numeric array not named `counts`: never guess silently
+        raise SplidarError(
+            f"'{p.name}' has no `counts` array; it holds: {_summary(d)}. If '{cands[0]}' holds "
+            f"the photon counts, select it with `variable` set to '{cands[0]}'."
+        )
     what = "photon-list (cell) or count-cube" if want == "data" else "photon-list (cell)"
     if not cands:
         raise SplidarError(
@@ -352,8 +530,9 @@ def read_photon_lists(path: str | os.PathLike, variable: str | None = None) -> P
     Parameters
     ----------
     path : str or path-like
-        ``.mat`` (v5 or v7.3), ``.npz`` (object array, read with pickle allowed: only
-        open files you trust) or ``.h5``.
+        ``.mat`` (v5 or v7.3) or ``.h5``. (``.npz`` files are never unpickled, so
+        they cannot hold cell arrays: :func:`load` reads their photon lists stored
+        flat as ``times``, ``pixel_index`` and ``shape``.)
     variable : str, optional
         Name of the cell array; needed only when the file holds several.
 
@@ -376,6 +555,8 @@ def read_photon_lists(path: str | os.PathLike, variable: str | None = None) -> P
     """
     p = _check_path(path)
     d = _read_container(p)
+    if variable is None and _FLAT_LIST_KEYS <= d.keys():
+        return _flat_photon_lists(d, p)
     name = _pick_variable(d, p, variable, "photons")
     v = d[name]
     if not _is_cell_of_numbers(v):
@@ -884,9 +1065,12 @@ def load(
     Parameters
     ----------
     path : str or path-like
-        ``.npz``, ``.npy``, ``.mat`` (v5, v7.3), ``.h5``, ``.zarr`` or vendor files (``.ptu``,
-        ``.sdt``: :mod:`splidar.vendor`). ``.npz`` is opened with pickle allowed (photon
-        lists are object arrays): open only files you trust.
+        ``.npz``, ``.npy``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5``, a ``.zarr``
+        directory or vendor files (``.ptu``, ``.sdt``: :mod:`splidar.vendor`).
+        Nothing is unpickled or executed; declared sizes are checked against the
+        file's size and the free memory before anything is allocated. A ``.npz``
+        holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
+        cols + col`` and ``shape`` (rows, cols).
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
         if present, else the only cell array of arrival times or numeric 3-D/4-D array;
@@ -947,13 +1131,17 @@ def load(
         cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
-    name = _pick_variable(d, p, variable, "data")
+    flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
+    name = "times" if flat else _pick_variable(d, p, variable, "data")
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
     sparse = None
     from_save = False
-    if _is_cell_of_numbers(v):
-        pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
+    if flat or _is_cell_of_numbers(v):
+        if flat:
+            pl = _flat_photon_lists(d, p)
+        else:
+            pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
@@ -1028,10 +1216,53 @@ def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
     )
 
 
+#: a photon-list file without pickle: flat arrival times, their flat pixel index, image size
+_FLAT_LIST_KEYS = frozenset(("times", "pixel_index", "shape"))
+
+
+def _flat_photon_lists(d: dict[str, Any], p: Path) -> PhotonLists:
+    """Photon lists stored flat (``times``, ``pixel_index``, ``shape``): no object arrays."""
+    t, pix, shape = (np.asarray(d[k]) for k in ("times", "pixel_index", "shape"))
+    if shape.shape != (2,) or shape.dtype.kind not in "ui" or np.any(shape < 1):
+        raise SplidarError(
+            f"`shape` in '{p.name}' must be two positive integers (rows, cols); got "
+            f"{describe(shape)}."
+        )
+    if t.ndim != 1 or pix.ndim != 1 or t.size != pix.size:
+        raise SplidarError(
+            f"`times` and `pixel_index` in '{p.name}' must be 1-D of the same length; got "
+            f"shapes {t.shape} and {pix.shape}."
+        )
+    rows, cols = (int(x) for x in shape)
+    if pix.size and (pix.dtype.kind not in "ui" or pix.min() < 0 or pix.max() >= rows * cols):
+        raise SplidarError(
+            f"`pixel_index` in '{p.name}' must be integers in [0, {rows * cols}) for shape "
+            f"({rows}, {cols}); got {describe(pix)}."
+        )
+    return PhotonLists(times=t, pixel_index=pix.astype(np.int64), shape=(rows, cols),
+                       source=f"{p.name}:times")  # fmt: skip
+
+
+def _check_times(pl: PhotonLists) -> None:
+    t = pl.times
+    if t.size and t.dtype.kind not in "uif":
+        raise SplidarError(f"photon arrival times must be numbers; got dtype {t.dtype}.")
+    if t.dtype.kind == "f" and not np.all(np.isfinite(t)):
+        n = int(np.count_nonzero(~np.isfinite(t)))
+        raise SplidarError(
+            f"the photon lists ({pl.source}) hold {n} NaN or infinite arrival time(s); remove "
+            "them (a photon without a time cannot be binned)."
+        )
+
+
 def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
+    _check_times(pl)
     if pl.n_photons == 0 and window is None:
-        raise SplidarError("the photon lists are empty; pass window= to build an empty cube.")
+        raise SplidarError(
+            f"the photon lists ({pl.source}) hold no photon: every cell is empty. Check the "
+            "file and variable (pass window= to build an empty cube on purpose)."
+        )
     if window is None:
         window = _default_window(pl.times, bw)
         log.info(
@@ -1046,6 +1277,15 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     uniq, cnt, rows, cols, n_bins = _bin_sparse(
         pl.times, pl.pixel_index, pl.shape, (start, stop), bw
     )
+    if pl.n_photons and not cnt.size:
+        raise SplidarError(
+            f"none of the {pl.n_photons} photons falls in the window [{start:g}, {stop:g}) "
+            f"{time_unit}; their arrival times range from {pl.times.min():g} to "
+            f"{pl.times.max():g}. Pass a window (and time unit) that covers them."
+        )
+    nbytes = rows * cols * n_bins * 2
+    check_memory(nbytes, f"binning {pl.source} into {rows} x {cols} x {n_bins} bins",
+                 "pass a larger bin width, a narrower window or crop the photon lists")  # fmt: skip
     counts = _dense(uniq, cnt, rows, cols, n_bins)
     factor = TIME_UNITS_PS[time_unit]
     md = {
@@ -1120,7 +1360,7 @@ def save(cube: Cube, path: str | os.PathLike, *, chunks: tuple[int, int] | None 
     if cube.library is not None:
         arrays["library"] = cube.library.signatures
         arrays["class_names"] = np.array(cube.library.class_names, dtype=str)
-    np.savez_compressed(p, **arrays)
+    savez(p, arrays)  # atomic, and the same cube gives the same bytes
 
 
 # --------------------------------------------------------------------------------------
