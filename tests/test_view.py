@@ -310,3 +310,13 @@ def test_view_in_browser_one_million_points_one_draw_call(browser, tmp_path):
     assert errors == [] and len(requests) == 1
     page.close()
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_view_in_browser_empty_result_loads_without_error(browser, tmp_path):
+    z = np.zeros(0, np.int64)
+    p = PointSet(row=z, col=z, depth_bin=z * 1.0, image_shape=(4, 5), layer=z, label=z)
+    page, errors, requests = _open(browser, write_view(p, tmp_path / "empty.html"))
+    state = page.evaluate("[splidarView.nPoints, splidarView.drawn, splidarView.litPixels()]")
+    assert state == [0, 0, 0]
+    assert errors == [] and len(requests) == 1
+    page.close()

@@ -367,7 +367,7 @@ def view_html(
         zscale = 0.5 * max(rows, cols) * px / d_span
         note = f"depth ({unit}) stretched to half the image width"
     lay_ids, lay_counts = np.unique(layer, return_counts=True)
-    starts = np.concatenate([[0], np.cumsum(lay_counts)[:-1]])
+    starts = np.cumsum(lay_counts) - lay_counts
     layers = [
         {
             "name": "nearest layer" if k == 0 else f"layer {k + 1}",
