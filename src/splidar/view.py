@@ -34,7 +34,7 @@ from ._validation import SplidarError, check_positive
 from ._version import __version__
 from .points import PointSet
 
-__all__ = ["view_html", "write_view", "load_view_input"]
+__all__ = ["ViewInput", "is_view_file", "load_view_input", "view_html", "write_view"]
 
 log = logging.getLogger(__name__)
 
