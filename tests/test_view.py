@@ -130,7 +130,7 @@ def test_view_html_legend_names_classes_and_modes(rec):
 
 
 def test_view_html_escapes_hostile_class_names(tmp_path):
-    evil = '</script><script>alert("x")</script>'
+    evil = '</script><script>alert("x")</script>__SPLIDAR_DATA__'
     z = {
         "points_row": np.array([0, 1]),
         "points_col": np.array([0, 1]),

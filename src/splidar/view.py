@@ -23,6 +23,7 @@ import html
 import json
 import logging
 import os
+import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -398,11 +399,14 @@ def view_html(
     # JSON inside <script>: no "<" so that no "</script>" can end it early
     meta_text = json.dumps(meta, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")
     template = resources.files("splidar").joinpath(_TEMPLATE).read_text(encoding="utf-8")
-    data = base64.b64encode(payload).decode("ascii")
-    out = template.replace("__SPLIDAR_VERSION__", __version__)
-    out = out.replace("__SPLIDAR_TITLE__", html.escape(v.title))
-    out = out.replace("__SPLIDAR_META__", meta_text)
-    return out.replace("__SPLIDAR_DATA__", data)
+    fill = {
+        "VERSION": __version__,
+        "TITLE": html.escape(v.title),
+        "META": meta_text,
+        "DATA": base64.b64encode(payload).decode("ascii"),
+    }
+    # one pass, so that a placeholder inside a title or class name stays text
+    return re.sub(r"__SPLIDAR_([A-Z]+)__", lambda m: fill[m.group(1)], template)
 
 
 def write_view(
