@@ -34,6 +34,9 @@ FLAGS = [
     "--disable-component-update",
     "--disable-sync",
     "--no-first-run",
+    # WebGL without a GPU: Chromium 150 falls back to SwiftShader by itself; newer
+    # versions only when allowed (no effect where the fallback is automatic)
+    "--enable-unsafe-swiftshader",
 ]
 
 

@@ -159,3 +159,11 @@ def test_main_view_progress_bar_on_terminal(result, tmp_path, capsys, monkeypatc
     assert main(["view", str(result), "--out", str(tmp_path / "v.html"), "--no-open"]) == 0
     err = capsys.readouterr().err
     assert "reading the points" in err and "writing the view" in err and "1/2" in err
+
+
+def test_main_view_help_has_example_and_is_listed(capsys):
+    assert main(["view", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "example" in out and "splidar view" in out and "--no-open" in out
+    assert main(["--help"]) == 0
+    assert "view" in capsys.readouterr().out

@@ -32,6 +32,9 @@ CHROMIUM_FLAGS = [
     "--disable-component-update",
     "--disable-sync",
     "--no-first-run",
+    # WebGL without a GPU: Chromium 150 falls back to SwiftShader by itself; newer
+    # versions only when allowed (no effect where the fallback is automatic)
+    "--enable-unsafe-swiftshader",
 ]
 BACKGROUND = (22, 24, 29)
 
@@ -127,7 +130,7 @@ def test_view_html_legend_names_classes_and_modes(rec):
 
 
 def test_view_html_escapes_hostile_class_names(tmp_path):
-    evil = '</script><script>alert("x")</script>'
+    evil = '</script><script>alert("x")</script>__SPLIDAR_DATA__'
     z = {
         "points_row": np.array([0, 1]),
         "points_col": np.array([0, 1]),
@@ -310,3 +313,13 @@ def test_view_in_browser_one_million_points_one_draw_call(browser, tmp_path):
     assert errors == [] and len(requests) == 1
     page.close()
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_view_in_browser_empty_result_loads_without_error(browser, tmp_path):
+    z = np.zeros(0, np.int64)
+    p = PointSet(row=z, col=z, depth_bin=z * 1.0, image_shape=(4, 5), layer=z, label=z)
+    page, errors, requests = _open(browser, write_view(p, tmp_path / "empty.html"))
+    state = page.evaluate("[splidarView.nPoints, splidarView.drawn, splidarView.litPixels()]")
+    assert state == [0, 0, 0]
+    assert errors == [] and len(requests) == 1
+    page.close()

@@ -23,6 +23,7 @@ import html
 import json
 import logging
 import os
+import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -34,7 +35,7 @@ from ._validation import SplidarError, check_positive
 from ._version import __version__
 from .points import PointSet
 
-__all__ = ["view_html", "write_view", "load_view_input"]
+__all__ = ["ViewInput", "is_view_file", "load_view_input", "view_html", "write_view"]
 
 log = logging.getLogger(__name__)
 
@@ -367,7 +368,7 @@ def view_html(
         zscale = 0.5 * max(rows, cols) * px / d_span
         note = f"depth ({unit}) stretched to half the image width"
     lay_ids, lay_counts = np.unique(layer, return_counts=True)
-    starts = np.concatenate([[0], np.cumsum(lay_counts)[:-1]])
+    starts = np.cumsum(lay_counts) - lay_counts
     layers = [
         {
             "name": "nearest layer" if k == 0 else f"layer {k + 1}",
@@ -398,11 +399,14 @@ def view_html(
     # JSON inside <script>: no "<" so that no "</script>" can end it early
     meta_text = json.dumps(meta, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")
     template = resources.files("splidar").joinpath(_TEMPLATE).read_text(encoding="utf-8")
-    data = base64.b64encode(payload).decode("ascii")
-    out = template.replace("__SPLIDAR_VERSION__", __version__)
-    out = out.replace("__SPLIDAR_TITLE__", html.escape(v.title))
-    out = out.replace("__SPLIDAR_META__", meta_text)
-    return out.replace("__SPLIDAR_DATA__", data)
+    fill = {
+        "VERSION": __version__,
+        "TITLE": html.escape(v.title),
+        "META": meta_text,
+        "DATA": base64.b64encode(payload).decode("ascii"),
+    }
+    # one pass, so that a placeholder inside a title or class name stays text
+    return re.sub(r"__SPLIDAR_([A-Z]+)__", lambda m: fill[m.group(1)], template)
 
 
 def write_view(
