@@ -171,8 +171,12 @@ def face_maps(maps, fractions, path: Path) -> str:
         layout="constrained",
         squeeze=False,
     )
-    ref = maps[(1.0, "splidar")]
-    lo, hi = np.percentile(ref.depth_bin, [2, 98])
+    # one colour scale for all panels: the reference's median +- 4 robust standard
+    # deviations (the far wall would otherwise flatten the face's relief)
+    d = maps[(1.0, "splidar")].depth_bin
+    med = np.median(d)
+    spread = 4 * 1.4826 * np.median(np.abs(d - med))
+    lo, hi = max(med - spread, np.percentile(d, 1)), min(med + spread, np.percentile(d, 99))
     for i, method in enumerate(methods):
         for j, f in enumerate(fr):
             ax = axes[i, j]

@@ -66,7 +66,7 @@ QUICK = {
 }
 #: quick: two PPP on a uniform background, the lower one also decaying; no coarse-7
 QUICK_CELLS = ((4.0, 1.0, "uniform"), (16.0, 1.0, "uniform"), (4.0, 1.0, "decaying"))
-FACE_QUICK_CROP = ((100, 240), (100, 240))  # the face itself, 140 x 140 of 340 x 340
+FACE_QUICK_CROP = ((40, 200), (90, 250))  # forehead to mouth, 160 x 160 of 340 x 340
 BACKGROUNDS = ("uniform", "decaying")
 
 
