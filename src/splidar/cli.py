@@ -1300,6 +1300,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             _report(exc, verbose)
             return EXIT_FAILURE
         except Exception as exc:  # noqa: BLE001 - the CLI never shows a raw traceback
+            if _interrupted(exc):  # e.g. Ctrl-C inside a compiled module's import
+                print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
+                return EXIT_INTERRUPTED
             _report(exc, verbose, unexpected=True)
             return EXIT_FAILURE
 
@@ -1336,6 +1339,17 @@ def _json_clean(x):
     return _json_num(x)
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """True when a KeyboardInterrupt caused ``exc`` (pybind11 imports wrap it in ImportError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that the staged output folder is removed."""
 
@@ -1358,6 +1372,30 @@ def _on_sigterm():
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+def entry() -> None:
+    """The ``splidar`` program: :func:`main`, then exit with its status.
+
+    A Ctrl-C that arrives after :func:`main` has returned (or while Python starts
+    splidar) gives the same one line and status 130, never a traceback.
+    """
+    import signal
+
+    try:
+        code = main()
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the work is over: exit with `code`
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED):
+        # An interrupt that landed inside an extension's PyRun_String while importing
+        # marks it "unhandled" for good, and Python would then kill itself with SIGINT
+        # at exit (status -2) although splidar handled it: leave directly instead.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:
