@@ -27,10 +27,18 @@ from typing import Any
 
 import numpy as np
 
+from ._containers import (
+    _CONTAINER_EXTS,
+    _check_path,
+    _ext,
+    _read_container,
+    _str_list,
+    _summary,
+)
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube
 from .irf import gaussian_irf
-from .library import SpectralLibrary
+from .library import SpectralLibrary, load_library
 
 __all__ = [
     "PhotonLists",
@@ -49,118 +57,12 @@ log = logging.getLogger(__name__)
 #: Factors from supported time units to picoseconds (``"bin"``: unknown physical unit).
 TIME_UNITS_PS = {"bin": None, "fs": 1e-3, "ps": 1.0, "ns": 1e3, "us": 1e6, "ms": 1e9, "s": 1e12}
 
-_CONTAINER_EXTS = (".npz", ".mat", ".h5", ".hdf5")
-_CSV_HEADER_WORDS = ("", "class", "classes", "name", "names", "class_name", "label", "material")
 _MAX_CUBE_BYTES = 8 * 2**30  # refuse to allocate a dense binned cube larger than 8 GiB
 
 
 # --------------------------------------------------------------------------------------
-# low-level readers: a file -> {name: array}
+# low-level readers: a file -> {name: array} (in _containers.py, shared with library.py)
 # --------------------------------------------------------------------------------------
-def _check_path(path) -> Path:
-    if not isinstance(path, (str, os.PathLike)):
-        raise SplidarError(f"`path` must be a file path; got {describe(path)}.")
-    p = Path(path)
-    if not p.exists():
-        raise SplidarError(f"no such file: '{p}'. Check the path (relative to {Path.cwd()}).")
-    return p
-
-
-def _ext(p: Path) -> str:
-    return p.suffix.lower()
-
-
-def _is_hdf5(p: Path) -> bool:
-    try:
-        import h5py
-
-        return bool(h5py.is_hdf5(p))
-    except Exception:  # pragma: no cover - h5py is a dependency
-        return False
-
-
-def _h5_to_numpy(f, obj, matlab: bool):
-    """Convert one HDF5 dataset to NumPy (MATLAB v7.3: reverse axes, resolve cells)."""
-    import h5py
-
-    data = obj[()]
-    cls = obj.attrs.get("MATLAB_class", b"")
-    cls = cls.decode() if isinstance(cls, bytes) else str(cls)
-    if isinstance(data, np.ndarray) and data.dtype == h5py.ref_dtype:
-        out = np.empty(data.shape, dtype=object)
-        flat = out.reshape(-1)
-        for i, ref in enumerate(data.reshape(-1)):
-            flat[i] = _h5_to_numpy(f, f[ref], matlab)
-        data = out
-    if matlab:
-        if obj.attrs.get("MATLAB_empty", 0):
-            return np.zeros((0, 0))
-        if isinstance(data, np.ndarray) and data.ndim >= 2:
-            data = data.T  # h5py returns MATLAB arrays with their axes reversed
-        if cls == "char" and isinstance(data, np.ndarray):
-            return "".join(chr(c) for c in np.asarray(data).T.reshape(-1))
-        if cls == "logical" and isinstance(data, np.ndarray):
-            data = data.astype(bool)
-    return data
-
-
-def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
-    import h5py
-
-    out: dict[str, Any] = {}
-    with h5py.File(p, "r") as f:
-
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#, #subsystem#
-                out[name] = _h5_to_numpy(f, obj, matlab)
-
-        f.visititems(visit)
-        for k, v in f.attrs.items():
-            if k not in out and not k.startswith("MATLAB"):
-                out[k] = v.decode() if isinstance(v, bytes) else v
-    return out
-
-
-def _read_container(p: Path) -> dict[str, Any]:
-    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays)."""
-    ext = _ext(p)
-    if ext == ".npz":
-        try:
-            with np.load(p, allow_pickle=True) as z:
-                return {k: z[k] for k in z.files}
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as .npz: {exc}") from None
-    if ext == ".mat":
-        if _is_hdf5(p):
-            return _read_hdf5(p, matlab=True)
-        import scipy.io
-
-        try:
-            d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as a MATLAB file: {exc}") from None
-        return {k: v for k, v in d.items() if not k.startswith("__")}
-    if ext in (".h5", ".hdf5"):
-        if not _is_hdf5(p):
-            raise SplidarError(f"'{p}' is not an HDF5 file.")
-        return _read_hdf5(p, matlab=False)
-    raise SplidarError(
-        f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
-        f"{', '.join(_CONTAINER_EXTS)} and .zarr directories."
-    )
-
-
-def _summary(d: dict[str, Any]) -> str:
-    parts = []
-    for k, v in d.items():
-        if isinstance(v, np.ndarray):
-            kind = "cell/object array" if v.dtype == object else str(v.dtype)
-            parts.append(f"'{k}' {v.shape} {kind}")
-        else:
-            parts.append(f"'{k}' {type(v).__name__}")
-    return "; ".join(parts) or "(nothing)"
-
-
 def _scalar(v, name: str) -> float:
     a = np.asarray(v)
     if a.size != 1:
@@ -784,29 +686,6 @@ def _metadata_from(v) -> dict:
     return out if isinstance(out, dict) else {"metadata": out}
 
 
-def _str_list(v) -> tuple[str, ...]:
-    """Names from a string array, a MATLAB cell of strings or a char matrix."""
-    if v is None:
-        return ()
-    if isinstance(v, str):
-        return (v,)
-    a = np.asarray(v)
-    if (
-        a.dtype.kind in "US"
-        and a.ndim == 2
-        and a.dtype.itemsize == np.dtype(a.dtype.kind + "1").itemsize
-    ):
-        return tuple("".join(r).strip() for r in a.astype(str))  # char matrix
-    out = []
-    for x in a.reshape(-1):
-        if isinstance(x, np.ndarray):
-            x = "".join(str(c) for c in x.reshape(-1))
-        elif isinstance(x, bytes):
-            x = x.decode()
-        out.append(str(x).strip())
-    return tuple(out)
-
-
 def _library_from(d: dict[str, Any]):
     if "library" not in d:
         return None
@@ -1149,94 +1028,4 @@ def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable) -> Cube:
         wavelengths_nm=np.asarray(g["wavelengths_nm"][...]) if "wavelengths_nm" in names else None,
         library=lib,
         metadata=meta,
-    )
-
-
-# --------------------------------------------------------------------------------------
-# libraries
-# --------------------------------------------------------------------------------------
-def load_library(path: str | os.PathLike) -> SpectralLibrary:
-    """Read a spectral library ``(K, L)`` with optional class names.
-
-    Formats:
-
-    * ``.npz`` / ``.mat`` / ``.h5``: ``library`` (or ``signatures``) ``(K, L)`` and
-      optional ``class_names``.
-    * ``.csv``: one class per row, an optional leading name column, an optional header
-      row (ignored) recognised by a non-numeric value after its first field or by a
-      first field that is empty or one of "class", "name", "label", "material".
-    * ``.json``: ``{"signatures": [[...], ...], "class_names": [...]}`` or
-      ``{"name": [values], ...}``.
-
-    Returns
-    -------
-    SpectralLibrary
-
-    Raises
-    ------
-    SplidarError
-        Missing file, unknown extension, no library in the file, bad values.
-
-    Examples
-    --------
-    >>> lib = load_library("lego_library.csv")  # doctest: +SKIP
-    """
-    p = _check_path(path)
-    ext = _ext(p)
-    if ext in _CONTAINER_EXTS:
-        d = _read_container(p)
-        key = "library" if "library" in d else "signatures" if "signatures" in d else None
-        if key is None:
-            raise SplidarError(
-                f"'{p.name}' has no `library` or `signatures` array; it holds: {_summary(d)}."
-            )
-        names = _str_list(d.get("class_names"))
-        return SpectralLibrary(np.asarray(d[key], dtype=np.float64), class_names=names)
-    if ext == ".json":
-        try:
-            obj = json.loads(p.read_text())
-        except json.JSONDecodeError as exc:
-            raise SplidarError(f"'{p.name}' is not valid JSON: {exc}") from None
-        if isinstance(obj, dict) and "signatures" in obj:
-            return SpectralLibrary(obj["signatures"], class_names=obj.get("class_names", ()))
-        if isinstance(obj, dict) and obj:
-            return SpectralLibrary(list(obj.values()), class_names=list(obj.keys()))
-        raise SplidarError(
-            f"'{p.name}' must hold {{'signatures': [[...]], 'class_names': [...]}} or "
-            "{name: [values], ...}."
-        )
-    if ext == ".csv":
-        names, rows = [], []
-        for i, line in enumerate(p.read_text().splitlines()):
-            fields = [f.strip() for f in line.split(",")]
-            if not line.strip():
-                continue
-            if not rows and not names and fields[0].lower() in _CSV_HEADER_WORDS:
-                continue  # header, e.g. "class,532,633,780"
-            try:
-                rows.append([float(f) for f in fields])
-                continue
-            except ValueError:
-                pass
-            try:
-                vals = [float(f) for f in fields[1:]]
-            except ValueError:
-                if rows or names:
-                    raise SplidarError(
-                        f"line {i + 1} of '{p.name}' is not a signature: {line!r}."
-                    ) from None
-                continue  # header
-            names.append(fields[0])
-            rows.append(vals)
-        if not rows:
-            raise SplidarError(f"'{p.name}' holds no signature rows.")
-        if names and len(names) != len(rows):
-            raise SplidarError(f"'{p.name}': name every row or none.")
-        try:
-            sig = np.array(rows, dtype=np.float64)
-        except ValueError:
-            raise SplidarError(f"'{p.name}': rows have different lengths.") from None
-        return SpectralLibrary(sig, class_names=names)
-    raise SplidarError(
-        f"unknown library file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .json."
     )
