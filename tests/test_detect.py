@@ -345,9 +345,9 @@ def test_detect_histograms_match_box_filter_reference(store_boxes, monkeypatch):
     # whether the box means come from the saliency pass or are summed per candidate
     from scipy import ndimage
 
-    from splidar.detection import _detect
+    import splidar.detection._4_map as map_stage
 
-    monkeypatch.setattr(_detect, "_store_boxes", lambda *a: store_boxes)
+    monkeypatch.setattr(map_stage, "_store_boxes", lambda *a: store_boxes)
     lam, _ = _tilted(shape=(20, 24), T=100)
     lam[::3, ::2, 0, 70] += 4.0  # a second, sparse return in some pixels
     cube = _cube(lam, rng=3)
@@ -369,7 +369,7 @@ def test_detect_histograms_match_box_filter_reference(store_boxes, monkeypatch):
 
 
 def test_store_boxes_depends_on_sizes_only():
-    from splidar.detection._detect import _store_boxes
+    from splidar.detection._4_map import _store_boxes
 
     sc = np.array([1, 3, 7, 11])
     assert _store_boxes(sc, 13, 164)  # Art-size: few bins, keep the box means
@@ -897,12 +897,12 @@ def test_detect_refine_aligns_box_biased_depths_on_steep_ramp(monkeypatch):
     # 3 x 3 box has a lobe per row and some peaks fall on a neighbour row's lobe, 5 bins
     # off; the alignment with the 4-neighbours moves them back (measured, seeds 0-2:
     # 110 / 82 / 83 wrong-depth points without it, 94 / 73 / 64 with it)
-    import splidar.detection._detect as det_mod
+    import splidar.detection._7_align_depths as align_stage
 
     lam, depth, _ = _ramp_with_disc(bright=4.0, dim=4.0)
     cube = _cube(lam, rng=0)
     on = detect(cube, rng=0, slopes=False)
-    monkeypatch.setattr(det_mod, "align_depths", lambda *a, **k: (np.asarray(a[3]), 0))
+    monkeypatch.setattr(align_stage, "align_depths", lambda *a, **k: (np.asarray(a[3]), 0))
     off = detect(cube, rng=0, slopes=False)
     err = {}
     for name, det in (("on", on), ("off", off)):

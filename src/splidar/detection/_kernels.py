@@ -278,7 +278,7 @@ def extract_surfaces(
     """Clean histograms, scale selection, depth and presence statistics of candidates.
 
     One candidate at a time (rows ``[i_begin, i_end)`` of the candidate arrays), every
-    output written in place; see :func:`splidar.detection._detect._extract` for the
+    output written in place; see :func:`splidar.detection._4_map._extract` for the
     meaning of each. Box means at every scale (``mode="reflect"``) are read from the
     correlated block ``c`` (``(er, C, L, T)`` from image row ``e0``), the background
     ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
@@ -668,7 +668,7 @@ def select_sorted(row, col, mass, depth, keep, k_max, out_idx, out_slot):
     Candidates in raster order of ``(row, col)``. Writes the chosen indices, by pixel
     and then increasing depth (equal depths in the mass order), to ``out_idx`` and
     their rank in depth to ``out_slot``; returns how many. The same choice and order as
-    the stable lexsorts of :func:`splidar.detection._detect._select`.
+    the stable lexsorts of :func:`splidar.detection._6_select._select`.
     """
     n = row.size
     m = 0
