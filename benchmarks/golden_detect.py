@@ -118,7 +118,9 @@ def main(argv=None) -> int:
                 )
                 continue
             ref = dict(np.load(f_arr))
-            diffs = [k for k in sorted(set(ref) | set(arrays)) if k not in ref or k not in arrays]
+            # arrays the reference lacks are new fields (reported); missing ones differ
+            new = sorted(set(arrays) - set(ref))
+            diffs = [k for k in sorted(ref) if k not in arrays]
             for k in sorted(set(ref) & set(arrays)):
                 a, b = ref[k], arrays[k]
                 if a.shape != b.shape or a.dtype != b.dtype or a.tobytes() != b.tobytes():
@@ -130,7 +132,7 @@ def main(argv=None) -> int:
                 if ref_opt.get(k) != options.get(k)
             }
             status = "IDENTICAL" if not diffs else "DIFFERENT: " + ", ".join(diffs)
-            print(f"{case[0]:22s} {status}")
+            print(f"{case[0]:22s} {status}" + (f" (new arrays: {', '.join(new)})" if new else ""))
             if opt_diff:
                 print(f"{'':22s} options differ (reported only): {opt_diff}")
             bad += bool(diffs)

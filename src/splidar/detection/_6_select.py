@@ -111,4 +111,5 @@ def select_surfaces(
         presence_z=surf["presence_z"].astype(np.float64),
         image_shape=(R, C),
         n_slots=max_surfaces,
+        stage=table.origin[idx].astype(np.int8),
     )

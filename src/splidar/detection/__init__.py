@@ -27,14 +27,24 @@ IRF figures), ``_fast`` and ``_kernels`` (numba kernels), ``_background``, ``_nu
 """
 
 from ._detect import detect
-from ._result import Background, DataReduction, Detection, NullModel, Surfaces
+from ._result import (
+    STAGES,
+    Background,
+    DataReduction,
+    Detection,
+    NullModel,
+    StageRecord,
+    Surfaces,
+)
 from ._threshold import ThresholdField
 
 __all__ = [
+    "STAGES",
     "Background",
     "DataReduction",
     "Detection",
     "NullModel",
+    "StageRecord",
     "Surfaces",
     "ThresholdField",
     "detect",

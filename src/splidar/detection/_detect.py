@@ -30,7 +30,7 @@ from ._5e_enclosed import restore_enclosed_holes
 from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
-from ._result import Background, Detection
+from ._result import Background, Detection, StageRecord
 from ._table import skipped
 
 __all__ = ["detect"]
@@ -591,15 +591,28 @@ def detect(
     table = passes[-1].table
 
     # 6. the surfaces: K_s per pixel
+    t_sel = time.perf_counter()
     surfaces = select_surfaces(
         table, mp.histograms, max_surfaces=max_surfaces, n_scales=scales_arr.size,
         n_wavelengths=L, width=mp.width,
     )  # fmt: skip
+    n_kept = int(table.keep.sum())
+    t_sel = time.perf_counter() - t_sel
     # 7. depths that the 4-neighbours and the own counts place elsewhere move
-    n_aligned = 0
+    n_aligned, t_align, ran_align = 0, 0.0, False
     if refine and checks and len(surfaces):
         aligned = align_surface_depths(surfaces, fwhm=fwhm)
         surfaces, n_aligned = aligned.surfaces, aligned.n_moved
+        t_align, ran_align = aligned.seconds, True
+    provenance = (
+        StageRecord(
+            "map", True, int(mp.candidates.keep.sum()), mp.n_rejected,
+            seconds=timings["saliency_and_surfaces"],
+        ),
+        *(StageRecord(p.name, p.ran, p.added, p.removed, seconds=p.seconds) for p in passes),
+        StageRecord("select", True, 0, n_kept - len(surfaces), seconds=t_sel),
+        StageRecord("align_depths", ran_align, 0, 0, n_aligned, t_align),
+    )  # fmt: skip
     timings["quality_and_selection"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     by_name = {p.name: p for p in passes}
@@ -669,4 +682,5 @@ def detect(
         surfaces=surfaces,
         timings=MappingProxyType(timings),
         options=options,
+        provenance=provenance,
     )

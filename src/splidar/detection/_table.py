@@ -16,21 +16,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ._kernels import rank_in_pixel_sorted
+from ._result import STAGES
 
 __all__ = ["STAGES", "CandidateTable", "PassResult", "stage_code"]
-
-#: Stages that can create (keep) a surface or remove a candidate, in the order they run;
-#: ``origin`` / ``Surfaces.stage`` hold indices into this tuple.
-STAGES = (
-    "map",  # 4: a candidate of the 3D map that passed the evidence and presence tests
-    "spill_over",  # 5a: removes the spread of a neighbour's return
-    "isolated",  # 5b: removes candidates that no neighbour shares and own counts do not show
-    "dark_regions",  # 5c: restores candidates of dim patches, pooled
-    "slopes",  # 5d: adds surfaces on steep slopes (sheared pooled tests)
-    "enclosed",  # 5e: restores candidates of holes that a surface encloses
-    "select",  # 6: keeps at most K_s candidates per pixel
-    "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
-)
 
 
 def stage_code(name: str) -> int:
