@@ -15,7 +15,13 @@ import numpy as np
 from ._quality import reject_spill_over
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
-__all__ = ["remove_spill_over"]
+__all__ = ["SPILL_LLR", "remove_spill_over"]
+
+#: A candidate beside a neighbour's return at its depth is that return's spread when its
+#: own counts give a log-likelihood ratio below this for a return as bright as the
+#: neighbour's (0: the counts favour "no return"). Measured, net scene PPP 10, SBR 1:
+#: false surfaces per true one 0.107 -> 0.037 at equal F_true (docs/detection.md).
+SPILL_LLR = 0.0
 
 
 def remove_spill_over(

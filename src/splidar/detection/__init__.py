@@ -26,7 +26,7 @@ IRF figures), ``_fast`` and ``_kernels`` (numba kernels), ``_background``, ``_nu
 ``_table`` (the candidate table the passes share) and ``_result`` (the public results).
 """
 
-from ._detect import detect
+from ._detect import PASSES, detect
 from ._result import (
     STAGES,
     Background,
@@ -39,6 +39,7 @@ from ._result import (
 from ._threshold import ThresholdField
 
 __all__ = [
+    "PASSES",
     "STAGES",
     "Background",
     "DataReduction",
