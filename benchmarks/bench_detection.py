@@ -152,7 +152,14 @@ def _options(args) -> dict:
     """splidar.detect options given on the command line."""
     if args.slopes is None:
         return {}
-    return {"slopes": False if args.slopes == "off" else args.slopes}
+    from splidar.detection import PASSES
+
+    if args.slopes == "off":
+        return {"passes": tuple(p for p in PASSES if p != "slopes")}
+    import splidar.detection._5d_slopes as slopes_stage
+
+    slopes_stage.SLOPE_PIXELS = args.slopes  # the pass's constant, for this study
+    return {}
 
 
 def run(args) -> dict:

@@ -409,45 +409,22 @@ def test_main_run_alpha_auto_and_bad_alpha(simulated, tmp_path, capsys):
     assert "--alpha" in _error_line(capsys.readouterr().err)
 
 
-def test_main_run_no_dark_passes_dark_false(simulated, tmp_path, monkeypatch):
-    import splidar.detection as det_mod
-
-    seen = {}
-    real = det_mod.detect
-
-    def spy(cube, **kw):
-        seen.update(kw)
-        return real(cube, **kw)
-
-    monkeypatch.setattr(det_mod, "detect", spy)
-    cube, _ = simulated
-    rc = main(["run", str(cube), "-q", "--seed", "0", "--out", str(tmp_path / "o"), "--no-dark"])
-    assert rc == 0 and seen.get("dark") is False
-    seen.clear()
-    rc = main(["run", str(cube), "-q", "--seed", "0", "--out", str(tmp_path / "p")])
-    assert rc == 0 and "dark" not in seen  # the library's default
-    assert "slopes" not in seen
-
-
-def test_main_run_slopes_modes(simulated, tmp_path, monkeypatch, capsys):
+def test_main_run_skip_passes_the_other_passes(simulated, tmp_path, monkeypatch, capsys):
     import splidar.detection as det_mod
 
     seen = []
     real = det_mod.detect
 
     def spy(cube, **kw):
-        seen.append(kw.get("slopes", "default"))
+        seen.append(kw.get("passes", "default"))
         return real(cube, **kw)
 
     monkeypatch.setattr(det_mod, "detect", spy)
     cube, _ = simulated
-    for mode in ("off", "all"):
-        out = str(tmp_path / mode)
-        rc = main(
-            ["run", str(cube), "-q", "--seed", "0", "--no-figures", "--slopes", mode, "--out", out]
-        )
-        assert rc == 0
-    assert seen == [False, "all"]
+    for out, extra in (("o", ["--skip", "slopes,enclosed"]), ("p", [])):
+        args = ["run", str(cube), "-q", "--seed", "0", "--no-figures", "--out", str(tmp_path / out)]
+        assert main(args + extra) == 0
+    assert seen == [("spill_over", "isolated", "dark_regions", "align_depths"), "default"]
     capsys.readouterr()
-    assert main(["run", str(cube), "--slopes", "yes", "--out", str(tmp_path / "x")]) == 2
-    assert "--slopes" in capsys.readouterr().err
+    assert main(["run", str(cube), "--skip", "dark", "--out", str(tmp_path / "x")]) == 2
+    assert "--skip" in capsys.readouterr().err

@@ -9,10 +9,19 @@ import numpy as np
 import pytest
 
 from splidar import Cube, SplidarError, gaussian_irf
-from splidar.detection import Detection, detect
+from splidar.detection import PASSES, Detection, detect
 from splidar.detection._filters import Correlator
 
 IRF = gaussian_irf(3.0)  # FWHM 3 bins, 13 samples, peak on the centre
+
+
+def _without(*names) -> tuple:
+    """detect's clean-up passes without the named ones (the ablation of a pass)."""
+    return tuple(p for p in PASSES if p not in names)
+
+
+# the former dark=False: the dark-region and enclosed-hole passes both off
+NO_DARK = _without("dark_regions", "enclosed")
 
 
 def _cube(lam, rng=0) -> Cube:
@@ -265,7 +274,7 @@ def test_detect_dark_restores_dim_stripe_beside_bright_rows():
     cube = _cube(_returns(shape, 120, [60.0], [ph[..., None]], 0.04), rng=0)
     res = {}
     for dark in (False, True):
-        det = detect(cube, rng=0, dark=dark)
+        det = detect(cube, rng=0, passes=PASSES if dark else NO_DARK)
         p = det.points
         ok = np.abs(p.depth_bin - 60.0) <= 3
         hit = np.zeros(shape, bool)
@@ -292,7 +301,7 @@ def test_detect_dark_restores_enclosed_pixels_with_no_own_photons():
     cube = Cube(y, irf=IRF[None], bin_width_ps=100.0)
     hits, wrong = {}, {}
     for dark in (False, True):
-        p = detect(cube, rng=0, dark=dark).points
+        p = detect(cube, rng=0, passes=PASSES if dark else NO_DARK).points
         ok = np.abs(p.depth_bin - 60.0) <= 3
         found = set(zip(p.row[ok].tolist(), p.col[ok].tolist(), strict=True))
         hits[dark] = sum((r, c) in found for r, c in holes)
@@ -313,7 +322,7 @@ def test_detect_dark_leaves_net_spread_rejected():
 
     sim = two_layer_scene((40, 40), n_bins=160).simulate(ppp=10, sbr=1, rng=0)
     on = evaluate(detect(sim.cube, rng=0).points, sim.truth, tau=3)
-    off = evaluate(detect(sim.cube, rng=0, dark=False).points, sim.truth, tau=3)
+    off = evaluate(detect(sim.cube, rng=0, passes=NO_DARK).points, sim.truth, tau=3)
     assert on.f_false <= off.f_false + 0.005 * on.n_true
     assert on.f_true >= off.f_true
 
@@ -345,9 +354,9 @@ def test_detect_histograms_match_box_filter_reference(store_boxes, monkeypatch):
     # whether the box means come from the saliency pass or are summed per candidate
     from scipy import ndimage
 
-    from splidar.detection import _detect
+    import splidar.detection._4_map as map_stage
 
-    monkeypatch.setattr(_detect, "_store_boxes", lambda *a: store_boxes)
+    monkeypatch.setattr(map_stage, "_store_boxes", lambda *a: store_boxes)
     lam, _ = _tilted(shape=(20, 24), T=100)
     lam[::3, ::2, 0, 70] += 4.0  # a second, sparse return in some pixels
     cube = _cube(lam, rng=3)
@@ -369,7 +378,7 @@ def test_detect_histograms_match_box_filter_reference(store_boxes, monkeypatch):
 
 
 def test_store_boxes_depends_on_sizes_only():
-    from splidar.detection._detect import _store_boxes
+    from splidar.detection._4_map import _store_boxes
 
     sc = np.array([1, 3, 7, 11])
     assert _store_boxes(sc, 13, 164)  # Art-size: few bins, keep the box means
@@ -462,10 +471,10 @@ def small_cube():
         (dict(surface_pfa=2.0), "surface_pfa"),
         (dict(null="normal"), "null"),
         (dict(presence="maybe"), "presence"),
-        (dict(split_ratio=1.5), "split_ratio"),
-        (dict(spill_llr="high"), "spill_llr"),
-        (dict(spill_llr=float("nan")), "spill_llr"),
-        (dict(slopes="yes"), "slopes"),
+        (dict(passes="slopes"), "wrap it in a tuple"),
+        (dict(passes=("slopes", "dark")), "unknown pass"),
+        (dict(passes=3), "sequence of pass names"),
+        (dict(block_rows=0), "block_rows"),
     ],
 )
 def test_detect_bad_options_raise(small_cube, kwargs, match):
@@ -568,7 +577,7 @@ def test_detect_spill_over_removes_net_spread():
     scene = two_layer_scene((40, 40), n_bins=160)
     sim = scene.simulate(ppp=10, sbr=1, background="uniform", rng=1)
     on = detect(sim.cube, rng=0)
-    off = detect(sim.cube, spill_llr=None, rng=0)
+    off = detect(sim.cube, passes=_without("spill_over"), rng=0)
     m_on = evaluate(on.points, sim.truth, tau=3)
     m_off = evaluate(off.points, sim.truth, tau=3)
     # measured here: F_true 0.943 -> 0.938, false surfaces 342 -> 97 (321 rejected as
@@ -709,7 +718,9 @@ def _slope_args(shape, T, bg):
     )
 
 
-def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
+def test_detect_slopes_recovers_dim_disc_on_steep_ramp(monkeypatch):
+    import splidar.detection._5d_slopes as slopes_stage
+
     # 0.8 signal photons per pixel on a ramp of 5 bins per row: the square boxes smear
     # the return over ~25 bins and the main pass finds 2-6 of the 81 disc pixels (seeds
     # 0-2); the sheared pooled test finds 78-81 when it tests every pixel and 69-73 when
@@ -720,7 +731,9 @@ def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
     cube = _cube(lam, rng=0)
     res = {}
     for slopes in (False, "holes", "weak", "all"):
-        det = detect(cube, rng=0, slopes=slopes)
+        # the pixels the pass tests are a constant of its stage (read at call time)
+        monkeypatch.setattr(slopes_stage, "SLOPE_PIXELS", slopes or "weak")
+        det = detect(cube, rng=0, passes=PASSES if slopes else _without("slopes"))
         p = det.points
         ok = np.abs(p.depth_bin - depth[p.row, p.col]) <= 3
         hit = np.zeros(disc.shape, bool)
@@ -733,8 +746,8 @@ def test_detect_slopes_recovers_dim_disc_on_steep_ramp():
     assert res["all"][1] <= res[False][1]
     assert res["holes"][1] <= res[False][1]
     assert res["weak"][1] <= res["holes"][1]
+    monkeypatch.undo()
     assert detect(cube, rng=0).options["slopes"] == "weak"  # the default
-    assert detect(cube, rng=0, slopes=True).options["n_slopes"] == res["all"][2].options["n_slopes"]
     det = res["all"][2]
     assert det.options["n_slopes"] > 0 and "slopes" in det.timings
     s = det.surfaces
@@ -892,18 +905,16 @@ def test_align_depths_moves_only_where_neighbours_and_own_counts_agree():
     assert new[4] == 20.0
 
 
-def test_detect_refine_aligns_box_biased_depths_on_steep_ramp(monkeypatch):
+def test_detect_refine_aligns_box_biased_depths_on_steep_ramp():
     # 4 photons per pixel on a ramp of 5 bins per row (without the slope recovery): the
     # 3 x 3 box has a lobe per row and some peaks fall on a neighbour row's lobe, 5 bins
     # off; the alignment with the 4-neighbours moves them back (measured, seeds 0-2:
     # 110 / 82 / 83 wrong-depth points without it, 94 / 73 / 64 with it)
-    import splidar.detection._detect as det_mod
-
     lam, depth, _ = _ramp_with_disc(bright=4.0, dim=4.0)
     cube = _cube(lam, rng=0)
-    on = detect(cube, rng=0, slopes=False)
-    monkeypatch.setattr(det_mod, "align_depths", lambda *a, **k: (np.asarray(a[3]), 0))
-    off = detect(cube, rng=0, slopes=False)
+    on = detect(cube, rng=0, passes=_without("slopes"))
+    off = detect(cube, rng=0, passes=_without("slopes", "align_depths"))
+    assert off.options["n_aligned"] == 0 and not off.provenance[-1].ran
     err = {}
     for name, det in (("on", on), ("off", off)):
         p = det.points

@@ -294,7 +294,8 @@ def _select_reference(row, col, mass, depth, keep, k_max):
 
 @pytest.mark.parametrize("k_max", [1, 2, 3])
 def test_select_sorted_matches_lexsort_selection(k_max):
-    from splidar.detection._detect import _rank_in_pixel, _select
+    from splidar.detection._6_select import _select
+    from splidar.detection._table import _rank_in_pixel
 
     rng = np.random.default_rng(k_max)
     n = 5000

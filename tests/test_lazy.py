@@ -65,8 +65,8 @@ def test_detect_lazy_cube_with_slope_recovery_matches_memory(tmp_path):
     sim = single_surface_scene((48, 48)).simulate(ppp=4, sbr=0.25, rng=0)
     save(sim.cube, tmp_path / "c.zarr", chunks=(8, 48))
     lazy = load(tmp_path / "c.zarr")
-    a = splidar.detect(sim.cube, rng=0, slopes=True)
-    b = splidar.detect(lazy, rng=0, store=tmp_path / "det", slopes=True)
+    a = splidar.detect(sim.cube, rng=0)
+    b = splidar.detect(lazy, rng=0, store=tmp_path / "det")
     assert a.options["n_slopes"] > 0
     assert b.options["n_slopes"] == a.options["n_slopes"]
     np.testing.assert_array_equal(b.surfaces.depth_bin, a.surfaces.depth_bin)

@@ -114,6 +114,19 @@ def _probability(text: str) -> float:
     return x
 
 
+def _pass_list(text: str) -> tuple[str, ...]:
+    """``--skip``: comma-separated names of detect's clean-up passes."""
+    from .detection import PASSES
+
+    vals = tuple(v for v in text.replace(" ", "").split(",") if v)
+    bad = [v for v in vals if v not in PASSES]
+    if bad or not vals:
+        raise argparse.ArgumentTypeError(
+            f"expected pass names from {', '.join(PASSES)}; got {text!r}"
+        )
+    return vals
+
+
 def _alpha(text: str):
     """``--alpha``: a number > 1 or ``auto``."""
     if text.strip().lower() == "auto":
@@ -232,26 +245,11 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         help="own-pixel presence check of candidates (default adaptive)",
     )
     g.add_argument(
-        "--min-separation",
-        type=_positive(float),
-        metavar="BINS",
-        help="peaks closer than this are one surface (default: IRF FWHM)",
-    )
-    g.add_argument(
-        "--slopes",
-        choices=("weak", "holes", "all", "off"),
-        default=None,
-        help="recover surfaces on steep slopes by sheared pooled tests: in the pixels "
-        "left empty or holding a surface their own counts do not confirm (weak, the "
-        "default), only in the empty ones (holes), in every pixel (all: slower) or not "
-        "at all (off)",
-    )
-    g.add_argument(
-        "--no-dark",
-        dest="dark",
-        action="store_false",
-        default=None,
-        help="skip the dark-region pass (dim patches restored from their pooled counts)",
+        "--skip",
+        type=_pass_list,
+        metavar="PASS,..",
+        help="clean-up passes of the detection to skip (default: run all): spill_over, "
+        "isolated, dark_regions, slopes, enclosed, align_depths (docs/detection.md)",
     )
     g.add_argument(
         "--store",
@@ -762,9 +760,6 @@ _DETECT_OPTS = (
     "max_surfaces",
     "null",
     "presence",
-    "min_separation",
-    "slopes",
-    "dark",
     "store",
 )
 _RECON_OPTS = (
@@ -781,12 +776,12 @@ _RECON_OPTS = (
 
 
 def _pipeline(cube, args, stages: _Stages, *, library=None):
-    from .detection import detect
+    from .detection import PASSES, detect
     from .reconstruction import reconstruct
 
     det_kw = _given(args, _DETECT_OPTS)
-    if det_kw.get("slopes") == "off":
-        det_kw["slopes"] = False
+    if getattr(args, "skip", None):
+        det_kw["passes"] = tuple(p for p in PASSES if p not in args.skip)
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)

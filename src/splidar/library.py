@@ -2,14 +2,26 @@
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._containers import (
+    _CONTAINER_EXTS,
+    _check_path,
+    _ext,
+    _read_container,
+    _read_npy,
+    _str_list,
+    _summary,
+)
 from ._validation import SplidarError, as_float_array, check_ndim, describe
 
-__all__ = ["SpectralLibrary", "as_library"]
+__all__ = ["SpectralLibrary", "as_library", "load_library"]
+
+_CSV_HEADER_WORDS = ("", "class", "classes", "name", "names", "class_name", "label", "material")
 
 
 @dataclass(frozen=True)
@@ -81,15 +93,14 @@ def as_library(library, *, n_wavelengths: int | None = None, name: str = "librar
     """Coerce ``library`` to a :class:`SpectralLibrary` (or ``None``).
 
     Accepts ``None``, a :class:`SpectralLibrary`, an array ``(K, L)``, or a path to a
-    file that :func:`splidar.io.load_library` reads. Checks L against ``n_wavelengths``.
+    file that :func:`load_library` reads (also :func:`splidar.io.load_library`). Checks L
+    against ``n_wavelengths``.
     """
     if library is None:
         return None
     if isinstance(library, SpectralLibrary):
         lib = library
     elif isinstance(library, (str, os.PathLike)):
-        from .io import load_library
-
         lib = load_library(library)
     else:
         try:
@@ -102,3 +113,94 @@ def as_library(library, *, n_wavelengths: int | None = None, name: str = "librar
             f"{n_wavelengths}; pass a library of shape (K, {n_wavelengths})."
         )
     return lib
+
+
+def load_library(path: str | os.PathLike) -> SpectralLibrary:
+    """Read a spectral library ``(K, L)`` with optional class names.
+
+    Formats:
+
+    * ``.npz`` / ``.mat`` / ``.h5``: ``library`` (or ``signatures``) ``(K, L)`` and
+      optional ``class_names``.
+    * ``.npy``: the signatures ``(K, L)`` alone (read with ``allow_pickle=False``;
+      classes are unnamed).
+    * ``.csv``: one class per row, an optional leading name column, an optional header
+      row (ignored) recognised by a non-numeric value after its first field or by a
+      first field that is empty or one of "class", "name", "label", "material".
+    * ``.json``: ``{"signatures": [[...], ...], "class_names": [...]}`` or
+      ``{"name": [values], ...}``.
+
+    Returns
+    -------
+    SpectralLibrary
+
+    Raises
+    ------
+    SplidarError
+        Missing file, unknown extension, no library in the file, bad values.
+
+    Examples
+    --------
+    >>> lib = load_library("lego_library.csv")  # doctest: +SKIP
+    """
+    p = _check_path(path)
+    ext = _ext(p)
+    if ext in _CONTAINER_EXTS:
+        d = _read_container(p)
+        key = "library" if "library" in d else "signatures" if "signatures" in d else None
+        if key is None:
+            raise SplidarError(
+                f"'{p.name}' has no `library` or `signatures` array; it holds: {_summary(d)}."
+            )
+        names = _str_list(d.get("class_names"))
+        return SpectralLibrary(np.asarray(d[key], dtype=np.float64), class_names=names)
+    if ext == ".npy":
+        return SpectralLibrary(np.asarray(_read_npy(p), dtype=np.float64))
+    if ext == ".json":
+        try:
+            obj = json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise SplidarError(f"'{p.name}' is not valid JSON: {exc}") from None
+        if isinstance(obj, dict) and "signatures" in obj:
+            return SpectralLibrary(obj["signatures"], class_names=obj.get("class_names", ()))
+        if isinstance(obj, dict) and obj:
+            return SpectralLibrary(list(obj.values()), class_names=list(obj.keys()))
+        raise SplidarError(
+            f"'{p.name}' must hold {{'signatures': [[...]], 'class_names': [...]}} or "
+            "{name: [values], ...}."
+        )
+    if ext == ".csv":
+        names, rows = [], []
+        for i, line in enumerate(p.read_text().splitlines()):
+            fields = [f.strip() for f in line.split(",")]
+            if not line.strip():
+                continue
+            if not rows and not names and fields[0].lower() in _CSV_HEADER_WORDS:
+                continue  # header, e.g. "class,532,633,780"
+            try:
+                rows.append([float(f) for f in fields])
+                continue
+            except ValueError:
+                pass
+            try:
+                vals = [float(f) for f in fields[1:]]
+            except ValueError:
+                if rows or names:
+                    raise SplidarError(
+                        f"line {i + 1} of '{p.name}' is not a signature: {line!r}."
+                    ) from None
+                continue  # header
+            names.append(fields[0])
+            rows.append(vals)
+        if not rows:
+            raise SplidarError(f"'{p.name}' holds no signature rows.")
+        if names and len(names) != len(rows):
+            raise SplidarError(f"'{p.name}': name every row or none.")
+        try:
+            sig = np.array(rows, dtype=np.float64)
+        except ValueError:
+            raise SplidarError(f"'{p.name}': rows have different lengths.") from None
+        return SpectralLibrary(sig, class_names=names)
+    raise SplidarError(
+        f"unknown library file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv or .json."
+    )

@@ -16,7 +16,28 @@ import numpy as np
 from ..library import SpectralLibrary
 from ..points import PointSet
 
-__all__ = ["Background", "DataReduction", "Detection", "NullModel", "Surfaces"]
+__all__ = [
+    "STAGES",
+    "Background",
+    "DataReduction",
+    "Detection",
+    "NullModel",
+    "StageRecord",
+    "Surfaces",
+]
+
+#: Stages that can create (keep) a surface or remove a candidate, in the order they run;
+#: ``origin`` / ``Surfaces.stage`` hold indices into this tuple.
+STAGES = (
+    "map",  # 4: a candidate of the 3D map that passed the evidence and presence tests
+    "spill_over",  # 5a: removes the spread of a neighbour's return
+    "isolated",  # 5b: removes candidates that no neighbour shares and own counts do not show
+    "dark_regions",  # 5c: restores candidates of dim patches, pooled
+    "slopes",  # 5d: adds surfaces on steep slopes (sheared pooled tests)
+    "enclosed",  # 5e: restores candidates of holes that a surface encloses
+    "select",  # 6: keeps at most K_s candidates per pixel
+    "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
+)
 
 
 @dataclass(frozen=True)
@@ -140,6 +161,11 @@ class Surfaces:
     presence_z : ndarray (S,), float64, optional
         Significance (Poisson z) of the local scale's (finest above 1 px) response at
         the depth. Added field.
+    stage : ndarray (S,), int8, optional
+        Why the surface exists: the index into :data:`splidar.detection.STAGES` of the
+        stage whose decision keeps it (``"map"``: a candidate of the 3D map that passed
+        the evidence and presence tests; ``"dark_regions"``, ``"slopes"``,
+        ``"enclosed"``: restored or added by that clean-up pass). Added field.
     """
 
     row: np.ndarray
@@ -160,6 +186,7 @@ class Surfaces:
     evidence: np.ndarray | None = None
     presence_llr: np.ndarray | None = None
     presence_z: np.ndarray | None = None
+    stage: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.row.size)
@@ -178,6 +205,34 @@ class Surfaces:
     def net_counts(self) -> np.ndarray:
         """Own-pixel signal estimate ``counts - background``, shape (S, L) (may be < 0)."""
         return self.counts - self.background
+
+
+@dataclass(frozen=True)
+class StageRecord:
+    """What one stage of :func:`splidar.detect` did to the surfaces.
+
+    Attributes
+    ----------
+    stage : str
+        An entry of :data:`splidar.detection.STAGES`.
+    ran : bool
+        False when the stage was switched off (``passes``) or had nothing to work on.
+    added : int
+        Surfaces (candidates) it created, added or restored.
+    removed : int
+        Kept candidates it rejected (``"map"``: the runs of the map dropped by the
+        evidence or presence tests; ``"select"``: those beyond ``K_s`` per pixel).
+    moved : int
+        Surfaces whose depth it changed (``"align_depths"``).
+    seconds : float
+    """
+
+    stage: str
+    ran: bool
+    added: int
+    removed: int
+    moved: int = 0
+    seconds: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -216,6 +271,10 @@ class Detection:
         Seconds spent in each step.
     options : mapping
         The options the detection ran with (for reports and reproducibility).
+    provenance : tuple of StageRecord
+        Per stage, in the order they ran, the candidates it added and removed; with
+        ``surfaces.stage`` it tells why each surface exists (see
+        :meth:`provenance_table`).
     """
 
     cube_shape: tuple[int, int, int, int]
@@ -235,6 +294,26 @@ class Detection:
     surfaces: Surfaces
     timings: Mapping[str, float] = field(default_factory=dict)
     options: Mapping[str, Any] = field(default_factory=dict)
+    provenance: tuple[StageRecord, ...] = ()
+
+    def provenance_table(self) -> str:
+        """The provenance as a text table: stage, ran, added, removed, moved, surfaces kept.
+
+        The last column counts the final surfaces that each stage's decision keeps
+        (``surfaces.stage``).
+        """
+        kept = np.zeros(len(STAGES), np.int64)
+        if self.surfaces.stage is not None:
+            kept = np.bincount(self.surfaces.stage, minlength=len(STAGES))
+        head = f"{'stage':14s} {'ran':>4s} {'added':>7s} {'removed':>8s} {'moved':>6s} {'kept':>6s}"
+        rows = [head]
+        for r in self.provenance:
+            k = int(kept[STAGES.index(r.stage)]) if r.stage in STAGES else 0
+            rows.append(
+                f"{r.stage:14s} {'yes' if r.ran else 'no':>4s} {r.added:7d} {r.removed:8d} "
+                f"{r.moved:6d} {k:6d}"
+            )
+        return "\n".join(rows)
 
     def __repr__(self) -> str:
         return (

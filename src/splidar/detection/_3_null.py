@@ -1,0 +1,255 @@
+"""Stage 3: the null model and the thresholds (voxel and surface level).
+
+Background-only cubes are drawn from the estimated background on random patches of the
+image and their saliency computed with the data's filters (stage 2): the voxel threshold
+is the ``1 - pfa`` quantile of that null saliency as a function of the local background
+level (``null="empirical"``), or the paper's gamma fit (``eq:gamma_distrib``,
+``null="gamma"``). The candidates found in the null patches then set the surface-level
+threshold on the evidence (``surface_pfa`` false surfaces per background-only pixel).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numpy as np
+from scipy import stats
+
+from ._2_saliency import SaliencyFilters, block_saliency
+from ._fast import poisson_background
+from ._kernels import find_segments
+from ._null import fit_gamma_quantiles, threshold_table
+from ._result import NullModel
+
+__all__ = ["NullCalibration", "calibrate_null", "evidence"]
+
+
+@dataclass(frozen=True)
+class NullCalibration:
+    """The fitted null and the thresholds drawn from it.
+
+    Attributes
+    ----------
+    model : NullModel
+        What :class:`~splidar.detection.Detection` reports.
+    levels, thresholds : ndarray
+        The empirical threshold table: threshold as a function of the summed
+        background level ``sum_l bhat``.
+    gamma_threshold : float
+        The paper's gamma threshold at ``pfa``.
+    evidence_threshold : float
+        A candidate is kept when its evidence exceeds this (``surface_pfa``).
+    """
+
+    model: NullModel
+    levels: np.ndarray
+    thresholds: np.ndarray
+    gamma_threshold: float
+    evidence_threshold: float
+
+    def threshold_at(self, level):
+        """The voxel threshold (float32) at a summed background level."""
+        if self.model.method == "gamma-quantile":
+            return np.float32(self.gamma_threshold)
+        if self.levels.size == 1:
+            return np.float32(self.thresholds[0])
+        xs, ys = self.levels.astype(np.float64), self.thresholds.astype(np.float64)
+        return np.interp(level, xs, ys).astype(np.float32)
+
+    def table(self, per_voxel: bool) -> tuple:
+        """``(levels, thresholds, write per-voxel threshold)`` for the map pass."""
+        if self.model.method == "gamma-quantile":
+            return (np.zeros(1), np.array([float(np.float32(self.gamma_threshold))]), False)
+        # a threshold varying with the level is computed by the main pass and kept as
+        # its factors (ThresholdField; written out only to a store), or reduced to its
+        # variation with t alone if the background turns out spatially flat
+        return (
+            np.asarray(self.levels, np.float64),
+            np.asarray(self.thresholds, np.float64),
+            self.levels.size > 1 and per_voxel,
+        )
+
+
+class _FixedSeed:
+    """Stands in for a Generator whose next ``integers`` draw was taken in advance."""
+
+    def __init__(self, seed: int):
+        self.seed = int(seed)
+
+    def integers(self, *args, **kwargs) -> int:
+        return self.seed
+
+
+def _null_samples(
+    counts, ctx: SaliencyFilters, n_target: int, rng, *, patch: int = 32, max_patches=400
+):
+    """Saliency of background-only cubes drawn from the estimated background.
+
+    Random patches of the image: the background level is estimated from the data around
+    each (exactly as in the main pass), a Poisson cube of ``bhat`` is drawn and its
+    saliency computed with the same filters; the patch interior (at least ``h`` pixels
+    from any cut) is kept. Returns null saliency, its level, and the data's saliency on
+    the same patches (for the gamma fit).
+
+    The patches and their seeds are drawn first, in order, from ``rng``; the patches are
+    then computed on ``ctx.workers`` threads (one patch per thread), so the result does
+    not depend on the number of threads.
+    """
+    R, C, L, T = counts.shape
+    h = int(ctx.scales.max()) // 2
+    pr, pc = min(R, patch), min(C, patch)
+    plan = []
+    n = 0
+    while n < n_target and len(plan) < max_patches:
+        # every pixel is equally likely to be in a patch (patches are clipped at the
+        # image border): borders, where the reflected box filters have a larger
+        # variance, are represented in proportion
+        a0 = int(rng.integers(-(pr - 1), R)) if pr < R else 0
+        b0 = int(rng.integers(-(pc - 1), C)) if pc < C else 0
+        r0, r1 = max(0, a0), min(R, a0 + pr)
+        c0, c1 = max(0, b0), min(C, b0 + pc)
+        seed = int(rng.integers(2**62))  # as poisson_background draws it
+        plan.append((r0, r1, c0, c1, seed))
+        n += (r1 - r0) * (c1 - c0) * T
+
+    def window(key):
+        r0, r1, c0, c1 = key
+        dr0, dr1 = max(0, r0 - 2 * h), min(R, r1 + 2 * h)
+        dc0, dc1 = max(0, c0 - 2 * h), min(C, c1 + 2 * h)
+        sr0, sr1 = max(0, r0 - h), min(R, r1 + h)
+        sc0, sc1 = max(0, c0 - h), min(C, c1 + h)
+        yw = np.asarray(counts[dr0:dr1, dc0:dc1])
+        _, sal_w, _, sp_w, _ = block_saliency(yw, wctx, keep=slice(sr0 - dr0, sr1 - dr0))
+        sp = sp_w[:, sc0 - dc0 : sc1 - dc0].copy()
+        real = sal_w[r0 - sr0 : r1 - sr0, c0 - dc0 : c1 - dc0].ravel().copy()
+        return sp, real
+
+    def simulate(item):
+        r0, r1, c0, c1, seed = item
+        sp, real = windows[(r0, r1, c0, c1)]
+        # Poisson cube of bhat (eq:background_3), drawn in numba (seeded from rng)
+        ysim = poisson_background(sp, ctx.dev, _FixedSeed(seed))
+        _, sal, d, _, level = block_saliency(ysim, wctx, spatial=sp)
+        i0, j0 = r0 - max(0, r0 - h), c0 - max(0, c0 - h)
+        sl = (slice(i0, i0 + r1 - r0), slice(j0, j0 + c1 - c0))
+        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real
+
+    keys = list(dict.fromkeys(p[:4] for p in plan))
+    n_par = max(1, min(int(ctx.workers), len(plan)))
+    # one patch per thread when there are several; threads inside a single patch
+    wctx = dataclasses.replace(ctx, workers=1) if n_par > 1 else ctx
+    if n_par > 1:
+        with ThreadPoolExecutor(n_par) as ex:
+            windows = dict(zip(keys, ex.map(window, keys), strict=True))
+            res = list(ex.map(simulate, plan))
+    else:
+        windows = {k: window(k) for k in keys}
+        res = [simulate(p) for p in plan]
+    s_sim = [r[0] for r in res]
+    lev = [r[1] for r in res]
+    d_sim = [r[2] for r in res]
+    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res])
+
+
+def evidence(sal, thr):
+    """Excess of the saliency over the threshold, relative to it: ``max(S / thr - 1, 0)``."""
+    thr = np.maximum(np.asarray(thr, np.float32), np.float32(1e-12))
+    e = sal / thr
+    e -= 1
+    np.maximum(e, 0, out=e)
+    return e
+
+
+def calibrate_null(
+    counts,
+    filters: SaliencyFilters,
+    *,
+    pfa: float,
+    surface_pfa: float,
+    null: str,
+    min_separation: int,
+    split_ratio: float,
+    rng: np.random.Generator,
+    n_jobs: int,
+) -> NullCalibration:
+    """Simulate the background-only saliency and fit the voxel and surface thresholds.
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+    filters : SaliencyFilters
+        Stage 2's set-up (its ``dev`` is stage 1's temporal shape).
+    pfa, surface_pfa : float
+        False alarms per voxel; false surfaces per background-only pixel.
+    null : {"empirical", "gamma"}
+    min_separation, split_ratio
+        How runs of the map split into candidates (as in the map pass).
+    rng : Generator
+        Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
+    n_jobs : int
+        Threads.
+    """
+    n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
+    # the patches run one after the other: threads inside each (FFT and fused kernel)
+    null_ctx = dataclasses.replace(filters, workers=n_jobs)
+    p_sim, p_lev, p_d, s_real = _null_samples(counts, null_ctx, n_target, rng)
+    s_sim = np.concatenate([a.ravel() for a in p_sim])
+    lev_sim = np.concatenate([a.ravel() for a in p_lev])
+    # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
+    # thread beside the empirical table when allowed (numpy's selections release the GIL)
+    with ThreadPoolExecutor(1) if n_jobs > 1 else contextlib.nullcontext() as ex:
+        fit = ex.submit(fit_gamma_quantiles, s_real) if ex is not None else None
+        thr_emp_global = float(np.quantile(s_sim, 1.0 - pfa))
+        xs, ys = threshold_table(s_sim, lev_sim, pfa)
+        a_fit, sc_fit = fit.result() if fit is not None else fit_gamma_quantiles(s_real)
+    thr_gamma = float(stats.gamma.isf(pfa, a_fit, scale=sc_fit))
+    if null == "gamma":
+        method = "gamma-quantile"
+    elif xs.size == 1:
+        method = "empirical"
+    else:
+        method = "empirical-by-level"
+    provisional = NullCalibration(
+        NullModel(shape=0.0, scale=0.0, method=method, pfa=pfa), xs, ys, thr_gamma, 0.0
+    )
+    # surface-level calibration: evidence of the candidates found in the null patches
+    ev_null = []
+    for a, lv, dd in zip(p_sim, p_lev, p_d, strict=True):
+        thr = provisional.threshold_at(lv)
+        ev_null.append(
+            find_segments(
+                (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio
+            )[-1]
+        )
+    ev_null = np.sort(np.concatenate(ev_null))[::-1]
+    n_null_px = sum(a.shape[0] * a.shape[1] for a in p_sim)
+    n_allowed = int(np.floor(surface_pfa * n_null_px))
+    ev_thr = float(ev_null[n_allowed]) if n_allowed < ev_null.size else 0.0
+    del p_sim, p_lev, p_d
+    model = NullModel(
+        shape=float(a_fit),
+        scale=float(sc_fit),
+        method=method,
+        pfa=pfa,
+        calibration=(thr_emp_global / thr_gamma if thr_gamma > 0 else float("nan"))
+        if null == "empirical"
+        else 1.0,
+        details=MappingProxyType(
+            {
+                "gamma_threshold": thr_gamma,
+                "empirical_threshold": thr_emp_global,
+                "table_levels": xs,
+                "table_thresholds": ys,
+                "n_null_voxels": int(s_sim.size),
+                "gamma_rate_on_null": float(np.mean(s_sim > thr_gamma)),
+                "surface_pfa": surface_pfa,
+                "evidence_threshold": ev_thr,
+                "null_candidates_per_pixel": ev_null.size / max(n_null_px, 1),
+            }
+        ),
+    )
+    return NullCalibration(model, xs, ys, thr_gamma, ev_thr)

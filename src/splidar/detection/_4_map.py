@@ -1,0 +1,609 @@
+"""Stage 4: the 3D map and its candidate surfaces, in one pass over blocks of rows.
+
+For each block of image rows (with a halo of ``max k // 2`` rows): the saliency (stage
+2), the threshold from the null (stage 3), the binary map ``M``, runs of ``M`` split
+between resolved peaks into candidates; a candidate whose evidence beats the null's is
+extracted (clean histograms at every scale, ``eq:background_final``; selected scale,
+``eq:scale_sel``; sub-bin depth) and tested for presence in its own pixel. Saliency, map
+and candidates are computed together so that the cube is read and matched-filtered once
+and no ``(rows, cols, L, T)`` float array is ever held whole.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._validation import SplidarError, describe
+from ._2_saliency import SaliencyFilters, block_saliency
+from ._3_null import NullCalibration
+from ._kernels import extract_surfaces, find_segments, threshold_pass
+from ._result import DataReduction
+from ._table import CandidateTable, _rank_in_pixel, stage_code
+from ._threshold import ThresholdField
+
+__all__ = ["CandidateMap", "MapOptions", "map_candidates"]
+
+#: Presence test (``presence="auto"/"adaptive"``): the local scale (finest above 1
+#: pixel) must respond at a candidate's depth with this Poisson z: 3 sigma, about one
+#: false pass per 700 tested depths of pure background. Measured: docs/detection.md.
+PRESENCE_Z = 3.0
+#: Presence test: the own pixel's counts reject a candidate when they favour "no return"
+#: by more than this natural-log likelihood ratio (3 nats, odds of 20:1): weak own
+#: counts never reject a surface the pooled scales show. Measured: docs/detection.md.
+PRESENCE_LLR = 3.0
+#: Presence test: a pixel's further candidates need own counts favouring them (log-ratio
+#: >= 0): 0 rather than 1 since the spill-over pass catches the extras (net scene PPP 10,
+#: SBR 1: F_true 0.941 -> 0.955, false 0.029 -> 0.037 per true one). docs/detection.md.
+PRESENCE_SECONDARY = 0.0
+#: A run of the map is split between two peaks when the response dips below this
+#: fraction of the smaller peak between them (half: two resolved returns).
+SPLIT_RATIO = 0.5
+#: Depth by the intersection of confidence intervals over the scales (ICI) rather than
+#: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
+#: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
+REFINE = True
+#: z the own pixel's matched-filter peak needs to take part in the depth refinement
+#: (ICI) and to centre a long run's window: a 3-sigma peak, rarely noise in one window.
+REFINE_Z = 3.0
+#: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
+#: true depth inside its interval 95 % of the time.
+ICI_GAMMA = 2.0
+
+
+@dataclass(frozen=True)
+class MapOptions:
+    """How the map pass splits, extracts and tests candidates (see :func:`splidar.detect`)."""
+
+    min_separation: int
+    split_ratio: float
+    presence: str
+    presence_z: float
+    presence_llr: float
+    secondary_llr: float
+    refine: bool
+    keep_suspects: bool
+    max_surfaces: int
+    width: int
+
+
+@dataclass(frozen=True)
+class CandidateMap:
+    """Result of the map pass.
+
+    Attributes
+    ----------
+    saliency : ndarray or zarr array (rows, cols, T), float32
+    mask : ndarray or zarr array (rows, cols, T), bool
+    spatial : ndarray (rows, cols, L), float32
+        The background level ``b_{n,l}`` (``eq:background_2``).
+    threshold : float, ndarray, ThresholdField or zarr array
+    candidates : CandidateTable
+        Every candidate that passed the evidence test, ``keep`` set by the presence
+        test (rejected ones stay in the table while their pixel has room, for the
+        restoring passes).
+    histograms : tuple of ndarray
+        Per block, the clean histograms of its candidates (gathered once, for the
+        selected surfaces).
+    reduction : DataReduction
+    n_candidates, n_rejected : int
+        Runs of the map found, and those dropped by the evidence or presence tests.
+    block_rows, width : int
+        Rows per block; histogram window W (bins).
+    """
+
+    saliency: object
+    mask: object
+    spatial: np.ndarray
+    threshold: object
+    candidates: CandidateTable
+    histograms: tuple
+    reduction: DataReduction
+    n_candidates: int
+    n_rejected: int
+    block_rows: int
+    width: int
+
+
+def _store_boxes(scales: np.ndarray, width: int, n_bins: int) -> bool:
+    """Whether the saliency pass should keep its box means for surface extraction.
+
+    Keeping them costs ``Qb`` float32 writes per voxel (``Qb`` scales above 1 pixel);
+    summing the boxes about each candidate costs ``sum_q k_q^2`` additions per window
+    bin, for a few (about 3) candidates per pixel, each ``width`` bins long. A write
+    to memory costs about 5 additions (measured on the 200 x 200 x 4 x 1500 and
+    Art-size cubes: keeping them is 1.3x slower on the first, 2.5x faster on the
+    second), hence the rule. It depends on the sizes only, never on the data or the
+    blocks, so every block takes the same path (the two differ by float32 rounding).
+    """
+    qb = int((scales > 1).sum())
+    if qb == 0:
+        return False
+    return 3 * width * float((scales.astype(np.float64) ** 2).sum()) >= 5 * n_bins * qb
+
+
+def _local_scale(scales: np.ndarray) -> int:
+    """Index of the local scale of the presence check: the finest one above 1 pixel."""
+    above = np.flatnonzero(scales > 1)
+    return int(above[0]) if above.size else 0
+
+
+def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
+    """Per-candidate clean histograms at every scale, scale selection, depth, presence.
+
+    Runs the numba kernel :func:`~splidar.detection._kernels.extract_surfaces` over the
+    candidates (split over ``ctx.workers`` threads; each candidate is computed the same
+    way whatever the split). For each candidate: box means of the correlated block at
+    every scale (``box``, written by the saliency pass) over a window of ``width`` bins
+    about its peak, minus ``bhat``
+    (``eq:background_3``), kept positive inside the support (``eq:background_final``);
+    the global and per-scale depths (argmax of the clean matched-filter response,
+    ``eq:depth_global`` / ``eq:depth_scale``) and the selected scale (``eq:scale_sel``);
+    a sub-bin depth (parabola through the selected scale's response, or the finest
+    scale's when significant and ``refine``); own-pixel counts, background and the
+    presence statistics (own-pixel log-likelihood ratio, local-scale z, predicted z).
+    """
+    R, C = opts["image_shape"]
+    L, T = ctx.dev.shape
+    Q = ctx.scales.size
+    W = opts["width"]
+    S = rows.size
+    qloc = _local_scale(ctx.scales)
+    want_sel = opts["presence"] == "pixel"
+    o = dict(
+        depth_bin=np.empty(S, np.float64),
+        start=np.empty(S, np.int64),
+        stop=np.empty(S, np.int64),
+        scale_index=np.empty(S, np.int64),
+        offset=np.empty(S, np.int64),
+        histograms=np.empty((S, Q, L, W), np.float32),
+        signal=np.empty((S, Q, L), np.float64),
+        counts=np.empty((S, L), np.float64),
+        background=np.empty((S, L), np.float64),
+        presence_llr=np.empty(S, np.float64),
+        presence_z=np.empty(S, np.float64),
+    )
+    zpred = np.empty(S, np.float64)
+    llr_sel = np.empty(S if want_sel else 0, np.float64)
+    # own-pixel counts and background over the window, for the global spill-over and
+    # isolated-candidate passes (_quality.py); not part of Surfaces
+    o["own_counts"] = np.empty((S, L, W), np.int32)
+    o["own_background"] = np.empty((S, L, W), np.float32)
+    bidx = np.full(ctx.scales.size, -1, np.int64)
+    if box is None:  # boxes summed about each candidate by the kernel
+        box = np.empty((L, 0, 1, 1, 1), np.float32)
+    else:
+        bidx[ctx.scales > 1] = np.arange(int((ctx.scales > 1).sum()))
+    args = (
+        y,
+        c_ext,
+        box,
+        bidx,
+        int(e0),
+        int(r0),
+        np.ascontiguousarray(rows, np.int64),
+        np.ascontiguousarray(cols, np.int64),
+        np.ascontiguousarray(start, np.int64),
+        np.ascontiguousarray(stop, np.int64),
+        np.ascontiguousarray(peak, np.int64),
+        sp_blk,
+        ctx.dev,
+        ctx.scales,
+        np.ascontiguousarray(ctx.gsq, np.float64),
+        np.ascontiguousarray(ctx.corr.irf, np.float64),
+        np.ascontiguousarray(ctx.corr.peak, np.float64),
+        int(W),
+        int(R),
+        int(C),
+        bool(opts["refine"]),
+        float(opts["refine_z"]),
+        np.ascontiguousarray(ctx.fisher, np.float64),
+        float(opts["ici_gamma"]),
+        int(qloc),
+        want_sel,
+    )
+    outs = (
+        o["depth_bin"],
+        o["start"],
+        o["stop"],
+        o["scale_index"],
+        o["offset"],
+        o["histograms"],
+        o["signal"],
+        o["counts"],
+        o["background"],
+        o["presence_llr"],
+        o["presence_z"],
+        zpred,
+        llr_sel,
+        o["own_counts"],
+        o["own_background"],
+    )
+    n_threads = max(1, min(int(ctx.workers), S // 2000))
+    if n_threads == 1:
+        extract_surfaces(*args, 0, S, *outs)
+    else:
+        cuts = np.linspace(0, S, n_threads + 1).round().astype(np.int64)
+        with ThreadPoolExecutor(n_threads) as ex:
+            list(
+                ex.map(
+                    lambda ab: extract_surfaces(*args, int(ab[0]), int(ab[1]), *outs),
+                    zip(cuts[:-1], cuts[1:], strict=True),
+                )
+            )
+    keep = np.ones(S, bool)
+    zloc, llr = o["presence_z"], o["presence_llr"]
+    if opts["presence"] == "pixel" and S:
+        keep = llr_sel >= 0.0
+    elif opts["presence"] in ("auto", "adaptive") and S:
+        zreq = opts["presence_z"]
+        if opts["presence"] == "adaptive":
+            # presence_z, or presence_z below the predicted z when the neighbourhood
+            # is too dim for a true return to reach presence_z
+            zreq = np.minimum(zreq, zpred - opts["presence_z"])
+        keep = (zloc >= zreq) & (llr >= -opts["presence_llr"])
+    o["row"] = rows + r0
+    o["col"] = cols
+    o["saliency_mass"] = mass
+    return o, keep
+
+
+@dataclass
+class _BlockOut:
+    n_voxels: int
+    n_photons_kept: int
+    n_photons: int
+    surf: dict
+    n_candidates: int
+    n_rejected: int
+    # the block's histograms of every extracted candidate (not subset: the large array
+    # is gathered once, for the selected surfaces) and the rows of the kept ones
+    histograms: np.ndarray = None
+    kept: np.ndarray = None
+
+
+def _block(y, c_ext, e0, r0, r1, ctx: SaliencyFilters, table, opts, out, work=None) -> _BlockOut:
+    """Saliency, map and surfaces of image rows ``[r0, r1)``.
+
+    ``y`` and ``c_ext`` hold the raw and correlated rows ``[e0, e0 + len(y))`` (the
+    block with its halo); ``out`` the preallocated image-size outputs written here.
+    """
+    i0, i1 = r0 - e0, r1 - e0
+    in_ram = isinstance(out["saliency"], np.ndarray)
+    # in memory the block writes straight into the outputs; with a store it writes
+    # into buffers copied to the (chunk-aligned) store at the end
+    sal_out = out["saliency"][r0:r1] if in_ram else None
+    L, T = ctx.dev.shape
+    if opts["store_boxes"]:
+        Qb = int((ctx.scales > 1).sum())
+        n_box = L * Qb * (i1 - i0) * y.shape[1] * T
+        box = np.empty(n_box, np.float32) if work is None else work["box"][:n_box]
+        box = box.reshape(L, Qb, i1 - i0, y.shape[1], T)
+    else:
+        box = None
+    _, sal, d, sp, level = block_saliency(
+        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box
+    )
+    xs, ys, store_thr = table
+    r, C, T = sal.shape
+    if work is None:
+        cand = np.empty((r, C, T), bool)
+        ev_vox = np.empty((r, C, T), np.float32)
+    else:
+        cand, ev_vox = work["cand"][:r], work["ev"][:r]
+    # a per-voxel threshold is written out only to a store (in memory it is kept as
+    # the background factors: ThresholdField)
+    thr = np.empty((r, C, T) if store_thr else (1, 1, 1), np.float32)
+    mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
+    # threshold, M, candidate voxels, evidence and photon counts in one pass
+    n_ph, kept = threshold_pass(sal, d, level, xs, ys, y, i0, thr, store_thr, mask, cand, ev_vox)
+    del level
+    n_vox = int(np.count_nonzero(mask))
+    if not in_ram:
+        out["saliency"][r0:r1] = sal
+        out["mask"][r0:r1] = mask
+        if store_thr:
+            out["threshold"][r0:r1] = thr
+    out["spatial"][r0:r1] = sp
+    # a surface is a positive excursion: voxels of M where the response is below the
+    # background (|.| of eq:4.s1) are kept in M but start no candidate
+    rows, cols, start, stop, peak, mass, ev = find_segments(
+        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"]
+    )
+    del cand, ev_vox, d
+    n_cand = int(rows.size)
+    # candidates whose evidence does not beat the simulated null are dropped before
+    # the (costly) extraction: the evidence does not depend on it
+    pre = np.flatnonzero(ev > opts["evidence_threshold"])
+    rows, cols, start, stop, peak, mass, ev = (
+        a[pre] for a in (rows, cols, start, stop, peak, mass, ev)
+    )
+    surf, keep = _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp, ctx, opts)
+    del box
+    surf["evidence"] = ev
+    if opts["presence"] in ("auto", "adaptive") and keep.any():
+        # a pixel's strongest candidate is supported by the scene's continuity; any
+        # further one is an extra claim on the pixel and needs its own counts to favour
+        # it (log-likelihood ratio >= presence_secondary): coarse scales plant such
+        # extras beside thin structures and across depth edges
+        rank = _rank_in_pixel(surf["row"], surf["col"], ev, keep)
+        extra_ok = surf["presence_llr"] >= opts["secondary_llr"]
+        if opts["presence"] == "adaptive":
+            extra_ok &= surf["presence_z"] >= opts["presence_z"]
+        keep &= (rank == 0) | extra_ok
+    return _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand)
+
+
+def _run_rows(counts, a, b, ctx: SaliencyFilters, table, opts, out, block_rows: int) -> list:
+    """Blocks of ``block_rows`` rows over image rows ``[a, b)``, one after the other.
+
+    The correlated halo rows shared by consecutive blocks are carried over, so every
+    image row is matched-filtered once (plus ``2 h`` rows per call).
+    """
+    R = counts.shape[0]
+    h = int(ctx.scales.max()) // 2
+    res = []
+    # one buffer per run: a block's correlated rows, the halo it shares with the next
+    # block moved to the front afterwards (no concatenation, no per-block allocation)
+    shape = tuple(counts.shape)
+    buf = np.empty((min(block_rows + 2 * h, R),) + shape[1:], np.float32)
+    nb = min(block_rows, R)
+    work = dict(
+        d=np.empty((nb, shape[1], shape[3]), np.float32),
+        level=np.empty((nb, shape[1], shape[3]), np.float32),
+        cand=np.empty((nb, shape[1], shape[3]), bool),
+        ev=np.empty((nb, shape[1], shape[3]), np.float32),
+    )
+    if opts["store_boxes"]:
+        # box means of the scales above 1 pixel (flat: reshaped per block)
+        n_box = shape[2] * int((ctx.scales > 1).sum()) * nb * shape[1] * shape[3]
+        work["box"] = np.empty(n_box, np.float32)
+    have0, n_have = 0, 0  # buf[:n_have] holds correlated rows [have0, have0 + n_have)
+    for r0 in range(a, b, block_rows):
+        r1 = min(b, r0 + block_rows)
+        e0, e1 = max(0, r0 - h), min(R, r1 + h)
+        y = np.asarray(counts[e0:e1])
+        n = e1 - e0
+        if n_have and have0 == e0:
+            k = min(n_have, n)
+        else:
+            k = 0
+        if k < n:
+            ctx.corr(y[k:], workers=ctx.workers, out=buf[k:n])
+        c_ext = buf[:n]
+        res.append(_block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work))
+        # rows [r1 - h, e1) are the next block's top halo
+        have0 = max(e0, r1 - h)
+        n_have = e1 - have0
+        src = have0 - e0
+        if n_have and src:
+            buf[:n_have] = buf[src : src + n_have].copy() if src < n_have else buf[src:n]
+        del c_ext, y
+    return res
+
+
+def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
+    # the candidates that passed the block's rules, unselected: detect() runs the global
+    # passes of _quality.py on them (they need neighbours across block borders), then
+    # _select (K_s per pixel)
+    if opts.get("keep_suspects"):
+        # the rejected candidates of pixels left with room for a surface stay in the
+        # table (the dark-region passes may restore them); ``presence_ok`` tells them
+        # apart
+        C = opts["image_shape"][1]
+        pix = surf["row"] * C + surf["col"]
+        u, cnt = np.unique(pix[keep], return_counts=True)
+        room = ~np.isin(pix, u[cnt >= opts["max_surfaces"]])
+        idx = np.flatnonzero(keep | room)
+        surf["presence_ok"] = keep.copy()
+    else:
+        idx = np.flatnonzero(keep)
+    out = {k: v[idx] for k, v in surf.items() if k != "histograms"}
+    return _BlockOut(
+        n_voxels=n_vox,
+        n_photons_kept=kept,
+        n_photons=n_ph,
+        surf=out,
+        n_candidates=n_cand,
+        n_rejected=n_cand - int(keep.sum()),
+        histograms=surf["histograms"],
+        kept=idx,
+    )
+
+
+def _open_store(store, shape, block_rows: int, with_threshold: bool) -> dict:
+    """Chunked Zarr arrays for saliency, mask (and threshold) in a new directory."""
+    import os as _os
+    from pathlib import Path
+
+    try:
+        import zarr
+    except ImportError:
+        raise SplidarError(
+            "`store` needs the zarr package; install it with `pip install splidar[dask]` "
+            "or pass store=None to keep the arrays in memory."
+        ) from None
+    try:
+        path = Path(_os.fspath(store))
+    except TypeError:
+        raise SplidarError(
+            f"`store` must be a directory path (str or os.PathLike); got {describe(store)}."
+        ) from None
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise SplidarError(
+            f"`store` '{path}' exists and is not an empty directory; name a new directory "
+            "(detect does not overwrite files)."
+        )
+    g = zarr.open_group(str(path), mode="w")
+    R, C, T = shape
+    ch = (min(block_rows, R), C, T)
+    out = dict(
+        saliency=g.create_array("saliency", shape=shape, chunks=ch, dtype="float32"),
+        mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
+        threshold=g.create_array("threshold", shape=shape, chunks=ch, dtype="float32")
+        if with_threshold
+        else None,
+    )
+    return out
+
+
+def _block_rows(block_rows, scales, width, store_boxes, shape) -> int:
+    R, C, L, T = shape
+    h_max = int(scales.max()) // 2
+    if block_rows is None:
+        # ~64 MB of work buffers per block (reused by the blocks of a run, so no fresh
+        # pages); halo rows are correlated once per run, so small blocks cost little
+        per_row = C * T * 4 * (L + 6 + (L * int((scales > 1).sum()) if store_boxes else 0))
+        block_rows = int(np.clip(64e6 // per_row, max(8, 4 * h_max), R))
+    return min(block_rows, R)
+
+
+def _runs(R: int, h_max: int, n_jobs: int, block_rows: int, store) -> list:
+    """Contiguous runs of rows, one per thread; blocks within a run share their halo."""
+    n_run = max(1, min(n_jobs, R // (2 * h_max + 1)))
+    cuts = np.linspace(0, R, n_run + 1).round().astype(int)
+    if store is not None:
+        # runs start on chunk boundaries: no two threads write one chunk
+        cuts = np.unique(np.minimum(np.round(cuts / block_rows).astype(int) * block_rows, R))
+        cuts[0], cuts[-1] = 0, R
+    return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
+
+
+def _threshold(spatial, dev, table, null: NullCalibration, out, store):
+    if table[0].size == 1:
+        return float(np.float32(table[1][0]))
+    sp_sum = spatial.sum(axis=-1)
+    if np.ptp(sp_sum) <= 1e-6 * max(float(sp_sum.max()), 1e-12):
+        # spatially flat background: the threshold varies with t only
+        lev_t = np.maximum(spatial[0, 0][:, None] + dev, 0).sum(axis=0)
+        return null.threshold_at(lev_t)[None, None, :]
+    if store is not None:
+        return out["threshold"]
+    return ThresholdField(spatial, dev, table[0], table[1])
+
+
+def _table(outs, image_shape) -> CandidateTable:
+    keys = outs[0].surf.keys()
+    surf = {k: np.concatenate([o.surf[k] for o in outs], axis=0) for k in keys}
+    # where each candidate's histograms are: block and row in that block's array
+    hist_block = np.concatenate([np.full(o.kept.size, b, np.int64) for b, o in enumerate(outs)])
+    hist_row = np.concatenate([o.kept for o in outs])
+    if "presence_ok" in surf:
+        keep = surf.pop("presence_ok").astype(bool)
+    else:
+        keep = np.ones(surf["row"].size, bool)
+    origin = np.full(keep.size, stage_code("map"), np.int8)
+    return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
+
+
+def map_candidates(
+    counts,
+    filters: SaliencyFilters,
+    null: NullCalibration,
+    options: MapOptions,
+    *,
+    block_rows: int | None,
+    n_jobs: int,
+    store=None,
+) -> CandidateMap:
+    """Saliency, map ``M`` and candidate surfaces of the whole image, block by block.
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+        In memory, or lazy (read block by block).
+    filters : SaliencyFilters
+        Stage 2's set-up.
+    null : NullCalibration
+        Stage 3's thresholds.
+    options : MapOptions
+    block_rows : int or None
+        Rows per block (None: about 64 MB of work buffers).
+    n_jobs : int
+        Threads: runs of blocks in parallel, or threads inside the blocks of one run.
+    store : path, optional
+        A new directory for Zarr arrays of saliency, mask (and a per-voxel threshold).
+    """
+    R, C, L, T = counts.shape
+    scales = filters.scales
+    h_max = int(scales.max()) // 2
+    width = options.width
+    store_boxes = _store_boxes(scales, width, T)
+    block_rows = _block_rows(block_rows, scales, width, store_boxes, (R, C, L, T))
+    opts = dict(
+        image_shape=(R, C),
+        width=width,
+        store_boxes=store_boxes,
+        min_separation=options.min_separation,
+        split_ratio=options.split_ratio,
+        presence=options.presence,
+        presence_llr=options.presence_llr,
+        presence_z=options.presence_z,
+        secondary_llr=options.secondary_llr,
+        refine=options.refine,
+        refine_z=REFINE_Z,
+        keep_suspects=options.keep_suspects,
+        ici_gamma=ICI_GAMMA,
+        evidence_threshold=null.evidence_threshold,
+        max_surfaces=options.max_surfaces,
+    )
+    table = null.table(per_voxel=store is not None)
+    if store is None:
+        out = dict(
+            saliency=np.empty((R, C, T), np.float32),
+            mask=np.empty((R, C, T), bool),
+            spatial=np.empty((R, C, L), np.float32),
+            threshold=None,
+        )
+    else:
+        out = _open_store(store, (R, C, T), block_rows, table[2])
+        out["spatial"] = np.empty((R, C, L), np.float32)
+    runs = _runs(R, h_max, n_jobs, block_rows, store)
+    if len(runs) > 1:
+        with ThreadPoolExecutor(len(runs)) as ex:
+            outs = [
+                o
+                for res in ex.map(
+                    lambda ab: _run_rows(
+                        counts, ab[0], ab[1], filters, table, opts, out, block_rows
+                    ),
+                    runs,
+                )
+                for o in res
+            ]
+    else:
+        # one run: threads inside each block instead
+        bctx = dataclasses.replace(filters, workers=n_jobs)
+        outs = _run_rows(counts, 0, R, bctx, table, opts, out, block_rows)
+    saliency, mask, spatial = out["saliency"], out["mask"], out["spatial"]
+    threshold = _threshold(spatial, filters.dev, table, null, out, store)
+    out.clear()
+    n_ph = sum(o.n_photons for o in outs)
+    n_kept = sum(o.n_photons_kept for o in outs)
+    n_vox = sum(o.n_voxels for o in outs)
+    reduction = DataReduction(
+        voxel_fraction=n_vox / (R * C * T),
+        photon_fraction=n_kept / n_ph if n_ph else 0.0,
+        n_voxels=n_vox,
+        n_photons=n_kept,
+    )
+    cands = _table(outs, (R, C))
+    hists = tuple(o.histograms for o in outs)
+    for o in outs:
+        o.histograms = None
+    return CandidateMap(
+        saliency=saliency,
+        mask=mask,
+        spatial=spatial,
+        threshold=threshold,
+        candidates=cands,
+        histograms=hists,
+        reduction=reduction,
+        n_candidates=int(sum(o.n_candidates for o in outs)),
+        n_rejected=int(sum(o.n_rejected for o in outs)),
+        block_rows=block_rows,
+        width=width,
+    )

@@ -1,0 +1,56 @@
+"""Stage 5a (clean-up): remove the spread of a neighbour's return (spill-over).
+
+Coarse boxes spread a return into the pixels beside a thin structure or across a depth
+edge. A candidate is such spread when a neighbour holds a candidate at its depth, no
+opposite pair of 4-neighbours continues the surface through it, and its own counts
+favour "no return" (:func:`~splidar.detection._quality.reject_spill_over`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._quality import reject_spill_over
+from ._table import CandidateTable, PassResult, skipped, with_keep
+
+__all__ = ["SPILL_LLR", "remove_spill_over"]
+
+#: A candidate beside a neighbour's return at its depth is that return's spread when its
+#: own counts give a log-likelihood ratio below this for a return as bright as the
+#: neighbour's (0: the counts favour "no return"). Measured, net scene PPP 10, SBR 1:
+#: false surfaces per true one 0.107 -> 0.037 at equal F_true (docs/detection.md).
+SPILL_LLR = 0.0
+
+
+def remove_spill_over(
+    table: CandidateTable, *, irf: np.ndarray, peak: np.ndarray, fwhm: float, llr_level: float
+) -> PassResult:
+    """Reject the kept candidates that are a neighbour's spread; repeated to convergence.
+
+    Parameters
+    ----------
+    table : CandidateTable
+    irf : ndarray (L, n_irf), float64
+    peak : ndarray (L,)
+        The IRF's peak bin per wavelength.
+    fwhm : float
+        The IRF's FWHM (bins): "the same depth" is within it.
+    llr_level : float
+        Own-pixel log-likelihood ratio below which a candidate is spread (``spill_llr``).
+    """
+    if not table.keep.any():
+        return skipped("spill_over", table)
+    t0 = time.perf_counter()
+    R, C = table.image_shape
+    spill = reject_spill_over(
+        table.view(),
+        table.keep,
+        irf=irf,
+        peak=peak,
+        fwhm=fwhm,
+        llr_level=llr_level,
+        max_iter=max(R, C),
+    )
+    return with_keep("spill_over", table, table.keep & ~spill, t0)

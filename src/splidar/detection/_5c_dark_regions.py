@@ -1,0 +1,59 @@
+"""Stage 5c (clean-up): restore the candidates of dim patches, pooled.
+
+A dim patch holds too few photons per pixel for the presence test and, beside bright
+pixels at the same depth, looks like their spread. The rejected candidates of pixels
+left empty are pooled with the weak kept ones at the same depth; a candidate is restored
+when the pool's own counts together are significant
+(:func:`~splidar.detection._quality.rescue_dark`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._quality import rescue_dark
+from ._table import CandidateTable, PassResult, skipped, with_keep
+
+__all__ = ["restore_dark_regions"]
+
+
+def restore_dark_regions(
+    table: CandidateTable,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    half: int,
+    pfa: float,
+    llr_level: float,
+) -> PassResult:
+    """Restore rejected candidates of pixels with no surface whose pool is significant.
+
+    Parameters
+    ----------
+    table : CandidateTable
+    irf, peak, fwhm
+        The IRF, its peak bins and FWHM.
+    half : int
+        Half-size of the pooling box (``max k // 2``).
+    pfa : float
+        ``surface_pfa``.
+    llr_level : float
+        The own counts must not reject the pool's return beyond this (``-presence_llr``).
+    """
+    if not table.keep.size:
+        return skipped("dark_regions", table)
+    t0 = time.perf_counter()
+    res = rescue_dark(
+        table.view(),
+        table.keep,
+        irf=irf,
+        peak=peak,
+        fwhm=fwhm,
+        half=half,
+        pfa=pfa,
+        llr_level=llr_level,
+    )
+    return with_keep("dark_regions", table, table.keep | res, t0)

@@ -1,0 +1,145 @@
+"""The candidate table the clean-up passes work on, and what each pass did to it.
+
+Not a stage: the data structure between stage 4 (the map pass, which fills the table)
+and stage 6 (selection into :class:`~splidar.detection.Surfaces`). Every clean-up pass
+(stage 5a-5e) is a pure function ``(CandidateTable, ...) -> PassResult``: it returns a
+new table (its ``keep`` flags changed, or rows appended) and the counts of what it
+added and removed; ``origin`` records, per candidate, the stage whose decision keeps it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ._kernels import rank_in_pixel_sorted
+from ._result import STAGES
+
+__all__ = ["STAGES", "CandidateTable", "PassResult", "stage_code"]
+
+
+def stage_code(name: str) -> int:
+    """Index of a stage in :data:`STAGES`."""
+    return STAGES.index(name)
+
+
+@dataclass(frozen=True)
+class CandidateTable:
+    """Candidate surfaces of the whole image (one row each) and which are kept.
+
+    Attributes
+    ----------
+    columns : mapping of str to ndarray (n, ...)
+        The per-candidate fields (``row``, ``col``, ``depth_bin``, ``start``, ...).
+        Treated as read-only: passes build new arrays.
+    keep : ndarray (n,), bool
+        Whether each candidate is currently kept.
+    origin : ndarray (n,), int8
+        Index into :data:`STAGES` of the stage that created or restored the candidate.
+    hist_block, hist_row : ndarray (n,), int64
+        Where each candidate's histograms are: the map pass's block (``-1``: the slope
+        pass's ``extra_histograms``) and the row in that block's array.
+    image_shape : (rows, cols)
+    extra_histograms : ndarray (m, Q, L, W), float32, optional
+        Histograms of the candidates a pass appended (``hist_block == -1``).
+    """
+
+    columns: Mapping[str, np.ndarray]
+    keep: np.ndarray
+    origin: np.ndarray
+    hist_block: np.ndarray
+    hist_row: np.ndarray
+    image_shape: tuple[int, int]
+    extra_histograms: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.keep.size)
+
+    def view(self) -> dict:
+        """The columns with ``image_shape``, as the ``_quality`` passes take them."""
+        return {**self.columns, "image_shape": self.image_shape}
+
+    def without(self, *names: str) -> CandidateTable:
+        """The table without the named columns."""
+        return replace(self, columns={k: v for k, v in self.columns.items() if k not in names})
+
+
+@dataclass(frozen=True)
+class PassResult:
+    """What one clean-up pass did.
+
+    Attributes
+    ----------
+    name : str
+        The stage (an entry of :data:`STAGES`).
+    table : CandidateTable
+        The table after the pass.
+    added, removed : int
+        Candidates the pass added or restored, and kept ones it removed.
+    seconds : float
+        Time spent in the pass.
+    ran : bool
+        False when the pass was switched off or had nothing to do.
+    """
+
+    name: str
+    table: CandidateTable
+    added: int
+    removed: int
+    seconds: float
+    ran: bool = True
+
+
+def skipped(name: str, table: CandidateTable) -> PassResult:
+    """A pass that did not run."""
+    return PassResult(name, table, 0, 0, 0.0, ran=False)
+
+
+def with_keep(name: str, table: CandidateTable, keep: np.ndarray, t0: float) -> PassResult:
+    """The result of a pass that changed only the ``keep`` flags (timed from ``t0``)."""
+    added = keep & ~table.keep
+    removed = table.keep & ~keep
+    origin = table.origin
+    if added.any():
+        origin = origin.copy()
+        origin[added] = stage_code(name)
+    new = replace(table, keep=keep, origin=origin)
+    return PassResult(name, new, int(added.sum()), int(removed.sum()), time.perf_counter() - t0)
+
+
+def _raster_ordered(row, col) -> bool:
+    """Whether candidates come in raster order of ``(row, col)`` (as blocks emit them)."""
+    if row.size < 2:
+        return True
+    dr = np.diff(row)
+    return bool(np.all((dr > 0) | ((dr == 0) & (np.diff(col) >= 0))))
+
+
+def _position_in_pixel(row, col) -> np.ndarray:
+    """Position of each candidate among its pixel's, for candidates sorted by pixel."""
+    new = np.ones(row.size, bool)
+    new[1:] = (row[1:] != row[:-1]) | (col[1:] != col[:-1])
+    return np.arange(row.size) - np.flatnonzero(new)[np.cumsum(new) - 1]
+
+
+def _rank_in_pixel(row, col, score, keep):
+    """Rank (0 = largest ``score``) of each kept candidate among its pixel's kept ones."""
+    rank = np.full(row.size, -1, np.int64)
+    if _raster_ordered(row, col):
+        rank_in_pixel_sorted(
+            np.ascontiguousarray(row, np.int64),
+            np.ascontiguousarray(col, np.int64),
+            np.ascontiguousarray(score, np.float64),
+            np.ascontiguousarray(keep, np.bool_),
+            rank,
+        )
+        return rank
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return rank
+    idx = idx[np.lexsort((-score[idx], col[idx], row[idx]))]
+    rank[idx] = _position_in_pixel(row[idx], col[idx])
+    return rank

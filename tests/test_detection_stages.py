@@ -1,0 +1,199 @@
+"""Each stage of ``splidar.detect`` on its own, and the provenance that ties them together."""
+
+import numpy as np
+import pytest
+
+from splidar import gaussian_irf
+from splidar.detection import STAGES, detect
+from splidar.detection._1_background import estimate_temporal_background
+from splidar.detection._2_saliency import block_saliency, saliency_filters
+from splidar.detection._3_null import calibrate_null
+from splidar.detection._4_map import MapOptions, map_candidates
+from splidar.detection._5a_spill_over import remove_spill_over
+from splidar.detection._5b_isolated import remove_isolated
+from splidar.detection._5c_dark_regions import restore_dark_regions
+from splidar.detection._5e_enclosed import restore_enclosed_holes
+from splidar.detection._6_select import select_surfaces
+from splidar.detection._filters import Correlator, irf_fwhm, irf_halfwidth
+from splidar.scenes import two_layer_scene
+
+SCALES = np.array([1, 3, 7, 11])
+WEIGHTS = SCALES / SCALES.sum()
+
+
+def _setup(counts, irf):
+    irf = np.asarray(irf, np.float64).reshape(1, -1) if np.ndim(irf) == 1 else irf
+    corr = Correlator(irf, counts.shape[-1])
+    bg = estimate_temporal_background(counts, corr, irf, box=11, n_jobs=1)
+    return irf, bg, saliency_filters(corr, SCALES, WEIGHTS, bg.dev, irf)
+
+
+def _map(counts, irf, *, pfa=1e-3, rng=0):
+    irf, bg, filters = _setup(counts, irf)
+    fw = irf_fwhm(irf)
+    nul = calibrate_null(
+        counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical",
+        min_separation=int(np.ceil(fw)), split_ratio=0.5, rng=np.random.default_rng(rng),
+        n_jobs=1,
+    )  # fmt: skip
+    opts = MapOptions(
+        min_separation=int(np.ceil(fw)), split_ratio=0.5, presence="adaptive", presence_z=3.0,
+        presence_llr=3.0, secondary_llr=0.0, refine=True, keep_suspects=True, max_surfaces=2,
+        width=min(2 * irf_halfwidth(irf) + 1, counts.shape[-1]),
+    )  # fmt: skip
+    return irf, bg, nul, map_candidates(counts, filters, nul, opts, block_rows=None, n_jobs=1)
+
+
+@pytest.fixture(scope="module")
+def net_map():
+    """The map pass on a net in front of objects (PPP 4, SBR 0.25, decaying background)."""
+    sim = two_layer_scene((24, 24), n_bins=120).simulate(
+        ppp=4, sbr=0.25, background="decaying", rng=0
+    )
+    counts = np.asarray(sim.cube.counts)
+    irf, bg, nul, mp = _map(counts, sim.cube.irf)
+    return sim, irf, mp
+
+
+def test_estimate_temporal_background_recovers_a_decaying_shape():
+    # pure background whose rate decays linearly from 0.4 to 0.1 photons per bin: the
+    # shape (up to the estimator's clipped level) follows it; dev has zero mean in t
+    T = 120
+    rate = np.linspace(0.4, 0.1, T)
+    counts = np.random.default_rng(1).poisson(np.broadcast_to(rate, (32, 32, 1, T)))
+    _, bg, _ = _setup(counts, gaussian_irf(3.0))
+    t = bg.temporal[0]
+    assert np.corrcoef(t[10:-10], rate[10:-10])[0, 1] > 0.95
+    np.testing.assert_allclose(bg.dev.mean(axis=-1), 0.0, atol=1e-5)  # float32 sum of T values
+    # the level of the shape: within 10 % of the true mean rate (Poisson noise of 1024 px)
+    assert abs(t.mean() - rate.mean()) < 0.1 * rate.mean()
+
+
+def test_block_saliency_peaks_at_a_planted_return():
+    # one bright return at bin 50 in every pixel over a flat background: the saliency of
+    # every pixel peaks within one bin of it
+    g = gaussian_irf(3.0)
+    lam = np.full((16, 16, 1, 100), 0.05)
+    h = g.size // 2
+    lam[:, :, 0, 50 - h : 50 + h + 1] += 10 * g
+    counts = np.random.default_rng(2).poisson(lam)
+    _, _, filters = _setup(counts, g)
+    _, sal, d, sp, level = block_saliency(counts, filters)
+    assert sal.shape == (16, 16, 100) and sp.shape == (16, 16, 1)
+    assert np.all(np.abs(sal.argmax(axis=-1) - 50) <= 1)
+    assert np.all(sal >= 0) and np.all(level >= 0)
+
+
+def test_calibrate_null_holds_the_false_alarm_rate_on_fresh_background():
+    # the threshold from one background-only cube, applied to the saliency of another:
+    # the voxel false-alarm rate stays within 2x of pfa (the documented calibration)
+    T, pfa = 100, 1e-2
+    rng = np.random.default_rng(3)
+    lam = np.full((48, 48, 1, T), 0.2)
+    counts = rng.poisson(lam)
+    g = gaussian_irf(3.0)
+    _, _, filters = _setup(counts, g)
+    nul = calibrate_null(
+        counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical", min_separation=3,
+        split_ratio=0.5, rng=np.random.default_rng(0), n_jobs=1,
+    )  # fmt: skip
+    _, sal, _, _, level = block_saliency(rng.poisson(lam), filters)
+    rate = float(np.mean(sal > nul.threshold_at(level)))
+    assert pfa / 2 < rate < 2 * pfa
+    assert nul.evidence_threshold >= 0 and nul.model.pfa == pfa
+
+
+def test_map_candidates_keeps_a_bright_plane_in_every_pixel():
+    g = gaussian_irf(3.0)
+    lam = np.full((20, 20, 1, 100), 0.05)
+    h = g.size // 2
+    for j in range(20):  # a plane tilted along the columns, depth 30 + j
+        lam[:, j, 0, 30 + j - h : 30 + j + h + 1] += 20 * g
+    counts = np.random.default_rng(4).poisson(lam)
+    _, _, _, mp = _map(counts, g)
+    t = mp.candidates
+    c = t.columns
+    kept = t.keep
+    good = kept & (np.abs(c["depth_bin"] - (30 + c["col"])) < 1.5)
+    pix = np.unique(c["row"][good] * 20 + c["col"][good])
+    assert pix.size == 400  # every pixel holds its return
+    assert np.all(t.origin == STAGES.index("map"))
+    assert mp.mask.shape == (20, 20, 100) and 0 < mp.reduction.voxel_fraction < 0.2
+
+
+def _check_pass(res, before, keep0, *, removes: bool):
+    new = res.table
+    np.testing.assert_array_equal(before.keep, keep0)  # the input table is not modified
+    assert res.ran
+    assert res.removed == int((before.keep & ~new.keep[: len(before)]).sum())
+    assert res.added == int((~before.keep & new.keep[: len(before)]).sum())
+    if removes:
+        assert res.added == 0
+    else:
+        assert res.removed == 0
+        restored = np.flatnonzero(~before.keep & new.keep)
+        assert np.all(new.origin[restored] == STAGES.index(res.name))
+
+
+def test_remove_spill_over_only_removes_candidates_beside_kept_ones(net_map):
+    sim, irf, mp = net_map
+    t = mp.candidates
+    keep0 = t.keep.copy()
+    res = remove_spill_over(t, irf=irf, peak=irf.argmax(axis=1), fwhm=3.0, llr_level=0.0)
+    _check_pass(res, t, keep0, removes=True)
+    assert res.removed > 0
+    # a removed candidate is the spread of a neighbour's return: some 8-neighbour kept a
+    # candidate within the FWHM of its depth
+    c, k = t.columns, res.table.keep
+    gone = np.flatnonzero(t.keep & ~k)
+    for i in gone[:50]:
+        near = (np.abs(c["row"] - c["row"][i]) <= 1) & (np.abs(c["col"] - c["col"][i]) <= 1)
+        near &= (np.arange(len(t)) != i) & t.keep
+        assert np.any(np.abs(c["depth_bin"][near] - c["depth_bin"][i]) <= 3.0)
+
+
+def test_remove_isolated_and_restoring_passes_change_only_their_direction(net_map):
+    sim, irf, mp = net_map
+    t = mp.candidates
+    keep0 = t.keep.copy()
+    iso = remove_isolated(t, fwhm=3.0, pfa=0.01, n_bins=120)
+    _check_pass(iso, t, keep0, removes=True)
+    keep1 = iso.table.keep.copy()
+    dark = restore_dark_regions(
+        iso.table, irf=irf, peak=irf.argmax(axis=1), fwhm=3.0, half=5, pfa=0.01, llr_level=-3.0
+    )
+    _check_pass(dark, iso.table, keep1, removes=False)
+    keep2 = dark.table.keep.copy()
+    enc = restore_enclosed_holes(
+        dark.table.without("own_counts", "own_background"), fwhm=3.0, z_level=3.0,
+        max_kept=2, llr_level=0.0,
+    )  # fmt: skip
+    _check_pass(enc, dark.table, keep2, removes=False)
+
+
+def test_select_surfaces_keeps_at_most_k_per_pixel_in_depth_order(net_map):
+    _, _, mp = net_map
+    for k in (1, 2):
+        s = select_surfaces(
+            mp.candidates, mp.histograms, max_surfaces=k, n_scales=4, n_wavelengths=1,
+            width=mp.width,
+        )  # fmt: skip
+        pix = s.row * 24 + s.col
+        assert np.bincount(pix).max() <= k and np.all(s.slot < k)
+        two = np.flatnonzero(s.slot == 1)
+        assert np.all(s.depth_bin[two] > s.depth_bin[two - 1])
+        assert s.histograms.shape == (len(s), 4, 1, mp.width)
+
+
+def test_detect_provenance_accounts_for_every_surface(net_map):
+    sim, _, _ = net_map
+    det = detect(sim.cube)
+    rec = {r.stage: r for r in det.provenance}
+    assert [r.stage for r in det.provenance] == list(STAGES)
+    total = rec["map"].added + sum(r.added - r.removed for r in det.provenance[1:])
+    assert total == len(det.surfaces)
+    kept = np.bincount(det.surfaces.stage, minlength=len(STAGES))
+    for name in ("dark_regions", "slopes", "enclosed"):
+        assert kept[STAGES.index(name)] <= rec[name].added
+    assert kept.sum() == len(det.surfaces) and rec["slopes"].added > 0
+    assert "spill_over" in det.provenance_table()
