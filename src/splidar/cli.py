@@ -1060,7 +1060,7 @@ def read_points(path: str | os.PathLike):
         raise SplidarError(f"file '{p}' does not exist")
     if p.suffix.lower() == ".csv":
         return _read_points_csv(p)
-    from .io import _read_npz  # never unpickles; checks sizes before allocating
+    from ._containers import _read_npz  # never unpickles; checks sizes before allocating
 
     try:
         z = _read_npz(p)
