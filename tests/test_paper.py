@@ -76,6 +76,8 @@ def test_paper_run_puts_the_papers_table_beside_ours(paper_run):
     for e in side.values():
         assert set(e["ours_pct"]) == {"splidar", "per-pixel", "coarse-7"}
         assert all(0 <= v <= 100 for v in e["ours_pct"].values())
+    summary = (paper_run[0] / "summary.md").read_text()
+    assert "| 2 | 50 | 87.7 | 95.2 | 98.5 |" in summary  # the paper's row, then ours
     claims = res["simulated"]["paper_claims"]
     assert claims["improves_with_ppp"]["holds_for_splidar"] is True
     assert claims["more_sensitive_to_ppp"]["holds_for_splidar"] is None  # one SBR: untested

@@ -30,7 +30,8 @@ Usage::
     python benchmarks/paper/run.py --out paper-run --quick    # under a minute
     python benchmarks/paper/run.py --out DIR --quick --scene builtin --data /nonexistent
 
-Writes ``DIR/results.json`` and ``DIR/figures/*.png``. Never downloads anything: parts
+Writes ``DIR/results.json``, ``DIR/summary.md`` (the side-by-side tables) and
+``DIR/figures/*.png``. Never downloads anything: parts
 whose data are absent are skipped and say so in the JSON.
 """
 
@@ -48,6 +49,7 @@ import _experiments as ex
 import _figures as figs
 import _paper as paper
 import numpy as np
+from _summary import summary_markdown
 
 import splidar
 from splidar.scenes import art_scene, multispectral_scene
@@ -283,9 +285,10 @@ def main(argv=None) -> int:
     results["meta"]["seconds"] = time.perf_counter() - t_all
     out = args.out / "results.json"
     out.write_text(json.dumps(results, indent=1, default=_json))
+    (args.out / "summary.md").write_text(summary_markdown(results))
     print(
-        f"wrote {out} and {len(list(fig_dir.glob('*.png')))} figures in "
-        f"{results['meta']['seconds']:.1f} s"
+        f"wrote {out}, {args.out / 'summary.md'} and {len(list(fig_dir.glob('*.png')))} "
+        f"figures in {results['meta']['seconds']:.1f} s"
     )
     return 0
 
