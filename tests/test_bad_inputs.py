@@ -705,7 +705,8 @@ def _table() -> str:
             code, _, err, _ = run_case(case, Path(t))
         line = next((x for x in err.splitlines() if x.startswith("splidar: error:")), err)
         line = line.replace(t, "DIR").replace("|", "\\|")
-        rows.append(f"| {case.what} | `{line[len('splidar: error: ') :]}` (exit {code}) |")
+        msg = line[len("splidar: error: ") :]
+        rows.append(f"| {case.what} | `` {msg} `` (exit {code}) |")
     return "\n".join(rows)
 
 

@@ -964,8 +964,11 @@ def _read_points_csv(p: Path):
             f"'{p}' is not a points.csv of splidar (header starts {header[:3]}, expected "
             "row,col,depth_bin)"
         )
-    data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    if data.shape[0] == 0:
+    with open(p, encoding="ascii", errors="replace") as fh:
+        has_rows = bool(fh.readline()) and any(line.strip() for line in fh)
+    if has_rows:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    else:  # a header only: no point (loadtxt would warn)
         data = np.zeros((0, len(header)))
     col = {name: data[:, i] for i, name in enumerate(header)}
     inten = [col[h] for h in header if h.startswith("intensity_") and "std" not in h]

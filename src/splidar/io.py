@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -241,6 +242,9 @@ _MAT_ITEMSIZE = {
 }  # fmt: skip
 
 
+_MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
+
+
 def _read_mat5(p: Path) -> dict[str, Any]:
     """Read a MATLAB v4/v5 file, checking the sizes its headers declare first."""
     import scipy.io
@@ -256,6 +260,12 @@ def _read_mat5(p: Path) -> dict[str, Any]:
     size = p.stat().st_size
     total = 0
     for name, shape, cls in listing:
+        if not _MATLAB_NAME.fullmatch(name):
+            # a damaged name length; scipy.io.loadmat can crash (segfault) reading on
+            raise SplidarError(
+                f"'{p}' is a damaged MATLAB file: a variable name is not valid "
+                f"({name[:20]!r}...); save it again from MATLAB."
+            )
         nbytes = math.prod(shape) * _MAT_ITEMSIZE.get(cls, 8)
         _claims_too_much(
             p, f"variable '{name}' {tuple(shape)}", nbytes, size * _MAX_EXPANSION,
@@ -317,6 +327,11 @@ def _read_container(p: Path) -> dict[str, Any]:
                 "another format."
             )
         return _read_hdf5(p, matlab=False)
+    if p.is_dir():
+        raise SplidarError(
+            f"'{p}' is a folder, not a file; splidar reads {', '.join(_CONTAINER_EXTS)} files "
+            "and .zarr folders (a folder's name must end in .zarr)."
+        )
     raise SplidarError(
         f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
         f"{', '.join(_CONTAINER_EXTS)} and .zarr directories."
