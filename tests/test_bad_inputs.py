@@ -139,6 +139,17 @@ def _zarr_corrupt(d: Path) -> Path:
     return p
 
 
+def _zarr_bad_chunk(d: Path) -> Path:
+    from splidar import Cube
+    from splidar.io import save
+
+    p = d / "chunk.zarr"
+    save(Cube(_counts(), irf=IRF), p, chunks=(2, 2))
+    chunk = sorted(f for f in (p / "counts").rglob("*") if f.is_file() and "zarr" not in f.name)
+    chunk[0].write_bytes(b"garbage")
+    return p
+
+
 def _ro_dir() -> str:
     return "/proc/splidar-cannot-write-here/out"
 
@@ -287,6 +298,12 @@ CASES = [
         ".zarr `counts` with 2 dimensions",
         lambda d: [str(_zarr(d, np.ones((4, 4), np.uint16)))],
         r"must be \(rows, cols\[, L\], T\)",
+    ),
+    C(
+        "zarr-damaged-chunk",
+        ".zarr with a damaged chunk",
+        lambda d: [str(_zarr_bad_chunk(d))],
+        r"cannot read the counts of .*a chunk is damaged or missing",
     ),
     # ---- counts --------------------------------------------------------------------
     C(

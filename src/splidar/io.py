@@ -1030,9 +1030,8 @@ def load(
     ----------
     path : str or path-like
         ``.npz``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5`` or a ``.zarr`` directory.
-        Nothing is unpickled or executed; declared sizes are checked against the
-        file's size and the free memory before anything is allocated. A ``.npz``
-        holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
+        Nothing is unpickled; sizes are checked before allocating (docs/reliability.md).
+        A ``.npz`` holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
         cols + col`` and ``shape`` (rows, cols).
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
@@ -1099,10 +1098,8 @@ def load(
     sparse = None
     from_save = False
     if flat or _is_cell_of_numbers(v):
-        if flat:
-            pl = _flat_photon_lists(d, p)
-        else:
-            pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
+        src = f"{p.name}:{name}"
+        pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
