@@ -331,6 +331,12 @@ CASES = [
         r"non-integer values.*raw counts",
     ),
     C(
+        "counts-huge",
+        "float counts beyond 2^32 photons in a bin",
+        lambda d: [str(_npz(d, counts=_counts(dtype=np.float64) * 1e12, irf=IRF))],
+        r"more photons than a bin can count",
+    ),
+    C(
         "counts-zero",
         "a cube without a single photon",
         lambda d: [str(_npz(d, counts=np.zeros((4, 5, 32), np.uint16), irf=IRF))],

@@ -29,6 +29,7 @@ from splidar import Cube, PointSet, SpectralLibrary, SplidarError  # noqa: E402
 from splidar.cli import read_points  # noqa: E402
 from splidar.export import write_csv, write_npz  # noqa: E402
 from splidar.io import load, save  # noqa: E402
+from splidar.simulate import simulate  # noqa: E402  (splidar.simulate can be the module)
 
 _COMMON = {
     "deadline": None,
@@ -89,7 +90,7 @@ def scenes(max_side: int = 8):
             image_shape=(rows, cols),
             intensity=rng.uniform(0.5, 2.0, (rr.size, n_l)),
         )
-        return splidar.simulate(
+        return simulate(
             truth,
             n_bins=n_bins,
             irf=splidar.gaussian_irf(draw(st.floats(1.0, 4.0))),

@@ -1145,7 +1145,8 @@ def load(
     irf_a, irf_src = _resolve_irf(
         irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
     )
-    irf_a = _crop_irf(irf_a, n_bins)
+    if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
+        irf_a = _crop_irf(irf_a, n_bins)
     if irf_src != "file":
         meta["irf_source"] = irf_src
     elif not from_save:
