@@ -137,6 +137,7 @@ def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------
 # untrusted files: sizes are checked before anything is allocated, nothing is unpickled
 # --------------------------------------------------------------------------------------
+_READ_CHUNK = 2**22  # bytes per read of a .npz member (whole-member reads were 4x slower)
 #: Deflate (zip, MATLAB v5 compressed, HDF5 gzip) expands one byte to at most 1032.
 _MAX_EXPANSION = 1032
 _WAY_OUT_READ = (
@@ -213,7 +214,7 @@ def _read_npz(p: Path) -> dict[str, Any]:
                     view = memoryview(a.reshape(-1).view(np.uint8)) if nbytes else b""
                     got = 0
                     while got < nbytes:
-                        k = fp.readinto(view[got:])
+                        k = fp.readinto(view[got : got + _READ_CHUNK])
                         if not k:
                             break
                         got += k
