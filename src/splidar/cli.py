@@ -944,10 +944,7 @@ def read_points(path: str | os.PathLike):
         return _read_points_csv(p)
     from .io import _read_npz  # never unpickles; checks sizes before allocating
 
-    try:
-        z = _read_npz(p)
-    except SplidarError as exc:
-        raise SplidarError(f"cannot read points from '{p}': {exc}") from None
+    z = _read_npz(p)  # its errors name the file and what is wrong with it
     if "row" in z:
         return PointSet.from_dict(z)
     if "points_row" in z:
