@@ -37,7 +37,7 @@ _COMMON = {
     "derandomize": True,  # the same examples on every run: a CI failure reproduces
 }
 settings.register_profile("ci", max_examples=12, **_COMMON)
-settings.register_profile("release", max_examples=400, **{**_COMMON, "derandomize": False})
+settings.register_profile("release", max_examples=2000, **{**_COMMON, "derandomize": False})
 PROFILE = os.environ.get("SPLIDAR_FUZZ", "ci")
 FAST = settings.get_profile(PROFILE)
 # the pipeline properties run detection and reconstruction: fewer examples in CI
