@@ -139,6 +139,17 @@ def _zarr_corrupt(d: Path) -> Path:
     return p
 
 
+def _zarr_bad_chunk(d: Path) -> Path:
+    from splidar import Cube
+    from splidar.io import save
+
+    p = d / "chunk.zarr"
+    save(Cube(_counts(), irf=IRF), p, chunks=(2, 2))
+    chunk = sorted(f for f in (p / "counts").rglob("*") if f.is_file() and "zarr" not in f.name)
+    chunk[0].write_bytes(b"garbage")
+    return p
+
+
 def _ro_dir() -> str:
     return "/proc/splidar-cannot-write-here/out"
 
@@ -288,6 +299,12 @@ CASES = [
         lambda d: [str(_zarr(d, np.ones((4, 4), np.uint16)))],
         r"must be \(rows, cols\[, L\], T\)",
     ),
+    C(
+        "zarr-damaged-chunk",
+        ".zarr with a damaged chunk",
+        lambda d: [str(_zarr_bad_chunk(d))],
+        r"cannot read the counts of .*a chunk is damaged or missing",
+    ),
     # ---- counts --------------------------------------------------------------------
     C(
         "counts-nan",
@@ -312,6 +329,12 @@ CASES = [
         "fractional counts",
         lambda d: [str(_npz(d, counts=_counts(dtype=np.float64) + 0.5, irf=IRF))],
         r"non-integer values.*raw counts",
+    ),
+    C(
+        "counts-huge",
+        "float counts beyond 2^32 photons in a bin",
+        lambda d: [str(_npz(d, counts=_counts(dtype=np.float64) * 1e12, irf=IRF))],
+        r"more photons than a bin can count",
     ),
     C(
         "counts-zero",
@@ -571,7 +594,7 @@ CASES = [
         "evaluate-garbage",
         "evaluate on a file that holds no points",
         lambda d: ["evaluate", str(_garbage(d, "p.npz")), str(_garbage(d, "q.npz"))],
-        r"cannot read points",
+        r"cannot read '.*p\.npz' as \.npz .*corrupt",
         run=False,
     ),
 ]
@@ -705,7 +728,8 @@ def _table() -> str:
             code, _, err, _ = run_case(case, Path(t))
         line = next((x for x in err.splitlines() if x.startswith("splidar: error:")), err)
         line = line.replace(t, "DIR").replace("|", "\\|")
-        rows.append(f"| {case.what} | `{line[len('splidar: error: ') :]}` (exit {code}) |")
+        msg = line[len("splidar: error: ") :]
+        rows.append(f"| {case.what} | `` {msg} `` (exit {code}) |")
     return "\n".join(rows)
 
 

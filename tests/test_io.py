@@ -494,3 +494,11 @@ def test_estimate_irf_fwhm_too_few_pairs_raises_clear_error():
 
     with pytest.raises(SplidarError, match="too few to estimate the IRF"):
         _pair_lag_fwhm(np.array([0, 1]), np.array([3, 50]), np.array([1, 1]), 100, None)
+
+
+def test_load_npz_fortran_order_and_big_endian_read_exactly(tmp_path):
+    """The pickle-free .npz reader keeps memory order and byte order of every member."""
+    counts = np.asfortranarray(np.arange(2 * 3 * 8, dtype=">u2").reshape(2, 3, 8))
+    np.savez(tmp_path / "f.npz", counts=counts, irf=np.array([0.5, 1.0]))
+    c = load(tmp_path / "f.npz")
+    np.testing.assert_array_equal(c.counts[:, :, 0, :], counts)

@@ -17,6 +17,7 @@ from ._validation import SplidarError
 
 __all__ = [
     "available_bytes",
+    "check_detect_memory",
     "check_memory",
     "detect_peak_bytes",
     "format_bytes",
@@ -107,3 +108,20 @@ def detect_peak_bytes(shape) -> int:
 def reconstruct_peak_bytes(n_surfaces: int, n_wavelengths: int, n_classes: int) -> int:
     """Estimated peak memory of :func:`splidar.reconstruct`, bytes (per surface arrays)."""
     return 64 * int(n_surfaces) * (16 + int(n_wavelengths) * (1 + int(n_classes)))
+
+
+def check_detect_memory(cube, *, store=None) -> None:
+    """Refuse a :func:`splidar.detect` on ``cube`` that cannot fit in the free memory.
+
+    One call at the entry of ``detect`` (the CLI makes it before calling). Lazy cubes
+    detected into a ``store`` are processed chunk by chunk and not checked.
+    """
+    if cube.is_lazy and store:
+        return
+    rows, cols, _, n_bins = cube.shape
+    check_memory(
+        detect_peak_bytes(cube.shape),
+        f"detection on {rows} x {cols} pixels x {n_bins} bins",
+        "process a crop (a smaller region, or --window START STOP over the bins), or save "
+        "the cube as Zarr (splidar simulate/io.save to .zarr) and pass --store DIR",
+    )

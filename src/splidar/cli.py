@@ -786,7 +786,7 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
     _check_detect_memory(cube, det_kw)
-    with stages.stage("detecting surfaces"):
+    with stages.stage("detecting surfaces"), _damaged_chunks(cube, getattr(args, "input", "")):
         det = detect(cube, rng=args.seed, **det_kw)
     _check_reconstruct_memory(det, library)
     log.info(
@@ -799,24 +799,30 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     return rec
 
 
+@contextmanager
+def _damaged_chunks(cube, source):
+    """A lazy (Zarr) cube is read during detection: name a damaged chunk as such."""
+    try:
+        yield
+    except (RuntimeError, OSError, KeyError) as exc:
+        if not cube.is_lazy:
+            raise
+        raise SplidarError(
+            f"cannot read the counts of '{source}' ({type(exc).__name__}: {exc}): a chunk is "
+            "damaged or missing; write the Zarr store again"
+        ) from exc
+
+
 def _check_detect_memory(cube, det_kw) -> None:
     """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
-    from ._memory import check_memory, detect_peak_bytes
+    from ._memory import check_detect_memory
 
     if not cube.is_lazy and not cube.counts.any():
         raise SplidarError(
             f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
             "photon: nothing to detect. Check the file, variable and --window"
         )
-    if cube.is_lazy and det_kw.get("store"):
-        return  # chunk by chunk into the store
-    rows, cols, _, n_bins = cube.shape
-    check_memory(
-        detect_peak_bytes(cube.shape),
-        f"detection on {rows} x {cols} pixels x {n_bins} bins",
-        "process a crop (a smaller region, or --window START STOP over the bins), or save "
-        "the cube as Zarr (splidar simulate/io.save to .zarr) and pass --store DIR",
-    )
+    check_detect_memory(cube, store=det_kw.get("store"))
 
 
 def _check_reconstruct_memory(det, library) -> None:
@@ -1062,10 +1068,7 @@ def read_points(path: str | os.PathLike):
         return _read_points_csv(p)
     from ._containers import _read_npz  # never unpickles; checks sizes before allocating
 
-    try:
-        z = _read_npz(p)
-    except SplidarError as exc:
-        raise SplidarError(f"cannot read points from '{p}': {exc}") from None
+    z = _read_npz(p)  # its errors name the file and what is wrong with it
     if "row" in z:
         return PointSet.from_dict(z)
     if "points_row" in z:
@@ -1088,8 +1091,11 @@ def _read_points_csv(p: Path):
             f"'{p}' is not a points.csv of splidar (header starts {header[:3]}, expected "
             "row,col,depth_bin)"
         )
-    data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    if data.shape[0] == 0:
+    with open(p, encoding="ascii", errors="replace") as fh:
+        has_rows = bool(fh.readline()) and any(line.strip() for line in fh)
+    if has_rows:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    else:  # a header only: no point (loadtxt would warn)
         data = np.zeros((0, len(header)))
     col = {name: data[:, i] for i, name in enumerate(header)}
     inten = [col[h] for h in header if h.startswith("intensity_") and "std" not in h]

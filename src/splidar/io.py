@@ -738,9 +738,8 @@ def load(
     path : str or path-like
         ``.npz``, ``.npy``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5``, a ``.zarr``
         directory or vendor files (``.ptu``, ``.sdt``: :mod:`splidar.vendor`).
-        Nothing is unpickled or executed; declared sizes are checked against the
-        file's size and the free memory before anything is allocated. A ``.npz``
-        holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
+        Nothing is unpickled; sizes are checked before allocating (docs/reliability.md).
+        A ``.npz`` holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
         cols + col`` and ``shape`` (rows, cols).
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
@@ -809,10 +808,8 @@ def load(
     sparse = None
     from_save = False
     if flat or _is_cell_of_numbers(v):
-        if flat:
-            pl = _flat_photon_lists(d, p)
-        else:
-            pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
+        src = f"{p.name}:{name}"
+        pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
@@ -858,7 +855,8 @@ def load(
     irf_a, irf_src = _resolve_irf(
         irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
     )
-    irf_a = _crop_irf(irf_a, n_bins)
+    if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
+        irf_a = _crop_irf(irf_a, n_bins)
     if irf_src != "file":
         meta["irf_source"] = irf_src
     elif not from_save:
