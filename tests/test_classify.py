@@ -200,3 +200,25 @@ def test_per_pixel_classify_and_majority_filter():
     assert acc_maj > acc_pp  # the filter removes isolated errors
     with pytest.raises(SplidarError, match="label"):
         majority_filter_labels(det, pp[:-1])
+
+
+def test_reliability_diagram_reports_ece():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from splidar.plotting import plot_label_confidence, reliability_diagram
+
+    rng = np.random.default_rng(7)
+    conf = rng.uniform(0.3, 1.0, 20000)
+    ok = rng.random(20000) < conf  # calibrated by construction
+    fig = reliability_diagram(conf, ok)
+    ece = float(fig.axes[0].get_title().split("ECE ")[1].split(",")[0])
+    assert ece < 0.02  # sampling noise only: ~0.005
+    fig2 = reliability_diagram(conf, np.ones_like(ok))  # always right: under-confident
+    assert float(fig2.axes[0].get_title().split("ECE ")[1].split(",")[0]) > 0.3
+    with pytest.raises(SplidarError, match="one length"):
+        reliability_diagram(conf, ok[:-1])
+    det, _ = synthetic_detection(shape=(8, 8), rng=0)
+    ax = plot_label_confidence(reconstruct(det, rng=0))
+    assert "confidence" in ax.get_title()
+    matplotlib.pyplot.close("all")
