@@ -44,8 +44,9 @@ from splidar.scenes import art_scene, multispectral_scene
 
 try:  # the baselines added with issue 14 (absent before it: computed here then)
     from splidar.baselines import majority_filter_labels, per_pixel_classify
+    from splidar.reconstruction import flag_unknown
 except ImportError:  # pragma: no cover - the "before" measurement
-    majority_filter_labels = per_pixel_classify = None
+    majority_filter_labels = per_pixel_classify = flag_unknown = None
 
 PPP = (1.0, 4.0, 10.0, 50.0)
 PPP_ART = (4.0, 16.0, 64.0)
@@ -141,6 +142,9 @@ def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special
             s = mask[t]
             row[name] = float(ok[s].mean()) if np.any(s) else float("nan")
             row[name + "_pp"] = float((pp[e][s] == tl[s]).mean()) if np.any(s) else float("nan")
+    if flag_unknown is not None:  # known materials flagged "unknown" at level 1e-3
+        flagged = flag_unknown(rec, level=1e-3).points.label == -1
+        row["unknown_rate"] = float(flagged[e].mean())
     conf = rec.points.label_confidence
     calib = (conf[e], ok) if conf is not None else None
     return row, calib
@@ -152,6 +156,8 @@ def _fmt(r):
         extra = f" thin/net {r['special']:.3f} (pp {r['special_pp']:.3f})"
     if "special2" in r:
         extra += f" patch {r['special2']:.3f} (pp {r['special2_pp']:.3f})"
+    if "unknown_rate" in r:
+        extra += f" unknown@1e-3 {r['unknown_rate']:.3f}"
     frac = r["t_classify"] / r["t_process"]
     return (
         f"{r['scene']:<24} {r['bg']:<8} {r['ppp']:>4g} {r['n_match']:>6d} {r['acc']:>6.3f} "
