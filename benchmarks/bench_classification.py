@@ -222,11 +222,24 @@ def main(argv=None) -> int:
         sep = float(np.mean(noise_free == art.truth.label))
         print(f"\nArt (noise-free separability of the library: {sep:.3f})")
         print(HEADER)
+        art_cal = []
         for ppp in PPP_ART:
-            r, _ = run_cell(art, ppp, "uniform", args.seed, tau_m=0.004)
+            r, cal = run_cell(art, ppp, "uniform", args.seed, tau_m=0.004)
             r["separability"] = sep
             print(_fmt(r), flush=True)
             rows.append(r)
+            if cal is not None:
+                art_cal.append(cal)
+                print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
+        if art_cal and args.figure is not None:
+            from splidar.plotting import reliability_diagram
+
+            c = np.concatenate([a for a, _ in art_cal])
+            o = np.concatenate([b for _, b in art_cal])
+            fig = reliability_diagram(c, o, title=f"Art, PPP 4-64 (ECE {ece(c, o):.3f})")
+            path = args.figure.with_name(args.figure.stem + "_art" + args.figure.suffix)
+            fig.savefig(path, dpi=110)
+            print(f"reliability figure: {path}")
     print(f"total {time.perf_counter() - t_all:.0f} s")
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -42,7 +42,7 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    (red then black pixels). A region of one material is thus relabelled as a whole on
    the evidence of all its photons (hundreds at PPP 1), which single-site updates (ICM,
    mean field) cannot do from a wrong start; the heat-bath sweep moves the surfaces on
-   region boundaries, which SW rarely cuts loose. 20 sweeps are discarded, 40 averaged
+   region boundaries, which SW rarely cuts loose. 15 sweeps are discarded, 30 averaged
    (random numbers: a counter-based hash of (seed, sweep, index), so the result does not
    depend on the number of threads). A surface's label is its most probable marginal
    class and ``label_confidence`` that marginal probability.
@@ -372,8 +372,8 @@ def potts_marginals(
     graph,
     gamma: float,
     *,
-    n_burn: int = 20,
-    n_keep: int = 40,
+    n_burn: int = 15,
+    n_keep: int = 30,
     seed: int = 0,
     start: np.ndarray | None = None,
     logpi: np.ndarray | None = None,
@@ -484,8 +484,8 @@ def classify_surfaces(
     gamma: float = GAMMA,
     alpha=np.inf,
     n_rounds: int = 1,
-    n_burn: int = 20,
-    n_keep: int = 40,
+    n_burn: int = 15,
+    n_keep: int = 30,
     seed: int = 0,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
