@@ -88,7 +88,7 @@ def _nb_logpmf(y, mu, lam, alpha):
     """log NB(y; mean mu, variance mu + lam**2 / alpha), without the -log y! term."""
     v = lam * lam / alpha
     if v < 1e-9 * mu:  # Poisson limit
-        return y * math.log(mu) - mu
+        return y * math.log(mu) - mu if y > 0.0 else -mu
     phi = mu * mu / v
     out = phi * math.log(phi / (phi + mu)) + y * math.log(mu / (phi + mu))
     if y < 12:
@@ -378,22 +378,27 @@ def potts_marginals(
     start: np.ndarray | None = None,
     logpi: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Label marginals of a Potts field by Swendsen-Wang sampling (whole-cluster moves).
+    """Label marginals of a Potts field by Swendsen-Wang + heat-bath sampling.
 
-    ``p(u) ~ exp(sum_s unary[s, u_s] - gamma #(links with u_s != u_j))``.
+    ``p(u) ~ exp(sum_s unary[s, u_s] - sum_links gamma_sj [u_s != u_j])`` with
+    ``gamma_sj`` from :func:`link_gamma`; each sweep a Swendsen-Wang move (whole clusters,
+    ``logpi`` added once per cluster) then a red-black heat-bath sweep of single surfaces.
 
     Parameters
     ----------
     unary : ndarray (S, K)
-        Log-likelihood plus log prior of each label.
+        Log-likelihood of each label.
     graph : SurfaceGraph
     gamma : float
-        Interaction strength (nats per disagreeing link), >= 0.
+        Interaction strength (nats per disagreeing link between two surfaces of degree
+        4), >= 0.
     n_burn, n_keep : int
         Sweeps discarded, then sweeps averaged.
     seed : int
     start : ndarray (S,), optional
         Starting labels (default: argmax of ``unary``).
+    logpi : ndarray (K,), optional
+        Log class proportions, counted once per Swendsen-Wang cluster (default 0).
 
     Returns
     -------
