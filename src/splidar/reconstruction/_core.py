@@ -292,12 +292,10 @@ _HW_PASSES = 2
 _INNER = 4
 # alpha is kept in [1.5, 1000] (a reflectivity CV between 0.8 and 0.03)
 _ALPHA_BOUNDS = (1.5, 1000.0)
-# alpha="auto": the first phase (alpha = 6, labels) only has to settle the labels, the
-# second re-fits the intensities under the estimated prior: the first stops at this x tol
-# (intensity change, and fraction of labels changed in a sweep). Measured against 1 x tol:
-# the same label accuracy on the bench's fabricated and simulator scenes but one (0.913 ->
-# 0.912), 0-3 fewer sweeps; Art (bench_speed) 14 -> 9 sweeps, label accuracy 0.447 ->
-# 0.453 (its labels drift from the truth), Art PPP 10 unchanged (0.288).
+# alpha="auto": the first phase (alpha = 6) only gives a start for the alpha estimate, the
+# second re-fits the intensities under the estimated prior: the first stops at this x tol.
+# Measured when the labels were still updated in the sweeps (before issue 14): the same
+# label accuracy on the bench's scenes (0.913 -> 0.912 on one), 0-3 fewer sweeps.
 _PHASE1_TOL = 10.0
 # the objective is evaluated every this many sweeps (and after the last): about a fifth
 # of a sweep's cost, and only a record of the ascent
