@@ -193,7 +193,7 @@ def class_loglik(
     return out
 
 
-def em_proportions(loglik: np.ndarray, *, n_iter: int = 200, tol: float = 1e-6) -> np.ndarray:
+def em_proportions(loglik: np.ndarray, *, n_iter: int = 200, tol: float = 1e-5) -> np.ndarray:
     """Maximum-likelihood class proportions of a mixture with fixed components (EM).
 
     ``pi <- mean_s p(k | y_s, pi)`` with ``p(k | y_s, pi) ~ pi_k exp(loglik[s, k])``.
@@ -201,6 +201,11 @@ def em_proportions(loglik: np.ndarray, *, n_iter: int = 200, tol: float = 1e-6) 
     Parameters
     ----------
     loglik : ndarray (S, K)
+    n_iter : int
+        At most this many EM steps (a numba loop over the surfaces each).
+    tol : float
+        Stop when no proportion moves by more than ``tol`` in a step (1e-5: far below
+        what the labels can feel, as ``log pi`` enters once per cluster).
 
     Returns
     -------
@@ -220,16 +225,31 @@ def em_proportions(loglik: np.ndarray, *, n_iter: int = 200, tol: float = 1e-6) 
     pi = np.full(K, 1.0 / K)
     if S == 0:
         return pi
-    e = np.exp(ll - ll.max(axis=1, keepdims=True))
-    for _ in range(n_iter):
-        p = e * pi
-        p /= p.sum(axis=1, keepdims=True)
-        new = p.mean(axis=0)
-        done = np.max(np.abs(new - pi)) < tol
-        pi = new
-        if done:
-            break
+    e = np.ascontiguousarray(np.exp(ll - ll.max(axis=1, keepdims=True)))
+    _em_kernel(e, pi, int(n_iter), float(tol))
     return pi
+
+
+@njit(cache=True)
+def _em_kernel(e, pi, n_iter, tol):
+    S, K = e.shape
+    new = np.empty(K)
+    for _ in range(n_iter):
+        new[:] = 0.0
+        for s in range(S):
+            tot = 0.0
+            for k in range(K):
+                tot += e[s, k] * pi[k]
+            if tot > 0.0:
+                for k in range(K):
+                    new[k] += e[s, k] * pi[k] / tot
+        diff = 0.0
+        for k in range(K):
+            v = new[k] / S
+            diff = max(diff, abs(v - pi[k]))
+            pi[k] = v
+        if diff < tol:
+            break
 
 
 @njit(cache=True)
