@@ -117,34 +117,38 @@ def run(args) -> list[dict]:
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per variant: mean paired change against "all" (removal effect) and its SE."""
-    key = lambda r: (r["family"], r["irf"], r["ppp"], r["bg"], r["seed"])  # noqa: E731
-    base = {key(r): r for r in rows if r["variant"] == "all"}
+    """Per variant: the mean paired change against "all" (the effect of removing the
+    pass) over cells and seeds, its run-to-run noise and the cells it helps or hurts.
+
+    The noise is the standard error of that mean from the spread of the paired change
+    between seeds of the same cell (new cubes, same scene and regime), pooled over the
+    cells: ``sqrt(mean_cells var_seeds(diff) / n)``.
+    """
+    cell = lambda r: (r["family"], r["irf"], r["ppp"], r["bg"])  # noqa: E731
+    base = {cell(r) + (r["seed"],): r for r in rows if r["variant"] == "all"}
     out = []
-    seeds = sorted({r["seed"] for r in rows})
     for name in variants():
         if name == "all":
             continue
-        d = {k: [] for k in ("f_true", "false_per_100", "dae")}
-        per_seed = {k: {s: [] for s in seeds} for k in d}
-        for r in rows:
-            if r["variant"] != name:
-                continue
-            b = base[key(r)]
-            for k in d:
-                diff = r[k] - b[k]
-                d[k].append(diff)
-                per_seed[k][r["seed"]].append(diff)
-        row = {"variant": name, "n_cells": len(d["f_true"])}
-        for k, v in d.items():
-            v = np.asarray(v, np.float64)
-            row[k] = float(np.nanmean(v))
-            # noise: spread of the per-seed mean over the seeds (new cubes per seed)
-            means = [np.nanmean(per_seed[k][s]) for s in seeds if per_seed[k][s]]
-            row[k + "_se"] = (
-                float(np.std(means, ddof=1) / np.sqrt(len(means))) if len(means) > 1 else None
-            )
-            row[k + "_worst"] = float(np.nanmin(v) if k == "f_true" else np.nanmax(v))
+        row = {"variant": name}
+        for k in ("f_true", "false_per_100", "dae"):
+            per_cell: dict = {}
+            for r in rows:
+                if r["variant"] == name:
+                    diff = r[k] - base[cell(r) + (r["seed"],)][k]
+                    per_cell.setdefault(cell(r), []).append(diff)
+            diffs = np.array([d for v in per_cell.values() for d in v], np.float64)
+            row["n_cells"] = len(per_cell)
+            row[k] = float(np.nanmean(diffs))
+            within = [np.nanvar(v, ddof=1) for v in per_cell.values() if len(v) > 1]
+            row[k + "_se"] = float(np.sqrt(np.nanmean(within) / diffs.size)) if within else None
+            cm = np.array([np.nanmean(v) for v in per_cell.values()])
+            better = cm > 0 if k == "f_true" else cm < 0
+            worse = cm < 0 if k == "f_true" else cm > 0
+            # from the pass's point of view: removing it makes the figure better/worse
+            row[k + "_cells_better_without"] = int(better.sum())
+            row[k + "_cells_worse_without"] = int(worse.sum())
+            row[k + "_worst"] = float(np.nanmin(diffs) if k == "f_true" else np.nanmax(diffs))
         out.append(row)
     return out
 
@@ -152,14 +156,14 @@ def summarise(rows: list[dict]) -> list[dict]:
 def table(summary: list[dict]) -> str:
     head = (
         "| pass removed | cells | dF_true | d false / 100 true | dDAE (bins) | "
-        "worst dF_true | within noise |\n|---|---|---|---|---|---|---|"
+        "cells F_true down / up | within noise |\n|---|---|---|---|---|---|---|"
     )
     lines = [head]
     for r in summary:
 
         def f(k, fmt, r=r):
             se = r[k + "_se"]
-            return f"{r[k]:{fmt}}" + (f" ± {se:{fmt}}" if se is not None else "")
+            return f"{r[k]:{fmt}}" + (f" ± {se:{fmt.lstrip('+')}}" if se is not None else "")
 
         noise = all(
             r[k + "_se"] is not None and abs(r[k]) <= 2 * r[k + "_se"]
@@ -168,7 +172,8 @@ def table(summary: list[dict]) -> str:
         tag = "n/a (1 seed)" if r["f_true_se"] is None else ("yes" if noise else "no")
         lines.append(
             f"| {r['variant']} | {r['n_cells']} | {f('f_true', '+.4f')} | "
-            f"{f('false_per_100', '+.2f')} | {f('dae', '+.3f')} | {r['f_true_worst']:+.4f} | "
+            f"{f('false_per_100', '+.2f')} | {f('dae', '+.3f')} | "
+            f"{r['f_true_cells_worse_without']} / {r['f_true_cells_better_without']} | "
             f"{tag} |"
         )
     return "\n".join(lines)
@@ -181,9 +186,10 @@ def main(argv=None) -> int:
     ap.add_argument("--bins", type=int, default=200, help="time bins T (default 200)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
     ap.add_argument("--json", help="also write every row and the summary to this file")
+    ap.add_argument("--from-json", help="summarise the rows of an earlier --json run")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    rows = run(args)
+    rows = json.loads(Path(args.from_json).read_text())["rows"] if args.from_json else run(args)
     summary = summarise(rows)
     print(table(summary))
     print(f"# {len(rows)} detections in {time.perf_counter() - t0:.0f} s")
