@@ -20,6 +20,7 @@ Usage::
     python benchmarks/bench_ablation.py --quick        # 24 x 24 scenes, 1 seed (minutes)
     python benchmarks/bench_ablation.py                # 32 x 32 scenes, 3 seeds
     python benchmarks/bench_ablation.py --json out.json
+    python benchmarks/bench_ablation.py --families art --seeds 1   # the paper's Art scene
 
 Nothing is downloaded; the IRF sample is read from ``../shared/data`` when present (the
 measured-IRF cells are skipped otherwise).
@@ -37,13 +38,16 @@ import numpy as np
 
 from splidar.detection import PASSES, detect
 from splidar.metrics import evaluate
-from splidar.scenes import multispectral_scene, single_surface_scene, two_layer_scene
+from splidar.scenes import art_scene, multispectral_scene, single_surface_scene, two_layer_scene
 
 TAU = 3.0
 IRF_SAMPLE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "irf-sample"
 # photon regimes: (PPP, SBR) per scene family (SBR low where the targets are)
 REGIMES = {"single": ((1, 1.0), (4, 0.25), (10, 1.0)), "net": ((1, 1.0), (4, 0.25), (10, 1.0))}
 REGIMES["multi"] = REGIMES["net"]
+# the paper's simulated Art scene (185 x 232, two copies one behind the other, RGB)
+REGIMES["art"] = ((1, 1.0), (4, 1.0), (16, 1.0))
+ART = IRF_SAMPLE.parent / "middlebury-art"
 
 
 def measured_irf(rebin: int = 1):
@@ -64,14 +68,22 @@ def measured_irf(rebin: int = 1):
     return w / w.sum()
 
 
-def scenes(shape, n_bins, irfs):
+def scenes(shape, n_bins, irfs, families):
     out = {}
     for irf_name, irf in irfs.items():
-        out[("single", irf_name)] = single_surface_scene(shape, n_bins=n_bins, irf=irf)
-        out[("net", irf_name)] = two_layer_scene(shape, n_bins=n_bins, irf=irf)
-        out[("multi", irf_name)] = multispectral_scene(
-            shape, n_bins=n_bins, irf=irf, two_layers=True
-        )
+        if "single" in families:
+            out[("single", irf_name)] = single_surface_scene(shape, n_bins=n_bins, irf=irf)
+        if "net" in families:
+            out[("net", irf_name)] = two_layer_scene(shape, n_bins=n_bins, irf=irf)
+        if "multi" in families:
+            out[("multi", irf_name)] = multispectral_scene(
+                shape, n_bins=n_bins, irf=irf, two_layers=True
+            )
+    if "art" in families:
+        if ART.is_dir():
+            out[("art", "gauss3")] = art_scene(ART)  # T = 164, Gaussian FWHM 3 bins
+        else:
+            print(f"# no Art scene at {ART}: skipped", file=sys.stderr)
     return out
 
 
@@ -94,9 +106,10 @@ def run(args) -> list[dict]:
     else:
         print("# irf-sample not found: measured-IRF cells skipped", file=sys.stderr)
     rows = []
-    for (fam, irf_name), scene in scenes(shape, args.bins, irfs).items():
+    families = args.families.split(",")
+    for (fam, irf_name), scene in scenes(shape, args.bins, irfs, families).items():
         for ppp, sbr in REGIMES[fam]:
-            for bg in ("uniform", "decaying"):
+            for bg in ("uniform",) if fam == "art" else ("uniform", "decaying"):
                 for seed in seeds:
                     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=seed)
                     for name, passes in variants().items():
@@ -185,6 +198,12 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=32, help="scene side in pixels (default 32)")
     ap.add_argument("--bins", type=int, default=200, help="time bins T (default 200)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
+    ap.add_argument(
+        "--families",
+        default="single,net,multi",
+        help="scene families, comma-separated, of single, net, multi, art (Art: 185 x 232, "
+        "PPP 1/4/16, SBR 1, uniform background, from ../shared/data/middlebury-art)",
+    )
     ap.add_argument("--json", help="also write every row and the summary to this file")
     ap.add_argument("--from-json", help="summarise the rows of an earlier --json run")
     args = ap.parse_args(argv)
