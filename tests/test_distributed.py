@@ -134,3 +134,36 @@ def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_clie
     b = splidar.detect(lazy, rng=0, block_rows=16)
     assert b.options["block_rows"] == 16
     _assert_same_detection(a, b)
+
+
+def test_cli_run_scheduler_joins_a_cluster_and_matches_in_memory(local_client, tmp_path, capsys):
+    pytest.importorskip("zarr")
+    from splidar.cli import main
+    from splidar.io import save
+
+    cube, _ = _cubes(*_varying_cube(shape=(20, 18), n_bins=100, seed=4), (5, 18, 1, 100))
+    save(cube, tmp_path / "c.npz")
+    save(cube, tmp_path / "c.zarr", chunks=(5, 9))
+    common = ["--no-figures", "-q", "--seed", "3"]
+    assert main(["run", str(tmp_path / "c.npz"), "--out", str(tmp_path / "a"), *common]) == 0
+    address = local_client.scheduler.address
+    args = ["run", str(tmp_path / "c.zarr"), "--out", str(tmp_path / "b"), "--scheduler", address]
+    assert main([*args, *common]) == 0
+    err = capsys.readouterr().err
+    assert f"2 worker(s) at {address}; dashboard: http" in err
+    a, b = (np.load(tmp_path / d / "result.npz") for d in ("a", "b"))
+    assert a["points_depth_bin"].size > 0
+    for k in ("points_row", "points_col", "points_depth_bin", "points_intensity", "depth_map"):
+        np.testing.assert_array_equal(b[k], a[k])
+
+
+def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
+    from splidar.cli import main
+    from splidar.io import save
+
+    save(Cube(np.zeros((8, 8, 1, 40), np.int32), irf=gaussian_irf(2.0)), tmp_path / "c.npz")
+    run = ["run", str(tmp_path / "c.npz"), "--no-figures", "-q"]
+    assert main([*run, "--memory-limit", "1GB"]) == 2
+    assert "add --workers N" in capsys.readouterr().err
+    assert main([*run, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert main([*run, "--workers", "0"]) == 2
