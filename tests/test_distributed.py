@@ -167,3 +167,46 @@ def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
     assert "add --workers N" in capsys.readouterr().err
     assert main([*run, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
     assert main([*run, "--workers", "0"]) == 2
+
+
+def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
+    """Two worker processes; the first to finish a tile is killed (SIGKILL) as it does:
+    the scheduler recomputes that tile elsewhere and the Detection is the same."""
+    distributed = pytest.importorskip("distributed")
+    import os
+    import signal
+
+    from distributed.diagnostics.plugin import SchedulerPlugin
+    from distributed.utils import key_split
+
+    class KillFirstTileWorker(SchedulerPlugin):
+        def __init__(self, pids):
+            self.pids, self.killed, self.key = pids, None, None
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if (
+                self.killed is None
+                and finish == "memory"
+                and key_split(key) == "splidar-map-tile"
+                and kwargs.get("worker") in self.pids
+            ):
+                self.killed, self.key = kwargs["worker"], key
+                os.kill(self.pids[self.killed], signal.SIGKILL)
+
+    cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
+    a = splidar.detect(cube, rng=1)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        plugin = KillFirstTileWorker(client.run(os.getpid))
+        cluster.scheduler.add_plugin(plugin, name="kill-first-tile-worker")
+        b = splidar.detect(lazy, rng=1, block_rows=5)  # 8 tiles
+        story = cluster.scheduler.story(plugin.key)
+    assert plugin.killed is not None
+    # the killed worker's tile went back to being computed after it was in memory
+    finishes = [s[2] for s in story if s[0] == plugin.key]
+    assert finishes.count("memory") >= 2, finishes
+    _assert_same_detection(a, b)
