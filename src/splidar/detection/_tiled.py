@@ -39,7 +39,13 @@ from ._3_null import NullCalibration
 from ._4_map import CandidateMap, MapOptions, _block, _open_store, assemble_map, map_plan
 from ._fast import window_means
 
-__all__ = ["is_dask", "map_candidates_tiled", "tile_bounds", "tiled_window_means"]
+__all__ = [
+    "compute_each",
+    "is_dask",
+    "map_candidates_tiled",
+    "tile_bounds",
+    "tiled_window_means",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -96,6 +102,31 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
         )
     parts = dask.compute(*tasks)
     return np.concatenate(parts, axis=0)
+
+
+def compute_each(tasks: list, take) -> None:
+    """Compute ``tasks`` on the active scheduler, calling ``take(i, result)`` for each.
+
+    On a ``dask.distributed`` client the results are fetched as they complete and
+    released at once, so no worker holds finished tiles until the last one is done; on
+    the local schedulers, in one ``dask.compute``.
+    """
+    import dask
+
+    client = getattr(dask.base.get_scheduler(), "__self__", None)
+    if type(client).__name__ != "Client" or not hasattr(client, "compute"):
+        for i, result in enumerate(dask.compute(*tasks)):
+            take(i, result)
+        return
+    from distributed import as_completed
+
+    futures = client.compute(tasks)
+    index = {f.key: i for i, f in enumerate(futures)}
+    del tasks
+    for fut in as_completed(futures):
+        take(index[fut.key], fut.result())
+        fut.release()
+    futures.clear()
 
 
 class _Rows:
@@ -197,7 +228,6 @@ def map_candidates_tiled(
         for i, (blk, (r0, r1)) in enumerate(zip(blocks, tiles, strict=True))
     ]
     logger.info("detect: map pass on %d tile(s) of %d rows (halo %d)", len(tiles), block_rows, h)
-    results = list(dask.compute(*tasks))
     if out is None:
         out = dict(
             saliency=np.empty((R, C, T), np.float32),
@@ -205,11 +235,14 @@ def map_candidates_tiled(
             threshold=None,
         )
     out["spatial"] = np.empty((R, C, L), np.float32)
-    outs = []
-    for i, (r0, r1) in enumerate(tiles):
-        res, own = results[i]
-        results[i] = None  # each tile's arrays are freed once copied
+    outs = [None] * len(tiles)
+
+    def take(i, result):
+        res, own = result
+        r0, r1 = tiles[i]
         for k, v in own.items():
             out[k][r0:r1] = v
-        outs.append(res)
+        outs[i] = res
+
+    compute_each(tasks, take)
     return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)
