@@ -288,6 +288,48 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 
+def _cluster_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "where to compute (Dask; needs pip install 'splidar[distributed]' for a cluster)"
+    )
+    x = g.add_mutually_exclusive_group()
+    x.add_argument(
+        "--workers",
+        type=_positive(int),
+        metavar="N",
+        help="start a local Dask cluster of N worker processes (one thread each)",
+    )
+    x.add_argument(
+        "--scheduler", metavar="ADDRESS", help="join a running Dask cluster (tcp://host:8786)"
+    )
+    g.add_argument(
+        "--memory-limit",
+        metavar="SIZE",
+        help="per-worker memory limit of --workers' cluster, e.g. 1GB (default: RAM / N)",
+    )
+
+
+def _pipeline_on_dask(cube, args, stages: _Stages):
+    """:func:`_pipeline` on the Dask scheduler the options ask for: a lazy cube on
+    threads, any cube on a cluster (--workers, --scheduler); an in-memory cube without
+    them as before."""
+    from ._cluster import as_dask_cube, dask_session
+
+    on_cluster = args.workers is not None or args.scheduler is not None
+    if args.memory_limit is not None and args.workers is None:
+        raise UsageError("--memory-limit sets the memory of --workers' cluster; add --workers N")
+    if not on_cluster and not cube.is_lazy:
+        return _pipeline(cube, args, stages)
+    session = dask_session(
+        workers=args.workers,
+        memory_limit=args.memory_limit,
+        scheduler=args.scheduler,
+        progress=not args.quiet,
+    )
+    with session:
+        return _pipeline(as_dask_cube(cube) if on_cluster else cube, args, stages)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``splidar`` command (for documentation tools)."""
     fmt = argparse.RawDescriptionHelpFormatter
@@ -385,6 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _out_options(p, "INPUT-STEM-splidar beside the input")
     _pipeline_options(p)
+    _cluster_options(p)
     _common(p, top=False)
     _json_flag(p)
 
@@ -933,7 +976,7 @@ def _cmd_run(args) -> int:
         with stages.stage("loading"):
             cube = load(inp, **load_kw)
         log.info("loaded %r", cube)
-        rec = _pipeline(cube, args, stages)
+        rec = _pipeline_on_dask(cube, args, stages)
         with _staging(out) as tmp:
             _write_outputs(
                 tmp,

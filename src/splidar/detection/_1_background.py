@@ -36,7 +36,7 @@ class TemporalBackground:
 
 
 def estimate_temporal_background(
-    counts, corr: Correlator, irf: np.ndarray, *, box: int, n_jobs: int
+    counts, corr: Correlator, irf: np.ndarray, *, box: int, n_jobs: int, windows=None
 ) -> TemporalBackground:
     """``bbar`` from the coarsest box (size ``box``) of the matched-filtered counts.
 
@@ -51,8 +51,11 @@ def estimate_temporal_background(
         The largest box size ``max k_q``.
     n_jobs : int
         Threads.
+    windows : callable, optional
+        Reads the sampled window means (a Dask cube: on its workers); see
+        :func:`~splidar.detection._background.temporal_shape`.
     """
     wh = irf_halfwidth(irf)
-    temporal = temporal_shape(counts, corr, box, smooth=4 * wh + 1, workers=n_jobs)
+    temporal = temporal_shape(counts, corr, box, smooth=4 * wh + 1, workers=n_jobs, windows=windows)
     dev = (temporal - temporal.mean(axis=-1, keepdims=True)).astype(np.float32)
     return TemporalBackground(temporal=temporal, dev=dev)

@@ -25,7 +25,7 @@ from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
 
-__all__ = ["CandidateMap", "MapOptions", "map_candidates"]
+__all__ = ["CandidateMap", "MapOptions", "assemble_map", "map_candidates", "map_plan"]
 
 #: Presence test (``presence="auto"/"adaptive"``): the local scale (finest above 1
 #: pixel) must respond at a candidate's depth with this Poisson z: 3 sigma, about one
@@ -499,37 +499,16 @@ def _table(outs, image_shape) -> CandidateTable:
     return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
 
 
-def map_candidates(
-    counts,
-    filters: SaliencyFilters,
-    null: NullCalibration,
-    options: MapOptions,
-    *,
-    block_rows: int | None,
-    n_jobs: int,
-    store=None,
-) -> CandidateMap:
-    """Saliency, map ``M`` and candidate surfaces of the whole image, block by block.
+def map_plan(
+    filters: SaliencyFilters, null: NullCalibration, options: MapOptions, shape, block_rows
+):
+    """The map pass's settings for every block, and the rows per block.
 
-    Parameters
-    ----------
-    counts : array_like (rows, cols, L, T)
-        In memory, or lazy (read block by block).
-    filters : SaliencyFilters
-        Stage 2's set-up.
-    null : NullCalibration
-        Stage 3's thresholds.
-    options : MapOptions
-    block_rows : int or None
-        Rows per block (None: about 64 MB of work buffers).
-    n_jobs : int
-        Threads: runs of blocks in parallel, or threads inside the blocks of one run.
-    store : path, optional
-        A new directory for Zarr arrays of saliency, mask (and a per-voxel threshold).
+    Returns ``(opts, block_rows)``; ``opts`` is what :func:`_block` reads (the same for
+    every block, so blocks or tiles of any size give the same candidates).
     """
-    R, C, L, T = counts.shape
+    R, C, L, T = shape
     scales = filters.scales
-    h_max = int(scales.max()) // 2
     width = options.width
     store_boxes = _store_boxes(scales, width, T)
     block_rows = _block_rows(block_rows, scales, width, store_boxes, (R, C, L, T))
@@ -550,34 +529,16 @@ def map_candidates(
         evidence_threshold=null.evidence_threshold,
         max_surfaces=options.max_surfaces,
     )
+    return opts, block_rows
+
+
+def assemble_map(outs, out, filters, null, store, shape, block_rows, opts) -> CandidateMap:
+    """The :class:`CandidateMap` of the blocks' results ``outs`` (in row order) and the
+    image-size arrays ``out`` they wrote (``saliency``, ``mask``, ``spatial``, and
+    ``threshold`` in a store)."""
+    R, C, L, T = shape
+    width = opts["width"]
     table = null.table(per_voxel=store is not None)
-    if store is None:
-        out = dict(
-            saliency=np.empty((R, C, T), np.float32),
-            mask=np.empty((R, C, T), bool),
-            spatial=np.empty((R, C, L), np.float32),
-            threshold=None,
-        )
-    else:
-        out = _open_store(store, (R, C, T), block_rows, table[2])
-        out["spatial"] = np.empty((R, C, L), np.float32)
-    runs = _runs(R, h_max, n_jobs, block_rows, store)
-    if len(runs) > 1:
-        with ThreadPoolExecutor(len(runs)) as ex:
-            outs = [
-                o
-                for res in ex.map(
-                    lambda ab: _run_rows(
-                        counts, ab[0], ab[1], filters, table, opts, out, block_rows
-                    ),
-                    runs,
-                )
-                for o in res
-            ]
-    else:
-        # one run: threads inside each block instead
-        bctx = dataclasses.replace(filters, workers=n_jobs)
-        outs = _run_rows(counts, 0, R, bctx, table, opts, out, block_rows)
     saliency, mask, spatial = out["saliency"], out["mask"], out["spatial"]
     threshold = _threshold(spatial, filters.dev, table, null, out, store)
     out.clear()
@@ -607,3 +568,65 @@ def map_candidates(
         block_rows=block_rows,
         width=width,
     )
+
+
+def map_candidates(
+    counts,
+    filters: SaliencyFilters,
+    null: NullCalibration,
+    options: MapOptions,
+    *,
+    block_rows: int | None,
+    n_jobs: int,
+    store=None,
+) -> CandidateMap:
+    """Saliency, map ``M`` and candidate surfaces of the whole image, block by block.
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+        In memory, or lazy (read block by block).
+    filters : SaliencyFilters
+        Stage 2's set-up.
+    null : NullCalibration
+        Stage 3's thresholds.
+    options : MapOptions
+    block_rows : int or None
+        Rows per block (None: about 64 MB of work buffers).
+    n_jobs : int
+        Threads: runs of blocks in parallel, or threads inside the blocks of one run.
+    store : path, optional
+        A new directory for Zarr arrays of saliency, mask (and a per-voxel threshold).
+    """
+    R, C, L, T = counts.shape
+    h_max = int(filters.scales.max()) // 2
+    opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
+    table = null.table(per_voxel=store is not None)
+    if store is None:
+        out = dict(
+            saliency=np.empty((R, C, T), np.float32),
+            mask=np.empty((R, C, T), bool),
+            spatial=np.empty((R, C, L), np.float32),
+            threshold=None,
+        )
+    else:
+        out = _open_store(store, (R, C, T), block_rows, table[2])
+        out["spatial"] = np.empty((R, C, L), np.float32)
+    runs = _runs(R, h_max, n_jobs, block_rows, store)
+    if len(runs) > 1:
+        with ThreadPoolExecutor(len(runs)) as ex:
+            outs = [
+                o
+                for res in ex.map(
+                    lambda ab: _run_rows(
+                        counts, ab[0], ab[1], filters, table, opts, out, block_rows
+                    ),
+                    runs,
+                )
+                for o in res
+            ]
+    else:
+        # one run: threads inside each block instead
+        bctx = dataclasses.replace(filters, workers=n_jobs)
+        outs = _run_rows(counts, 0, R, bctx, table, opts, out, block_rows)
+    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)

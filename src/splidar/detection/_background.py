@@ -15,7 +15,7 @@ from scipy import ndimage, signal
 from ._fast import window_means
 from ._filters import Correlator
 
-__all__ = ["robust_level", "temporal_shape"]
+__all__ = ["robust_level", "sample_grid", "temporal_shape"]
 
 #: Fraction of pixels whose median gives the temporal shape (``eq:background_1``).
 LOW_FRACTION = 0.10
@@ -40,6 +40,7 @@ def temporal_shape(
     refine: bool = True,
     n_samples: int = 2000,
     workers: int = 1,
+    windows=None,
 ) -> np.ndarray:
     """``bbar_{l,t}`` (``eq:background_1``): median of the lowest 10 % of the coarsest cube.
 
@@ -56,23 +57,25 @@ def temporal_shape(
     the shape is then re-estimated without the low-quantile bias
     (:func:`_refine_profile`).
 
+    ``windows``, when given, reads the grid's window means instead of the loop here:
+    ``windows(counts, row_starts, kr, col_starts, kc)`` returns the float32 array
+    ``(row_starts.size, col_starts.size, L, T)`` of
+    :func:`~splidar.detection._fast.window_means` (a Dask cube computes them tile by
+    tile where its data are: :func:`splidar.detection._tiled.tiled_window_means`).
+
     Returns
     -------
     temporal : ndarray (L, T), float32
     """
     R, C, L, T = counts.shape
-    kr = min(k, R)
-    kc = min(k, C)
-    n_pos_r = R - kr + 1
-    n_pos_c = C - kc + 1
-    step_r = kr if n_pos_r * n_pos_c > 4 * n_samples else 1
-    row_starts = np.arange(0, n_pos_r, step_r)
-    step_c = max(1, int(row_starts.size * n_pos_c // n_samples))
-    col_starts = np.arange(0, n_pos_c, step_c)
-    sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
-    for i, a in enumerate(row_starts):
-        # exact window sums in one numba pass over the rows (_fast.window_means)
-        sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
+    kr, kc, row_starts, col_starts = sample_grid(counts.shape, k, n_samples)
+    if windows is None:
+        sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
+        for i, a in enumerate(row_starts):
+            # exact window sums in one numba pass over the rows (_fast.window_means)
+            sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
+    else:
+        sampled = windows(counts, row_starts, kr, col_starts, kc)
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
     n = coarse.shape[0]
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
@@ -100,6 +103,24 @@ def temporal_shape(
         else:
             prof = np.stack([one(l) for l in range(L)])
     return prof.astype(np.float32)
+
+
+def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:
+    """The grid of ``kr x kc`` windows :func:`temporal_shape` averages.
+
+    Returns ``(kr, kc, row_starts, col_starts)``: window size (``k`` clipped to the
+    image) and the first row and column of the windows (about ``n_samples`` of them).
+    """
+    R, C = shape[:2]
+    kr = min(k, R)
+    kc = min(k, C)
+    n_pos_r = R - kr + 1
+    n_pos_c = C - kc + 1
+    step_r = kr if n_pos_r * n_pos_c > 4 * n_samples else 1
+    row_starts = np.arange(0, n_pos_r, step_r)
+    step_c = max(1, int(row_starts.size * n_pos_c // n_samples))
+    col_starts = np.arange(0, n_pos_c, step_c)
+    return kr, kc, row_starts, col_starts
 
 
 def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=None, quantum=0.0):

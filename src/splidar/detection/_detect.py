@@ -39,6 +39,7 @@ from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._result import Background, Detection, StageRecord
 from ._table import skipped
+from ._tiled import is_dask, map_candidates_tiled, tiled_window_means
 
 __all__ = ["PASSES", "detect"]
 
@@ -173,9 +174,13 @@ def detect(
         ``"enclosed"``, ``"align_depths"``. What each does and its measured gain:
         ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
-        Rows per block (default: about 64 MB of work buffers).
+        Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
+        per tile (Dask task).
     n_jobs : int, optional
-        Threads (default: CPU count, at most 4).
+        Threads (default: CPU count, at most 4). A Dask cube's tiles run on the active
+        Dask scheduler instead (threads, or a ``dask.distributed.Client`` when one is
+        open: ``docs/distributed.md``); ``n_jobs`` then serves the null and the
+        clean-up passes, which run in the calling process.
     store : str or path, optional
         A new directory for ``saliency``, ``mask`` and a per-voxel threshold as chunked
         Zarr arrays (cubes whose ``(rows, cols, T)`` arrays do not fit in RAM; needs
@@ -223,10 +228,13 @@ def detect(
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
+    # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
+    tiled = is_dask(cube.counts)
     t0 = time.perf_counter()
     bg = estimate_temporal_background(  # 1
-        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs
-    )
+        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs,
+        windows=tiled_window_means if tiled else None,
+    )  # fmt: skip
     filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -236,10 +244,16 @@ def detect(
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    mp = map_candidates(  # 4
-        cube.counts, filters, nul, _map_options(o, T), block_rows=o["block_rows"],
-        n_jobs=n_jobs, store=store,
-    )  # fmt: skip
+    if tiled:
+        mp = map_candidates_tiled(  # 4, tile by tile on the active Dask scheduler
+            cube.counts, filters, nul, _map_options(o, T), block_rows=o["block_rows"],
+            store=store,
+        )  # fmt: skip
+    else:
+        mp = map_candidates(  # 4
+            cube.counts, filters, nul, _map_options(o, T), block_rows=o["block_rows"],
+            n_jobs=n_jobs, store=store,
+        )  # fmt: skip
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     done = _clean_up(cube, o, mp, bg, corr, rng)  # 5

@@ -1,0 +1,248 @@
+"""Detection of a Dask-backed cube, tile by tile through ``dask.array``.
+
+When ``cube.counts`` is a Dask array (a ``.zarr`` cube from :func:`splidar.load`, or
+one the user builds), :func:`~splidar.detection.detect` hands the two passes that read
+every voxel to Dask, which runs them on whatever scheduler is active: the threaded one
+by default, a ``dask.distributed.Client`` when one is open (its workers read the
+chunks and do the work; only small results travel back).
+
+1. **Global statistics, one pass** (:func:`tiled_window_means`): the background's
+   temporal shape (stage 1) is a statistic over a grid of ``K x K`` windows (``K`` the
+   largest box); each task reads a band of rows and returns its window means, about
+   2000 pixels' worth in all. The null model (stage 3) reads a bounded number of
+   random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
+   and is simulated in the calling process, seeded as in memory.
+2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on strips of
+   ``block_rows`` image rows, each with a halo of ``h = max k // 2`` rows on both sides
+   (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
+   ``boundary="none"``: the image edge is handled as in memory). A tile returns its
+   candidates (a few numbers per surface) and its rows of saliency, mask and
+   background level, or writes them to the Zarr ``store`` itself.
+
+The tiles hold whole rows (all columns): the kernels of stage 4 know a block by its
+first row. The clean-up passes (stage 5) then run on the gathered candidate table, as
+in memory: what they look at across pixels is listed in ``docs/distributed.md``.
+
+Every tile computes its rows exactly as a block of the in-memory pass does, so the
+Detection is the same, bit for bit, whatever the tiles, workers or scheduler.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ._2_saliency import SaliencyFilters
+from ._3_null import NullCalibration
+from ._4_map import CandidateMap, MapOptions, _block, _open_store, assemble_map, map_plan
+from ._fast import window_means
+
+__all__ = [
+    "compute_each",
+    "is_dask",
+    "map_candidates_tiled",
+    "tile_bounds",
+    "tiled_window_means",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Image rows read by one task of the global-statistics pass.
+STATS_ROWS = 64
+
+
+def is_dask(a) -> bool:
+    """True when ``a`` is a Dask array (without importing Dask when it is not loaded)."""
+    return type(a).__module__.split(".")[0] == "dask" and hasattr(a, "dask")
+
+
+def tile_bounds(n_rows: int, block_rows: int, halo: int) -> list[tuple[int, int]]:
+    """Row ranges ``[r0, r1)`` of the tiles: ``block_rows`` each, the last one merged
+    into the one before when shorter than the ``halo`` (a halo comes from one neighbour)."""
+    cuts = list(range(0, n_rows, block_rows)) + [n_rows]
+    if len(cuts) > 2 and cuts[-1] - cuts[-2] < halo:
+        del cuts[-2]
+    return list(zip(cuts[:-1], cuts[1:], strict=True))
+
+
+def _window_band(rows, starts, kr: int, col_starts, kc: int) -> np.ndarray:
+    rows = np.asarray(rows)
+    out = np.empty((starts.size, col_starts.size) + rows.shape[2:], np.float32)
+    for i, a in enumerate(starts):
+        out[i] = window_means(rows[a : a + kr], col_starts, kc)
+    return out
+
+
+def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.ndarray:
+    """The sampled window means of stage 1, computed where the data are.
+
+    One task per band of about :data:`STATS_ROWS` rows (its windows start in the band
+    and may reach ``kr - 1`` rows past it); the tasks run on the active scheduler and
+    return ``(n_windows_in_band, n_cols, L, T)`` float32 each. Same values as the loop of
+    :func:`~splidar.detection._background.temporal_shape` (exact window sums).
+    """
+    import dask
+
+    row_starts = np.asarray(row_starts, np.int64)
+    if row_starts.size == 0:
+        return np.empty((0, col_starts.size) + tuple(counts.shape[2:]), np.float32)
+    band = np.asarray(row_starts // max(STATS_ROWS, kr))
+    tasks = []
+    # keys named for the dashboard: "splidar-window-means"
+    name = "splidar-window-means-" + dask.base.tokenize(counts.name, row_starts, kr, col_starts, kc)
+    for i, b in enumerate(np.unique(band)):
+        starts = row_starts[band == b]
+        a0, a1 = int(starts[0]), int(starts[-1]) + kr
+        tasks.append(
+            dask.delayed(_window_band, pure=True)(
+                counts[a0:a1], starts - a0, kr, col_starts, kc, dask_key_name=(name, i)
+            )
+        )
+    parts = dask.compute(*tasks)
+    return np.concatenate(parts, axis=0)
+
+
+def compute_each(tasks: list, take) -> None:
+    """Compute ``tasks`` on the active scheduler, calling ``take(i, result)`` for each.
+
+    On a ``dask.distributed`` client the results are fetched as they complete and
+    released at once, so no worker holds finished tiles until the last one is done; on
+    the local schedulers, in one ``dask.compute``.
+    """
+    import dask
+
+    client = getattr(dask.base.get_scheduler(), "__self__", None)
+    if type(client).__name__ != "Client" or not hasattr(client, "compute"):
+        for i, result in enumerate(dask.compute(*tasks)):
+            take(i, result)
+        return
+    from distributed import as_completed
+
+    futures = client.compute(tasks)
+    index = {f.key: i for i, f in enumerate(futures)}
+    del tasks
+    for fut in as_completed(futures):
+        take(index[fut.key], fut.result())
+        fut.release()
+    futures.clear()
+
+
+class _Rows:
+    """A tile's own array addressed by image rows (``a[r0:r1] = x`` writes its rows)."""
+
+    def __init__(self, array: np.ndarray, first_row: int):
+        self.array, self.first_row = array, first_row
+
+    def __setitem__(self, rows: slice, value) -> None:
+        self.array[rows.start - self.first_row : rows.stop - self.first_row] = value
+
+
+def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path):
+    """Stage 4 on image rows ``[r0, r1)``; ``y`` holds rows ``[e0, e0 + len(y))``."""
+    y = np.ascontiguousarray(y)
+    C, L, T = y.shape[1:]
+    c_ext = ctx.corr(y, workers=ctx.workers)
+    own = dict(spatial=np.empty((r1 - r0, C, L), np.float32))
+    if store_path is None:
+        own["saliency"] = np.empty((r1 - r0, C, T), np.float32)
+        own["mask"] = np.empty((r1 - r0, C, T), bool)
+        out = {k: _Rows(v, r0) for k, v in own.items()}
+        out["threshold"] = None
+    else:
+        import zarr
+
+        g = zarr.open_group(store_path, mode="r+")
+        out = dict(saliency=g["saliency"], mask=g["mask"], spatial=_Rows(own["spatial"], r0))
+        out["threshold"] = g["threshold"] if "threshold" in g else None
+    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out)
+    return res, own
+
+
+def map_candidates_tiled(
+    counts,
+    filters: SaliencyFilters,
+    null: NullCalibration,
+    options: MapOptions,
+    *,
+    block_rows: int | None,
+    store=None,
+) -> CandidateMap:
+    """Stage 4 (:func:`~splidar.detection._4_map.map_candidates`) on a Dask array.
+
+    Parameters
+    ----------
+    counts : dask.array.Array (rows, cols, L, T)
+        Any chunking: it is rechunked to tiles of whole rows.
+    filters, null, options
+        As for the in-memory pass.
+    block_rows : int or None
+        Rows per tile (None: about 64 MB of work buffers per tile, as in memory); at
+        least the halo ``max k // 2``.
+    store : path, optional
+        A new directory: the tiles write saliency, mask (and a per-voxel threshold)
+        there as Zarr arrays, one chunk of rows per tile; otherwise they come back to
+        the calling process as NumPy arrays.
+
+    Returns
+    -------
+    CandidateMap
+        Identical to the in-memory pass's (``block_rows`` is the tile height).
+    """
+    import dask
+    import dask.array as da
+
+    R, C, L, T = counts.shape
+    h = int(filters.scales.max()) // 2
+    opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
+    block_rows = min(max(block_rows, h, 1), R)
+    table = null.table(per_voxel=store is not None)
+    tiles = tile_bounds(R, block_rows, h)
+    x = counts.rechunk({0: tuple(b - a for a, b in tiles), 1: -1, 2: -1, 3: -1})
+    if len(tiles) > 1 and h > 0:
+        x = da.overlap.overlap(x, depth={0: h, 1: 0, 2: 0, 3: 0}, boundary="none")
+    blocks = x.to_delayed().ravel()
+    if store is not None:
+        out = _open_store(store, (R, C, T), block_rows, table[2])
+        store_path = str(store)
+    else:
+        out, store_path = None, None
+    # the set-up every tile shares travels once (one key), not once per task
+    ctx = dask.delayed(dataclasses.replace(filters, workers=1), pure=True)
+    shared = dask.delayed((table, opts), pure=True)
+    # keys named for the dashboard: "splidar-map-tile"
+    name = "splidar-map-tile-" + dask.base.tokenize(x.name, tiles, ctx.key, shared.key, store_path)
+    tasks = [
+        dask.delayed(_map_tile, pure=True)(
+            blk,
+            max(0, r0 - h),
+            r0,
+            r1,
+            ctx,
+            shared[0],
+            shared[1],
+            store_path,
+            dask_key_name=(name, i),
+        )  # fmt: skip
+        for i, (blk, (r0, r1)) in enumerate(zip(blocks, tiles, strict=True))
+    ]
+    logger.info("detect: map pass on %d tile(s) of %d rows (halo %d)", len(tiles), block_rows, h)
+    if out is None:
+        out = dict(
+            saliency=np.empty((R, C, T), np.float32),
+            mask=np.empty((R, C, T), bool),
+            threshold=None,
+        )
+    out["spatial"] = np.empty((R, C, L), np.float32)
+    outs = [None] * len(tiles)
+
+    def take(i, result):
+        res, own = result
+        r0, r1 = tiles[i]
+        for k, v in own.items():
+            out[k][r0:r1] = v
+        outs[i] = res
+
+    compute_each(tasks, take)
+    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)

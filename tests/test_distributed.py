@@ -1,0 +1,212 @@
+"""Detection of a Dask-backed cube: tiles through dask.array, threads or a LocalCluster.
+
+Every check is exact equality with the in-memory run: each tile computes its rows as a
+block of the in-memory pass does (docs/distributed.md), so no tolerance is needed.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+da = pytest.importorskip("dask.array")
+import dask  # noqa: E402
+
+import splidar  # noqa: E402
+from splidar import Cube, gaussian_irf  # noqa: E402
+from splidar.detection._tiled import is_dask, tile_bounds  # noqa: E402
+from splidar.scenes import single_surface_scene  # noqa: E402
+
+
+def _varying_cube(shape=(30, 22), n_bins=120, seed=2):
+    """One surface over a background that varies across the rows (a per-voxel threshold)."""
+    sim = single_surface_scene(shape, n_bins=n_bins).simulate(
+        ppp=6, sbr=0.5, background="decaying", rng=seed
+    )
+    rng = np.random.default_rng(seed + 1)
+    ramp = np.linspace(0.0, 0.2, shape[0])[:, None, None, None] * np.ones((1, shape[1], 1, n_bins))
+    return sim.cube.counts + rng.poisson(ramp).astype(sim.cube.counts.dtype), sim.cube.irf
+
+
+def _border_cube(border=16, n_bins=100):
+    """A dim 6 x 6 plate centred on image row ``border`` over a brighter wall: the
+    plate is found only by pooling across the row ``border`` (boxes up to 11 x 11)."""
+    g = gaussian_irf(2.0)
+    hw = g.size // 2
+    lam = np.full((32, 24, 1, n_bins), 0.04)
+    lam[:, :, 0, 60 - hw : 60 + hw + 1] += 3.0 * g  # the wall, everywhere
+    lam[border - 3 : border + 3, 9:15, 0, 30 - hw : 30 + hw + 1] += 0.8 * g  # the plate
+    return np.random.default_rng(5).poisson(lam).astype(np.int32), g
+
+
+def _assert_same_detection(a, b):
+    for f in dataclasses.fields(a.surfaces):
+        x, y = getattr(a.surfaces, f.name), getattr(b.surfaces, f.name)
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(y, x, err_msg=f.name)
+        else:
+            assert y == x, f.name
+    np.testing.assert_array_equal(np.asarray(b.saliency), a.saliency)
+    np.testing.assert_array_equal(np.asarray(b.mask), a.mask)
+    np.testing.assert_array_equal(np.asarray(b.threshold), np.asarray(a.threshold))
+    np.testing.assert_array_equal(b.background.spatial, a.background.spatial)
+    np.testing.assert_array_equal(b.background.temporal, a.background.temporal)
+    assert b.reduction == a.reduction
+    assert b.null.details["evidence_threshold"] == a.null.details["evidence_threshold"]
+    assert [(r.stage, r.added, r.removed, r.moved) for r in b.provenance] == [
+        (r.stage, r.added, r.removed, r.moved) for r in a.provenance
+    ]
+
+
+def _cubes(counts, irf, chunks):
+    """The same cube in memory and as a Dask array of the given chunks (both built from
+    the same arrays: a Cube normalises its IRF, and a twice-normalised IRF can differ in
+    the last bit)."""
+    return Cube(counts, irf=irf), Cube(da.from_array(counts, chunks=chunks), irf=irf)
+
+
+def test_tile_bounds_merges_a_last_tile_shorter_than_the_halo():
+    assert tile_bounds(30, 7, 5) == [(0, 7), (7, 14), (14, 21), (21, 30)]
+    assert tile_bounds(30, 10, 5) == [(0, 10), (10, 20), (20, 30)]
+    assert tile_bounds(4, 10, 5) == [(0, 4)]
+
+
+def test_detect_dask_cube_matches_in_memory():
+    cube, lazy = _cubes(*_varying_cube(), (7, 11, 1, 60))  # chunks cut rows, columns, time
+    assert is_dask(lazy.counts) and not is_dask(cube.counts)
+    a = splidar.detect(cube, rng=4)
+    b = splidar.detect(lazy, rng=4, block_rows=6)  # 5 tiles, halo 5 rows
+    assert len(b.surfaces) > 0 and np.ndim(a.threshold) == 3
+    _assert_same_detection(a, b)
+    assert b.options["block_rows"] == 6
+
+
+def test_detect_dask_same_result_whatever_tiles_and_threads():
+    _, lazy = _cubes(*_varying_cube(shape=(26, 18), n_bins=100, seed=7), (13, 18, 1, 100))
+    ref = splidar.detect(lazy, rng=11, block_rows=26)  # one tile
+    for block_rows, threads in ((5, 1), (8, 2), (11, 3)):
+        with dask.config.set(scheduler="threads", num_workers=threads):
+            b = splidar.detect(lazy, rng=11, block_rows=block_rows)
+        _assert_same_detection(ref, b)
+
+
+def test_detect_dask_store_written_by_the_tiles(tmp_path):
+    zarr = pytest.importorskip("zarr")
+    cube, lazy = _cubes(*_varying_cube(shape=(20, 16), n_bins=100, seed=3), (5, 16, 1, 100))
+    a = splidar.detect(cube, rng=0)
+    b = splidar.detect(lazy, rng=0, block_rows=6, store=tmp_path / "s")
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[0] == 6
+    _assert_same_detection(a, b)
+
+
+@pytest.fixture(scope="module")
+def local_client():
+    distributed = pytest.importorskip("distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        yield client
+
+
+def test_detect_on_local_cluster_matches_in_memory(local_client):
+    cube, lazy = _cubes(*_varying_cube(shape=(24, 20), n_bins=100, seed=9), (6, 20, 1, 100))
+    a = splidar.detect(cube, rng=2)
+    b = splidar.detect(lazy, rng=2, block_rows=6)
+    _assert_same_detection(a, b)
+    # the tiles ran as tasks of the cluster's scheduler
+    names = {k[0] if isinstance(k, tuple) else k for k in local_client.run_on_scheduler(
+        lambda dask_scheduler: list(dask_scheduler.task_prefixes)
+    )}  # fmt: skip
+    assert {"splidar-map-tile", "splidar-window-means"} <= names
+
+
+def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_client):
+    cube, lazy = _cubes(*_border_cube(border=16), (8, 24, 1, 100))
+    a = splidar.detect(cube, rng=0)
+    plate = (np.abs(a.surfaces.depth_bin - 30) < 2) & (a.surfaces.col >= 9) & (a.surfaces.col < 15)
+    rows = set(a.surfaces.row[plate].tolist())
+    # in memory the plate is found on both sides of row 16 ...
+    assert {14, 15, 16, 17} <= rows
+    # ... and so it is when a tile ends at row 16 (tiles [0, 16), [16, 32))
+    b = splidar.detect(lazy, rng=0, block_rows=16)
+    assert b.options["block_rows"] == 16
+    _assert_same_detection(a, b)
+
+
+def test_cli_run_scheduler_joins_a_cluster_and_matches_in_memory(local_client, tmp_path, capsys):
+    pytest.importorskip("zarr")
+    from splidar.cli import main
+    from splidar.io import save
+
+    cube, _ = _cubes(*_varying_cube(shape=(20, 18), n_bins=100, seed=4), (5, 18, 1, 100))
+    save(cube, tmp_path / "c.npz")
+    save(cube, tmp_path / "c.zarr", chunks=(5, 9))
+    common = ["--no-figures", "-q", "--seed", "3"]
+    assert main(["run", str(tmp_path / "c.npz"), "--out", str(tmp_path / "a"), *common]) == 0
+    address = local_client.scheduler.address
+    args = ["run", str(tmp_path / "c.zarr"), "--out", str(tmp_path / "b"), "--scheduler", address]
+    assert main([*args, *common]) == 0
+    err = capsys.readouterr().err
+    assert f"2 worker(s) at {address}; dashboard: http" in err
+    a, b = (np.load(tmp_path / d / "result.npz") for d in ("a", "b"))
+    assert a["points_depth_bin"].size > 0
+    for k in ("points_row", "points_col", "points_depth_bin", "points_intensity", "depth_map"):
+        np.testing.assert_array_equal(b[k], a[k])
+
+
+def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
+    from splidar.cli import main
+    from splidar.io import save
+
+    save(Cube(np.zeros((8, 8, 1, 40), np.int32), irf=gaussian_irf(2.0)), tmp_path / "c.npz")
+    run = ["run", str(tmp_path / "c.npz"), "--no-figures", "-q"]
+    assert main([*run, "--memory-limit", "1GB"]) == 2
+    assert "add --workers N" in capsys.readouterr().err
+    assert main([*run, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert main([*run, "--workers", "0"]) == 2
+
+
+def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
+    """Two worker processes; the first to finish a tile is killed (SIGKILL) as it does:
+    the scheduler recomputes that tile elsewhere and the Detection is the same."""
+    distributed = pytest.importorskip("distributed")
+    import os
+    import signal
+
+    from distributed.diagnostics.plugin import SchedulerPlugin
+    from distributed.utils import key_split
+
+    class KillFirstTileWorker(SchedulerPlugin):
+        def __init__(self, pids):
+            self.pids, self.killed, self.key = pids, None, None
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if (
+                self.killed is None
+                and finish == "memory"
+                and key_split(key) == "splidar-map-tile"
+                and kwargs.get("worker") in self.pids
+            ):
+                self.killed, self.key = kwargs["worker"], key
+                os.kill(self.pids[self.killed], signal.SIGKILL)
+
+    cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
+    a = splidar.detect(cube, rng=1)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        plugin = KillFirstTileWorker(client.run(os.getpid))
+        cluster.scheduler.add_plugin(plugin, name="kill-first-tile-worker")
+        b = splidar.detect(lazy, rng=1, block_rows=5)  # 8 tiles
+        story = cluster.scheduler.story(plugin.key)
+    assert plugin.killed is not None
+    # the killed worker's tile went back to being computed after it was in memory
+    finishes = [s[2] for s in story if s[0] == plugin.key]
+    assert finishes.count("memory") >= 2, finishes
+    _assert_same_detection(a, b)
