@@ -1013,7 +1013,7 @@ def reconstruct(
     (calibrated: ``docs/classification.md``). The intensities are then the posterior
     modes given the labels, by coordinate descent (``eqt:Modes_Param_top``,
     ``eqt:Modes_Param_bottom``), with a posterior std. The updates, their cost and what
-    was measured are in the notes of :mod:`splidar.reconstruction._core`.
+    was measured are in the notes of the module ``splidar/reconstruction/_core.py``.
 
     Parameters
     ----------
