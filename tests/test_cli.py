@@ -88,6 +88,7 @@ def test_main_run_writes_all_outputs(run_out):
         "depth.png",
         "intensity.png",
         "labels.png",
+        "label_confidence.png",
         "point_cloud.png",
         "saliency_histogram.png",
         "detection_slice.png",

@@ -90,6 +90,19 @@ def test_plot_labels_colour_from_class_name():
     assert matplotlib.colors.to_hex(handles[1].get_facecolor()) == "#d62728"
 
 
+def test_plot_labels_unknown_material_apart_from_no_surface():
+    # label -1 where a surface exists is "unknown material"; a pixel with no point stays
+    # "no surface": the two get different colours and legend entries
+    p = PointSet(row=[0, 0], col=[0, 1], depth_bin=[1.0, 2.0], image_shape=(1, 3), label=[0, -1])
+    ax = plot_labels(p, class_names=["wall"])
+    texts = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert texts == ["wall", "unknown material", "no surface"]
+    img = ax.get_images()[0]
+    rgba = img.to_rgba(img.get_array())
+    assert not np.allclose(rgba[0, 1], rgba[0, 2])  # unknown drawn apart from empty
+    assert not np.allclose(rgba[0, 0], rgba[0, 1])
+
+
 def test_plot_point_cloud_subsamples_and_orients(rec):
     ax = plot_point_cloud(rec, max_points=50, rng=0)
     assert ax.name == "3d"
@@ -142,6 +155,7 @@ def test_save_figures_writes_pngs(rec, tmp_path):
         "depth",
         "intensity",
         "labels",
+        "label_confidence",
         "point_cloud",
         "saliency_histogram",
         "detection_slice",
@@ -156,4 +170,4 @@ def test_save_figures_writes_pngs(rec, tmp_path):
 def test_save_figures_without_detection(tmp_path):
     r = make_reconstruction(with_detection=False, L=1)
     paths = save_figures(r, tmp_path)
-    assert set(paths) == {"depth", "intensity", "labels", "point_cloud"}
+    assert set(paths) == {"depth", "intensity", "labels", "label_confidence", "point_cloud"}

@@ -269,7 +269,11 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--n-classes", type=_positive(int), metavar="K", help="classes for --classes cluster"
     )
-    g.add_argument("--gamma", type=_non_negative, help="Potts granularity, >= 0 (default 2)")
+    g.add_argument(
+        "--gamma",
+        type=_non_negative,
+        help="Potts interaction strength in nats per graph link, >= 0 (default 1.5)",
+    )
     g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
     g.add_argument(
         "--alpha",

@@ -36,6 +36,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _MISSING = "#d9d9d9"  # pixels with no surface
+_UNKNOWN = (
+    "#404040"  # surfaces no signature explains (label -1, splidar.reconstruction.flag_unknown)
+)
 _MAX_INTENSITY_PANELS = 6  # beyond this many wavelengths, show the total only
 
 
@@ -363,9 +366,12 @@ def plot_labels(result, *, layer: int = 0, ax=None, class_names=None):
     n = max(n, len(names))
     colors = _class_colors(n, names)
     ax = _new_ax(ax)
-    cmap = ListedColormap(colors).with_extremes(bad=_MISSING)
-    img = np.ma.masked_less(lab, 0)
-    ax.imshow(img, cmap=cmap, vmin=-0.5, vmax=n - 0.5, interpolation="nearest")
+    # label -1 at a pixel holding a surface: "unknown material" (flag_unknown), drawn as
+    # its own colour after the n classes; no surface stays masked
+    unknown = (lab < 0) & np.isfinite(m.depth[:, :, k])
+    cmap = ListedColormap([*colors, _UNKNOWN]).with_extremes(bad=_MISSING)
+    img = np.ma.masked_array(np.where(unknown, n, lab), mask=(lab < 0) & ~unknown)
+    ax.imshow(img, cmap=cmap, vmin=-0.5, vmax=n + 0.5, interpolation="nearest")
     ax.set_title(f"Class, {_layer_name(k, m.n_layers)}", fontsize=10)
     ax.set_xlabel("column (pixel)")
     ax.set_ylabel("row (pixel)")
@@ -374,7 +380,9 @@ def plot_labels(result, *, layer: int = 0, ax=None, class_names=None):
         Patch(color=colors[i], label=f"{names[i]}" + ("" if i in present else " (absent)"))
         for i in range(n)
     ]
-    if np.any(lab < 0):
+    if np.any(unknown):
+        handles.append(Patch(color=_UNKNOWN, label="unknown material"))
+    if np.any((lab < 0) & ~unknown):
         handles.append(Patch(color=_MISSING, label="no surface"))
     ax.legend(
         handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False
@@ -779,14 +787,17 @@ def save_figures(
     Returns
     -------
     dict of str to pathlib.Path
-        ``depth``, ``intensity``, ``labels``, ``point_cloud`` and, when the reconstruction
-        carries its detection, ``saliency_histogram`` and ``detection_slice``.
+        ``depth``, ``intensity``, ``labels``, ``point_cloud``; ``label_confidence`` when
+        the points carry a label confidence; and, when the reconstruction carries its
+        detection, ``saliency_histogram`` and ``detection_slice``.
 
     Notes
     -----
     ``depth.png`` has one panel per surface layer sharing one colour scale;
     ``intensity.png`` one row per layer and one column per wavelength (the total only
-    when L > 6); ``labels.png`` one panel per layer.
+    when L > 6); ``labels.png`` and ``label_confidence.png`` one panel per layer (an
+    unknown material, label -1 from :func:`splidar.reconstruction.flag_unknown`, has its
+    own colour in ``labels.png``).
 
     Examples
     --------
@@ -837,6 +848,13 @@ def save_figures(
             plot_labels(reconstruction, layer=k, ax=axes[0, k])
         fig.tight_layout()
         save(fig, "labels")
+
+    if getattr(m.points, "label_confidence", None) is not None and len(m.points):
+        fig, axes = _grid(1, K)
+        for k in range(K):
+            plot_label_confidence(reconstruction, layer=k, ax=axes[0, k])
+        fig.tight_layout()
+        save(fig, "label_confidence")
 
     ax = plot_point_cloud(reconstruction, rng=rng)
     save(ax.figure, "point_cloud")
