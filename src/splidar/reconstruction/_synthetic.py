@@ -165,6 +165,19 @@ def synthetic_detection(
     b_bin = ppp / (sbr * n_bins * L)  # per bin and wavelength
     b = np.full((S, L), b_bin) * (stop - start)[:, None]
     counts = rng.poisson(eta * inten + b).astype(np.float64)
+    return _assemble(
+        row, col, slot, depth, det_depth, start, stop, counts, b, b_bin, inten, label, irf, m,
+        (rows, cols, L, int(n_bins)), layers,
+    )  # fmt: skip
+
+
+def _assemble(
+    row, col, slot, depth, det_depth, start, stop, counts, b, b_bin, inten, label, irf, m,
+    cube_shape, layers,
+) -> tuple[Detection, PointSet]:  # fmt: skip
+    """The Detection of the true surfaces and the truth, from the simulated arrays."""
+    rows, cols, L, T = cube_shape
+    S = row.size
     signal = np.maximum(counts - b, 0.0)
     surfaces = Surfaces(
         row=row.astype(np.int64),
@@ -183,7 +196,6 @@ def synthetic_detection(
         image_shape=(rows, cols),
         n_slots=layers,
     )
-    T = int(n_bins)
     det = Detection(
         cube_shape=(rows, cols, L, T),
         irf=irf,
