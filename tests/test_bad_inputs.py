@@ -110,6 +110,43 @@ def _mat_claiming(d: Path) -> Path:
     return p
 
 
+def _mat_cell_damaged(d: Path) -> Path:
+    """A compressed cell array whose second cell's data tag claims a wrong size.
+
+    scipy.io.loadmat 1.17 can crash (segfault) on such damage; splidar's own walk of
+    the element sizes refuses the file first.
+    """
+    import zlib
+
+    c = np.empty((2, 2), dtype=object)
+    for i, j in np.ndindex(2, 2):
+        c[i, j] = np.array([[3 + i + j]], dtype=np.uint16)
+    p = d / "cd.mat"
+    scipy.io.savemat(p, {"Ts": c}, do_compression=True)
+    b = p.read_bytes()
+    tag, n = struct.unpack_from("<II", b, 128)
+    assert tag == 15  # miCOMPRESSED
+    inner = bytearray(zlib.decompress(b[136 : 136 + n]))
+    k = inner.index(struct.pack("<HH", 4, 2))  # the first small uint16 data tag (2 bytes)
+    k = inner.index(struct.pack("<HH", 4, 2), k + 8)  # the second cell's
+    struct.pack_into("<HH", inner, k, 4, 4)  # now claims 4 bytes for 1 value
+    z = zlib.compress(bytes(inner))
+    p.write_bytes(b[:128] + struct.pack("<II", 15, len(z)) + z)
+    return p
+
+
+def _mat_name_damaged(d: Path) -> Path:
+    """A .mat v5 whose name element claims 64 characters (it reads into the data)."""
+    p = d / "nd.mat"
+    scipy.io.savemat(p, {"counts": np.ones((2, 2, 4))}, do_compression=False)
+    b = bytearray(p.read_bytes())
+    # header 128, matrix tag 8, flags 16, dims 8 + 16: the name tag at 176 (miINT8, 6)
+    assert struct.unpack_from("<II", b, 176) == (1, 6)
+    struct.pack_into("<II", b, 176, 1, 64)
+    p.write_bytes(bytes(b))
+    return p
+
+
 def _h5_claiming(d: Path) -> Path:
     """An .h5 whose chunked `counts` declares 10^12 values and stores none."""
     p = d / "claims.h5"
@@ -244,6 +281,18 @@ CASES = [
         ".mat v5 cut in half",
         lambda d: [str(_truncate(_mat_cells(d, lambda i, j: [3, 4, 9], "t.mat")))],
         r"cannot read .* MATLAB .*(corrupt|truncated)",
+    ),
+    C(
+        "mat-cell-damaged",
+        ".mat v5 with a damaged cell inside a compressed variable",
+        lambda d: [str(_mat_cell_damaged(d))],
+        r"cannot read .* MATLAB .*damaged or truncated \(.*data bytes for",
+    ),
+    C(
+        "mat-name-damaged",
+        ".mat v5 whose variable name length is damaged",
+        lambda d: [str(_mat_name_damaged(d))],
+        r"damaged or truncated \(a variable name is not valid",
     ),
     C(
         "mat-header-claims",

@@ -12,12 +12,13 @@ import json
 import math
 import os
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ._memory import check_memory, format_bytes
+from ._memory import available_bytes, check_memory, format_bytes
 from ._validation import SplidarError, describe
 
 _CONTAINER_EXTS = (".npz", ".mat", ".h5", ".hdf5")
@@ -209,6 +210,102 @@ _MAT_ITEMSIZE = {
 }  # fmt: skip
 
 
+# --------------------------------------------------------------------------------------
+# MATLAB v5 structure check: scipy.io.loadmat can crash (segfault) on damaged files
+# --------------------------------------------------------------------------------------
+_MI_ITEMSIZE = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 9: 8, 12: 8, 13: 8}  # miINT8..
+_MX_NUMERIC = frozenset(range(4, 16)) - {5}  # char, double..uint64 (5 = sparse)
+
+
+class _Mat5Damaged(Exception):
+    pass
+
+
+def _mat5_tag(buf, pos: int, end: int, e: str) -> tuple[int, int, int, int]:
+    """(mdtype, nbytes, data start, next element) of the element at ``pos``."""
+    if end - pos < 8:
+        raise _Mat5Damaged(f"element tag cut at byte {pos}")
+    w0, w1 = struct.unpack_from(e + "II", buf, pos)
+    if w0 >> 16:  # small data element: 2-byte size, 2-byte type, 4 bytes of data
+        n, mdt = w0 >> 16, w0 & 0xFFFF
+        if n > 4:
+            raise _Mat5Damaged(f"small element of {n} bytes at byte {pos}")
+        return mdt, n, pos + 4, pos + 8
+    start = pos + 8
+    if w1 > end - start:
+        raise _Mat5Damaged(f"element at byte {pos} claims {w1} bytes, {end - start} remain")
+    pad = 0 if w0 == 15 else -w1 % 8  # compressed elements are not padded
+    return w0, w1, start, min(start + w1 + pad, end)
+
+
+def _mat5_matrix(buf, pos: int, end: int, e: str, depth: int) -> None:
+    """Check one miMATRIX payload ``buf[pos:end]`` and, recursively, its cells and fields."""
+    if depth > 32:
+        raise _Mat5Damaged("cells or structs nested more than 32 deep")
+    if pos == end:
+        return  # an empty matrix
+    mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+    if mdt != 6 or n != 8:
+        raise _Mat5Damaged("array flags missing")
+    cls = struct.unpack_from(e + "I", buf, s)[0] & 0xFF
+    mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+    if mdt != 5 or n < 8 or n % 4:
+        raise _Mat5Damaged("array dimensions missing")
+    dims = struct.unpack_from(f"{e}{n // 4}i", buf, s)
+    if min(dims) < 0:
+        raise _Mat5Damaged(f"negative dimension {dims}")
+    count = math.prod(dims)
+    _, _, _, pos = _mat5_tag(buf, pos, end, e)  # name
+    if cls in (2, 3):  # struct, object
+        if cls == 3:
+            _, _, _, pos = _mat5_tag(buf, pos, end, e)  # class name
+        mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+        flen = struct.unpack_from(e + "i", buf, s)[0] if n == 4 else 0
+        mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+        count *= n // flen if flen > 0 else 0
+    if cls in (1, 2, 3):  # cell, struct, object: `count` matrices follow
+        for _ in range(count):
+            mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+            if mdt != 14:
+                raise _Mat5Damaged(f"cell or field element of type {mdt}, not a matrix")
+            _mat5_matrix(buf, s, s + n, e, depth + 1)
+    elif cls in _MX_NUMERIC:
+        mdt, n, s, pos = _mat5_tag(buf, pos, end, e)
+        size = _MI_ITEMSIZE.get(mdt)
+        if size is not None and n != count * size:
+            raise _Mat5Damaged(f"{n} data bytes for {count} values of {size} bytes")
+
+
+def _check_mat5(p: Path, size_limit: int) -> None:
+    """Walk a MATLAB v5 file's elements, checking every size against its container.
+
+    scipy.io.loadmat (1.17) trusts these sizes and can crash the interpreter
+    (segfault) on a damaged file; this walk refuses such files first.
+    """
+    import zlib
+
+    buf = p.read_bytes()
+    if len(buf) < 128:
+        raise _Mat5Damaged("shorter than the 128-byte header")
+    e = "<" if buf[126:128] == b"IM" else ">"
+    pos = 128
+    while pos < len(buf):
+        mdt, n, s, pos = _mat5_tag(buf, pos, len(buf), e)
+        if mdt == 15:  # miCOMPRESSED: one element, zlib-compressed
+            d = zlib.decompressobj()
+            try:
+                inner = d.decompress(buf[s : s + n], size_limit)
+            except zlib.error as exc:
+                raise _Mat5Damaged(f"compressed variable: {exc}") from None
+            if d.unconsumed_tail:
+                raise _Mat5Damaged("a compressed variable expands beyond the size limit")
+            imdt, inn, ins, _ = _mat5_tag(inner, 0, len(inner), e)
+            if imdt == 14:
+                _mat5_matrix(inner, ins, ins + inn, e, 0)
+        elif mdt == 14:
+            _mat5_matrix(buf, s, s + n, e, 0)
+
+
 _MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
 
 
@@ -230,8 +327,8 @@ def _read_mat5(p: Path) -> dict[str, Any]:
         if not _MATLAB_NAME.fullmatch(name):
             # a damaged name length; scipy.io.loadmat can crash (segfault) reading on
             raise SplidarError(
-                f"'{p}' is a damaged MATLAB file: a variable name is not valid "
-                f"({name[:20]!r}...); save it again from MATLAB."
+                f"cannot read '{p}' as {kind}: it is damaged or truncated (a variable name "
+                f"is not valid: {name[:20]!r}...); save it again from MATLAB."
             )
         nbytes = math.prod(shape) * _MAT_ITEMSIZE.get(cls, 8)
         _claims_too_much(
@@ -240,6 +337,14 @@ def _read_mat5(p: Path) -> dict[str, Any]:
         )  # fmt: skip
         total += nbytes
     check_memory(total, f"reading '{p.name}'", _WAY_OUT_READ)
+    if listing and scipy.io.matlab.matfile_version(p)[0] == 1:  # v5 (v4 has no tags)
+        try:
+            _check_mat5(p, min(size * _MAX_EXPANSION, available_bytes() or 2**62))
+        except (_Mat5Damaged, struct.error) as exc:
+            raise SplidarError(
+                f"cannot read '{p}' as {kind}: it is damaged or truncated ({exc}); save it "
+                "again from MATLAB."
+            ) from None
     try:
         d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
     except Exception as exc:
