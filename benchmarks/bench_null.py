@@ -17,7 +17,7 @@ import numpy as np
 
 from splidar import Cube, gaussian_irf
 from splidar.detection import detect
-from splidar.simulate import background_shape
+from splidar.simulation import background_shape
 
 
 def pure_background(level: float, shape: str, size: int, n_bins: int, rng) -> Cube:

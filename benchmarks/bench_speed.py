@@ -57,7 +57,7 @@ from _measure import cpu_count, measure_memory, time_call  # noqa: E402
 import splidar  # noqa: E402
 from splidar.points import PointSet  # noqa: E402
 from splidar.scenes import art_scene, multispectral_scene  # noqa: E402
-from splidar.simulate import simulate  # noqa: E402
+from splidar.simulation import simulate  # noqa: E402
 
 ART_DIR_DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury-art"
 
@@ -215,7 +215,7 @@ def tune_floor(counts, plan: FloorPlan, *, block_sizes=(5, 10, 25, 50), repeat: 
 
 def main_cube(shape=(200, 200), n_bins=1500, *, ppp=30.0, sbr=1.0, rng=0):
     """The paper's multispectral Lego size: L = 4, 3 materials, a net in front (2 surfaces
-    where it is present). Returns a :class:`splidar.simulate.Simulation`."""
+    where it is present). Returns a :class:`splidar.simulation.Simulation`."""
     scene = multispectral_scene(shape, n_bins=n_bins, two_layers=True)
     return scene.simulate(ppp=ppp, sbr=sbr, rng=rng)
 

@@ -63,7 +63,7 @@ def test_correlator_peak_lands_on_depth():
 
 @pytest.mark.parametrize("shape", ["uniform", "decaying"])
 def test_detect_background_close_to_truth(shape):
-    from splidar.simulate import background_shape
+    from splidar.simulation import background_shape
 
     lam_t, _ = _tilted(T=160, bg=0.0)
     b_t = 0.3 * background_shape(shape, 160)
@@ -99,7 +99,7 @@ def test_detect_saliency_peaks_at_true_depth():
 
 @pytest.mark.parametrize(("level", "shape"), [(0.02, "uniform"), (2.0, "decaying")])
 def test_detect_false_alarm_rate_matches_pfa(level, shape):
-    from splidar.simulate import background_shape
+    from splidar.simulation import background_shape
 
     T = 200
     lam = np.broadcast_to(level * background_shape(shape, T), (48, 48, 1, T))
@@ -113,7 +113,7 @@ def test_detect_false_alarm_rate_matches_pfa(level, shape):
 
 
 def test_detect_threshold_varies_with_t_for_decaying_background():
-    from splidar.simulate import background_shape
+    from splidar.simulation import background_shape
 
     lam = np.broadcast_to(1.0 * background_shape("decaying", 200), (32, 32, 1, 200))
     det = detect(_cube(lam, rng=4), rng=0)

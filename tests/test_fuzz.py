@@ -29,7 +29,7 @@ from splidar import Cube, PointSet, SpectralLibrary, SplidarError  # noqa: E402
 from splidar.cli import read_points  # noqa: E402
 from splidar.export import write_csv, write_npz  # noqa: E402
 from splidar.io import load, save  # noqa: E402
-from splidar.simulate import simulate  # noqa: E402  (splidar.simulate can be the module)
+from splidar.simulation import simulate  # noqa: E402  (splidar.simulate can be the module)
 
 _COMMON = {
     "deadline": None,

@@ -33,3 +33,17 @@ def test_import_is_lazy_about_heavy_modules():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("first", ["splidar.scenes", "splidar.simulation", "splidar.pipeline"])
+def test_top_level_functions_survive_submodule_imports(first):
+    # a submodule named like a top-level function (the former splidar/simulate.py) is set
+    # on the package by the import system and hides the function: splidar.simulate became
+    # a module once splidar.scenes had been imported
+    code = (
+        f"import importlib, splidar; importlib.import_module({first!r}); "
+        "print(all(callable(getattr(splidar, n)) for n in "
+        "('simulate', 'detect', 'reconstruct', 'process', 'load', 'save', 'evaluate')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "True"

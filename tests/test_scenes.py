@@ -14,7 +14,7 @@ from splidar.scenes import (
     single_surface_scene,
     two_layer_scene,
 )
-from splidar.simulate import Simulation
+from splidar.simulation import Simulation
 
 
 def _inside_window(scene: Scene) -> None:

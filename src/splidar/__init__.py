@@ -37,7 +37,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _LAZY = {
     "load": ("splidar.io", "load"),
     "save": ("splidar.io", "save"),
-    "simulate": ("splidar.simulate", "simulate"),
+    "simulate": ("splidar.simulation", "simulate"),
     "detect": ("splidar.detection", "detect"),
     "Detection": ("splidar.detection", "Detection"),
     "reconstruct": ("splidar.reconstruction", "reconstruct"),

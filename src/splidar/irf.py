@@ -9,7 +9,7 @@ zeros therefore never moves a depth.
 Continuous models (:class:`GaussianIRF`, :class:`ExpTailIRF` for an asymmetric SPAD
 response, :class:`SampledIRF` for a measured one) put their mode at ``t = 0``;
 ``model.sample()`` gives the array form (argmax = mode) and :func:`shifted_irf` renders
-returns at fractional depths with true sub-bin shifts (used by :mod:`splidar.simulate`).
+returns at fractional depths with true sub-bin shifts (used by :mod:`splidar.simulation`).
 """
 
 from __future__ import annotations

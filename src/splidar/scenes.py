@@ -2,7 +2,7 @@
 
 Each builder returns a frozen :class:`Scene` (truth :class:`~splidar.PointSet`, time
 window, IRF, optional spectral library) whose :meth:`Scene.simulate` draws a cube with
-:func:`splidar.simulate.simulate`. Synthetic scenes need no files and are deterministic
+:func:`splidar.simulation.simulate`. Synthetic scenes need no files and are deterministic
 (no randomness in the truth); :func:`art_scene` reads the Middlebury "Art" files the
 user points to (the paper's simulated scene).
 
@@ -113,13 +113,13 @@ class Scene:
         background_per_bin=None,
         rng=None,
     ):
-        """Draw a cube of this scene; see :func:`splidar.simulate.simulate`.
+        """Draw a cube of this scene; see :func:`splidar.simulation.simulate`.
 
         Returns
         -------
         Simulation
         """
-        from .simulate import simulate
+        from .simulation import simulate
 
         return simulate(
             self.truth,

@@ -7,7 +7,7 @@ import pytest
 
 from splidar import Cube, PointSet, SplidarError
 from splidar.irf import ExpTailIRF, GaussianIRF, as_irf_models
-from splidar.simulate import (
+from splidar.simulation import (
     BACKGROUND_SHAPES,
     Simulation,
     background_shape,
