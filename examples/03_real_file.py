@@ -1,4 +1,8 @@
-"""Real measurements: photon lists from a file -> histogram cube -> surfaces -> figure.
+"""
+A real measurement: photon lists to surfaces
+============================================
+
+Real measurements: photon lists from a file -> histogram cube -> surfaces -> figure.
 
 Run:  python examples/03_real_file.py [PATH] [--bin-width PS] [--out FOLDER]
 
@@ -18,8 +22,8 @@ from pathlib import Path
 
 import splidar
 
-HERE = Path(__file__).resolve().parent
-TOWER = HERE.parent.parent / "shared" / "data" / "tower" / "tower.mat"
+# run from the repository root: the shared data sets lie beside it
+TOWER = Path("..") / "shared" / "data" / "tower" / "tower.mat"
 
 ap = argparse.ArgumentParser(description="detect and reconstruct surfaces in a photon-list file")
 ap.add_argument("path", nargs="?", type=Path, default=TOWER)

@@ -197,3 +197,19 @@ def test_detect_provenance_accounts_for_every_surface(net_map):
         assert kept[STAGES.index(name)] <= rec[name].added
     assert kept.sum() == len(det.surfaces) and rec["slopes"].added > 0
     assert "spill_over" in det.provenance_table()
+
+
+def test_detect_passes_selects_the_clean_up_passes(net_map):
+    # passes=() runs no clean-up pass: every kept candidate of the map (at most K_s per
+    # pixel) is a surface; leaving one pass out changes only that pass's record
+    sim, _, _ = net_map
+    none = detect(sim.cube, passes=())
+    assert not any(r.ran for r in none.provenance if r.stage not in ("map", "select"))
+    assert np.all(none.surfaces.stage == STAGES.index("map"))
+    rec = {r.stage: r for r in none.provenance}
+    assert len(none.surfaces) == rec["map"].added - rec["select"].removed
+    no_spill = detect(sim.cube, passes=("isolated", "dark_regions", "slopes"))
+    assert [r.stage for r in no_spill.provenance if r.ran] == [
+        "map", "isolated", "dark_regions", "slopes", "select",
+    ]  # fmt: skip
+    assert no_spill.options["n_spill_over"] == 0 and no_spill.options["spill_llr"] is None

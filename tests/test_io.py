@@ -278,11 +278,19 @@ def test_load_photon_lists_variable_choice(tmp_path):
         load(tmp_path / "two.mat", variable="x")
 
 
-def test_load_photon_list_npz_object_array(tmp_path):
-    cells = _cells({(0, 1): [4, 4, 6]}, (1, 2))
-    np.savez(tmp_path / "ts.npz", times=cells)
+def test_load_photon_list_npz_flat(tmp_path):
+    np.savez(tmp_path / "ts.npz", times=[4, 6, 4], pixel_index=[1, 1, 1], shape=[1, 2])
     c = load(tmp_path / "ts.npz", irf_fwhm=1.0, window=(0, 8))
     assert c.counts[0, 1, 0].tolist() == [0, 0, 0, 0, 2, 0, 1, 0]
+    assert c.counts[0, 0, 0].sum() == 0
+    assert read_photon_lists(tmp_path / "ts.npz").times.tolist() == [4, 6, 4]
+
+
+def test_load_npz_object_array_refused_without_unpickling(tmp_path):
+    cells = _cells({(0, 1): [4, 4, 6]}, (1, 2))
+    np.savez(tmp_path / "ts.npz", times=cells)
+    with pytest.raises(SplidarError, match="never unpickles"):
+        load(tmp_path / "ts.npz", irf_fwhm=1.0, window=(0, 8))
 
 
 # --------------------------------------------------------------------------------------
@@ -486,3 +494,11 @@ def test_estimate_irf_fwhm_too_few_pairs_raises_clear_error():
 
     with pytest.raises(SplidarError, match="too few to estimate the IRF"):
         _pair_lag_fwhm(np.array([0, 1]), np.array([3, 50]), np.array([1, 1]), 100, None)
+
+
+def test_load_npz_fortran_order_and_big_endian_read_exactly(tmp_path):
+    """The pickle-free .npz reader keeps memory order and byte order of every member."""
+    counts = np.asfortranarray(np.arange(2 * 3 * 8, dtype=">u2").reshape(2, 3, 8))
+    np.savez(tmp_path / "f.npz", counts=counts, irf=np.array([0.5, 1.0]))
+    c = load(tmp_path / "f.npz")
+    np.testing.assert_array_equal(c.counts[:, :, 0, :], counts)

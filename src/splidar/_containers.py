@@ -1,23 +1,31 @@
-"""Low-level file readers shared by :mod:`splidar.io` and :mod:`splidar.library`.
+"""Low-level readers shared by :mod:`splidar.io` and :mod:`splidar.library`: a file ->
+``{name: array}``, with the checks that make untrusted files safe to open (sizes checked
+before any allocation, nothing unpickled or executed).
 
-A ``.npz`` / ``.mat`` / ``.h5`` file becomes ``{name: NumPy value}``. This module imports
-no other splidar module but ``_validation``, so that ``library`` (which reads library
-files) and ``io`` (which reads cubes holding libraries) both use it without an import cycle.
+This module imports nothing from the rest of splidar but the validators, so that
+``library`` and ``io`` can both use it without an import cycle.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ._memory import check_memory, format_bytes
 from ._validation import SplidarError, describe
 
 _CONTAINER_EXTS = (".npz", ".mat", ".h5", ".hdf5")
 
 
+# --------------------------------------------------------------------------------------
+# low-level readers: a file -> {name: array}
+# --------------------------------------------------------------------------------------
 def _check_path(path) -> Path:
     if not isinstance(path, (str, os.PathLike)):
         raise SplidarError(f"`path` must be a file path; got {describe(path)}.")
@@ -68,47 +76,273 @@ def _h5_to_numpy(f, obj, matlab: bool):
 def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
     import h5py
 
+    kind = "a MATLAB v7.3 (HDF5) file" if matlab else "HDF5"
     out: dict[str, Any] = {}
-    with h5py.File(p, "r") as f:
+    try:
+        with h5py.File(p, "r") as f:
+            _check_hdf5_sizes(f, p)
 
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#, #subsystem#
-                out[name] = _h5_to_numpy(f, obj, matlab)
+            def visit(name, obj):
+                if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#
+                    out[name] = _h5_to_numpy(f, obj, matlab)
 
-        f.visititems(visit)
-        for k, v in f.attrs.items():
-            if k not in out and not k.startswith("MATLAB"):
-                out[k] = v.decode() if isinstance(v, bytes) else v
+            f.visititems(visit)
+            for k, v in f.attrs.items():
+                if k not in out and not k.startswith("MATLAB"):
+                    out[k] = v.decode() if isinstance(v, bytes) else v
+    except SplidarError:
+        raise
+    except Exception as exc:  # h5py raises OSError, KeyError, RuntimeError, ValueError
+        raise SplidarError(
+            f"cannot read '{p}' as {kind}: {_short(exc)}. The file is corrupt or truncated; "
+            "write it again or copy it again."
+        ) from None
     return out
 
 
+# --------------------------------------------------------------------------------------
+# untrusted files: sizes are checked before anything is allocated, nothing is unpickled
+# --------------------------------------------------------------------------------------
+_READ_CHUNK = 2**22  # bytes per read of a .npz member (whole-member reads were 4x slower)
+#: Deflate (zip, MATLAB v5 compressed, HDF5 gzip) expands one byte to at most 1032.
+_MAX_EXPANSION = 1032
+_WAY_OUT_READ = (
+    "convert the data to a chunked Zarr cube (splidar.io.save(cube, 'x.zarr')), "
+    "crop it, or free memory"
+)
+
+
+def _short(exc: BaseException, n: int = 160) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    return msg if len(msg) <= n else msg[: n - 3] + "..."
+
+
+def _claims_too_much(p: Path, what: str, nbytes: int, holds: int, note: str = "") -> None:
+    if nbytes > holds:
+        raise SplidarError(
+            f"{what} in '{p.name}' claims {format_bytes(nbytes)} of data but the file can "
+            f"hold at most {format_bytes(holds)}{note}: the file is corrupt or truncated."
+        )
+
+
+def _npy_header(fp, p: Path, name: str):
+    """Read a ``.npy`` header: (shape, fortran_order, dtype); refuses object dtypes."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fp)
+        reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = reader(fp)
+    except Exception as exc:
+        raise SplidarError(
+            f"array '{name}' of '{p.name}' has no valid .npy header ({_short(exc)}): the file "
+            "is corrupt or truncated."
+        ) from None
+    if dtype.hasobject:
+        raise SplidarError(
+            f"array '{name}' of '{p.name}' is an object (pickled) array; splidar never "
+            "unpickles files (it could run code). Store numbers only: counts as an integer "
+            "array, photon lists as `times` (n,), `pixel_index` (n,) and `shape` (rows, cols)."
+        )
+    return shape, fortran, dtype
+
+
+def _read_npz(p: Path) -> dict[str, Any]:
+    """Read every array of a ``.npz`` without pickle, checking each header's claim first."""
+    import zipfile
+    import zlib
+
+    out: dict[str, Any] = {}
+    try:
+        with zipfile.ZipFile(p) as zf:
+            infos = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            plan = []
+            for info in infos:
+                name = info.filename[:-4]
+                with zf.open(info) as fp:
+                    shape, fortran, dtype = _npy_header(fp, p, name)
+                    header = fp.tell()
+                nbytes = math.prod(shape) * dtype.itemsize
+                _claims_too_much(p, f"array '{name}' {shape}", nbytes, info.file_size - header)
+                if info.compress_type != zipfile.ZIP_STORED:
+                    _claims_too_much(
+                        p,
+                        f"array '{name}' {shape}",
+                        nbytes,
+                        info.compress_size * _MAX_EXPANSION,
+                        " once decompressed",
+                    )
+                plan.append((info, name, shape, fortran, dtype, nbytes))
+            check_memory(sum(x[-1] for x in plan), f"reading '{p.name}'", _WAY_OUT_READ)
+            for info, name, shape, fortran, dtype, nbytes in plan:
+                with zf.open(info) as fp:
+                    _npy_header(fp, p, name)
+                    a = np.empty(shape[::-1] if fortran else shape, dtype=dtype)
+                    view = memoryview(a.reshape(-1).view(np.uint8)) if nbytes else b""
+                    got = 0
+                    while got < nbytes:
+                        k = fp.readinto(view[got : got + _READ_CHUNK])
+                        if not k:
+                            break
+                        got += k
+                    if got < nbytes:
+                        raise SplidarError(
+                            f"array '{name}' of '{p.name}' is truncated ({got} of {nbytes} "
+                            "bytes): the file is corrupt or was not completely written."
+                        )
+                out[name] = a.T if fortran else a
+    except SplidarError:
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as .npz ({_short(exc)}): the file is corrupt, truncated or "
+            "not a NumPy .npz; write it again with numpy.savez or splidar.io.save."
+        ) from None
+    if not out:
+        raise SplidarError(f"'{p}' is a zip file but holds no NumPy arrays (.npy members).")
+    return out
+
+
+#: bytes per element of MATLAB classes (as listed by scipy.io.whosmat)
+_MAT_ITEMSIZE = {
+    "double": 8, "single": 4, "int8": 1, "uint8": 1, "int16": 2, "uint16": 2,
+    "int32": 4, "uint32": 4, "int64": 8, "uint64": 8, "logical": 1, "char": 2,
+}  # fmt: skip
+
+
+_MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
+
+
+def _read_mat5(p: Path) -> dict[str, Any]:
+    """Read a MATLAB v4/v5 file, checking the sizes its headers declare first."""
+    import scipy.io
+
+    kind = "a MATLAB (.mat v5) file"
+    try:
+        listing = scipy.io.whosmat(p)
+    except Exception as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as {kind} ({_short(exc)}): the file is corrupt, truncated "
+            "or not a MATLAB file; save it again from MATLAB (save -v7 or -v7.3)."
+        ) from None
+    size = p.stat().st_size
+    total = 0
+    for name, shape, cls in listing:
+        if not _MATLAB_NAME.fullmatch(name):
+            # a damaged name length; scipy.io.loadmat can crash (segfault) reading on
+            raise SplidarError(
+                f"'{p}' is a damaged MATLAB file: a variable name is not valid "
+                f"({name[:20]!r}...); save it again from MATLAB."
+            )
+        nbytes = math.prod(shape) * _MAT_ITEMSIZE.get(cls, 8)
+        _claims_too_much(
+            p, f"variable '{name}' {tuple(shape)}", nbytes, size * _MAX_EXPANSION,
+            " once decompressed",
+        )  # fmt: skip
+        total += nbytes
+    check_memory(total, f"reading '{p.name}'", _WAY_OUT_READ)
+    try:
+        d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
+    except Exception as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as {kind} ({_short(exc)}): the file is corrupt or truncated; "
+            "save it again from MATLAB."
+        ) from None
+    return {k: v for k, v in d.items() if not k.startswith("__")}
+
+
+def _check_hdf5_sizes(f, p: Path) -> None:
+    """Refuse datasets declaring more data than stored (beyond compression) or than fits."""
+    import h5py
+
+    total = 0
+
+    def visit(name, obj):
+        nonlocal total
+        if not isinstance(obj, h5py.Dataset) or obj.shape is None:
+            return
+        nbytes = math.prod(obj.shape) * obj.dtype.itemsize
+        total += nbytes
+        if nbytes > 2**20:
+            stored = obj.id.get_storage_size()
+            _claims_too_much(
+                p, f"dataset '{name}' {obj.shape}", nbytes, stored * _MAX_EXPANSION,
+                " (it stores " + format_bytes(stored) + ")",
+            )  # fmt: skip
+
+    f.visititems(visit)
+    check_memory(total, f"reading '{p.name}'", _WAY_OUT_READ)
+
+
 def _read_container(p: Path) -> dict[str, Any]:
-    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays)."""
+    """Every variable of a .npz / .mat / .h5 file as NumPy values (cells -> object arrays).
+
+    Nothing is unpickled or executed: ``.npz`` members are read with their ``.npy``
+    header checked first (:func:`_read_npz`), and every declared size is checked
+    against the file's size and the free memory before anything is allocated.
+    """
     ext = _ext(p)
     if ext == ".npz":
-        try:
-            with np.load(p, allow_pickle=True) as z:
-                return {k: z[k] for k in z.files}
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as .npz: {exc}") from None
+        return _read_npz(p)
     if ext == ".mat":
         if _is_hdf5(p):
             return _read_hdf5(p, matlab=True)
-        import scipy.io
-
-        try:
-            d = scipy.io.loadmat(p, squeeze_me=False, mat_dtype=False)
-        except Exception as exc:
-            raise SplidarError(f"cannot read '{p}' as a MATLAB file: {exc}") from None
-        return {k: v for k, v in d.items() if not k.startswith("__")}
+        return _read_mat5(p)
     if ext in (".h5", ".hdf5"):
         if not _is_hdf5(p):
-            raise SplidarError(f"'{p}' is not an HDF5 file.")
+            raise SplidarError(
+                f"'{p}' is not an HDF5 file (no HDF5 signature): corrupt, truncated or of "
+                "another format."
+            )
         return _read_hdf5(p, matlab=False)
+    if p.is_dir():
+        raise SplidarError(
+            f"'{p}' is a folder, not a file; splidar reads {', '.join(_CONTAINER_EXTS)} files "
+            "and .zarr folders (a folder's name must end in .zarr)."
+        )
     raise SplidarError(
         f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
-        f"{', '.join(_CONTAINER_EXTS)} and .zarr directories."
+        f"{', '.join(_CONTAINER_EXTS)}, .npy, .ptu, .sdt and .zarr directories."
     )
+
+
+def _read_npy(p: Path) -> np.ndarray:
+    """One array from a ``.npy`` file (never unpickled: object arrays are refused)."""
+    try:
+        return np.load(p, allow_pickle=False)
+    except ValueError as exc:
+        raise SplidarError(
+            f"cannot read '{p}' as a numeric .npy array ({exc}); splidar opens .npy files "
+            "with allow_pickle=False: save a numeric array (np.save(path, array))."
+        ) from None
+    except OSError as exc:
+        raise SplidarError(f"cannot read '{p}' as .npy: {exc}") from None
+
+
+def _check_channels_apply(p: Path, channels) -> Path:
+    from .vendor import VENDOR_SUFFIXES
+
+    if channels is not None and _ext(p) not in VENDOR_SUFFIXES:
+        raise SplidarError(
+            f"`channels` applies to vendor files ({', '.join(VENDOR_SUFFIXES)}); '{p.name}' is "
+            "not one."
+        )
+    return p
+
+
+def _read_any(p: Path, channels) -> dict[str, Any]:
+    """The variables of a data file: containers, ``.npy`` (``counts``) or vendor files."""
+    from .vendor import VENDOR_SUFFIXES
+
+    ext = _ext(p)
+    if ext == ".npy":
+        return {"counts": _read_npy(p)}
+    if ext in VENDOR_SUFFIXES:
+        from .vendor import read_vendor
+
+        h = read_vendor(p, channels="wavelengths" if channels is None else channels)
+        meta = {**h.metadata, "source": str(p)}
+        return {"counts": h.counts, "bin_width_ps": h.bin_width_ps, "metadata": json.dumps(meta)}
+    return _read_container(p)
 
 
 def _summary(d: dict[str, Any]) -> str:

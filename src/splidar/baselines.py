@@ -722,3 +722,10 @@ def coarse_scale_detect(
         background_shape=background_shape,
         method="coarse-scale" if scale > 1 else "per-pixel",
     )
+
+
+# Classification baselines (issue 14): per-pixel signature classification and the same
+# followed by a majority filter; see splidar.reconstruction._baselines.
+from .reconstruction._baselines import majority_filter_labels, per_pixel_classify  # noqa: E402
+
+__all__ += ["majority_filter_labels", "per_pixel_classify"]

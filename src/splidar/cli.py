@@ -6,10 +6,13 @@ Commands::
     splidar run       INPUT [--out DIR] [...]     process a file (cube or photon lists)
     splidar simulate  SCENE --out FILE [...]      write a simulated cube and its truth
     splidar evaluate  POINTS TRUTH [--tau BINS]   the paper's metrics
+    splidar view      RESULT [--out FILE]         an interactive 3D view (view.html)
 
 Every error is one line on stderr (``splidar: error: ...``) and a non-zero exit status:
-2 for a usage error, 1 for a failure while running, 130 when interrupted. ``--verbose``
-adds the traceback. Outputs of ``run`` and ``demo`` are written into a hidden
+2 for a usage error, 1 for a failure while running, 130 when interrupted (Ctrl-C),
+143 when terminated (SIGTERM). ``--verbose`` adds the traceback; ``--json`` prints a
+machine-readable summary and nothing else on stdout. Outputs of ``run`` and ``demo`` are
+written into a hidden
 temporary folder beside ``--out`` and renamed at the end, so an interrupted run never
 leaves a folder that looks complete.
 """
@@ -19,15 +22,18 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import re
 import shutil
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Sequence
 from contextlib import contextmanager
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +47,7 @@ log = logging.getLogger("splidar.cli")
 
 # exit statuses
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 #: The built-in demo scene: 64 x 64 pixels, 4 wavelengths, 200 bins, a net in front.
 DEMO = {"shape": (64, 64), "n_bins": 200, "ppp": 10.0, "sbr": 1.0}
@@ -72,6 +79,17 @@ def _int_list(text: str) -> tuple[int, ...]:
     if not vals:
         raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
     return vals
+
+
+def _channels(text: str):
+    if text in ("wavelengths", "detectors"):
+        return text
+    try:
+        return _int_list(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'wavelengths', 'detectors' or channel numbers such as 0,2; got {text!r}"
+        ) from None
 
 
 def _float_list(text: str) -> tuple[float, ...]:
@@ -132,9 +150,21 @@ def _positive(kind):
             ) from None
         if not x > 0:
             raise argparse.ArgumentTypeError(f"must be > 0; got {text!r}")
+        if not math.isfinite(x):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0; got {text!r}")
         return x
 
     return conv
+
+
+def _non_negative(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0; got {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be >= 0; got {text!r}")
+    return x
 
 
 # ----------------------------------------------------------------------------------------
@@ -146,6 +176,7 @@ examples:
   splidar run scan.mat --irf-fwhm 10 --out scan-result
   splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
   splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
+  splidar view scene-splidar
 
 Run 'splidar COMMAND --help' for the options of a command.
 """
@@ -172,11 +203,13 @@ def _out_options(p: argparse.ArgumentParser, default: str) -> None:
         "--force", action="store_true", help="replace an existing output folder of splidar"
     )
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    g.add_argument("--no-view", action="store_true", help="skip view.html, the interactive 3D view")
     g.add_argument(
         "--pixel-size",
         type=_positive(float),
         metavar="M",
-        help="pixel footprint for points.ply x and y (default 1: pixel units)",
+        help="pixel footprint at the target in metres, for x and y of points.ply and "
+        "points.las (default: pixel units)",
     )
 
 
@@ -236,7 +269,7 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--n-classes", type=_positive(int), metavar="K", help="classes for --classes cluster"
     )
-    g.add_argument("--gamma", type=float, help="Potts granularity, >= 0 (default 2)")
+    g.add_argument("--gamma", type=_non_negative, help="Potts granularity, >= 0 (default 2)")
     g.add_argument("--rho", type=_positive(float), help="gamma-MRF coupling (default 4)")
     g.add_argument(
         "--alpha",
@@ -326,13 +359,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--tau", type=_positive(float), default=2.0, help="matching distance, bins (default 2)"
     )
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "run",
         help="detect and reconstruct the surfaces of a file",
-        description="Process a cube file (.npz, .mat, .h5, .zarr) or photon lists "
-        "(a MATLAB cell array of arrival times) and write points.csv, points.ply, "
-        "result.npz, summary.json and figures/ into the output folder.",
+        description="Process a cube file (.npz, .npy, .mat, .h5, .zarr), a PicoQuant T3 "
+        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]) or photon "
+        "lists (a MATLAB cell array of arrival times) and write points.csv, points.ply, "
+        "points.las (with splidar[las]), result.npz, summary.json and figures/ into the "
+        "output folder.",
         epilog="examples:\n"
         "  splidar run scene.npz\n"
         "  splidar run data_face.mat --window 1000 8000 --irf-fwhm 8 --out face\n"
@@ -364,18 +400,36 @@ def build_parser() -> argparse.ArgumentParser:
         "--bin-width-ps", type=_positive(float), metavar="PS", help="bin width in picoseconds"
     )
     irf = g.add_mutually_exclusive_group()
-    irf.add_argument("--irf", metavar="FILE", help="instrument response file")
+    irf.add_argument(
+        "--irf",
+        metavar="FILE",
+        help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, a .ptu/.sdt "
+        "measurement summed over its pixels, or a .phu histogram)",
+    )
     irf.add_argument(
         "--irf-fwhm",
         type=_positive(float),
         metavar="BINS",
         help="use a Gaussian IRF of this FWHM in bins",
     )
-    g.add_argument("--library", metavar="FILE", help="spectral library file (K x L)")
+    g.add_argument(
+        "--library",
+        metavar="FILE",
+        help="spectral library file (K x L: .npy, .npz, .mat, .h5, .csv, .json)",
+    )
+    g.add_argument(
+        "--channels",
+        type=_channels,
+        metavar="C",
+        help="vendor files (.ptu, .sdt): 'wavelengths' (each detector channel a wavelength, "
+        "the default), 'detectors' (channels summed into one wavelength) or channel "
+        "numbers 0,2,..",
+    )
     _out_options(p, "INPUT-STEM-splidar beside the input")
     _pipeline_options(p)
     _cluster_options(p)
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "simulate",
@@ -412,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--force", action="store_true", help="replace existing files")
     _common(p, top=False)
+    _json_flag(p)
 
     p = sub.add_parser(
         "evaluate",
@@ -430,7 +485,55 @@ def build_parser() -> argparse.ArgumentParser:
     tau.add_argument("--tau-m", type=_positive(float), help="matching distance in metres")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _common(p, top=False)
+    _view_parser(sub, fmt)
     return parser
+
+
+def _json_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print a JSON summary on stdout and nothing else there (messages go to stderr)",
+    )
+
+
+def _view_parser(sub, fmt) -> None:
+    p = sub.add_parser(
+        "view",
+        help="write (and open) an interactive 3D view of a result",
+        description="Write the interactive 3D point cloud of a result as one self-contained "
+        "HTML file (no network access needed: rotate, zoom, colour by depth, label, "
+        "intensity or uncertainty, one layer or all), print its path and open it in the "
+        "default browser. RESULT is an output folder of 'splidar run'/'demo', its "
+        "result.npz, or a point-set .npz.",
+        epilog="examples:\n"
+        "  splidar view scene-splidar\n"
+        "  splidar view scene-splidar/result.npz --color label --out scene.html --no-open\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("result", metavar="RESULT", help="output folder or .npz of points")
+    p.add_argument(
+        "-o",
+        "--out",
+        metavar="FILE",
+        help="HTML file (default: view.html in the output folder, else RESULT-STEM.html)",
+    )
+    p.add_argument(
+        "--color",
+        choices=("depth", "label", "intensity", "spectral", "uncertainty", "confidence"),
+        default="depth",
+        help="initial colouring (default depth; the page switches)",
+    )
+    p.add_argument(
+        "--pixel-size",
+        type=_positive(float),
+        metavar="M",
+        help="pixel footprint in metres: a metric view when the bin width is known",
+    )
+    p.add_argument("--no-open", action="store_true", help="write the file only")
+    p.add_argument("--force", action="store_true", help="replace a file splidar did not write")
+    _common(p, top=False)
+    _json_flag(p)
 
 
 # ----------------------------------------------------------------------------------------
@@ -494,6 +597,16 @@ class _Stages:
             bar_format="{desc:<28} {bar} {n_fmt}/{total_fmt} [{elapsed}]",
             leave=False,
         )
+        # redraw twice a second, so that the elapsed time of a long step keeps counting
+        self._stop = threading.Event()
+        self._ticker = None
+        if not disable:
+            self._ticker = threading.Thread(target=self._tick, name="splidar-progress", daemon=True)
+            self._ticker.start()
+
+    def _tick(self):
+        while not self._stop.wait(0.5):
+            self.bar.refresh()
 
     @contextmanager
     def stage(self, name: str):
@@ -506,6 +619,9 @@ class _Stages:
         self.bar.update(1)
 
     def close(self):
+        self._stop.set()
+        if self._ticker is not None:
+            self._ticker.join()
         self.bar.close()
 
 
@@ -528,6 +644,7 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
                 f"the output folder '{out}' would contain or replace the input '{p}'; "
                 "choose another --out"
             )
+    _check_writable_parent(out)
     if out.exists() or out.is_symlink():
         if not out.is_dir():
             raise UsageError(f"the output '{out}' exists and is not a folder; choose another --out")
@@ -543,12 +660,69 @@ def _check_out_folder(out: Path, force: bool, protect: Sequence[Path] = ()) -> N
             )
 
 
+def _check_writable_parent(out: Path) -> None:
+    """Refuse, before any work, an output that lies under a file or in a read-only folder."""
+    anc = out.absolute().parent
+    while not (anc.exists() or anc.is_symlink()) and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise UsageError(
+            f"the output '{out}' lies under '{anc}', which is a file, not a folder; choose "
+            "another --out"
+        )
+    try:  # a real probe: os.access says yes to root even on a read-only mount
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=anc)
+    except OSError as exc:
+        raise UsageError(
+            f"cannot write into the folder '{anc}' ({exc.strerror or exc}); choose another "
+            "--out or fix its permissions"
+        ) from None
+    os.rmdir(probe)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def _clean_stale(out: Path) -> None:
+    """Remove what a killed run left beside ``out``; put back a previous output it moved.
+
+    A run stages into ``.NAME.partial-PID-*`` and, when replacing, moves the previous
+    output into ``.NAME.old-PID-*`` for the instant between two renames. Only folders
+    of processes that no longer run are touched.
+    """
+    parent = out.parent
+    if not parent.is_dir():
+        return
+    for kind in ("old", "partial"):
+        for d in sorted(parent.glob(f".{glob_escape(out.name)}.{kind}-*")):
+            try:
+                pid = int(d.name[len(out.name) + len(kind) + 3 :].split("-")[0])
+            except ValueError:
+                continue
+            if _pid_alive(pid) or not d.is_dir():
+                continue
+            prev = d / out.name
+            if kind == "old" and prev.is_dir() and not out.exists():
+                os.replace(prev, out)
+                log.warning("restored '%s' left aside by an interrupted run", out)
+            shutil.rmtree(d, ignore_errors=True)
+
+
 @contextmanager
 def _staging(out: Path):
     """Yield a temporary folder beside ``out``; rename it to ``out`` on success."""
     parent = out.parent
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=parent))
+    _clean_stale(out)
+    pid = os.getpid()
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{pid}-", dir=parent))
     try:
         # mkdtemp makes a private (0700) folder; give the result the usual permissions
         umask = os.umask(0)
@@ -557,7 +731,7 @@ def _staging(out: Path):
         yield tmp
         old = None
         if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-{pid}-", dir=parent))
             os.replace(out, old / out.name)
         os.replace(tmp, out)
         if old is not None:
@@ -582,6 +756,9 @@ def _write_outputs(
         )
         export.write_npz(rec, folder / "result.npz")
         files += ["points.csv", "points.ply", "result.npz"]
+        if not getattr(args, "no_view", False):
+            files.append(_write_view(rec, folder, args))
+        files += _write_las(rec, folder, args)
     if not args.no_figures:
         with stages.stage("drawing figures"):
             import matplotlib
@@ -596,6 +773,17 @@ def _write_outputs(
     extra["files"] = files + ["summary.json"]
     export.write_summary(rec, folder / "summary.json", metrics=metrics, extra=extra)
     return files
+
+
+def _write_las(rec, folder: Path, args) -> list[str]:
+    """points.las when laspy is installed; otherwise a one-line note (not a failure)."""
+    from .las import las_available, write_las
+
+    if not las_available():
+        log.warning("points.las not written: laspy is not installed (pip install 'splidar[las]')")
+        return []
+    write_las(rec, folder / "points.las", pixel_size=getattr(args, "pixel_size", None))
+    return ["points.las"]
 
 
 def _given(args, names: Sequence[str]) -> dict[str, Any]:
@@ -640,8 +828,10 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
-    with stages.stage("detecting surfaces"):
+    _check_detect_memory(cube, det_kw)
+    with stages.stage("detecting surfaces"), _damaged_chunks(cube, getattr(args, "input", "")):
         det = detect(cube, rng=args.seed, **det_kw)
+    _check_reconstruct_memory(det, library)
     log.info(
         "%d surfaces detected; %.3g %% of voxels kept",
         len(det.surfaces),
@@ -650,6 +840,44 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     with stages.stage("reconstructing"):
         rec = reconstruct(det, library=library, rng=args.seed, **rec_kw)
     return rec
+
+
+@contextmanager
+def _damaged_chunks(cube, source):
+    """A lazy (Zarr) cube is read during detection: name a damaged chunk as such."""
+    try:
+        yield
+    except (RuntimeError, OSError, KeyError) as exc:
+        if not cube.is_lazy:
+            raise
+        raise SplidarError(
+            f"cannot read the counts of '{source}' ({type(exc).__name__}: {exc}): a chunk is "
+            "damaged or missing; write the Zarr store again"
+        ) from exc
+
+
+def _check_detect_memory(cube, det_kw) -> None:
+    """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
+    from ._memory import check_detect_memory
+
+    if not cube.is_lazy and not cube.counts.any():
+        raise SplidarError(
+            f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
+            "photon: nothing to detect. Check the file, variable and --window"
+        )
+    check_detect_memory(cube, store=det_kw.get("store"))
+
+
+def _check_reconstruct_memory(det, library) -> None:
+    from ._memory import check_memory, reconstruct_peak_bytes
+
+    n_l = int(det.background.spatial.shape[-1])
+    n_k = int(getattr(library, "n_classes", None) or 8)
+    check_memory(
+        reconstruct_peak_bytes(len(det.surfaces), n_l, n_k),
+        f"reconstruction of {len(det.surfaces)} surfaces",
+        "lower --max-surfaces, raise the detection threshold (--pfa) or process a crop",
+    )
 
 
 def _timing_line(det, rec) -> str:
@@ -713,6 +941,7 @@ def _cmd_demo(args) -> int:
     print(f"metrics against the truth ({len(sim.truth)} true surfaces):")
     print(_indent(str(metrics)))
     print(_timing_line(rec.detection, rec))
+    args.json_summary = _json_result(out)
     _say(args, f"outputs written to {out}/ (figures in {out}/figures/)")
     return EXIT_OK
 
@@ -734,7 +963,9 @@ def _cmd_run(args) -> int:
         + ([] if args.no_figures else ["drawing figures"]),
         args.quiet,
     )
-    load_kw = _given(args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps"))
+    load_kw = _given(
+        args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels")
+    )
     if args.window is not None:
         load_kw["window"] = tuple(args.window)
     if args.irf is not None:
@@ -768,6 +999,7 @@ def _cmd_run(args) -> int:
         stages.close()
     p = rec.points
     c = cube
+    args.json_summary = _json_result(out)
     _say(
         args,
         f"{inp}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} wavelength(s), {c.n_bins} bins",
@@ -834,6 +1066,17 @@ def _cmd_simulate(args) -> int:
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
     c = sim.cube
+    args.json_summary = {
+        "command": "simulate",
+        "scene": scene.name,
+        "cube": str(out),
+        "truth": str(truth_out),
+        "shape": list(c.shape),
+        "true_surfaces": len(sim.truth),
+        "ppp": sim.ppp,
+        "sbr": sim.sbr,
+        "seed": args.seed,
+    }
     _say(
         args,
         f"simulated {scene.name}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} "
@@ -853,7 +1096,6 @@ def read_points(path: str | os.PathLike):
     SplidarError
         Missing file, or a file that holds no point set.
     """
-    import numpy as np
 
     from .points import PointSet
 
@@ -867,23 +1109,17 @@ def read_points(path: str | os.PathLike):
         raise SplidarError(f"file '{p}' does not exist")
     if p.suffix.lower() == ".csv":
         return _read_points_csv(p)
-    try:
-        z = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise SplidarError(
-            f"cannot read points from '{p}': not a .npz or .csv of points ({exc})"
-        ) from None
-    with z:
-        if not hasattr(z, "files"):
-            raise SplidarError(f"'{p}' holds a single array, not a point set")
-        if "row" in z.files:
-            return PointSet.from_dict(z)
-        if "points_row" in z.files:
-            return PointSet.from_dict({k[7:]: z[k] for k in z.files if k.startswith("points_")})
-        raise SplidarError(
-            f"'{p}' holds no point set (arrays: {', '.join(z.files[:8])}); pass a point set "
-            ".npz, a result.npz or a points.csv"
-        )
+    from ._containers import _read_npz  # never unpickles; checks sizes before allocating
+
+    z = _read_npz(p)  # its errors name the file and what is wrong with it
+    if "row" in z:
+        return PointSet.from_dict(z)
+    if "points_row" in z:
+        return PointSet.from_dict({k[7:]: v for k, v in z.items() if k.startswith("points_")})
+    raise SplidarError(
+        f"'{p}' holds no point set (arrays: {', '.join(list(z)[:8])}); pass a point set "
+        ".npz, a result.npz or a points.csv"
+    )
 
 
 def _read_points_csv(p: Path):
@@ -898,8 +1134,11 @@ def _read_points_csv(p: Path):
             f"'{p}' is not a points.csv of splidar (header starts {header[:3]}, expected "
             "row,col,depth_bin)"
         )
-    data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    if data.shape[0] == 0:
+    with open(p, encoding="ascii", errors="replace") as fh:
+        has_rows = bool(fh.readline()) and any(line.strip() for line in fh)
+    if has_rows:
+        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
+    else:  # a header only: no point (loadtxt would warn)
         data = np.zeros((0, len(header)))
     col = {name: data[:, i] for i, name in enumerate(header)}
     inten = [col[h] for h in header if h.startswith("intensity_") and "std" not in h]
@@ -952,6 +1191,12 @@ def _cmd_evaluate(args) -> int:
     return EXIT_OK
 
 
+def _json_result(out: Path) -> dict[str, Any]:
+    """``--json`` of run and demo: the output folder and its summary.json."""
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    return {"out": str(out), **summary}
+
+
 def _json_num(v):
     import math
 
@@ -960,11 +1205,67 @@ def _json_num(v):
     return v
 
 
+def _write_view(rec, folder: Path, args) -> str:
+    from .view import write_view
+
+    title = folder.name.split(".partial-")[0].lstrip(".") or folder.name
+    write_view(rec, folder / "view.html", pixel_size=getattr(args, "pixel_size", None), title=title)
+    return "view.html"
+
+
+def _cmd_view(args) -> int:
+    from .view import is_view_file, load_view_input, write_view
+
+    src = Path(args.result)
+    if args.out:
+        dest = Path(args.out)
+    elif src.is_dir():
+        dest = src / "view.html"
+    elif src.name == "result.npz":
+        dest = src.parent / "view.html"
+    else:
+        dest = src.with_name(src.name.split(".")[0] + ".html")
+    if dest.is_dir():
+        raise UsageError(f"--out '{dest}' is a folder; give a file name such as view.html")
+    if dest.exists() and not args.force and not is_view_file(dest):
+        raise UsageError(
+            f"'{dest}' exists and is not a view written by splidar; pass --force to replace "
+            "it or choose another --out"
+        )
+    stages = _Stages(["reading the points", "writing the view"], args.quiet)
+    try:
+        with stages.stage("reading the points"):
+            data = load_view_input(src)
+        with stages.stage("writing the view"):
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            write_view(data, dest, pixel_size=args.pixel_size, color=args.color)
+    finally:
+        stages.close()
+    opened = False
+    if not args.no_open:
+        import webbrowser
+
+        opened = bool(webbrowser.open(dest.resolve().as_uri()))
+        if not opened:
+            log.warning("no browser found; open %s yourself", dest)
+    args.json_summary = {
+        "command": "view",
+        "result": str(src),
+        "view": str(dest),
+        "points": len(data.points),
+        "bytes": dest.stat().st_size,
+        "opened": opened,
+    }
+    _say(args, str(dest))
+    return EXIT_OK
+
+
 _COMMANDS = {
     "demo": _cmd_demo,
     "run": _cmd_run,
     "simulate": _cmd_simulate,
     "evaluate": _cmd_evaluate,
+    "view": _cmd_view,
 }
 
 
@@ -973,7 +1274,7 @@ _COMMANDS = {
 _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
-    + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable")
+    + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
 )
 _NAME_RE = re.compile(
     r"`("
@@ -1006,7 +1307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         0 on success, 1 when the command failed, 2 for a usage error, 130 when
-        interrupted.
+        interrupted, 143 when terminated.
 
     Examples
     --------
@@ -1027,12 +1328,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     verbose = args.verbose > 0
-    with _logging(args):
+    with _json_output(args), _logging(args), _on_sigterm():
         try:
             return _COMMANDS[args.command](args)
         except UsageError as exc:
             _report(exc, verbose)
             return EXIT_USAGE
+        except _Terminated:
+            print(f"{PROG}: terminated; no output was written", file=sys.stderr)
+            return EXIT_TERMINATED
         except KeyboardInterrupt:
             print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
             return EXIT_INTERRUPTED
@@ -1040,8 +1344,102 @@ def main(argv: Sequence[str] | None = None) -> int:
             _report(exc, verbose)
             return EXIT_FAILURE
         except Exception as exc:  # noqa: BLE001 - the CLI never shows a raw traceback
+            if _interrupted(exc):  # e.g. Ctrl-C inside a compiled module's import
+                print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
+                return EXIT_INTERRUPTED
             _report(exc, verbose, unexpected=True)
             return EXIT_FAILURE
+
+
+_JSON_COMMANDS = ("demo", "run", "simulate", "view")
+
+
+@contextmanager
+def _json_output(args):
+    """``--json``: the command's summary alone on stdout; what it prints goes to stderr.
+
+    A command stores its summary as ``args.json_summary`` once it has succeeded; a failed
+    command leaves stdout empty (the error is on stderr, the exit status non-zero).
+    """
+    if not (getattr(args, "json", False) and args.command in _JSON_COMMANDS):
+        yield
+        return
+    from contextlib import redirect_stdout
+
+    stdout = sys.stdout
+    with redirect_stdout(sys.stderr):
+        yield
+    summary = getattr(args, "json_summary", None)
+    if summary is not None:
+        print(json.dumps(_json_clean(summary), indent=2, allow_nan=False), file=stdout)
+
+
+def _json_clean(x):
+    """JSON-ready copy: NaN and infinities become null, tuples lists."""
+    if isinstance(x, dict):
+        return {str(k): _json_clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_clean(v) for v in x]
+    return _json_num(x)
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """True when a KeyboardInterrupt caused ``exc`` (pybind11 imports wrap it in ImportError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that the staged output folder is removed."""
+
+
+@contextmanager
+def _on_sigterm():
+    """Turn SIGTERM into :class:`_Terminated` while a command runs (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise _Terminated()
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def entry() -> None:
+    """The ``splidar`` program: :func:`main`, then exit with its status.
+
+    A Ctrl-C that arrives after :func:`main` has returned (or while Python starts
+    splidar) gives the same one line and status 130, never a traceback.
+    """
+    import signal
+
+    try:
+        code = main()
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the work is over: exit with `code`
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED):
+        # An interrupt that landed inside an extension's PyRun_String while importing
+        # marks it "unhandled" for good, and Python would then kill itself with SIGINT
+        # at exit (status -2) although splidar handled it: leave directly instead.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 def _report(exc: BaseException, verbose: bool, unexpected: bool = False) -> None:

@@ -88,6 +88,11 @@ def as_counts(counts, name: str = "counts"):
             "histograms, pass the raw counts instead."
         )
     mx = a.max()
+    if mx > np.iinfo(np.uint32).max:
+        raise SplidarError(
+            f"`{name}` holds a value of {mx:.3g}, more photons than a bin can count "
+            f"(at most {np.iinfo(np.uint32).max}); these are not raw photon counts."
+        )
     dtype = np.uint16 if mx <= np.iinfo(np.uint16).max else np.uint32
     return a.astype(dtype)
 

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from ._arrays import sample_rows
+from ._files import atomic_path, savez
 from ._validation import SplidarError, check_positive
 from .points import PointSet
 
@@ -136,7 +137,7 @@ def write_csv(points: PointSet | Any, path: str | os.PathLike) -> Path:
     table = np.empty((n, len(cols)), dtype=object)
     for j, c in enumerate(cols):
         table[:, j] = np.asarray(c)
-    with open(path, "w", newline="\n", encoding="ascii") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="\n", encoding="ascii") as fh:
         fh.write(",".join(names) + "\n")
         if n:
             np.savetxt(fh, table, fmt=fmts, delimiter=",")
@@ -275,7 +276,7 @@ def write_ply(
     header += [f"property {ply_type[t]} {name}" for name, t in dtype]
     header.append("end_header")
     path = Path(path)
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(v.tobytes())
     return path
@@ -374,7 +375,7 @@ def write_npz(reconstruction, path: str | os.PathLike) -> Path:
         arrays["background_spatial"] = np.asarray(det.background.spatial)
         arrays["background_temporal"] = np.asarray(det.background.temporal)
     path = Path(path)
-    np.savez_compressed(path, **arrays)
+    savez(path, arrays)  # fixed timestamps: the same result gives the same bytes
     return path
 
 
@@ -540,5 +541,6 @@ def write_summary(
     """
     data = summarize(reconstruction, metrics=metrics, extra=extra)
     path = Path(path)
-    path.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return path

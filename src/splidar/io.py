@@ -29,12 +29,17 @@ import numpy as np
 
 from ._containers import (
     _CONTAINER_EXTS,
+    _check_channels_apply,
     _check_path,
     _ext,
+    _read_any,
     _read_container,
+    _read_npy,
     _str_list,
     _summary,
 )
+from ._files import savez
+from ._memory import check_memory
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube
 from .irf import gaussian_irf
@@ -193,9 +198,14 @@ def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) 
             and min(v.shape) > 0
         ]
     cands = cells + cubes
-    if len(cands) == 1:
+    if len(cands) == 1 and cells:
         log.info("reading variable '%s' of '%s'", cands[0], p.name)
         return cands[0]
+    if len(cands) == 1:  # a numeric array not named `counts`: never guess silently
+        raise SplidarError(
+            f"'{p.name}' has no `counts` array; it holds: {_summary(d)}. If '{cands[0]}' holds "
+            f"the photon counts, select it with `variable` set to '{cands[0]}'."
+        )
     what = "photon-list (cell) or count-cube" if want == "data" else "photon-list (cell)"
     if not cands:
         raise SplidarError(
@@ -214,8 +224,9 @@ def read_photon_lists(path: str | os.PathLike, variable: str | None = None) -> P
     Parameters
     ----------
     path : str or path-like
-        ``.mat`` (v5 or v7.3), ``.npz`` (object array, read with pickle allowed: only
-        open files you trust) or ``.h5``.
+        ``.mat`` (v5 or v7.3) or ``.h5``. (``.npz`` files are never unpickled, so
+        they cannot hold cell arrays: :func:`load` reads their photon lists stored
+        flat as ``times``, ``pixel_index`` and ``shape``.)
     variable : str, optional
         Name of the cell array; needed only when the file holds several.
 
@@ -238,6 +249,8 @@ def read_photon_lists(path: str | os.PathLike, variable: str | None = None) -> P
     """
     p = _check_path(path)
     d = _read_container(p)
+    if variable is None and _FLAT_LIST_KEYS <= d.keys():
+        return _flat_photon_lists(d, p)
     name = _pick_variable(d, p, variable, "photons")
     v = d[name]
     if not _is_cell_of_numbers(v):
@@ -458,13 +471,16 @@ def _orient_irf(a, source: str, n_wavelengths: int | None = None) -> np.ndarray:
 
 
 def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndarray:
-    """Read an IRF ``(L, n)`` from ``.npz``/``.mat``/``.h5``/``.csv``/``.txt``.
+    """Read an IRF ``(L, n)`` from an array, text or vendor file (.npy, .npz, .csv, .ptu, ...).
 
     The variable ``irf`` is used when present, otherwise the only 1-D (or thin
     ``(L, n)`` with L <= 16) numeric array, otherwise ``variable=`` is required. A 2-D
     array taller than wide is read as ``(n, L)`` columns. All-zero samples at both
     ends are trimmed (lossless: depths are referenced to the IRF peak). Values are
     returned as stored (not normalised; :class:`~splidar.cube.Cube` normalises).
+    A ``.npy`` file is one array (read with ``allow_pickle=False``); a vendor file
+    (``.ptu``, ``.sdt``) gives its histograms summed over all pixels, one row per
+    channel, a PicoQuant ``.phu`` its curves (:func:`splidar.vendor.read_vendor_irf`).
 
     Parameters
     ----------
@@ -496,9 +512,16 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
             a = np.loadtxt(p, delimiter=None if ext == ".csv" else ",", ndmin=1)
     elif ext in _CONTAINER_EXTS:
         a = _irf_from_container(_read_container(p), p, variable)
+    elif ext == ".npy":
+        a = _read_npy(p)
+    elif ext in (".ptu", ".sdt", ".phu"):
+        from .vendor import read_vendor_irf
+
+        a = read_vendor_irf(p)
     else:
         raise SplidarError(
-            f"unknown IRF file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .txt."
+            f"unknown IRF file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv, .txt, "
+            ".ptu, .sdt or .phu."
         )
     out = _trim_zeros(_orient_irf(a, f"'{p.name}'"))
     if not np.all(np.isfinite(out)) or np.any(out < 0) or out.sum() <= 0:
@@ -706,15 +729,18 @@ def load(
     bin_width_ps: float | None = None,
     wavelengths_nm=None,
     library=None,
+    channels=None,
 ) -> Cube:
     """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
 
     Parameters
     ----------
     path : str or path-like
-        ``.npz``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5`` or a ``.zarr`` directory.
-        ``.npz`` files are opened with pickle allowed (photon lists are object
-        arrays): open only files you trust.
+        ``.npz``, ``.npy``, ``.mat`` (v5 or v7.3), ``.h5``/``.hdf5``, a ``.zarr``
+        directory or vendor files (``.ptu``, ``.sdt``: :mod:`splidar.vendor`).
+        Nothing is unpickled; sizes are checked before allocating (docs/reliability.md).
+        A ``.npz`` holds photon lists flat: ``times`` (n,), ``pixel_index`` (n,) = ``row *
+        cols + col`` and ``shape`` (rows, cols).
     variable : str, optional
         Which variable holds the data when the file holds several. Default: ``counts``
         if present, else the only cell array of arrival times or numeric 3-D/4-D array;
@@ -745,6 +771,8 @@ def load(
         Overrides the file's wavelengths.
     library : SpectralLibrary, array (K, L) or path, optional
         Overrides the file's spectral library.
+    channels : {"wavelengths", "detectors"}, int or sequence of int, optional
+        Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
 
     Returns
     -------
@@ -768,18 +796,20 @@ def load(
     ...              window=(5_180_000, 5_380_000), bin_width=100)  # doctest: +SKIP
     """
     check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
-    p = _check_path(path)
+    p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
         cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
         return _override(cube, bin_width_ps, wavelengths_nm, library)
-    d = _read_container(p)
-    name = _pick_variable(d, p, variable, "data")
+    d = _read_any(p, channels)
+    flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
+    name = "times" if flat else _pick_variable(d, p, variable, "data")
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
     sparse = None
     from_save = False
-    if _is_cell_of_numbers(v):
-        pl = photon_lists_from_cells(v, source=f"{p.name}:{name}")
+    if flat or _is_cell_of_numbers(v):
+        src = f"{p.name}:{name}"
+        pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
@@ -825,7 +855,8 @@ def load(
     irf_a, irf_src = _resolve_irf(
         irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
     )
-    irf_a = _crop_irf(irf_a, n_bins)
+    if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
+        irf_a = _crop_irf(irf_a, n_bins)
     if irf_src != "file":
         meta["irf_source"] = irf_src
     elif not from_save:
@@ -854,10 +885,53 @@ def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
     )
 
 
+#: a photon-list file without pickle: flat arrival times, their flat pixel index, image size
+_FLAT_LIST_KEYS = frozenset(("times", "pixel_index", "shape"))
+
+
+def _flat_photon_lists(d: dict[str, Any], p: Path) -> PhotonLists:
+    """Photon lists stored flat (``times``, ``pixel_index``, ``shape``): no object arrays."""
+    t, pix, shape = (np.asarray(d[k]) for k in ("times", "pixel_index", "shape"))
+    if shape.shape != (2,) or shape.dtype.kind not in "ui" or np.any(shape < 1):
+        raise SplidarError(
+            f"`shape` in '{p.name}' must be two positive integers (rows, cols); got "
+            f"{describe(shape)}."
+        )
+    if t.ndim != 1 or pix.ndim != 1 or t.size != pix.size:
+        raise SplidarError(
+            f"`times` and `pixel_index` in '{p.name}' must be 1-D of the same length; got "
+            f"shapes {t.shape} and {pix.shape}."
+        )
+    rows, cols = (int(x) for x in shape)
+    if pix.size and (pix.dtype.kind not in "ui" or pix.min() < 0 or pix.max() >= rows * cols):
+        raise SplidarError(
+            f"`pixel_index` in '{p.name}' must be integers in [0, {rows * cols}) for shape "
+            f"({rows}, {cols}); got {describe(pix)}."
+        )
+    return PhotonLists(times=t, pixel_index=pix.astype(np.int64), shape=(rows, cols),
+                       source=f"{p.name}:times")  # fmt: skip
+
+
+def _check_times(pl: PhotonLists) -> None:
+    t = pl.times
+    if t.size and t.dtype.kind not in "uif":
+        raise SplidarError(f"photon arrival times must be numbers; got dtype {t.dtype}.")
+    if t.dtype.kind == "f" and not np.all(np.isfinite(t)):
+        n = int(np.count_nonzero(~np.isfinite(t)))
+        raise SplidarError(
+            f"the photon lists ({pl.source}) hold {n} NaN or infinite arrival time(s); remove "
+            "them (a photon without a time cannot be binned)."
+        )
+
+
 def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
+    _check_times(pl)
     if pl.n_photons == 0 and window is None:
-        raise SplidarError("the photon lists are empty; pass window= to build an empty cube.")
+        raise SplidarError(
+            f"the photon lists ({pl.source}) hold no photon: every cell is empty. Check the "
+            "file and variable (pass window= to build an empty cube on purpose)."
+        )
     if window is None:
         window = _default_window(pl.times, bw)
         log.info(
@@ -872,6 +946,15 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     uniq, cnt, rows, cols, n_bins = _bin_sparse(
         pl.times, pl.pixel_index, pl.shape, (start, stop), bw
     )
+    if pl.n_photons and not cnt.size:
+        raise SplidarError(
+            f"none of the {pl.n_photons} photons falls in the window [{start:g}, {stop:g}) "
+            f"{time_unit}; their arrival times range from {pl.times.min():g} to "
+            f"{pl.times.max():g}. Pass a window (and time unit) that covers them."
+        )
+    nbytes = rows * cols * n_bins * 2
+    check_memory(nbytes, f"binning {pl.source} into {rows} x {cols} x {n_bins} bins",
+                 "pass a larger bin width, a narrower window or crop the photon lists")  # fmt: skip
     counts = _dense(uniq, cnt, rows, cols, n_bins)
     factor = TIME_UNITS_PS[time_unit]
     md = {
@@ -946,7 +1029,7 @@ def save(cube: Cube, path: str | os.PathLike, *, chunks: tuple[int, int] | None 
     if cube.library is not None:
         arrays["library"] = cube.library.signatures
         arrays["class_names"] = np.array(cube.library.class_names, dtype=str)
-    np.savez_compressed(p, **arrays)
+    savez(p, arrays)  # atomic, and the same cube gives the same bytes
 
 
 # --------------------------------------------------------------------------------------
@@ -1029,3 +1112,8 @@ def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable) -> Cube:
         library=lib,
         metadata=meta,
     )
+
+
+# --------------------------------------------------------------------------------------
+# libraries
+# --------------------------------------------------------------------------------------

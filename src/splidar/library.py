@@ -8,7 +8,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._containers import _CONTAINER_EXTS, _check_path, _ext, _read_container, _str_list, _summary
+from ._containers import (
+    _CONTAINER_EXTS,
+    _check_path,
+    _ext,
+    _read_container,
+    _read_npy,
+    _str_list,
+    _summary,
+)
 from ._validation import SplidarError, as_float_array, check_ndim, describe
 
 __all__ = ["SpectralLibrary", "as_library", "load_library"]
@@ -114,6 +122,8 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
 
     * ``.npz`` / ``.mat`` / ``.h5``: ``library`` (or ``signatures``) ``(K, L)`` and
       optional ``class_names``.
+    * ``.npy``: the signatures ``(K, L)`` alone (read with ``allow_pickle=False``;
+      classes are unnamed).
     * ``.csv``: one class per row, an optional leading name column, an optional header
       row (ignored) recognised by a non-numeric value after its first field or by a
       first field that is empty or one of "class", "name", "label", "material".
@@ -144,6 +154,8 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
             )
         names = _str_list(d.get("class_names"))
         return SpectralLibrary(np.asarray(d[key], dtype=np.float64), class_names=names)
+    if ext == ".npy":
+        return SpectralLibrary(np.asarray(_read_npy(p), dtype=np.float64))
     if ext == ".json":
         try:
             obj = json.loads(p.read_text())
@@ -190,5 +202,5 @@ def load_library(path: str | os.PathLike) -> SpectralLibrary:
             raise SplidarError(f"'{p.name}': rows have different lengths.") from None
         return SpectralLibrary(sig, class_names=names)
     raise SplidarError(
-        f"unknown library file extension '{p.suffix}'; use .npz, .mat, .h5, .csv or .json."
+        f"unknown library file extension '{p.suffix}'; use .npy, .npz, .mat, .h5, .csv or .json."
     )

@@ -848,3 +848,113 @@ def save_figures(
         save(ax.figure, "saliency_histogram")
         save(plot_detection_slice(det, cube), "detection_slice")
     return out
+
+
+# ----------------------------------------------------------------------------------------
+# label confidence (issue 14)
+# ----------------------------------------------------------------------------------------
+def _calibration_bins(confidence, correct, n_bins: int):
+    conf = np.asarray(confidence, dtype=np.float64).ravel()
+    ok = np.asarray(correct, dtype=np.float64).ravel()
+    if conf.shape != ok.shape or conf.size == 0:
+        raise SplidarError(
+            f"`confidence` and `correct` must be non-empty and of one length; got "
+            f"{conf.size} and {ok.size}."
+        )
+    n_bins = check_int(n_bins, "n_bins", minimum=1)
+    edges = np.linspace(0.0, 1.0, n_bins + 1)
+    idx = np.clip(np.digitize(conf, edges) - 1, 0, n_bins - 1)
+    n = np.bincount(idx, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acc = np.bincount(idx, ok, minlength=n_bins) / n
+        mean_conf = np.bincount(idx, conf, minlength=n_bins) / n
+    ece = float(np.nansum(n / conf.size * np.abs(acc - mean_conf)))
+    return edges, n, acc, mean_conf, ece
+
+
+def reliability_diagram(confidence, correct, *, n_bins: int = 10, ax=None, title=None):
+    """Reliability diagram of label confidences: accuracy against confidence, per bin.
+
+    A calibrated confidence lies on the diagonal: among points given confidence p, a
+    fraction p is right. The expected calibration error (ECE, the share-weighted mean
+    of ``|accuracy - mean confidence|`` over ``n_bins`` equal-width bins) is in the
+    title; a histogram of the confidences is drawn beneath the curve.
+
+    Parameters
+    ----------
+    confidence : array (n,)
+        Per-point confidence in [0, 1] (``points.label_confidence``).
+    correct : array (n,) of bool
+        Whether each point's label is right (e.g. over matched points).
+    n_bins : int
+    ax : matplotlib Axes, optional
+    title : str, optional
+
+    Returns
+    -------
+    matplotlib Figure
+
+    Raises
+    ------
+    SplidarError
+        Empty or unequal inputs, ``n_bins`` < 1.
+
+    Examples
+    --------
+    >>> fig = reliability_diagram(rec.points.label_confidence, ok)  # doctest: +SKIP
+    """
+    edges, n, acc, mean_conf, ece = _calibration_bins(confidence, correct, n_bins)
+    ax = _new_ax(ax, figsize=(4.8, 4.4))
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    width = edges[1] - edges[0]
+    share = n / max(n.sum(), 1)
+    ax.bar(centres, share, width=0.9 * width, color="#c6dbef", label="share of points")
+    ax.plot([0, 1], [0, 1], color="0.5", lw=1, ls="--", label="calibrated")
+    ok = n > 0
+    ax.plot(mean_conf[ok], acc[ok], "o-", color="#08519c", label="accuracy")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("label confidence")
+    ax.set_ylabel("fraction right / share of points")
+    ax.set_title(title or f"Reliability (ECE {ece:.3f}, {int(n.sum())} points)", fontsize=10)
+    ax.legend(loc="upper left", fontsize=8, frameon=False)
+    return ax.figure
+
+
+def plot_label_confidence(result, *, layer: int = 0, ax=None):
+    """Map of the label confidence (marginal probability of the label) of one layer.
+
+    Parameters
+    ----------
+    result : Reconstruction
+    layer : int, default 0
+    ax : matplotlib Axes, optional
+
+    Returns
+    -------
+    matplotlib Axes
+
+    Raises
+    ------
+    SplidarError
+        No label confidence in ``result`` or ``layer`` out of range.
+    """
+    p = getattr(result, "points", result)
+    if getattr(p, "label_confidence", None) is None:
+        raise SplidarError("these points carry no label confidence to plot.")
+    m = _Maps(result)
+    k = m.layer(layer)
+    rows, cols = p.image_shape
+    img = np.full((rows, cols), np.nan)
+    layer_of = p.layer if p.layer is not None else np.zeros(len(p), np.int64)
+    sel = layer_of == k
+    img[p.row[sel], p.col[sel]] = p.label_confidence[sel]
+    ax = _new_ax(ax)
+    _image(
+        ax, img, cmap="viridis", vmin=0.0, vmax=1.0, label="label confidence",
+        title=f"Label confidence, {_layer_name(k, m.n_layers)}",
+    )  # fmt: skip
+    return ax
+
+
+__all__ += ["plot_label_confidence", "reliability_diagram"]

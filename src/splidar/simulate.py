@@ -459,6 +459,58 @@ def _expected(plan: _Plan) -> np.ndarray:
     return out
 
 
+def _draw_counts(plan: _Plan, rng: np.random.Generator) -> np.ndarray:
+    """The Poisson counts of ``plan`` (``eq:4.1``), block by block of rows: uint16 (uint32
+    when a count exceeds it), shape ``(rows, cols, L, T)``."""
+    rows, cols, L, T = plan.rows, plan.cols, plan.L, plan.T
+    counts = np.empty((rows, cols, L, T), np.uint16)
+    cdf = None
+    if plan.temporal is not None:
+        tsum = plan.temporal.sum(axis=-1)  # (L,)
+        cdf = np.cumsum(plan.temporal, axis=-1)
+        cdf /= np.where(cdf[:, -1:] > 0, cdf[:, -1:], 1.0)
+    for r0, r1, lo, hi in _blocks(plan):
+        nb = (r1 - r0) * cols
+        size = nb * L * T
+        parts = []
+        # background
+        if plan.dense is not None:
+            bg = rng.poisson(plan.dense[r0:r1]).reshape(-1)
+        else:
+            sp = plan.spatial[r0:r1].reshape(nb, L)
+            lam_tot = sp * tsum  # (nb, L) expected background photons per pixel
+            if lam_tot.sum() <= _SPARSE_BACKGROUND * size:
+                bg = None
+                n_ph = rng.poisson(lam_tot)
+                for l in range(L):
+                    m = int(n_ph[:, l].sum())
+                    if m == 0:
+                        continue
+                    pix = np.repeat(np.arange(nb), n_ph[:, l])
+                    t = np.searchsorted(cdf[l], rng.random(m), side="right")
+                    np.minimum(t, T - 1, out=t)
+                    parts.append((pix * L + l) * T + t)
+            else:
+                bg = rng.poisson(sp[..., None] * plan.temporal).reshape(-1)
+        # signal: independent Poisson per voxel of each return (sums of Poissons are Poisson)
+        if hi > lo:
+            idx, val = _signal_block(plan, lo, hi, r0)
+            k = rng.poisson(val)
+            parts.append(np.repeat(idx, k))
+        if parts:
+            blk = np.bincount(np.concatenate(parts), minlength=size)
+            if bg is not None:
+                blk += bg
+        else:
+            blk = bg if bg is not None else np.zeros(size, np.int64)
+        mx = int(blk.max()) if blk.size else 0
+        if mx > np.iinfo(counts.dtype).max:
+            logger.info("a count of %d exceeds uint16; storing counts as uint32", mx)
+            counts = counts.astype(np.uint32)
+        counts[r0:r1] = blk.reshape(r1 - r0, cols, L, T)
+    return counts
+
+
 def simulate(
     truth: PointSet,
     *,
@@ -556,58 +608,14 @@ def simulate(
         library,
     )
     rng = np.random.default_rng(rng)
-    rows, cols, L, T = plan.rows, plan.cols, plan.L, plan.T
+    L, T = plan.L, plan.T
     irf_arr = sample_irf_models(plan.models)
     if irf_arr.shape[1] > T:
         raise SplidarError(
             f"the sampled IRF ({irf_arr.shape[1]} samples) is longer than n_bins = {T}; use a "
             "longer window or a narrower IRF (shorter tail)."
         )
-    counts = np.empty((rows, cols, L, T), np.uint16)
-    cdf = None
-    if plan.temporal is not None:
-        tsum = plan.temporal.sum(axis=-1)  # (L,)
-        cdf = np.cumsum(plan.temporal, axis=-1)
-        cdf /= np.where(cdf[:, -1:] > 0, cdf[:, -1:], 1.0)
-    for r0, r1, lo, hi in _blocks(plan):
-        nb = (r1 - r0) * cols
-        size = nb * L * T
-        parts = []
-        # background
-        if plan.dense is not None:
-            bg = rng.poisson(plan.dense[r0:r1]).reshape(-1)
-        else:
-            sp = plan.spatial[r0:r1].reshape(nb, L)
-            lam_tot = sp * tsum  # (nb, L) expected background photons per pixel
-            if lam_tot.sum() <= _SPARSE_BACKGROUND * size:
-                bg = None
-                n_ph = rng.poisson(lam_tot)
-                for l in range(L):
-                    m = int(n_ph[:, l].sum())
-                    if m == 0:
-                        continue
-                    pix = np.repeat(np.arange(nb), n_ph[:, l])
-                    t = np.searchsorted(cdf[l], rng.random(m), side="right")
-                    np.minimum(t, T - 1, out=t)
-                    parts.append((pix * L + l) * T + t)
-            else:
-                bg = rng.poisson(sp[..., None] * plan.temporal).reshape(-1)
-        # signal: independent Poisson per voxel of each return (sums of Poissons are Poisson)
-        if hi > lo:
-            idx, val = _signal_block(plan, lo, hi, r0)
-            k = rng.poisson(val)
-            parts.append(np.repeat(idx, k))
-        if parts:
-            blk = np.bincount(np.concatenate(parts), minlength=size)
-            if bg is not None:
-                blk += bg
-        else:
-            blk = bg if bg is not None else np.zeros(size, np.int64)
-        mx = int(blk.max()) if blk.size else 0
-        if mx > np.iinfo(counts.dtype).max:
-            logger.info("a count of %d exceeds uint16; storing counts as uint32", mx)
-            counts = counts.astype(np.uint32)
-        counts[r0:r1] = blk.reshape(r1 - r0, cols, L, T)
+    counts = _draw_counts(plan, rng)
 
     lib = as_library(library, n_wavelengths=L)
     tr = plan.truth

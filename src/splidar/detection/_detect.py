@@ -261,8 +261,7 @@ def detect(
         done[-1].table, mp.histograms, max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
     )  # fmt: skip
-    t_sel = time.perf_counter() - t0 - sum(p.seconds for p in done)
-    aligned = None
+    t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
         aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])  # 7
         surfaces = aligned.surfaces

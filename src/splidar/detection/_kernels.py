@@ -230,6 +230,250 @@ def _llr_one(raw, bh, inside, dw, s, irf, peak, L, W):
 
 
 @njit(cache=True, nogil=True)
+def _window_centre(c, sp, dev, gsq, row_blk, irow, jcol, e0, start, stop, centre, refine_z, wh):
+    """A run longer than the window (a steep slope smears the coarse scales): the own
+    pixel's matched-filter peak in the run when it is significant against the max of
+    that many background bins, else ``centre``."""
+    L = c.shape[2]
+    n_run = stop - start
+    z_need = np.sqrt(refine_z * refine_z + 2.0 * np.log(n_run))
+    yr0 = irow - e0
+    best_z = -np.inf
+    best_t = centre
+    for t in range(start, stop):
+        num = 0.0
+        var = 0.0
+        for l in range(L):
+            b = sp[row_blk, jcol, l] + dev[l, t]
+            if b < 0:
+                b = np.float32(0.0)
+            num += c[yr0, jcol, l, t] - b
+            var += max(b, np.float32(1e-6)) * gsq[l]
+        z = num / np.sqrt(var)
+        if z > best_z:
+            best_z = z
+            best_t = t
+    if best_z >= z_need and abs(best_t - centre) >= wh:
+        return best_t
+    return centre
+
+
+@njit(cache=True, nogil=True)
+def _box_sums(acc, c, qring, irow, jcol, e0, hmax, n_rows_img, n_cols_img, off):
+    """Box sums of every scale in one sweep of the largest box: each pixel adds to the
+    smallest box holding it (a ring), rings summed outwards. ``acc`` (Q, L, W)."""
+    Q, L, W = acc.shape
+    acc[:] = 0.0
+    for di in range(-hmax, hmax + 1):
+        ri = _reflect(irow + di, n_rows_img) - e0
+        for dj in range(-hmax, hmax + 1):
+            cj = _reflect(jcol + dj, n_cols_img)
+            q = qring[max(abs(di), abs(dj))]
+            for l in range(L):
+                cr = c[ri, cj, l]
+                for w in range(W):
+                    acc[q, l, w] += cr[off + w]
+    for q in range(1, Q):
+        for l in range(L):
+            for w in range(W):
+                acc[q, l, w] += acc[q - 1, l, w]
+
+
+@njit(cache=True, nogil=True)
+def _clean_responses(
+    s, c, box, bidx, scales, acc, use_box, irow, row_blk, jcol, e0, off, inside, bh,
+    resp, hv_buf, per_scale, o_hist, o_signal,
+):  # fmt: skip
+    """Per scale: the response minus ``bhat`` (``resp``), the clean histogram
+    (``eq:background_final``) and its sum, and the clean response summed over L."""
+    Q, L, W = resp.shape
+    for q in range(Q):
+        bq = bidx[q]
+        inv = 1.0 / (scales[q] * scales[q])
+        for w in range(W):
+            per_scale[q, w] = 0.0
+        for l in range(L):
+            if not use_box:
+                for w in range(W):
+                    hv_buf[w] = np.float32(acc[q, l, w] * inv)
+            elif bq < 0:  # scale 1: the correlated block itself
+                cr = c[irow - e0, jcol, l]
+                for w in range(W):
+                    hv_buf[w] = cr[off + w]
+            else:  # box means computed once per voxel by the saliency pass
+                cr = box[l, bq, row_blk, jcol]
+                for w in range(W):
+                    hv_buf[w] = cr[off + w]
+            ssum = 0.0
+            for w in range(W):
+                hv = hv_buf[w]
+                r = hv - bh[l, w]
+                resp[q, l, w] = r
+                cv = r if (r > 0 and inside[w]) else np.float32(0.0)  # eq:background_final
+                o_hist[s, q, l, w] = cv
+                ssum += cv
+                per_scale[q, w] += cv
+            o_signal[s, q, l] = ssum
+
+
+@njit(cache=True, nogil=True)
+def _select_scale(per_scale, tot, d_q):
+    """``eq:depth_global`` / ``eq:depth_scale`` on the clean matched-filter response
+    (per-scale peaks into ``d_q``) and the selected scale ``eq:scale_sel``."""
+    Q, W = per_scale.shape
+    for w in range(W):
+        tot[w] = 0.0
+    for q in range(Q):
+        best = 0
+        for w in range(W):
+            tot[w] += per_scale[q, w]
+            if per_scale[q, w] > per_scale[q, best]:
+                best = w
+        d_q[q] = best
+    d_glob = 0
+    for w in range(W):
+        if tot[w] > tot[d_glob]:
+            d_glob = w
+    qbar = 0
+    if Q > 1:
+        qbar = 1
+        for q in range(2, Q):
+            if abs(d_q[q] - d_glob) < abs(d_q[qbar] - d_glob):
+                qbar = q  # eq:scale_sel
+    return qbar
+
+
+@njit(cache=True, nogil=True)
+def _scale_variance(uq, resp, fisher, q, wq, info):
+    """Variance of scale ``q``'s peak: ``1 / info``, widened when the response is wider
+    than the IRF's (a slope smeared by the box): scaled by the squared curvature deficit
+    plus the spread of depths within the box as a bound on the bias of its peak."""
+    L, W = resp.shape[1], resp.shape[2]
+    var_q = 1.0 / info
+    if q > 0 and 0 < wq < W - 1:
+        den = np.float64(uq[wq - 1]) - 2.0 * np.float64(uq[wq]) + np.float64(uq[wq + 1])
+        model = 0.0
+        for l in range(L):
+            model += max(np.float64(resp[q, l, wq]), 0.0) * fisher[l, 2]
+        if den >= 0:
+            var_q = np.inf
+        elif model > 0 and -den < model:
+            rho = -den / model
+            var_q /= rho * rho
+            c0 = 0.0
+            for l in range(L):
+                c0 += fisher[l, 2] / L
+            var_q += (1.0 / rho - 1.0) / max(c0, 1e-12)
+    return var_q
+
+
+@njit(cache=True, nogil=True)
+def _ici_depth(resp, bh, per_scale, d_q, uq, scales, gsq, fisher, refine_z, ici_gamma):
+    """Depth by the intersection of confidence intervals (ICI) over the scales, finest
+    first: each scale's peak with its standard error (Fisher information of n signal
+    photons over b background photons per bin, widened when the box smears the return);
+    stop at the first scale whose interval misses the intersection of the finer ones and
+    take the most precise depth among the scales before it. Returns (found, depth in the
+    window)."""
+    Q, L, W = resp.shape
+    lo_i = -np.inf
+    hi_i = np.inf
+    d_star = 0.0
+    sd_star = np.inf
+    q_star = -1
+    for q in range(Q):
+        wq = d_q[q]
+        if per_scale[q, wq] <= 0:
+            continue
+        k2 = np.float64(scales[q] * scales[q])
+        if q == 0:
+            # the own pixel takes part only when its peak is significant (z >= refine_z):
+            # a peak of a few background photons claims a precision it does not have
+            zn = 0.0
+            zv = 0.0
+            for l in range(L):
+                zn += np.float64(resp[0, l, wq])
+                zv += max(np.float64(bh[l, wq]), 1e-6) * gsq[l]
+            if zn < refine_z * np.sqrt(zv / k2):
+                continue
+        info = 0.0
+        # the response summed over L at the peak and its two neighbours
+        wa = max(wq - 1, 0)
+        wb = min(wq + 1, W - 1)
+        for w in range(wa, wb + 1):
+            uq[w] = 0.0
+        for l in range(L):
+            for w in range(wa, wb + 1):
+                uq[w] += resp[q, l, w]
+            n_sig = k2 * max(np.float64(resp[q, l, wq]), 0.0) / gsq[l]
+            b_pool = k2 * max(np.float64(bh[l, wq]), 1e-6)
+            if n_sig > 0:
+                info += (n_sig * fisher[l, 0]) ** 2 / (n_sig * fisher[l, 1] + b_pool * fisher[l, 0])
+        if info <= 0:
+            continue
+        dq = wq + _parabola(uq, wq, W)
+        var_q = _scale_variance(uq, resp, fisher, q, wq, info)
+        if not np.isfinite(var_q):
+            continue
+        sd = np.sqrt(var_q + 1.0 / 12.0)
+        a = max(lo_i, dq - ici_gamma * sd)
+        b = min(hi_i, dq + ici_gamma * sd)
+        if a > b:
+            break
+        lo_i = a
+        hi_i = b
+        if q_star < 0 or sd <= sd_star:
+            q_star = q
+            d_star = dq
+            sd_star = sd
+    return q_star >= 0, d_star
+
+
+@njit(cache=True, nogil=True)
+def _own_pixel(
+    s, y, yr, jcol, off, inside, bh, raw, o_own_counts, o_own_background, o_counts, o_background
+):
+    """Own-pixel raw counts and background over the support (zero outside)."""
+    L, W = raw.shape
+    for l in range(L):
+        cnt = 0.0
+        bsum = 0.0
+        for w in range(W):
+            if inside[w]:
+                v = y[yr, jcol, l, off + w]
+                raw[l, w] = np.float64(v)
+                bsum += bh[l, w]
+                o_own_counts[s, l, w] = v
+                o_own_background[s, l, w] = bh[l, w]
+            else:
+                raw[l, w] = 0.0
+                o_own_counts[s, l, w] = 0
+                o_own_background[s, l, w] = 0.0
+            cnt += raw[l, w]
+        o_counts[s, l] = cnt
+        o_background[s, l] = bsum
+
+
+@njit(cache=True, nogil=True)
+def _local_z(resp, bh, gsq, signal_sel, scale, dw):
+    """z of the local scale's response at the depth and the z a return of the selected
+    scale's intensity would give there."""
+    L, W = bh.shape
+    wd = int(np.rint(dw))
+    wd = min(max(wd, 0), W - 1)
+    r_loc = np.float32(0.0)
+    var = 0.0
+    zp = 0.0
+    for l in range(L):
+        r_loc += resp[l, wd]
+        var += bh[l, wd] * gsq[l]
+        zp += signal_sel[l] * gsq[l]
+    var /= scale * scale
+    sd = np.sqrt(max(var, 1e-12))
+    return r_loc / sd, zp / sd
+
+
+@njit(cache=True, nogil=True)
 def extract_surfaces(
     y,
     c,
@@ -319,29 +563,9 @@ def extract_surfaces(
         jcol = cols[s]
         centre = peak_bin[s]
         if refine and stop[s] - start[s] > W:
-            # a run longer than the window (a steep slope smears the coarse scales):
-            # centre the window on the own pixel's matched-filter peak in the run when
-            # it is significant against the max of that many background bins
-            n_run = stop[s] - start[s]
-            z_need = np.sqrt(refine_z * refine_z + 2.0 * np.log(n_run))
-            yr0 = irow - e0
-            best_z = -np.inf
-            best_t = centre
-            for t in range(start[s], stop[s]):
-                num = 0.0
-                var = 0.0
-                for l in range(L):
-                    b = sp[rows[s], jcol, l] + dev[l, t]
-                    if b < 0:
-                        b = np.float32(0.0)
-                    num += c[yr0, jcol, l, t] - b
-                    var += max(b, np.float32(1e-6)) * gsq[l]
-                z = num / np.sqrt(var)
-                if z > best_z:
-                    best_z = z
-                    best_t = t
-            if best_z >= z_need and abs(best_t - centre) >= wh:
-                centre = best_t
+            centre = _window_centre(
+                c, sp, dev, gsq, rows[s], irow, jcol, e0, start[s], stop[s], centre, refine_z, wh
+            )
         off = min(max(centre - wh, 0), max(T - W, 0))
         lo = max(start[s], off)
         hi = min(stop[s], off + W)
@@ -355,69 +579,12 @@ def extract_surfaces(
                     b = np.float32(0.0)  # eq:background_3
                 bh[l, w] = b
         if not use_box:
-            # box sums of every scale in one sweep of the largest box: each pixel adds
-            # to the smallest box holding it (a ring), rings summed outwards
-            acc[:] = 0.0
-            for di in range(-hmax, hmax + 1):
-                ri = _reflect(irow + di, n_rows_img) - e0
-                for dj in range(-hmax, hmax + 1):
-                    cj = _reflect(jcol + dj, n_cols_img)
-                    q = qring[max(abs(di), abs(dj))]
-                    for l in range(L):
-                        cr = c[ri, cj, l]
-                        for w in range(W):
-                            acc[q, l, w] += cr[off + w]
-            for q in range(1, Q):
-                for l in range(L):
-                    for w in range(W):
-                        acc[q, l, w] += acc[q - 1, l, w]
-        for q in range(Q):
-            bq = bidx[q]
-            inv = 1.0 / (scales[q] * scales[q])
-            for w in range(W):
-                per_scale[q, w] = 0.0
-            for l in range(L):
-                if not use_box:
-                    for w in range(W):
-                        hv_buf[w] = np.float32(acc[q, l, w] * inv)
-                elif bq < 0:  # scale 1: the correlated block itself
-                    cr = c[irow - e0, jcol, l]
-                    for w in range(W):
-                        hv_buf[w] = cr[off + w]
-                else:  # box means computed once per voxel by the saliency pass
-                    cr = box[l, bq, rows[s], jcol]
-                    for w in range(W):
-                        hv_buf[w] = cr[off + w]
-                ssum = 0.0
-                for w in range(W):
-                    hv = hv_buf[w]
-                    r = hv - bh[l, w]
-                    resp[q, l, w] = r
-                    cv = r if (r > 0 and inside[w]) else np.float32(0.0)  # eq:background_final
-                    o_hist[s, q, l, w] = cv
-                    ssum += cv
-                    per_scale[q, w] += cv
-                o_signal[s, q, l] = ssum
-        # eq:depth_global / eq:depth_scale on the clean matched-filter response
-        for w in range(W):
-            tot[w] = 0.0
-        for q in range(Q):
-            best = 0
-            for w in range(W):
-                tot[w] += per_scale[q, w]
-                if per_scale[q, w] > per_scale[q, best]:
-                    best = w
-            d_q[q] = best
-        d_glob = 0
-        for w in range(W):
-            if tot[w] > tot[d_glob]:
-                d_glob = w
-        qbar = 0
-        if Q > 1:
-            qbar = 1
-            for q in range(2, Q):
-                if abs(d_q[q] - d_glob) < abs(d_q[qbar] - d_glob):
-                    qbar = q  # eq:scale_sel
+            _box_sums(acc, c, qring, irow, jcol, e0, hmax, n_rows_img, n_cols_img, off)
+        _clean_responses(
+            s, c, box, bidx, scales, acc, use_box, irow, rows[s], jcol, e0, off, inside, bh,
+            resp, hv_buf, per_scale, o_hist, o_signal,
+        )  # fmt: skip
+        qbar = _select_scale(per_scale, tot, d_q)
         for w in range(W):
             u[w] = 0.0
             for l in range(L):
@@ -425,87 +592,9 @@ def extract_surfaces(
         w0 = d_q[qbar]
         ici_done = False
         if refine:
-            # depth by the intersection of confidence intervals (ICI) over the scales,
-            # finest first: each scale's peak d_q with its standard error (Fisher
-            # information of n signal photons over b background photons per bin,
-            # widened when the box smears the return); stop at the first scale whose
-            # interval misses the intersection of the finer ones, and take the most
-            # precise depth among the scales before it
-            lo_i = -np.inf
-            hi_i = np.inf
-            d_star = 0.0
-            sd_star = np.inf
-            q_star = -1
-            for q in range(Q):
-                wq = d_q[q]
-                if per_scale[q, wq] <= 0:
-                    continue
-                k2 = np.float64(scales[q] * scales[q])
-                if q == 0:
-                    # the own pixel takes part only when its peak is significant (z >=
-                    # refine_z): a peak of a few background photons claims a precision
-                    # it does not have, and would stop the intersection at once
-                    zn = 0.0
-                    zv = 0.0
-                    for l in range(L):
-                        zn += np.float64(resp[0, l, wq])
-                        zv += max(np.float64(bh[l, wq]), 1e-6) * gsq[l]
-                    if zn < refine_z * np.sqrt(zv / k2):
-                        continue
-                info = 0.0
-                # the response summed over L at the peak and its two neighbours (all the
-                # parabola and the curvature need)
-                wa = max(wq - 1, 0)
-                wb = min(wq + 1, W - 1)
-                for w in range(wa, wb + 1):
-                    uq[w] = 0.0
-                for l in range(L):
-                    for w in range(wa, wb + 1):
-                        uq[w] += resp[q, l, w]
-                    n_sig = k2 * max(np.float64(resp[q, l, wq]), 0.0) / gsq[l]
-                    b_pool = k2 * max(np.float64(bh[l, wq]), 1e-6)
-                    if n_sig > 0:
-                        info += (n_sig * fisher[l, 0]) ** 2 / (
-                            n_sig * fisher[l, 1] + b_pool * fisher[l, 0]
-                        )
-                if info <= 0:
-                    continue
-                dq = wq + _parabola(uq, wq, W)
-                var_q = 1.0 / info
-                if q > 0 and 0 < wq < W - 1:
-                    # a response wider than the IRF's (a slope smeared by the box) locates
-                    # its peak less well: scale by the squared curvature deficit
-                    den = np.float64(uq[wq - 1]) - 2.0 * np.float64(uq[wq]) + np.float64(uq[wq + 1])
-                    model = 0.0
-                    for l in range(L):
-                        model += max(np.float64(resp[q, l, wq]), 0.0) * fisher[l, 2]
-                    if den >= 0:
-                        var_q = np.inf
-                    elif model > 0 and -den < model:
-                        rho = -den / model
-                        var_q /= rho * rho
-                        # plus the spread of depths within the box (the response's
-                        # variance above the IRF autocorrelation's) as a bound on the
-                        # bias of its peak: a slope, or a crease, under the box
-                        c0 = 0.0
-                        for l in range(L):
-                            c0 += fisher[l, 2] / L
-                        var_q += (1.0 / rho - 1.0) / max(c0, 1e-12)
-                if not np.isfinite(var_q):
-                    continue
-                sd = np.sqrt(var_q + 1.0 / 12.0)
-                a = max(lo_i, dq - ici_gamma * sd)
-                b = min(hi_i, dq + ici_gamma * sd)
-                if a > b:
-                    break
-                lo_i = a
-                hi_i = b
-                if q_star < 0 or sd <= sd_star:
-                    q_star = q
-                    d_star = dq
-                    sd_star = sd
-            if q_star >= 0:
-                ici_done = True
+            ici_done, d_star = _ici_depth(
+                resp, bh, per_scale, d_q, uq, scales, gsq, fisher, refine_z, ici_gamma
+            )
         if ici_done:
             depth = off + d_star
         else:
@@ -515,25 +604,10 @@ def extract_surfaces(
         o_hi[s] = hi
         o_qbar[s] = qbar
         o_offset[s] = off
-        # own-pixel raw counts and background over the support
-        yr = irow - e0
-        for l in range(L):
-            cnt = 0.0
-            bsum = 0.0
-            for w in range(W):
-                if inside[w]:
-                    v = y[yr, jcol, l, off + w]
-                    raw[l, w] = np.float64(v)
-                    bsum += bh[l, w]
-                    o_own_counts[s, l, w] = v
-                    o_own_background[s, l, w] = bh[l, w]
-                else:
-                    raw[l, w] = 0.0
-                    o_own_counts[s, l, w] = 0
-                    o_own_background[s, l, w] = 0.0
-                cnt += raw[l, w]
-            o_counts[s, l] = cnt
-            o_background[s, l] = bsum
+        _own_pixel(
+            s, y, irow - e0, jcol, off, inside, bh, raw, o_own_counts, o_own_background,
+            o_counts, o_background,
+        )  # fmt: skip
         dw = depth - off
         for l in range(L):
             s_tmp[l] = o_signal[s, qloc, l]
@@ -542,19 +616,7 @@ def extract_surfaces(
             for l in range(L):
                 s_tmp[l] = o_signal[s, qbar, l]
             o_llr_sel[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
-        wd = int(np.rint(dw))
-        wd = min(max(wd, 0), W - 1)
-        r_loc = np.float32(0.0)
-        var = 0.0
-        zp = 0.0
-        for l in range(L):
-            r_loc += resp[qloc, l, wd]
-            var += bh[l, wd] * gsq[l]
-            zp += o_signal[s, qbar, l] * gsq[l]
-        var /= scales[qloc] * scales[qloc]
-        sd = np.sqrt(max(var, 1e-12))
-        o_zloc[s] = r_loc / sd
-        o_zpred[s] = zp / sd
+        o_zloc[s], o_zpred[s] = _local_z(resp[qloc], bh, gsq, o_signal[s, qbar], scales[qloc], dw)
 
 
 @njit(cache=True, nogil=True)

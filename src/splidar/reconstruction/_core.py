@@ -1,4 +1,255 @@
-"""Bayesian 3D reconstruction and spectral classification of detected surfaces (Algorithm 2)."""
+"""Bayesian 3D reconstruction and spectral classification of detected surfaces (Algorithm 2).
+
+Notes on :func:`reconstruct` (the model, its updates and what was measured)
+==========================================================================
+
+Model (for surface s at wavelength l, class ``k = u_s``)::
+
+    y_{s,l} ~ Poisson(eta_{s,l} h_s r_{s,l} + b_{s,l})       own-pixel counts over the support
+    r_{s,l} ~ Gamma(alpha_{k,l}, scale beta_{s,l})           eq:4.4
+    beta_{s,l} ~ InvGamma(upsilon_{k,l}, eps_{k,l})          eq:4.3
+    (h, w) ~ gamma-MRF over the surface graph, coupling rho  eq:4hafter
+    u ~ Potts(gamma) over the same graph                     eqt:priorLabels2
+
+``y`` are the raw counts of the surface's own pixel summed over its support and ``b``
+the expected background there (``Surfaces.counts``, ``Surfaces.background``);
+``eta`` is the fraction of the IRF inside the support. The intensity is
+``I_{s,l} = h_s r_{s,l}``, the expected signal photons of the whole return.
+
+Why these data and not the paper's ``ybar`` at the selected scale: that is a spatial
+average (blurred at edges, with a variance that is not Poisson), whereas the own-pixel
+counts have the exact Poisson likelihood above, which makes the posterior uncertainty
+calibrated; the spatial smoothing comes from the MRF priors instead. The background is
+handled by EM: each sweep splits ``y`` into expected signal ``z = y q`` and background
+(``q = eta h r / (eta h r + b)``), after which every conditional is conjugate.
+
+Labels (K > 1) are chosen once, before the sweeps, from the photon counts by
+:func:`splidar.reconstruction.classify_surfaces` (``_classify``: a class likelihood with
+the brightness integrated out, EM class proportions, and the marginals of a Potts field
+over the depth-gated graph sampled by Swendsen-Wang, whole regions at a time); the label
+is the most probable marginal class and ``label_confidence`` its probability. They then
+stay fixed while the intensities are estimated. (Until issue 14 the labels were updated
+in every sweep by red-black ICM on the gamma density of the current ``r``: its log-odds
+grew with the noise of ``r`` and the Potts term changed no label; PPP 1 accuracy was
+0.48-0.53 against 0.85-0.90 now, see ``docs/classification.md``.)
+
+Updates, in this order every sweep (each the exact maximiser of its block):
+
+2. ``r = (z + alpha - 1) / (eta h + 1 / beta)`` (``eqt:Modes_Param_top`` left),
+3. ``beta = (r + eps) / (alpha + upsilon + 1)`` (right),
+4. ``h = (sum_l z + theta_1) / (sum_l eta r + theta_2)``, ``theta_1 = rho (1 + deg)``,
+   ``theta_2 = rho (1/w_s + sum 1/w_s')`` (``eqt:Modes_Param_bottom`` left),
+5. ``w = (h_s + sum h_s') / (1 + deg)`` (right); steps 4-5 are done twice (the h-w
+   chain mixes slowly when rho is large),
+6. the E-step again; steps 2-6 are done four times per sweep (each round costs about
+   a third of the label update, and the EM split mixes slowly at SBR ~ 1: on the
+   simulator's 64 x 64 scenes this cuts the sweeps from 17-19 to 7-8, on the Art
+   detection from 19 to 14, with labels unchanged and IAE within 0.2 %).
+
+Cost (``benchmarks/bench_speed.py``, Art-size detection: 84,577 surfaces, L = 3,
+K = 4): steps 2-3 and the E-step are one pass and the h updates read per-surface sums
+made once per round; the objective is evaluated every 5 sweeps and at the end of each
+phase (``history.objective`` is NaN in between); the graph and the IRF fractions are
+built by numba kernels; the kernels use only the cores other processes leave free
+(``_free_cores``). Measured on the idle 2-core machine before issue 14 (labels then
+updated in the sweeps), with ``alpha="auto"``: Art 0.19-0.20 s, 80,000 surfaces
+(``bench_reconstruction`` (c)) 0.17 s. The classification (``timings["classify"]``)
+costs ``O(S K L)`` for the likelihood (a 16-point quadrature per surface and class) and
+``O(45 (E + S K))`` for the 45 Swendsen-Wang and heat-bath sweeps (E links): linear in the surfaces
+and the classes (``docs/classification.md`` has the measured figures).
+
+The gamma-MRF here is ``log p(h, w) = sum_{links (s, j)} rho (log h_s - log w_j -
+h_s / w_j)`` with a link from each ``h_s`` to its own ``w_s`` and to the ``w`` of its
+graph neighbours. Against the paper's form this drops the ``-log h - log w`` terms
+(shape offsets of one), so the modes above are weighted means that never collapse
+to 0 on surfaces with no photons; the own link keeps the two checkerboard sub-lattices
+of a 4-neighbour graph coupled. The prior is scale free: h carries the shading and
+any global scale between library and data.
+
+Since r, beta, h and w each maximise the complete-data posterior,
+the objective (marginal log posterior, background summed out) never decreases
+(generalised EM); ``history.objective`` records it. With ``alpha="auto"`` the model
+itself changes once, at the empirical-Bayes update: the objective is re-evaluated
+under the new (alpha, upsilon) and may be lower than the sweep before
+(``history.alpha_updates`` holds that sweep); before and after, it never decreases.
+
+Hyperparameter defaults: ``alpha = "auto"`` (see the parameter: an empirical-Bayes
+alpha and upsilon per class, estimated after a first phase at ``alpha = 6``, the
+shape of r given beta), ``upsilon = 3`` and
+``eps_{k,l} = m_{k,l} (upsilon - 1) / alpha`` so that the inverse-gamma mean of beta
+is ``m_{k,l} / alpha`` and the prior mean of ``r_{s,l}`` is the library signature
+``m_{k,l}``; ``rho = 4`` (the MRF weighs like about four photons per link, so a
+surface with 4 linked neighbours gets a prior on h worth about 20 photons, against
+the 5-20 signal photons of a surface at PPP 10); ``gamma = 1.5`` nats per link of the
+label field (see ``_classify``: a rule, not fitted to a scene; until issue 14 ``gamma =
+2`` in the units of the former label score). rho and that former gamma were measured,
+not tuned to one scene (``benchmarks/bench_reconstruction.py``,
+fabricated scenes with 1-2 layers and spectral variability 0-0.4, and the
+simulator's one- and two-layer multispectral scenes through detection, PPP 10,
+SBR 1): against the former ``rho = 1, gamma = 4`` IAE fell by 5-12 % on every
+scene, coverage of +-1 std moved by at most 0.03, and label accuracy rose or
+stayed (two-layer multispectral through detection: 0.944 / 0.953 -> 0.954 / 0.957
+on two seeds; gamma = 8 lowered it, gamma = 2 and 3 were within 0.005).
+
+Posterior uncertainty: given h and beta, ``r_{s,l}`` is a mixture over the unknown
+signal/background split of gammas ``G(z + alpha, rate eta h + 1/beta)``; its variance
+is ``(E[z] + alpha + Var[z]) / rate^2`` with ``z ~ Binomial(y, q)`` (law of total
+variance). ``intensity_std**2 = h**2`` times that, plus the uncertainty of h carried
+by the delta method (``(dE[I | h] / dh)**2 Var(h | .)``, with the gamma conditional
+of h), which matters where the prior dominates (few photons). With ``alpha="auto"``
+beta is integrated out instead of held at its mode (the inverse gamma is conjugate:
+``p(r | h, z) ~ r**(z + alpha - 1) exp(-eta h r) (r + eps)**-(alpha + upsilon)``) and
+r's variance is the Laplace one of that marginal (see ``_kernels.posterior``): there
+beta carries half of the prior's variance by construction, and holding it fixed
+under-covered scenes with spectral variability (CV 0.4: 0.63 -> 0.68). With a fixed
+alpha the beta-at-its-mode form is kept: integrating beta out of the default
+(vague, upsilon = 3) prior widened the std everywhere the prior matters, pooled
+coverage 0.85 -> 0.88 without variability, 0.73 -> 0.79 at CV 0.4 (only CV 0.6 came
+nearer: 0.64 -> 0.69).
+
+Why scenes with no spectral variability over-cover with h's conditional variance
+(0.82-0.87, flat over intensity, with ``alpha="auto"``): the h term. Measured on
+64 x 64 fabricated scenes: without it coverage is 0.19-0.34, without the binomial
+term unchanged. The conditional variance given the neighbours' w is, relative,
+``1 / (sum z + rho (1 + deg))`` (sd 0.18 at 10 photons); the model's full marginal
+(Gibbs sampling of z, r, beta, h, w) is wider still (the formula's sd is 0.54-0.77 of
+it), but the MAP's actual error is 0.136, the sampling sd of the linearised MRF
+smoother (0.134): the difference is the prior's own spread of h about its neighbours
+(its expected squared smoothing bias), which a smooth true shading does not have.
+Empirical Bayes on rho does not cure it: the error of h_s predicted from its
+neighbours, measured in the data, is about that of rho = 4 (1 / 0.04-0.05 = 20-25
+pseudo-photons against rho (1 + deg) = 20), and a rho matched to the true shading's
+increments (~200) over-smooths its curvature: at rho = 64 coverage 0.66 / 0.59 (one /
+two layers) but IAE 1.01 / 0.76 against 1.11 / 0.65 at rho = 4 and 0.67 / 0.50 at
+rho = 16 (with the marginal variance of h, coverage of the 0.5-1 photon bin fell to
+0.2 at rho = 64 and 0.08 at rho = 200: bias). A first-order MRF cannot say "smooth
+but curved". So with ``alpha="auto"`` the h term is instead the empirical-Bayes
+mean squared error of the MAP shading (``_h_variance_eb``): the sampling variance of
+the linearised smoother (4-neighbour lattice, Fourier, at the surface's own photons
+and links) plus one squared smoothing bias per scene, measured as the excess of
+``(h_raw - h)**2`` over the noise the smoother leaves in it
+(``hyperparameters["shading_bias2"]``, relative; 0.0014-0.008 on scenes without
+variability). That is an estimate of the estimator's error, not the model's
+posterior of h; no constant is fitted to the coverage.
+
+The label term (``alpha="auto"``, K > 1). All of the above is conditional on the
+label. Where classes differ by little more than the Poisson noise of a spectrum's
+shape, the label is often wrong, and the alpha estimate cannot see it: the labels
+were chosen to fit the same counts, so the counts scatter about the chosen
+signatures LESS than Poisson. Art scene (4 colour classes, label accuracy 0.29 /
+0.45 at PPP 10 / 30): the truth's relative variance about the chosen signatures is
+0.03-0.08 per class, the estimate 0 (alpha 456-2000); the same estimate on counts
+redrawn from the truth gives alpha 14-62. So r sat on the chosen signature with a
+std of a few %, the shape errors were 0.19-0.27 (relative) and coverage 0.38 / 0.52,
+although the brightness was covered (total over wavelengths: 0.61 / 0.71).
+Re-estimating alpha with labels chosen on another part of the data (binomial
+thinning, cross-fitting) removes the bias but gives the mean-square distance, which
+on well-separated classes is dominated by the few gross mislabels (CV 0 scenes over-
+covered, 0.78-0.82). Instead the std adds the label's own uncertainty: two labels
+``k_j`` are drawn from
+each surface's marginal label posterior (``classify_surfaces``, from ``rng``) and
+``intensity_std**2`` gains ``mean_j (h r_{k_j} - h r)**2`` (0 where ``k_j`` is the
+label), ``r_k`` the joint mode under class k at the surface's h (``_label_spread``): a
+two-draw estimate of the between-class part of the variance, ``E_k[(h r_k - h r)**2]``
+under the label posterior. (Until issue 14 the two labels came from two independent
+Poisson halves of the counts (binomial thinning), each labelled by ICM; the figures
+below were measured with those. Drawing from the calibrated marginals gives the same
+quantity without the halves' worse labels, which erred wide where classes are far
+apart.) Intensities and labels do not depend on these draws.
+Measured (``bench_reconstruction``, 96 x 96, PPP 10, SBR 1; before -> after): Art
+0.38 -> 0.61 (PPP 30: 0.52 -> 0.69); fabricated CV 0 0.72 -> 0.76 (one layer
+0.72-0.74, two layers 0.77-0.78: label accuracy 0.91-0.97 there), CV 0.2 / 0.4 / 0.6
+0.66 / 0.65 / 0.64 -> 0.70 / 0.69 / 0.68, simulator one layer 0.70 -> 0.71 / 0.72,
+two layers 0.65 -> 0.68 / 0.71.
+
+Calibration with a fixed alpha (``alpha=6``, the default before ``"auto"``; measured
+with ``benchmarks/bench_reconstruction.py``, fabricated scenes, PPP 10, SBR 1,
+fraction of true intensities within +-1 std; 0.68 is the Gaussian value, a skewed
+gamma posterior of small shape gives up to about 0.74): where the data dominate
+(true intensity >= 2 photons) it is 0.60-0.74. Where the prior dominates (< 0.5
+photon) it depends on how far the truth departs from the prior mean: 0.96 on scenes
+whose every surface carries its class signature exactly, 0.77 at a within-class
+coefficient of variation of 0.4, 0.57 at 0.6 (the prior's own spread: the gamma of
+shape 6 with beta at its mode has CV 0.41, widened by beta's inverse gamma). Pooled:
+0.85 with no variability, 0.81 / 0.73 / 0.64 at CV 0.2 / 0.4 / 0.6, 0.79-0.80 on the
+simulator's scenes. So that std is the posterior's under the model; it over-covers
+where the prior is wider than a scene's real spectral variability, which is why the
+default estimates the prior's width from the data (``alpha="auto"``).
+
+``alpha="auto"`` (the default) in detail
+----------------------------------------
+
+Gamma shape of r (> 1, so that the mode of r is positive), or ``"auto"``
+(default: empirical Bayes). ``"auto"`` runs two phases. Phase 1, with the given
+``upsilon`` and alpha = 6, stops once the intensities change by less than ``10 tol``
+(at most ``max_iter // 2`` sweeps): its intensities are only a start. Then each
+class's spectral variability ``v =
+CV**2`` of the counts about the signatures, at the shading the neighbours predict,
+is estimated (:func:`estimate_alpha`), ``alpha = 2 / v`` and ``upsilon = 2 + 2 /
+v`` (the compound prior of r then has relative variance v, half from each), r
+restarts at its new prior mode with h keeping each surface's expected signal, and
+phase 2 runs to ``tol`` with the labels kept (``history.alpha_updates`` holds the
+sweep). The std then integrates beta out of r's part, takes h's
+part from the empirical-Bayes MSE of the smoother and adds the label term (see
+the notes above). Measured
+(``bench_reconstruction``, PPP 10, SBR 1; fabricated: 96 x 96, 4 seeds at CV 0, 1
+seed x 1-2 layers otherwise; simulator: 96 x 96 through detection, 2 seeds; label
+accuracy within 0.001 of alpha = 6 on every one of these scenes, equal on all but
+two):
+
+====================  ============  ===========  =====================
+scene                 IAE 6 / auto  cov 6 / auto  sweeps 6 / auto
+====================  ============  ===========  =====================
+CV 0, 1 layer         2.55 / 1.15   0.85 / 0.72   8-10 / 7
+CV 0, 2 layers        1.39 / 0.64   (pooled)      10-14 / 10-11
+CV 0.2                2.65 / 1.79   0.81 / 0.66   8-10 / 8-10
+CV 0.4                2.88 / 2.63   0.73 / 0.65   8-10 / 8-10
+CV 0.6                3.21 / 3.19   0.64 / 0.64   8-10 / 9-11
+simulator 1 layer     2.70 / 1.23   0.80 / 0.70   7 / 7
+simulator 2 layers    2.32 / 1.58   0.79 / 0.65   8 / 8
+Art (bench_speed)     4.06 / 2.88   0.71 / 0.52   15 / 9
+====================  ============  ===========  =====================
+
+(IAE of the one-layer scene at CV 0.2-0.6; coverage pooled over the one- and
+two-layer scenes.) Coverage by bin of true intensity (< 0.5,
+0.5-1, 1-2, 2-4, >= 4 photons), "auto": CV 0 0.72 / 0.72 / 0.72 / 0.72 / 0.71; CV 0.2
+0.65 / 0.66 / 0.67 / 0.67 / 0.64; CV 0.4 0.58 / 0.69 / 0.68 / 0.66 / 0.61; CV 0.6
+0.56 / 0.73 / 0.70 / 0.64 / 0.60; simulator one layer 0.68 / 0.70-0.72 / 0.69-0.71
+/ 0.70-0.71 / 0.69-0.70, two layers 0.56-0.58 / 0.63-0.65 / 0.63-0.67 / 0.66-0.68 /
+0.70-0.73. With the former std formula (beta at its mode, h's conditional variance)
+the "auto" coverage was 0.84 / 0.69 / 0.63 / 0.64 at CV 0 / 0.2 / 0.4 / 0.6.
+Art (``art_scene``, PPP 30, SBR 1, through detection): 0.69 (0.31 / 0.65 / 0.68
+/ 0.70 by bin from 0.5 photon; 0.52 without the label term, 0.71 with alpha =
+6), PPP 10 0.62 (0.38 without, 0.75 with alpha = 6): there the labels are mostly
+wrong (accuracy 0.29 / 0.45 against 4 close classes) and the label term carries
+most of the width.
+(The numbers below and in the table, except Art's, predate the label term, which
+raised the coverage by 0.00-0.05, see the notes above.)
+Other photon levels (64 x 64, one seed, CV 0 / 0.4, one and two layers; labels
+identical to alpha = 6, IAE lower everywhere): PPP 3 0.66 / 0.63 one layer, 0.64 /
+0.55 two layers (alpha = 6: 0.83-0.88 / 0.70-0.74); PPP 30 0.72 / 0.66 (0.76-0.80
+/ 0.69-0.72); SBR 0.3 and 5 at PPP 10 0.62-0.75 (0.73-0.87). A number keeps alpha
+(and upsilon) fixed: one phase, the std with beta at its mode and h's conditional
+variance.
+
+``signature_scale``
+-------------------
+
+``"shape"`` (default when L > 1): each signature is divided by its mean over
+wavelengths before use, so classes are told apart by the shape of their spectra
+and the shading h carries all brightness. ``"absolute"`` (default when L = 1)
+keeps the library's magnitudes. Why: with r held, the label score of class k peaks
+at ``m_k = alpha upsilon r / ((alpha + 1)(upsilon - 1))`` (1.29 r at the
+defaults), while without data the joint mode of (r, beta) sits at
+``r = m (alpha - 1)(upsilon - 1) / (alpha (upsilon + 2))`` (0.33 m) of the current
+class, so absolute magnitudes pull labels towards dimmer classes sweep after sweep. On the
+Art scene (4 colour classes of mean 2.4-5.2) the labels drifted into the dimmest
+class (65,295 of 84,677 surfaces): accuracy 0.256 in 68 sweeps against 0.445 in 19
+with ``"shape"``; on the simulator's multispectral scenes (near-equal magnitudes)
+accuracy and IAE moved by < 0.001 and < 0.3 %. When the classes' true
+reflectivities do differ in magnitude (fabricated, x0.5 / x1 / x2), "absolute"
+uses that and was slightly better (0.964 against 0.950).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +258,7 @@ import logging
 import os
 import threading
 import time
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -17,6 +269,7 @@ from ..detection._result import Detection
 from ..library import as_library
 from ..points import PointSet
 from . import _kernels as kern
+from ._classify import GAMMA, classify_surfaces
 from ._graph import build_graph, irf_fwhm
 from ._result import ConvergenceHistory, Reconstruction
 
@@ -39,12 +292,10 @@ _HW_PASSES = 2
 _INNER = 4
 # alpha is kept in [1.5, 1000] (a reflectivity CV between 0.8 and 0.03)
 _ALPHA_BOUNDS = (1.5, 1000.0)
-# alpha="auto": the first phase (alpha = 6, labels) only has to settle the labels, the
-# second re-fits the intensities under the estimated prior: the first stops at this x tol
-# (intensity change, and fraction of labels changed in a sweep). Measured against 1 x tol:
-# the same label accuracy on the bench's fabricated and simulator scenes but one (0.913 ->
-# 0.912), 0-3 fewer sweeps; Art (bench_speed) 14 -> 9 sweeps, label accuracy 0.447 ->
-# 0.453 (its labels drift from the truth), Art PPP 10 unchanged (0.288).
+# alpha="auto": the first phase (alpha = 6) only gives a start for the alpha estimate, the
+# second re-fits the intensities under the estimated prior: the first stops at this x tol.
+# Measured when the labels were still updated in the sweeps (before issue 14): the same
+# label accuracy on the bench's scenes (0.913 -> 0.912 on one), 0-3 fewer sweeps.
 _PHASE1_TOL = 10.0
 # the objective is evaluated every this many sweeps (and after the last): about a fifth
 # of a sweep's cost, and only a record of the ascent
@@ -118,29 +369,6 @@ def nearest_signature(intensity: np.ndarray, signatures: np.ndarray) -> np.ndarr
     shape = m / m.sum(axis=1, keepdims=True)
     logm = np.log(np.maximum(shape, 1e-12))
     return np.argmax(x @ logm.T, axis=1).astype(np.int64)
-
-
-def _shape_loglik(intensity: np.ndarray, signatures: np.ndarray) -> np.ndarray:
-    """Multinomial log-likelihood of each spectrum's shape under each class, (S, K)."""
-    x = np.ascontiguousarray(intensity, dtype=np.float64)
-    m = np.asarray(signatures, dtype=np.float64)
-    logm = np.ascontiguousarray(np.log(np.maximum(m / m.sum(axis=1, keepdims=True), 1e-12)))
-    out = np.empty((x.shape[0], m.shape[0]))
-    kern.shape_loglik(x, logm, out)
-    return out
-
-
-def _potts_icm(score: np.ndarray, graph, gamma: float, n_sweeps: int = 10) -> np.ndarray:
-    """Labels maximising ``score[s, u_s] + gamma * #(agreeing links)`` by red-black ICM."""
-    S, K = score.shape
-    u = np.argmax(score, axis=1).astype(np.int64)
-    if S == 0 or K == 1:
-        return u
-    kern.potts_icm(
-        np.ascontiguousarray(score, dtype=np.float64), graph.parity, graph.indptr,
-        graph.indices, float(gamma), int(n_sweeps), u,
-    )  # fmt: skip
-    return u
 
 
 def estimate_alpha(
@@ -249,30 +477,11 @@ def estimate_alpha(
     return np.repeat((1.0 / v)[:, None], L, axis=1)
 
 
-def _half_labels(y, b, eta, sig, graph, gamma, rng) -> np.ndarray:
-    """Labels chosen on each half of a random split of the counts, ``(2, S)``.
-
-    Every photon goes to half a or b with probability 1/2 (binomial thinning: two
-    independent Poisson counts of half the mean, drawn by ``_kernels.thin_half`` from a
-    seed taken from ``rng``); each half is labelled on its own by
-    the shape likelihood and the Potts ICM, as at the start of ``reconstruct`` (with half
-    the background).
-    """
-    yi = np.rint(y).astype(np.int64).ravel()
-    y_a = np.empty_like(yi)
-    kern.thin_half(yi, int(rng.integers(2**31)), y_a)  # seeded from rng: reproducible
-    y_a = y_a.reshape(y.shape).astype(np.float64)
-    out = np.empty((2, y.shape[0]), np.int64)
-    for j, y_half in enumerate((y_a, np.rint(y) - y_a)):
-        out[j] = _potts_icm(_shape_loglik((y_half - 0.5 * b) / eta, sig), graph, gamma)
-    return out
-
-
 def _label_spread(y, b, eta, h, r, u, u_alt, alpha, ups, eps, sig) -> np.ndarray:
     """Squared spread of the intensity over the labels chosen on resampled data, (S, L).
 
     ``sum_j (h r_{k_j} - h r)**2 / n`` over the ``n`` alternative labels ``k_j =
-    u_alt[j, s]`` (rows of :func:`_half_labels`), ``r_k`` the joint mode of (r, beta,
+    u_alt[j, s]`` (labels drawn from the label posterior), ``r_k`` the joint mode of (r, beta,
     EM split) under class k at the surface's h (``_kernels.label_spread``; 0 where
     ``k_j = u_s``): the between-class part of the intensity's variance when the label
     changes as often as it does between halves of the data.
@@ -500,344 +709,60 @@ def _one_at_a_time(func):
     return wrapper
 
 
-@_one_at_a_time
-def reconstruct(
-    detection: Detection,
-    *,
-    library=None,
-    classes: str | None = None,
-    n_classes: int | None = None,
-    gamma: float = 2.0,
-    rho: float = 4.0,
-    alpha: float | np.ndarray | str = "auto",
-    upsilon: float | np.ndarray = 3.0,
-    signature_scale: str | None = None,
-    links: str = "depth",
-    depth_gate: float | None = None,
-    max_iter: int = 200,
-    tol: float = 1e-3,
-    rng=0,
-) -> Reconstruction:
-    r"""Bayesian reconstruction and spectral classification of detected surfaces (Algorithm 2).
+@dataclass(frozen=True)
+class _Setup:
+    """Checked options and the per-surface data of one reconstruction."""
 
-    Model (for surface s at wavelength l, class ``k = u_s``)::
+    classes: str
+    lib: object
+    sig: np.ndarray
+    signature_scale: str
+    links: str
+    gate: float
+    fwhm: np.ndarray
+    y: np.ndarray
+    b: np.ndarray
+    eta: np.ndarray
+    intensity_raw: np.ndarray
 
-        y_{s,l} ~ Poisson(eta_{s,l} h_s r_{s,l} + b_{s,l})       own-pixel counts over the support
-        r_{s,l} ~ Gamma(alpha_{k,l}, scale beta_{s,l})           eq:4.4
-        beta_{s,l} ~ InvGamma(upsilon_{k,l}, eps_{k,l})          eq:4.3
-        (h, w) ~ gamma-MRF over the surface graph, coupling rho  eq:4hafter
-        u ~ Potts(gamma) over the same graph                     eqt:priorLabels2
 
-    ``y`` are the raw counts of the surface's own pixel summed over its support and ``b``
-    the expected background there (``Surfaces.counts``, ``Surfaces.background``);
-    ``eta`` is the fraction of the IRF inside the support. The intensity is
-    ``I_{s,l} = h_s r_{s,l}``, the expected signal photons of the whole return.
-
-    Why these data and not the paper's ``ybar`` at the selected scale: that is a spatial
-    average (blurred at edges, with a variance that is not Poisson), whereas the own-pixel
-    counts have the exact Poisson likelihood above, which makes the posterior uncertainty
-    calibrated; the spatial smoothing comes from the MRF priors instead. The background is
-    handled by EM: each sweep splits ``y`` into expected signal ``z = y q`` and background
-    (``q = eta h r / (eta h r + b)``), after which every conditional is conjugate.
-
-    Updates, in this order every sweep (each the exact maximiser of its block):
-
-    1. labels with their beta, red then black pixels (``eq:4.umax``): for class k,
-       beta takes its conditional mode ``(r + eps_k) / (alpha_k + upsilon_k + 1)`` and the
-       class score is ``sum_l [log G(r_{s,l}; alpha_k, beta) + log IG(beta; upsilon_k,
-       eps_k)] + gamma * #(neighbours with label k)``. Surfaces of same-colour pixels
-       are never linked, so a half-sweep is exact and labels cannot oscillate.
-    2. ``r = (z + alpha - 1) / (eta h + 1 / beta)`` (``eqt:Modes_Param_top`` left),
-    3. ``beta = (r + eps) / (alpha + upsilon + 1)`` (right),
-    4. ``h = (sum_l z + theta_1) / (sum_l eta r + theta_2)``, ``theta_1 = rho (1 + deg)``,
-       ``theta_2 = rho (1/w_s + sum 1/w_s')`` (``eqt:Modes_Param_bottom`` left),
-    5. ``w = (h_s + sum h_s') / (1 + deg)`` (right); steps 4-5 are done twice (the h-w
-       chain mixes slowly when rho is large),
-    6. the E-step again; steps 2-6 are done four times per sweep (each round costs about
-       a third of the label update, and the EM split mixes slowly at SBR ~ 1: on the
-       simulator's 64 x 64 scenes this cuts the sweeps from 17-19 to 7-8, on the Art
-       detection from 19 to 14, with labels unchanged and IAE within 0.2 %).
-
-    Cost (``benchmarks/bench_speed.py``, Art-size detection: 84,577 surfaces, L = 3,
-    K = 4): the label step skips surfaces whose label provably cannot change (the score
-    margin of their last scoring exceeds a bound on how far r and the neighbours' labels
-    have moved it since, ``_kernels.update_labels_lazy``: the same labels exactly; 35 % of
-    the scorings skipped there); steps 2-3 and the E-step are one pass and the h updates
-    read per-surface sums made once per round; the objective is evaluated every 5 sweeps
-    and at the end of each phase (``history.objective`` is NaN in between); the label
-    confidence is computed once, at the end of the labelled phase; the graph and the IRF
-    fractions are built by numba kernels; the kernels use only the cores other processes
-    leave free (``_free_cores``). Measured on the idle 2-core machine, with the default
-    ``alpha="auto"`` (15 -> 9 sweeps there, see ``alpha``): Art 0.33-0.40 -> 0.15-0.16 s
-    (0.25 s on one thread; 0.19-0.20 s since the std's label term), 80,000 surfaces
-    (``bench_reconstruction`` (c)) 0.40 -> 0.17 s.
-
-    The gamma-MRF here is ``log p(h, w) = sum_{links (s, j)} rho (log h_s - log w_j -
-    h_s / w_j)`` with a link from each ``h_s`` to its own ``w_s`` and to the ``w`` of its
-    graph neighbours. Against the paper's form this drops the ``-log h - log w`` terms
-    (shape offsets of one), so the modes above are weighted means that never collapse
-    to 0 on surfaces with no photons; the own link keeps the two checkerboard sub-lattices
-    of a 4-neighbour graph coupled. The prior is scale free: h carries the shading and
-    any global scale between library and data.
-
-    Since the label block, r, beta, h and w each maximise the complete-data posterior,
-    the objective (marginal log posterior, background summed out) never decreases
-    (generalised EM); ``history.objective`` records it. With ``alpha="auto"`` the model
-    itself changes once, at the empirical-Bayes update: the objective is re-evaluated
-    under the new (alpha, upsilon) and may be lower than the sweep before
-    (``history.alpha_updates`` holds that sweep); before and after, it never decreases.
-
-    Hyperparameter defaults: ``alpha = "auto"`` (see the parameter: an empirical-Bayes
-    alpha and upsilon per class, estimated after a first phase at ``alpha = 6``, the
-    shape of r given beta), ``upsilon = 3`` and
-    ``eps_{k,l} = m_{k,l} (upsilon - 1) / alpha`` so that the inverse-gamma mean of beta
-    is ``m_{k,l} / alpha`` and the prior mean of ``r_{s,l}`` is the library signature
-    ``m_{k,l}``; ``rho = 4`` (the MRF weighs like about four photons per link, so a
-    surface with 4 linked neighbours gets a prior on h worth about 20 photons, against
-    the 5-20 signal photons of a surface at PPP 10); ``gamma = 2`` (half the paper's 4).
-    Both were measured, not tuned to one scene (``benchmarks/bench_reconstruction.py``,
-    fabricated scenes with 1-2 layers and spectral variability 0-0.4, and the
-    simulator's one- and two-layer multispectral scenes through detection, PPP 10,
-    SBR 1): against the former ``rho = 1, gamma = 4`` IAE fell by 5-12 % on every
-    scene, coverage of +-1 std moved by at most 0.03, and label accuracy rose or
-    stayed (two-layer multispectral through detection: 0.944 / 0.953 -> 0.954 / 0.957
-    on two seeds; gamma = 8 lowered it, gamma = 2 and 3 were within 0.005).
-
-    Posterior uncertainty: given h and beta, ``r_{s,l}`` is a mixture over the unknown
-    signal/background split of gammas ``G(z + alpha, rate eta h + 1/beta)``; its variance
-    is ``(E[z] + alpha + Var[z]) / rate^2`` with ``z ~ Binomial(y, q)`` (law of total
-    variance). ``intensity_std**2 = h**2`` times that, plus the uncertainty of h carried
-    by the delta method (``(dE[I | h] / dh)**2 Var(h | .)``, with the gamma conditional
-    of h), which matters where the prior dominates (few photons). With ``alpha="auto"``
-    beta is integrated out instead of held at its mode (the inverse gamma is conjugate:
-    ``p(r | h, z) ~ r**(z + alpha - 1) exp(-eta h r) (r + eps)**-(alpha + upsilon)``) and
-    r's variance is the Laplace one of that marginal (see ``_kernels.posterior``): there
-    beta carries half of the prior's variance by construction, and holding it fixed
-    under-covered scenes with spectral variability (CV 0.4: 0.63 -> 0.68). With a fixed
-    alpha the beta-at-its-mode form is kept: integrating beta out of the default
-    (vague, upsilon = 3) prior widened the std everywhere the prior matters, pooled
-    coverage 0.85 -> 0.88 without variability, 0.73 -> 0.79 at CV 0.4 (only CV 0.6 came
-    nearer: 0.64 -> 0.69).
-
-    Why scenes with no spectral variability over-cover with h's conditional variance
-    (0.82-0.87, flat over intensity, with ``alpha="auto"``): the h term. Measured on
-    64 x 64 fabricated scenes: without it coverage is 0.19-0.34, without the binomial
-    term unchanged. The conditional variance given the neighbours' w is, relative,
-    ``1 / (sum z + rho (1 + deg))`` (sd 0.18 at 10 photons); the model's full marginal
-    (Gibbs sampling of z, r, beta, h, w) is wider still (the formula's sd is 0.54-0.77 of
-    it), but the MAP's actual error is 0.136, the sampling sd of the linearised MRF
-    smoother (0.134): the difference is the prior's own spread of h about its neighbours
-    (its expected squared smoothing bias), which a smooth true shading does not have.
-    Empirical Bayes on rho does not cure it: the error of h_s predicted from its
-    neighbours, measured in the data, is about that of rho = 4 (1 / 0.04-0.05 = 20-25
-    pseudo-photons against rho (1 + deg) = 20), and a rho matched to the true shading's
-    increments (~200) over-smooths its curvature: at rho = 64 coverage 0.66 / 0.59 (one /
-    two layers) but IAE 1.01 / 0.76 against 1.11 / 0.65 at rho = 4 and 0.67 / 0.50 at
-    rho = 16 (with the marginal variance of h, coverage of the 0.5-1 photon bin fell to
-    0.2 at rho = 64 and 0.08 at rho = 200: bias). A first-order MRF cannot say "smooth
-    but curved". So with ``alpha="auto"`` the h term is instead the empirical-Bayes
-    mean squared error of the MAP shading (``_h_variance_eb``): the sampling variance of
-    the linearised smoother (4-neighbour lattice, Fourier, at the surface's own photons
-    and links) plus one squared smoothing bias per scene, measured as the excess of
-    ``(h_raw - h)**2`` over the noise the smoother leaves in it
-    (``hyperparameters["shading_bias2"]``, relative; 0.0014-0.008 on scenes without
-    variability). That is an estimate of the estimator's error, not the model's
-    posterior of h; no constant is fitted to the coverage.
-
-    The label term (``alpha="auto"``, K > 1). All of the above is conditional on the
-    label. Where classes differ by little more than the Poisson noise of a spectrum's
-    shape, the label is often wrong, and the alpha estimate cannot see it: the labels
-    were chosen to fit the same counts, so the counts scatter about the chosen
-    signatures LESS than Poisson. Art scene (4 colour classes, label accuracy 0.29 /
-    0.45 at PPP 10 / 30): the truth's relative variance about the chosen signatures is
-    0.03-0.08 per class, the estimate 0 (alpha 456-2000); the same estimate on counts
-    redrawn from the truth gives alpha 14-62. So r sat on the chosen signature with a
-    std of a few %, the shape errors were 0.19-0.27 (relative) and coverage 0.38 / 0.52,
-    although the brightness was covered (total over wavelengths: 0.61 / 0.71).
-    Re-estimating alpha with labels chosen on another part of the data (binomial
-    thinning, cross-fitting) removes the bias but gives the mean-square distance, which
-    on well-separated classes is dominated by the few gross mislabels (CV 0 scenes over-
-    covered, 0.78-0.82). Instead the std adds the label's own uncertainty: the counts are
-    split into two independent Poisson halves (binomial thinning, drawn from ``rng``),
-    each half is labelled on its own (shape likelihood and Potts ICM, as at the start),
-    and ``intensity_std**2`` gains ``mean_j (h r_{k_j} - h r)**2`` over the two half
-    labels ``k_j`` (0 where they agree with the label), ``r_k`` the joint mode under
-    class k at the surface's h (``_label_spread``): the between-class part of the
-    variance, as often as resampled data change the label. Why the halves' deviation
-    from the full-data label, with no rescaling: for a Gaussian estimate, ``a - full =
-    (a - b) / 2`` for halves a, b, whose difference has 4 times the full-data variance,
-    so ``mean (a - full)**2`` is that variance without bias. Labels are discrete and the
-    halves' ICM labels are worse than the final ones, so it errs wide where classes are
-    far apart (a rare mislabel costs much). Intensities and labels are unchanged.
-    Measured (``bench_reconstruction``, 96 x 96, PPP 10, SBR 1; before -> after): Art
-    0.38 -> 0.61 (PPP 30: 0.52 -> 0.69); fabricated CV 0 0.72 -> 0.76 (one layer
-    0.72-0.74, two layers 0.77-0.78: label accuracy 0.91-0.97 there), CV 0.2 / 0.4 / 0.6
-    0.66 / 0.65 / 0.64 -> 0.70 / 0.69 / 0.68, simulator one layer 0.70 -> 0.71 / 0.72,
-    two layers 0.65 -> 0.68 / 0.71; about 30 ms on Art (84,577 surfaces: two ICMs).
-
-    Calibration with a fixed alpha (``alpha=6``, the default before ``"auto"``; measured
-    with ``benchmarks/bench_reconstruction.py``, fabricated scenes, PPP 10, SBR 1,
-    fraction of true intensities within +-1 std; 0.68 is the Gaussian value, a skewed
-    gamma posterior of small shape gives up to about 0.74): where the data dominate
-    (true intensity >= 2 photons) it is 0.60-0.74. Where the prior dominates (< 0.5
-    photon) it depends on how far the truth departs from the prior mean: 0.96 on scenes
-    whose every surface carries its class signature exactly, 0.77 at a within-class
-    coefficient of variation of 0.4, 0.57 at 0.6 (the prior's own spread: the gamma of
-    shape 6 with beta at its mode has CV 0.41, widened by beta's inverse gamma). Pooled:
-    0.85 with no variability, 0.81 / 0.73 / 0.64 at CV 0.2 / 0.4 / 0.6, 0.79-0.80 on the
-    simulator's scenes. So that std is the posterior's under the model; it over-covers
-    where the prior is wider than a scene's real spectral variability, which is why the
-    default estimates the prior's width from the data (``alpha="auto"``).
-
-    Parameters
-    ----------
-    detection : Detection
-        Output of :func:`splidar.detect`; uses ``detection.surfaces`` and ``detection.irf``.
-    library : SpectralLibrary, array (K, L), path, optional
-        Spectral signatures ``m_{k,l}``; defaults to ``detection.library``.
-    classes : {"library", "one", "cluster"}, optional
-        Where classes come from. Default: ``"library"`` when a library is given or carried
-        by the detection, ``"cluster"`` when only ``n_classes`` is given, else ``"one"``
-        (a single class whose signature is the mean spectrum: intensity smoothing only).
-    n_classes : int, optional
-        Number of classes for ``classes="cluster"`` (weighted k-means on normalised
-        spectra, seeded by ``rng``; see :func:`kmeans_signatures`).
-    gamma : float
-        Potts granularity (>= 0).
-    rho : float
-        gamma-MRF coupling (> 0); larger smooths h more.
-    alpha : float, array (K, L) or "auto"
-        Gamma shape of r (> 1, so that the mode of r is positive), or ``"auto"``
-        (default: empirical Bayes). ``"auto"`` runs two phases. Phase 1, with the given
-        ``upsilon`` and alpha = 6, updates the labels and stops once they have settled (at
-        most ``10 tol x`` the number of surfaces change in a sweep and the intensity
-        changes by less than ``10 tol``; at most ``max_iter // 2`` sweeps): its
-        intensities are only a start. Then each class's spectral variability ``v =
-        CV**2`` of the counts about the signatures, at the shading the neighbours predict,
-        is estimated (:func:`estimate_alpha`), ``alpha = 2 / v`` and ``upsilon = 2 + 2 /
-        v`` (the compound prior of r then has relative variance v, half from each), r
-        restarts at its new prior mode with h keeping each surface's expected signal, and
-        phase 2 runs to ``tol`` with the labels kept (``history.alpha_updates`` holds the
-        sweep). The labels are phase 1's: a tight prior pins r to its class, so labels
-        could no longer move. The std then integrates beta out of r's part, takes h's
-        part from the empirical-Bayes MSE of the smoother and adds the label term (see
-        the notes above). Measured
-        (``bench_reconstruction``, PPP 10, SBR 1; fabricated: 96 x 96, 4 seeds at CV 0, 1
-        seed x 1-2 layers otherwise; simulator: 96 x 96 through detection, 2 seeds; label
-        accuracy within 0.001 of alpha = 6 on every one of these scenes, equal on all but
-        two):
-
-        ====================  ============  ===========  =====================
-        scene                 IAE 6 / auto  cov 6 / auto  sweeps 6 / auto
-        ====================  ============  ===========  =====================
-        CV 0, 1 layer         2.55 / 1.15   0.85 / 0.72   8-10 / 7
-        CV 0, 2 layers        1.39 / 0.64   (pooled)      10-14 / 10-11
-        CV 0.2                2.65 / 1.79   0.81 / 0.66   8-10 / 8-10
-        CV 0.4                2.88 / 2.63   0.73 / 0.65   8-10 / 8-10
-        CV 0.6                3.21 / 3.19   0.64 / 0.64   8-10 / 9-11
-        simulator 1 layer     2.70 / 1.23   0.80 / 0.70   7 / 7
-        simulator 2 layers    2.32 / 1.58   0.79 / 0.65   8 / 8
-        Art (bench_speed)     4.06 / 2.88   0.71 / 0.52   15 / 9
-        ====================  ============  ===========  =====================
-
-        (IAE of the one-layer scene at CV 0.2-0.6; coverage pooled over the one- and
-        two-layer scenes.) Coverage by bin of true intensity (< 0.5,
-        0.5-1, 1-2, 2-4, >= 4 photons), "auto": CV 0 0.72 / 0.72 / 0.72 / 0.72 / 0.71; CV 0.2
-        0.65 / 0.66 / 0.67 / 0.67 / 0.64; CV 0.4 0.58 / 0.69 / 0.68 / 0.66 / 0.61; CV 0.6
-        0.56 / 0.73 / 0.70 / 0.64 / 0.60; simulator one layer 0.68 / 0.70-0.72 / 0.69-0.71
-        / 0.70-0.71 / 0.69-0.70, two layers 0.56-0.58 / 0.63-0.65 / 0.63-0.67 / 0.66-0.68 /
-        0.70-0.73. With the former std formula (beta at its mode, h's conditional variance)
-        the "auto" coverage was 0.84 / 0.69 / 0.63 / 0.64 at CV 0 / 0.2 / 0.4 / 0.6.
-        Art (``art_scene``, PPP 30, SBR 1, through detection): 0.69 (0.31 / 0.65 / 0.68
-        / 0.70 by bin from 0.5 photon; 0.52 without the label term, 0.71 with alpha =
-        6), PPP 10 0.62 (0.38 without, 0.75 with alpha = 6): there the labels are mostly
-        wrong (accuracy 0.29 / 0.45 against 4 close classes) and the label term carries
-        most of the width.
-        (The numbers below and in the table, except Art's, predate the label term, which
-        raised the coverage by 0.00-0.05, see the notes above.)
-        Other photon levels (64 x 64, one seed, CV 0 / 0.4, one and two layers; labels
-        identical to alpha = 6, IAE lower everywhere): PPP 3 0.66 / 0.63 one layer, 0.64 /
-        0.55 two layers (alpha = 6: 0.83-0.88 / 0.70-0.74); PPP 30 0.72 / 0.66 (0.76-0.80
-        / 0.69-0.72); SBR 0.3 and 5 at PPP 10 0.62-0.75 (0.73-0.87). A number keeps alpha
-        (and upsilon) fixed: one phase, the std with beta at its mode and h's conditional
-        variance.
-    upsilon : float or array (K, L)
-        Inverse-gamma shape of beta (> 1, so that its mean exists); replaced by the
-        estimate with ``alpha="auto"``.
-    signature_scale : {"shape", "absolute"}, optional
-        ``"shape"`` (default when L > 1): each signature is divided by its mean over
-        wavelengths before use, so classes are told apart by the shape of their spectra
-        and the shading h carries all brightness. ``"absolute"`` (default when L = 1)
-        keeps the library's magnitudes. Why: with r held, the label score of class k peaks
-        at ``m_k = alpha upsilon r / ((alpha + 1)(upsilon - 1))`` (1.29 r at the
-        defaults), while without data the joint mode of (r, beta) sits at
-        ``r = m (alpha - 1)(upsilon - 1) / (alpha (upsilon + 2))`` (0.33 m) of the current
-        class, so absolute magnitudes pull labels towards dimmer classes sweep after sweep. On the
-        Art scene (4 colour classes of mean 2.4-5.2) the labels drifted into the dimmest
-        class (65,295 of 84,677 surfaces): accuracy 0.256 in 68 sweeps against 0.445 in 19
-        with ``"shape"``; on the simulator's multispectral scenes (near-equal magnitudes)
-        accuracy and IAE moved by < 0.001 and < 0.3 %. When the classes' true
-        reflectivities do differ in magnitude (fabricated, x0.5 / x1 / x2), "absolute"
-        uses that and was slightly better (0.964 against 0.950).
-    links : {"depth", "all"}
-        ``"all"``: each surface linked to every surface of its 4 neighbour pixels (paper).
-        ``"depth"``: only links whose depth difference is at most ``depth_gate``.
-    depth_gate : float, optional
-        Depth gate in bins; default 3 x the widest IRF FWHM in ``detection.irf``.
-    max_iter : int
-        I_max (>= 1).
-    tol : float
-        xi of ``eq:criter``: stop when the RMS change of ``h r`` relative to its RMS is
-        below ``tol`` and at most ``tol x`` (number of surfaces) labels changed in the
-        sweep (none below 1,000 surfaces). The default 1e-3 is far below the posterior
-        spread of the intensities (tens of % at a few photons); 1e-4 changed IAE by < 1 %.
-        With ``alpha="auto"`` the first (labelled) phase stops at ``10 tol`` on both
-        counts, the second at ``tol``.
-    rng : None, int or Generator, default 0
-        Seeds k-means for ``classes="cluster"`` and, with ``alpha="auto"`` and K > 1, the
-        split of the counts behind the std's label term (so the std of a surface whose
-        label is uncertain depends on it; the coverage on Art moved by < 0.005 between
-        seeds; intensities and labels do not depend on it). The default, a fixed seed,
-        makes the same input give the same result; ``None`` draws fresh entropy.
-
-    Returns
-    -------
-    Reconstruction
-
-    Raises
-    ------
-    SplidarError
-        A library whose L differs from the data, gamma < 0, rho <= 0, alpha <= 1,
-        upsilon <= 1, max_iter < 1, tol <= 0, unknown ``links``, ``classes`` or
-        ``signature_scale``, a string ``alpha`` other than ``"auto"``,
-        ``classes="cluster"`` without ``n_classes``, or a non-Detection input.
-
-    Examples
-    --------
-    >>> from splidar.reconstruction import synthetic_detection
-    >>> det, truth = synthetic_detection(shape=(8, 8), rng=0)
-    >>> rec = reconstruct(det, library=det.library)
-    >>> rec.points.intensity.shape == (len(truth), det.n_wavelengths)
-    True
-    """
-    t0 = time.perf_counter()
+def _check_options(
+    detection, gamma, rho, max_iter, tol, links, signature_scale, classes, n_classes
+):
     if not isinstance(detection, Detection):
         raise SplidarError(
             f"`detection` must be a splidar Detection (the output of splidar.detect); got "
             f"{type(detection).__name__}."
         )
-    gamma = check_positive(gamma, "gamma", allow_zero=True)
-    rho = check_positive(rho, "rho")
-    max_iter = check_int(max_iter, "max_iter", minimum=1)
-    tol = check_positive(tol, "tol")
-    links = check_choice(links, "links", _LINKS)
+    out = {
+        "gamma": check_positive(gamma, "gamma", allow_zero=True),
+        "rho": check_positive(rho, "rho"),
+        "max_iter": check_int(max_iter, "max_iter", minimum=1),
+        "tol": check_positive(tol, "tol"),
+    }
+    if isinstance(links, str):
+        links = check_choice(links, "links", _LINKS)
+    else:
+        try:
+            gate = float(links)
+        except (TypeError, ValueError):
+            raise SplidarError(
+                f"`links` must be 'depth', 'all' or a depth gate in bins (a number > 0); got "
+                f"{links!r}."
+            ) from None
+        links = check_positive(gate, "links")
     if signature_scale is not None:
         signature_scale = check_choice(signature_scale, "signature_scale", ("shape", "absolute"))
     if classes is not None:
         classes = check_choice(classes, "classes", _CLASSES)
     if n_classes is not None:
         n_classes = check_int(n_classes, "n_classes", minimum=1)
-    surf = detection.surfaces
+    out.update(links=links, signature_scale=signature_scale, classes=classes, n_classes=n_classes)
+    return out
+
+
+def _resolve_classes(detection, library, classes, n_classes):
+    """(classes, library or None) from the options (see ``reconstruct``'s ``classes``)."""
     L = detection.n_wavelengths
     lib = as_library(library, n_wavelengths=L) if library is not None else None
     if lib is None and classes in (None, "library"):
@@ -851,20 +776,13 @@ def reconstruct(
         )
     if classes == "cluster" and n_classes is None:
         raise SplidarError("`classes='cluster'` needs `n_classes` (the number of classes to find).")
-    if classes != "library":
-        lib = None
-    irf = np.atleast_2d(np.asarray(detection.irf, dtype=np.float64))
-    fwhm = irf_fwhm(irf)
-    if depth_gate is None:
-        gate = 3.0 * float(fwhm.max())
-    else:
-        gate = check_positive(depth_gate, "depth_gate")
-    if links == "all":
-        gate = float("inf")
+    return classes, (lib if classes == "library" else None)
 
-    S = len(surf)
-    rows, cols = surf.image_shape
-    K_s = int(surf.n_slots)
+
+def _surface_data(detection, irf):
+    """Own-pixel counts y, background b, IRF fraction eta (S, L) and ``(y - b) / eta``."""
+    surf = detection.surfaces
+    S, L = len(surf), detection.n_wavelengths
     y = np.asarray(surf.counts, dtype=np.float64).reshape(S, L)
     b = np.asarray(surf.background, dtype=np.float64).reshape(S, L)
     if np.any(y < 0) or np.any(b < 0):
@@ -883,9 +801,23 @@ def reconstruct(
             S,
         )
     eta = np.maximum(eta, 1e-6)
-    intensity_raw = (y - b) / eta
+    return y, b, eta, (y - b) / eta
 
-    rng = np.random.default_rng(rng)
+
+def _setup(detection, library, opt, rng) -> _Setup:
+    classes, lib = _resolve_classes(detection, library, opt["classes"], opt["n_classes"])
+    L = detection.n_wavelengths
+    irf = np.atleast_2d(np.asarray(detection.irf, dtype=np.float64))
+    fwhm = irf_fwhm(irf)
+    links = opt["links"]
+    if links == "all":
+        gate = float("inf")
+    elif links == "depth":
+        gate = 3.0 * float(fwhm.max())
+    else:  # a number: the depth gate in bins
+        links, gate = "depth", float(links)
+    y, b, eta, intensity_raw = _surface_data(detection, irf)
+    S = y.shape[0]
     if classes == "library":
         sig = lib.signatures
     elif classes == "one":
@@ -893,13 +825,17 @@ def reconstruct(
             np.maximum(intensity_raw, 0).mean(axis=0, keepdims=True) if S else np.ones((1, L))
         )
     else:
-        sig = kmeans_signatures(intensity_raw, n_classes, rng=rng)
-    if signature_scale is None:
-        signature_scale = "shape" if L > 1 else "absolute"
-    if signature_scale == "shape":
+        sig = kmeans_signatures(intensity_raw, opt["n_classes"], rng=rng)
+    scale = opt["signature_scale"] or ("shape" if L > 1 else "absolute")
+    if scale == "shape":
         # classes differ by the shape of their spectra only; h carries the brightness
         sig = sig / sig.mean(axis=1, keepdims=True)
-    K = sig.shape[0]
+    return _Setup(classes, lib, sig, scale, links, gate, fwhm, y, b, eta, intensity_raw)
+
+
+def _prior_arrays(alpha, upsilon, sig):
+    """(auto, alpha, upsilon, eps) arrays (K, L): ``E[beta] = m / alpha``, so ``E[r] = m``."""
+    K, L = sig.shape
     auto_alpha = isinstance(alpha, str)
     if auto_alpha:
         check_choice(alpha, "alpha", ("auto",))
@@ -907,39 +843,43 @@ def reconstruct(
     else:
         alpha_a = _as_class_array(alpha, "alpha", K, L, minimum=1.0)
     ups_a = _as_class_array(upsilon, "upsilon", K, L, minimum=1.0)
-    eps_a = sig * (ups_a - 1.0) / alpha_a  # E[beta] = m / alpha  ->  E[r] = m
+    return auto_alpha, alpha_a, ups_a, sig * (ups_a - 1.0) / alpha_a
 
-    graph = build_graph(
-        surf.row, surf.col, surf.slot, surf.depth_bin, (rows, cols), K_s, links=links, gate=gate
-    )
-    t_graph = time.perf_counter()
 
-    # initialisation: nearest signature smoothed by the Potts prior (ICM on the shape
-    # likelihood), r at its prior mean, h fitting the counts
-    u = _potts_icm(_shape_loglik(intensity_raw, sig), graph, gamma)
+def _start(su: _Setup, u):
+    """r at its prior mean, beta at ``m / alpha`` (caller), h fitting the net counts."""
+    sig, y, b, eta = su.sig, su.y, su.b, su.eta
     r = sig[u].copy()
-    beta = sig[u] / alpha_a[u]
     # h fitting the net counts of the support: sum_l (y - b) / sum_l eta m
     h = np.maximum((y - b).sum(axis=1), 0.0) / (eta * sig[u]).sum(axis=1)
     pos = h[h > 0]
     h = np.maximum(h, 0.1 * (np.median(pos) if pos.size else 1.0))
-    w = h.copy()
+    return r, h, h.copy()
+
+
+def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol):
+    """Coordinate descent with the labels fixed: one phase, or two with ``alpha="auto"``.
+
+    Returns ``(state dict, prior (auto, alpha, ups, eps), history)``.
+    """
+    y, b, eta, sig = su.y, su.b, su.eta, su.sig
+    auto_alpha, alpha_a, ups_a, eps_a = prior
+    S, L = y.shape
+    r, h, w = _start(su, u)
+    beta = sig[u] / alpha_a[u]
     conf = np.ones(S)
-    z = np.empty((S, L))
-    q = np.empty((S, L))
-    obj = np.zeros(max_iter + 1)
-    change = np.zeros(max_iter)
+    z, q = np.empty((S, L)), np.empty((S, L))
+    obj, change = np.zeros(max_iter + 1), np.zeros(max_iter)
     n_changed = np.zeros(max_iter, np.int64)
-    alpha_updates = []
-    n_iter = 0
+    alpha_updates, n_iter = [], 0
     if S:
         deg = np.diff(graph.indptr)
         src = np.repeat(np.arange(S), deg)
-        # with alpha="auto" this first phase only settles the labels (looser tolerance)
+        # with alpha="auto" this first phase only gives a start for the alpha estimate
         tol1 = tol * _PHASE1_TOL if auto_alpha else tol
         n_iter += kern.run(
             y, b, eta, graph.parity, graph.indptr, graph.indices, alpha_a, ups_a, eps_a,
-            rho, gamma, max(max_iter // 2, 1) if auto_alpha else max_iter, tol1, K > 1, r,
+            rho, gamma, max(max_iter // 2, 1) if auto_alpha else max_iter, tol1, False, r,
             beta, h, w, u, conf, z, q, obj, change, n_changed, _INNER, _HW_PASSES,
             int(tol1 * S), _OBJ_EVERY,
         )  # fmt: skip
@@ -970,37 +910,7 @@ def reconstruct(
         reason = "tol" if converged else "max_iter"
         kern.estep(y, b, eta, r, h, z, q)
     else:
-        n_iter, converged, reason = 0, True, "no surfaces"
-    t_iter = time.perf_counter()
-
-    var_h = None
-    if auto_alpha and S:
-        var_h, bias2 = _h_variance_eb(y, b, eta, r, h, alpha_a[u], graph, rho)
-    intensity, intensity_std = _posterior_intensity(
-        y, eta, z, q, r, beta, h, u, alpha_a, ups_a, eps_a, graph, rho, w, auto_alpha, var_h
-    )
-    if auto_alpha and S and K > 1:
-        # the label's own uncertainty: as often as data splits change it (_label_spread)
-        u_alt = _half_labels(y, b, eta, sig, graph, gamma, rng)
-        spread = _label_spread(y, b, eta, h, r, u, u_alt, alpha_a, ups_a, eps_a, sig)
-        intensity_std = np.sqrt(intensity_std**2 + spread)
-
-    depth_m = None
-    if detection.bin_width_ps is not None:
-        depth_m = surf.depth_bin * detection.bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2.0
-    points = PointSet(
-        row=surf.row,
-        col=surf.col,
-        depth_bin=surf.depth_bin,
-        image_shape=(rows, cols),
-        intensity=intensity,
-        label=u,
-        depth_m=depth_m,
-        intensity_std=intensity_std,
-        label_confidence=conf,
-        layer=surf.slot,
-    )
-    maps = points.maps(n_layers=K_s)
+        converged, reason = True, "no surfaces"
     history = ConvergenceHistory(
         objective=obj[: n_iter + 1].copy(),
         change=change[:n_iter].copy(),
@@ -1010,44 +920,225 @@ def reconstruct(
         reason=reason,
         alpha_updates=tuple(alpha_updates),
     )
-    hyper = {
-        "classes": classes,
-        "n_classes": K,
-        "signatures": sig.copy(),
-        "signature_scale": signature_scale,
-        "gamma": gamma,
-        "rho": rho,
-        "alpha": alpha_a,
-        "alpha_mode": "auto" if auto_alpha else "fixed",
-        "shading_bias2": bias2 if var_h is not None else None,
-        "upsilon": ups_a,
-        "epsilon": eps_a,
-        "links": links,
-        "depth_gate": gate,
-        "irf_fwhm": fwhm,
-        "max_iter": max_iter,
-        "tol": tol,
-        "n_links": graph.n_edges,
-    }
-    t_end = time.perf_counter()
-    timings = {
-        "setup": t_graph - t0,
-        "iterations": t_iter - t_graph,
-        "outputs": t_end - t_iter,
-        "total": t_end - t0,
-    }
-    log.info(
-        "reconstruct: %d surfaces, %d links, %d sweeps (%s), %.3f s",
-        S, graph.n_edges, n_iter, reason, timings["total"],
+    state = {"r": r, "beta": beta, "h": h, "w": w, "z": z, "q": q}
+    return state, (auto_alpha, alpha_a, ups_a, eps_a), history
+
+
+def _intensity_and_std(su: _Setup, graph, u, marginals, state, prior, rho, rng):
+    """Posterior intensity and its std (with the label term when K > 1 and "auto")."""
+    y, b, eta, sig = su.y, su.b, su.eta, su.sig
+    auto_alpha, alpha_a, ups_a, eps_a = prior
+    st = state
+    S = y.shape[0]
+    var_h, bias2 = None, None
+    if auto_alpha and S:
+        var_h, bias2 = _h_variance_eb(y, b, eta, st["r"], st["h"], alpha_a[u], graph, rho)
+    intensity, std = _posterior_intensity(
+        y, eta, st["z"], st["q"], st["r"], st["beta"], st["h"], u, alpha_a, ups_a, eps_a,
+        graph, rho, st["w"], auto_alpha, var_h,
     )  # fmt: skip
+    if auto_alpha and S and sig.shape[0] > 1:
+        # the label's own uncertainty: two labels drawn from its marginal posterior
+        cum = np.cumsum(marginals, axis=1)
+        draws = rng.random((2, S, 1))
+        u_alt = np.minimum((draws > cum[None]).sum(axis=2), sig.shape[0] - 1)
+        spread = _label_spread(y, b, eta, st["h"], st["r"], u, u_alt, alpha_a, ups_a, eps_a, sig)
+        std = np.sqrt(std**2 + spread)
+    return intensity, std, bias2
+
+
+def _result(detection, su: _Setup, graph, u, conf, intensity, std, history, hyper, timings):
+    surf = detection.surfaces
+    depth_m = None
+    if detection.bin_width_ps is not None:
+        depth_m = surf.depth_bin * detection.bin_width_ps * 1e-12 * SPEED_OF_LIGHT / 2.0
+    points = PointSet(
+        row=surf.row,
+        col=surf.col,
+        depth_bin=surf.depth_bin,
+        image_shape=surf.image_shape,
+        intensity=intensity,
+        label=u,
+        depth_m=depth_m,
+        intensity_std=std,
+        label_confidence=conf,
+        layer=surf.slot,
+    )
+    maps = points.maps(n_layers=int(surf.n_slots))
     return Reconstruction(
         points=points,
         depth_map=maps["depth_bin"],
         intensity_map=maps["intensity"],
         label_map=maps["label"],
-        library=lib,
+        library=su.lib,
         history=history,
         hyperparameters=hyper,
         timings=timings,
         detection=detection,
     )
+
+
+@_one_at_a_time
+def reconstruct(
+    detection: Detection,
+    *,
+    library=None,
+    classes: str | None = None,
+    n_classes: int | None = None,
+    gamma: float = GAMMA,
+    rho: float = 4.0,
+    alpha: float | np.ndarray | str = "auto",
+    upsilon: float | np.ndarray = 3.0,
+    signature_scale: str | None = None,
+    links: str | float = "depth",
+    max_iter: int = 200,
+    tol: float = 1e-3,
+    rng=0,
+) -> Reconstruction:
+    r"""Bayesian reconstruction and spectral classification of detected surfaces (Algorithm 2).
+
+    Model (for surface s at wavelength l, class ``k = u_s``)::
+
+        y_{s,l} ~ Poisson(eta_{s,l} h_s r_{s,l} + b_{s,l})       own-pixel counts over the support
+        r_{s,l} ~ Gamma(alpha_{k,l}, scale beta_{s,l})           eq:4.4
+        beta_{s,l} ~ InvGamma(upsilon_{k,l}, eps_{k,l})          eq:4.3
+        (h, w) ~ gamma-MRF over the surface graph, coupling rho  eq:4hafter
+        u ~ Potts(gamma) over the same graph                     eqt:priorLabels2
+
+    With K > 1 classes the labels come first, from the photon counts
+    (:func:`splidar.reconstruction.classify_surfaces`: a class likelihood with the
+    brightness integrated out, EM class proportions, and label marginals of the Potts
+    field over the depth-gated graph by Swendsen-Wang sampling); ``label`` is the most
+    probable marginal class and ``label_confidence`` its marginal probability
+    (calibrated: ``docs/classification.md``). The intensities are then the posterior
+    modes given the labels, by coordinate descent (``eqt:Modes_Param_top``,
+    ``eqt:Modes_Param_bottom``), with a posterior std. The updates, their cost and what
+    was measured are in the notes of the module ``splidar/reconstruction/_core.py``.
+
+    Parameters
+    ----------
+    detection : Detection
+        Output of :func:`splidar.detect`; uses ``detection.surfaces`` and ``detection.irf``.
+    library : SpectralLibrary, array (K, L), path, optional
+        Spectral signatures ``m_{k,l}``; defaults to ``detection.library``.
+    classes : {"library", "one", "cluster"}, optional
+        Where classes come from. Default: ``"library"`` when a library is given or carried
+        by the detection, ``"cluster"`` when only ``n_classes`` is given, else ``"one"``
+        (a single class whose signature is the mean spectrum: intensity smoothing only).
+    n_classes : int, optional
+        Number of classes for ``classes="cluster"`` (weighted k-means on normalised
+        spectra, seeded by ``rng``; see :func:`kmeans_signatures`).
+    gamma : float
+        Interaction strength of the label field, nats per link (>= 0; default 1.5, a
+        rule independent of the scene: see :func:`splidar.reconstruction.link_gamma`).
+    rho : float
+        gamma-MRF coupling (> 0); larger smooths h more.
+    alpha : float, array (K, L) or "auto"
+        Gamma shape of r (> 1, so that the mode of r is positive), or ``"auto"``
+        (default: empirical Bayes per class after a first phase at alpha = 6, see the
+        module notes). A number keeps alpha (and upsilon) fixed: one phase.
+    upsilon : float or array (K, L)
+        Inverse-gamma shape of beta (> 1, so that its mean exists); replaced by the
+        estimate with ``alpha="auto"``.
+    signature_scale : {"shape", "absolute"}, optional
+        ``"shape"`` (default when L > 1): signatures divided by their mean over
+        wavelengths, classes told apart by the shape of their spectra, h carrying all
+        brightness; ``"absolute"`` (default when L = 1) keeps the library's magnitudes.
+    links : {"depth", "all"} or float
+        ``"all"``: each surface linked to every surface of its 4 neighbour pixels (paper).
+        ``"depth"``: only links whose depth difference is at most 3 x the widest IRF
+        FWHM; a number: that depth gate, in bins (the former ``depth_gate=``).
+    max_iter : int
+        I_max (>= 1).
+    tol : float
+        xi of ``eq:criter``: stop when the RMS change of ``h r`` relative to its RMS is
+        below ``tol`` (with ``alpha="auto"`` the first phase stops at ``10 tol``).
+    rng : None, int or Generator, default 0
+        Seeds k-means for ``classes="cluster"``, the label sampler (K > 1) and the label
+        draws behind the std's label term. The default, a fixed seed, makes the same input
+        give the same result; ``None`` draws fresh entropy.
+
+    Returns
+    -------
+    Reconstruction
+        ``timings`` holds ``"setup"``, ``"classify"``, ``"iterations"``, ``"outputs"``
+        and ``"total"`` (s); ``hyperparameters["class_proportions"]`` the EM proportions.
+
+    Raises
+    ------
+    SplidarError
+        A library whose L differs from the data, gamma < 0, rho <= 0, alpha <= 1,
+        upsilon <= 1, max_iter < 1, tol <= 0, unknown ``links``, ``classes`` or
+        ``signature_scale``, a string ``alpha`` other than ``"auto"``,
+        ``classes="cluster"`` without ``n_classes``, or a non-Detection input.
+
+    Examples
+    --------
+    >>> from splidar.reconstruction import synthetic_detection
+    >>> det, truth = synthetic_detection(shape=(8, 8), rng=0)
+    >>> rec = reconstruct(det, library=det.library)
+    >>> rec.points.intensity.shape == (len(truth), det.n_wavelengths)
+    True
+    """
+    t0 = time.perf_counter()
+    opt = _check_options(
+        detection, gamma, rho, max_iter, tol, links, signature_scale, classes, n_classes
+    )
+    rng = np.random.default_rng(rng)
+    su = _setup(detection, library, opt, rng)
+    prior = _prior_arrays(alpha, upsilon, su.sig)
+    surf = detection.surfaces
+    graph = build_graph(
+        surf.row, surf.col, surf.slot, surf.depth_bin, surf.image_shape, int(surf.n_slots),
+        links=su.links, gate=su.gate,
+    )  # fmt: skip
+    t_graph = time.perf_counter()
+    S, K = len(surf), su.sig.shape[0]
+    if K > 1:
+        cls = classify_surfaces(
+            su.y, su.b, su.eta, su.sig, graph, gamma=opt["gamma"], seed=int(rng.integers(2**31))
+        )
+        u, marg, pi = cls.label, cls.marginals, cls.proportions
+    else:
+        u, marg, pi = np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1)
+    conf = marg.max(axis=1) if S else np.ones(0)
+    t_cls = time.perf_counter()
+    state, prior, history = _sweeps(
+        su, graph, u, prior, opt["rho"], opt["gamma"], opt["max_iter"], opt["tol"]
+    )
+    t_iter = time.perf_counter()
+    intensity, std, bias2 = _intensity_and_std(su, graph, u, marg, state, prior, opt["rho"], rng)
+    auto_alpha, alpha_a, ups_a, eps_a = prior
+    hyper = {
+        "classes": su.classes,
+        "n_classes": K,
+        "signatures": su.sig.copy(),
+        "signature_scale": su.signature_scale,
+        "gamma": opt["gamma"],
+        "class_proportions": pi,
+        "rho": opt["rho"],
+        "alpha": alpha_a,
+        "alpha_mode": "auto" if auto_alpha else "fixed",
+        "shading_bias2": bias2,
+        "upsilon": ups_a,
+        "epsilon": eps_a,
+        "links": su.links,
+        "depth_gate": su.gate,
+        "irf_fwhm": su.fwhm,
+        "max_iter": opt["max_iter"],
+        "tol": opt["tol"],
+        "n_links": graph.n_edges,
+    }
+    t_end = time.perf_counter()
+    timings = {
+        "setup": t_graph - t0,
+        "classify": t_cls - t_graph,
+        "iterations": t_iter - t_cls,
+        "outputs": t_end - t_iter,
+        "total": t_end - t0,
+    }
+    log.info(
+        "reconstruct: %d surfaces, %d links, %d sweeps (%s), %.3f s",
+        S, graph.n_edges, history.n_iter, history.reason, timings["total"],
+    )  # fmt: skip
+    return _result(detection, su, graph, u, conf, intensity, std, history, hyper, timings)

@@ -38,7 +38,8 @@ class ConvergenceHistory:
     reason : str
         ``"tol"`` or ``"max_iter"`` (or ``"no surfaces"``).
     label_changes : ndarray (n_iter,), int64, optional
-        Number of labels changed at each sweep.
+        Number of labels changed at each sweep: 0 since issue 14 (the labels are chosen
+        before the sweeps, by :func:`splidar.reconstruction.classify_surfaces`).
     alpha_updates : tuple of int
         Sweeps i after which the empirical-Bayes estimate of (alpha, upsilon) replaced the
         previous value (``reconstruct(alpha="auto")``). ``objective[i]`` is then evaluated under

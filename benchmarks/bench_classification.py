@@ -1,0 +1,250 @@
+"""Spectral classification at low photon counts (issue 14): accuracy, calibration, time.
+
+Scenes (:func:`splidar.scenes.multispectral_scene`, 3 materials, 4 wavelengths, 64 x 64
+pixels, SBR 1): ``one`` (one surface per pixel, bands of material with a patch of
+another in each), ``two`` (a one-pixel net of another material in front: two surfaces
+on the net's pixels) and ``thin`` (``one`` plus, in each band, a one-pixel-wide vertical
+strand and two 3 x 3 patches of another material at the same depth as their
+surroundings, so the depth gate does not separate them), each with a uniform and a
+decaying background, PPP 1 / 4 / 10 / 50; then the Art scene (3 wavelengths, 4 colour
+classes, two surfaces per pixel) at PPP 4 / 16 / 64.
+
+Per cell, over the detected surfaces matched to a true one (``match_points``, tau = 4
+bins; Art: 4 mm): label accuracy of ``splidar.process`` (``max_surfaces=2``), of the
+per-pixel signature classifier on the same surfaces
+(:func:`splidar.baselines.per_pixel_classify`, MSTD-like) and of the same followed by a
+majority filter (:func:`splidar.baselines.majority_filter_labels`), the most common
+class rate among the matched true labels, accuracy on thin strands / nets and on small
+patches, time of classification against the whole ``process``. Then the expected
+calibration error (ECE, 10 equal-width bins of confidence) of ``label_confidence``
+over all matched points of the multispectral cells, and a reliability figure.
+
+Usage::
+
+    python benchmarks/bench_classification.py                # about 5-8 minutes
+    python benchmarks/bench_classification.py --quick        # PPP 1 and 10, no Art
+    python benchmarks/bench_classification.py --figure rel.png --json rows.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+import splidar
+from splidar.metrics import match_points
+from splidar.reconstruction import irf_fraction, nearest_signature
+from splidar.scenes import art_scene, multispectral_scene
+
+try:  # the baselines added with issue 14 (absent before it: computed here then)
+    from splidar.baselines import majority_filter_labels, per_pixel_classify
+    from splidar.reconstruction import flag_unknown
+except ImportError:  # pragma: no cover - the "before" measurement
+    majority_filter_labels = per_pixel_classify = flag_unknown = None
+
+PPP = (1.0, 4.0, 10.0, 50.0)
+PPP_ART = (4.0, 16.0, 64.0)
+SHAPE = (64, 64)
+
+
+def _default_data() -> Path:
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def thin_scene(shape=SHAPE):
+    """``multispectral_scene`` plus one-pixel strands and 3 x 3 patches at the same depth.
+
+    Returns ``(scene, thin)``: ``thin`` marks the truth points of strands and patches
+    (their own material ``(k + 2) mod 3`` in band k)."""
+    sc = multispectral_scene(shape, n_bins=200)
+    t = sc.truth
+    K = sc.library.n_classes
+    sig = sc.library.signatures
+    rows, cols = shape
+    band_w = cols / K
+    mark = np.zeros(shape, bool)
+    for k in range(K):
+        c0 = int(k * band_w + 0.2 * band_w)
+        mark[4 : int(0.5 * rows), c0] = True  # a strand, 1 pixel wide
+        cp = int(k * band_w + 0.6 * band_w)
+        mark[8:11, cp : cp + 3] = True  # two small patches
+        mark[25:28, cp : cp + 3] = True
+    sel = mark[t.row, t.col]
+    lab = t.label.copy()
+    new = (lab + 2) % K
+    lab[sel] = new[sel]
+    inten = t.intensity.copy()
+    inten[sel] = inten[sel] * sig[new[sel]] / sig[t.label[sel]]
+    truth = replace(t, label=lab, intensity=inten)
+    return replace(sc, truth=truth, name="multispectral_thin"), sel
+
+
+def _per_pixel_labels(det, sig):
+    """Per-surface classification of the detected surfaces (nearest signature)."""
+    s = det.surfaces
+    L = det.n_wavelengths
+    y = np.asarray(s.counts, np.float64).reshape(len(s), L)
+    b = np.asarray(s.background, np.float64).reshape(len(s), L)
+    eta = np.maximum(irf_fraction(np.atleast_2d(det.irf), s.depth_bin, s.start, s.stop), 1e-6)
+    if per_pixel_classify is not None:
+        lab = per_pixel_classify(det, sig)
+        return lab, majority_filter_labels(det, lab)
+    return nearest_signature((y - b) / eta, sig), None
+
+
+def ece(conf, correct, n_bins=10):
+    """Expected calibration error: sum over confidence bins of |accuracy - mean conf| x share."""
+    conf = np.asarray(conf, np.float64)
+    correct = np.asarray(correct, np.float64)
+    edges = np.linspace(0.0, 1.0, n_bins + 1)
+    idx = np.clip(np.digitize(conf, edges) - 1, 0, n_bins - 1)
+    out = 0.0
+    for i in range(n_bins):
+        m = idx == i
+        if np.any(m):
+            out += m.mean() * abs(correct[m].mean() - conf[m].mean())
+    return out
+
+
+def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None):
+    sim = scene.simulate(ppp=ppp, sbr=1.0, background=bg, rng=seed)
+    truth = sim.truth
+    t0 = time.perf_counter()
+    rec = splidar.process(sim.cube, library=scene.library, max_surfaces=2, rng=seed)
+    t_proc = time.perf_counter() - t0
+    m = match_points(rec.points, truth, tau=None if tau_m else tau, tau_m=tau_m)
+    e, t = m.est_index, m.true_index
+    tl = truth.label[t]
+    ok = rec.points.label[e] == tl
+    sig = scene.library.signatures
+    pp, pmaj = _per_pixel_labels(rec.detection, sig)
+    row = {
+        "scene": scene.name,
+        "bg": bg,
+        "ppp": ppp,
+        "n_match": int(e.size),
+        "acc": float(ok.mean()),
+        "per_pixel": float((pp[e] == tl).mean()),
+        "per_pixel_majority": float((pmaj[e] == tl).mean()) if pmaj is not None else float("nan"),
+        "most_common": float(np.bincount(tl).max() / max(tl.size, 1)),
+        "t_process": t_proc,
+        "t_classify": float(rec.timings.get("classify", float("nan"))),
+        "n_surfaces": len(rec.points),
+    }
+    for name, mask in (("special", special), ("special2", special2)):
+        if mask is not None:
+            s = mask[t]
+            row[name] = float(ok[s].mean()) if np.any(s) else float("nan")
+            row[name + "_pp"] = float((pp[e][s] == tl[s]).mean()) if np.any(s) else float("nan")
+    if flag_unknown is not None:  # known materials flagged "unknown" at level 1e-3
+        flagged = flag_unknown(rec, level=1e-3).points.label == -1
+        row["unknown_rate"] = float(flagged[e].mean())
+    conf = rec.points.label_confidence
+    calib = (conf[e], ok) if conf is not None else None
+    return row, calib
+
+
+def _fmt(r):
+    extra = ""
+    if "special" in r:
+        extra = f" thin/net {r['special']:.3f} (pp {r['special_pp']:.3f})"
+    if "special2" in r:
+        extra += f" patch {r['special2']:.3f} (pp {r['special2_pp']:.3f})"
+    if "unknown_rate" in r:
+        extra += f" unknown@1e-3 {r['unknown_rate']:.3f}"
+    frac = r["t_classify"] / r["t_process"]
+    return (
+        f"{r['scene']:<24} {r['bg']:<8} {r['ppp']:>4g} {r['n_match']:>6d} {r['acc']:>6.3f} "
+        f"{r['per_pixel']:>6.3f} {r['per_pixel_majority']:>6.3f} {r['most_common']:>6.3f} "
+        f"{r['t_process']:>6.2f} {100 * frac:>5.1f}%{extra}"
+    )
+
+
+HEADER = (
+    f"{'scene':<24} {'bg':<8} {'PPP':>4} {'n':>6} {'acc':>6} {'pp':>6} {'pp+maj':>6} "
+    f"{'common':>6} {'proc_s':>6} {'cls%':>6}"
+)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--data", type=Path, default=_default_data())
+    ap.add_argument("--figure", type=Path, default=None, help="reliability figure (png)")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--no-art", action="store_true")
+    args = ap.parse_args(argv)
+    ppps = (1.0, 10.0) if args.quick else PPP
+    one = multispectral_scene(SHAPE, n_bins=200)
+    two = multispectral_scene(SHAPE, n_bins=200, two_layers=True)
+    thin, thin_mask = thin_scene()
+    # truth masks: the net (two-layer pixels, front layer) and the scene's patches
+    t2 = two.truth
+    cnt = np.bincount(t2.row * SHAPE[1] + t2.col, minlength=SHAPE[0] * SHAPE[1])
+    net = (cnt[t2.row * SHAPE[1] + t2.col] == 2) & (t2.layer == 0)
+    yn = one.truth.row / (SHAPE[0] - 1)
+    fx = (one.truth.col / (SHAPE[1] - 1) * 3) % 1.0
+    patch = (yn > 0.55) & (yn < 0.85) & (fx > 0.25) & (fx < 0.75)
+    rows, confs, oks = [], [], []
+    t_all = time.perf_counter()
+    print(HEADER)
+    for scene, sp, sp2 in ((one, None, patch), (two, net, None), (thin, thin_mask, None)):
+        for bg in ("uniform", "decaying"):
+            for ppp in ppps:
+                r, cal = run_cell(scene, ppp, bg, args.seed, special=sp, special2=sp2)
+                print(_fmt(r), flush=True)
+                rows.append(r)
+                if cal is not None:
+                    confs.append(cal[0])
+                    oks.append(cal[1])
+    conf = np.concatenate(confs)
+    ok = np.concatenate(oks)
+    print(f"\nECE (multispectral cells, {conf.size} matched points): {ece(conf, ok):.4f}")
+    worst = [r for r in rows if r["acc"] < r["per_pixel"]]
+    print(f"cells where splidar < per-pixel: {len(worst)} of {len(rows)}")
+    if args.figure is not None:
+        from splidar.plotting import reliability_diagram
+
+        fig = reliability_diagram(conf, ok)
+        fig.savefig(args.figure, dpi=110)
+        print(f"reliability figure: {args.figure}")
+    folder = args.data / "middlebury-art"
+    if not args.quick and not args.no_art and folder.is_dir():
+        art = art_scene(folder)
+        noise_free = nearest_signature(art.truth.intensity, art.library.signatures)
+        sep = float(np.mean(noise_free == art.truth.label))
+        print(f"\nArt (noise-free separability of the library: {sep:.3f})")
+        print(HEADER)
+        art_cal = []
+        for ppp in PPP_ART:
+            r, cal = run_cell(art, ppp, "uniform", args.seed, tau_m=0.004)
+            r["separability"] = sep
+            print(_fmt(r), flush=True)
+            rows.append(r)
+            if cal is not None:
+                art_cal.append(cal)
+                print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
+        if art_cal and args.figure is not None:
+            from splidar.plotting import reliability_diagram
+
+            c = np.concatenate([a for a, _ in art_cal])
+            o = np.concatenate([b for _, b in art_cal])
+            fig = reliability_diagram(c, o, title=f"Art, PPP 4-64 (ECE {ece(c, o):.3f})")
+            path = args.figure.with_name(args.figure.stem + "_art" + args.figure.suffix)
+            fig.savefig(path, dpi=110)
+            print(f"reliability figure: {path}")
+    print(f"total {time.perf_counter() - t_all:.0f} s")
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
