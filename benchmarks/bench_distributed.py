@@ -116,7 +116,7 @@ def main(argv=None) -> int:
                     threads_per_worker=1,
                     processes=True,
                     memory_limit=args.memory_limit,
-                    dashboard_address=None,
+                    dashboard_address=":0",
                 ) as cluster,
                 distributed.Client(cluster) as client,
             ):

@@ -104,7 +104,7 @@ def local_client():
     distributed = pytest.importorskip("distributed")
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
@@ -197,16 +197,47 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
     a = splidar.detect(cube, rng=1)
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
+        client.wait_for_workers(2)
+        # the workers load the numba kernels before the measured run (a worker busy
+        # compiling under load must not be what the test exercises)
+        small, _ = _cubes(*_varying_cube(shape=(12, 8), n_bins=60, seed=1), (6, 8, 1, 60))
+        splidar.detect(Cube(da.from_array(small.counts, chunks=(6, 8, 1, 60)), irf=small.irf))
         plugin = KillFirstTileWorker(client.run(os.getpid))
         cluster.scheduler.add_plugin(plugin, name="kill-first-tile-worker")
         b = splidar.detect(lazy, rng=1, block_rows=5)  # 8 tiles
         story = cluster.scheduler.story(plugin.key)
-    assert plugin.killed is not None
+    assert plugin.killed is not None, "no tile reached memory on a known worker"
     # the killed worker's tile went back to being computed after it was in memory
     finishes = [s[2] for s in story if s[0] == plugin.key]
     assert finishes.count("memory") >= 2, finishes
     _assert_same_detection(a, b)
+
+
+@pytest.mark.parametrize(
+    ("options", "block_rows", "tile_rows"),
+    [(dict(scales=(1,)), 2, 2), (dict(scales=(1, 3)), 1, 1), (dict(), 3, 5)],
+)
+def test_detect_dask_small_tiles_and_no_halo_match_in_memory(options, block_rows, tile_rows):
+    # no halo (a single scale of 1 pixel); tiles of one row; block_rows raised to the halo
+    sim = single_surface_scene((12, 30), n_bins=80).simulate(ppp=5, sbr=1, rng=0)
+    cube, lazy = _cubes(sim.cube.counts, sim.cube.irf, (3, 30, 1, 80))
+    a = splidar.detect(cube, rng=1, **options)
+    b = splidar.detect(lazy, rng=1, block_rows=block_rows, **options)
+    assert b.options["block_rows"] == tile_rows
+    _assert_same_detection(a, b)
+
+
+def test_process_dask_multispectral_cube_matches_in_memory():
+    from splidar.scenes import multispectral_scene
+
+    sim = multispectral_scene((20, 16), n_bins=100).simulate(ppp=5, sbr=1, rng=0)
+    cube, lazy = _cubes(sim.cube.counts, sim.cube.irf, (4, 8, 2, 50))
+    a = splidar.process(cube, library=sim.cube.library, rng=0)
+    b = splidar.process(lazy, library=sim.cube.library, rng=0)
+    _assert_same_detection(a.detection, b.detection)
+    np.testing.assert_array_equal(b.points.intensity, a.points.intensity)
+    np.testing.assert_array_equal(b.points.label, a.points.label)
