@@ -347,7 +347,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     _common(parser, top=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    _demo_parser(sub, fmt)
+    _run_parser(sub, fmt)
+    _simulate_parser(sub, fmt)
+    _evaluate_parser(sub, fmt)
+    _view_parser(sub, fmt)
+    return parser
 
+
+def _demo_parser(sub, fmt) -> None:
+    """``splidar demo``: the built-in scene end to end."""
     p = sub.add_parser(
         "demo",
         help="simulate a multispectral two-layer scene, process it, print metrics",
@@ -365,6 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p, top=False)
     _json_flag(p)
 
+
+def _run_parser(sub, fmt) -> None:
+    """``splidar run``: process a file."""
     p = sub.add_parser(
         "run",
         help="detect and reconstruct the surfaces of a file",
@@ -435,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p, top=False)
     _json_flag(p)
 
+
+def _simulate_parser(sub, fmt) -> None:
+    """``splidar simulate``: write a simulated cube and its truth."""
     p = sub.add_parser(
         "simulate",
         help="write a simulated cube and its ground truth",
@@ -472,6 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p, top=False)
     _json_flag(p)
 
+
+def _evaluate_parser(sub, fmt) -> None:
+    """``splidar evaluate``: the paper's metrics."""
     p = sub.add_parser(
         "evaluate",
         help="the paper's metrics of estimated points against the truth",
@@ -489,8 +507,6 @@ def build_parser() -> argparse.ArgumentParser:
     tau.add_argument("--tau-m", type=_positive(float), help="matching distance in metres")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _common(p, top=False)
-    _view_parser(sub, fmt)
-    return parser
 
 
 def _json_flag(p: argparse.ArgumentParser) -> None:

@@ -817,36 +817,12 @@ def load(
         wl = d.get("wavelengths_nm")
         lib = _library_from(d)
     else:
-        if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
-            raise SplidarError(
-                f"variable '{name}' of '{p.name}' is neither a count cube nor a cell array of "
-                f"photon times (got {describe(v)}); the file holds: {_summary(d)}."
-            )
-        if v.ndim not in (3, 4):
-            raise SplidarError(
-                f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
-                f"(rows, cols, L, T); got shape {v.shape}."
-            )
         if bin_width is not None or time_unit != "bin":
             raise SplidarError(
                 "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
                 "already binned cube (use bin_width_ps= to set its bin width)."
             )
-        counts = v if v.ndim == 4 else v[:, :, None, :]
-        md0 = _metadata_from(d.get("metadata"))
-        from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
-        if from_save:
-            meta = md0  # written by `save`: restore its metadata exactly
-        else:
-            meta = {**md0, **meta}
-        if window is not None:
-            start, stop, _ = _check_window(window, 1)
-            if not (float(start).is_integer() and float(stop).is_integer()):
-                raise SplidarError(f"`window` on a histogram file is a bin range; got {window}.")
-            counts = counts[..., int(start) : int(stop)]
-            meta["window"] = [int(start), int(stop)]
-            if counts.shape[-1] == 0:
-                raise SplidarError(f"`window` {window} selects no bins of T = {v.shape[-1]}.")
+        counts, meta, from_save = _binned_cube(d, p, name, window, meta)
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
         file_irf = d.get("irf")
         wl = d.get("wavelengths_nm")
@@ -870,6 +846,36 @@ def load(
         metadata=meta,
     )
     return _override(cube, bin_width_ps, wavelengths_nm, library)
+
+
+def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
+    """The count cube ``(rows, cols, L, T)`` of variable ``name``, cropped to ``window``
+    (a bin range), with its metadata; ``from_save`` when :func:`save` wrote the file."""
+    v = d[name]
+    if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
+        raise SplidarError(
+            f"variable '{name}' of '{p.name}' is neither a count cube nor a cell array of "
+            f"photon times (got {describe(v)}); the file holds: {_summary(d)}."
+        )
+    if v.ndim not in (3, 4):
+        raise SplidarError(
+            f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
+            f"(rows, cols, L, T); got shape {v.shape}."
+        )
+    counts = v if v.ndim == 4 else v[:, :, None, :]
+    md0 = _metadata_from(d.get("metadata"))
+    from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
+    # written by `save`: restore its metadata exactly
+    meta = md0 if from_save else {**md0, **meta}
+    if window is not None:
+        start, stop, _ = _check_window(window, 1)
+        if not (float(start).is_integer() and float(stop).is_integer()):
+            raise SplidarError(f"`window` on a histogram file is a bin range; got {window}.")
+        counts = counts[..., int(start) : int(stop)]
+        meta["window"] = [int(start), int(stop)]
+        if counts.shape[-1] == 0:
+            raise SplidarError(f"`window` {window} selects no bins of T = {v.shape[-1]}.")
+    return counts, meta, from_save
 
 
 def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
