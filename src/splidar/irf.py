@@ -124,7 +124,10 @@ def normalise_irf(irf, *, n_wavelengths: int | None = None, name: str = "irf") -
                 f"`{name}` has {a.shape[0]} wavelength(s) but the counts have {n_wavelengths}; "
                 f"pass an IRF of shape ({n_wavelengths}, n_irf) or a single (n_irf,) IRF."
             )
-    return a / sums[:, None]
+    # idempotent: a row already summing to 1 (to rounding) is kept bit for bit, so that
+    # Cube(counts, irf=cube.irf) holds exactly cube's IRF and gives exactly its results
+    s = sums[:, None]
+    return np.where(np.abs(s - 1.0) <= 1e-12, a, a / s)
 
 
 def irf_peak(irf: np.ndarray) -> np.ndarray:
