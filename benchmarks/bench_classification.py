@@ -112,6 +112,23 @@ def ece(conf, correct, n_bins=10):
     return out
 
 
+def colour_boundary(truth, shape):
+    """Truth points with a 4-neighbour pixel of the same layer holding another label."""
+    rows, cols = shape
+    out = np.zeros(len(truth.label), bool)
+    for layer in np.unique(truth.layer):
+        m = truth.layer == layer
+        img = np.full(shape, -1)
+        img[truth.row[m], truth.col[m]] = truth.label[m]
+        pad = np.pad(img, 1, constant_values=-1)
+        diff = np.zeros(shape, bool)
+        for dr, dc in ((0, 1), (2, 1), (1, 0), (1, 2)):
+            nb = pad[dr : dr + rows, dc : dc + cols]
+            diff |= (nb >= 0) & (nb != img)
+        out[m] = diff[truth.row[m], truth.col[m]]
+    return out
+
+
 def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None):
     sim = scene.simulate(ppp=ppp, sbr=1.0, background=bg, rng=seed)
     truth = sim.truth
@@ -152,6 +169,13 @@ def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special
 
 def _fmt(r):
     extra = ""
+    if "boundary" in r:  # Art: surfaces on a colour boundary (own pixel) / inside a region
+        return _fmt(
+            {k: v for k, v in r.items() if k not in ("special", "special2", "boundary")}
+        ) + (
+            f" colour boundary ({r['boundary']:.2f} of them) {r['special']:.3f} "
+            f"(pp {r['special_pp']:.3f}), inside {r['special2']:.3f} (pp {r['special2_pp']:.3f})"
+        )
     if "special" in r:
         extra = f" thin/net {r['special']:.3f} (pp {r['special_pp']:.3f})"
     if "special2" in r:
@@ -223,9 +247,13 @@ def main(argv=None) -> int:
         print(f"\nArt (noise-free separability of the library: {sep:.3f})")
         print(HEADER)
         art_cal = []
+        edge = colour_boundary(art.truth, art.shape)
         for ppp in PPP_ART:
-            r, cal = run_cell(art, ppp, "uniform", args.seed, tau_m=0.004)
+            r, cal = run_cell(
+                art, ppp, "uniform", args.seed, tau_m=0.004, special=edge, special2=~edge
+            )
             r["separability"] = sep
+            r["boundary"] = float(edge.mean())
             print(_fmt(r), flush=True)
             rows.append(r)
             if cal is not None:

@@ -55,7 +55,7 @@ built by numba kernels; the kernels use only the cores other processes leave fre
 updated in the sweeps), with ``alpha="auto"``: Art 0.19-0.20 s, 80,000 surfaces
 (``bench_reconstruction`` (c)) 0.17 s. The classification (``timings["classify"]``)
 costs ``O(S K L)`` for the likelihood (a 16-point quadrature per surface and class) and
-``O(45 (E + S K))`` for the 45 Swendsen-Wang and heat-bath sweeps (E links): linear in the surfaces
+``O(48 (E + S K))`` for the 48 Swendsen-Wang and heat-bath sweeps (E links): linear in the surfaces
 and the classes (``docs/classification.md`` has the measured figures).
 
 The gamma-MRF here is ``log p(h, w) = sum_{links (s, j)} rho (log h_s - log w_j -
