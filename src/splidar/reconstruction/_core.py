@@ -978,6 +978,31 @@ def _result(detection, su: _Setup, graph, u, conf, intensity, std, history, hype
     )
 
 
+def _hyperparameters(su, opt, prior, pi, bias2, graph) -> dict:
+    """What a reconstruction used and estimated, for ``Reconstruction.hyperparameters``."""
+    auto_alpha, alpha_a, ups_a, eps_a = prior
+    return {
+        "classes": su.classes,
+        "n_classes": int(su.sig.shape[0]),
+        "signatures": su.sig.copy(),
+        "signature_scale": su.signature_scale,
+        "gamma": opt["gamma"],
+        "class_proportions": pi,
+        "rho": opt["rho"],
+        "alpha": alpha_a,
+        "alpha_mode": "auto" if auto_alpha else "fixed",
+        "shading_bias2": bias2,
+        "upsilon": ups_a,
+        "epsilon": eps_a,
+        "links": su.links,
+        "depth_gate": su.gate,
+        "irf_fwhm": su.fwhm,
+        "max_iter": opt["max_iter"],
+        "tol": opt["tol"],
+        "n_links": graph.n_edges,
+    }
+
+
 @_one_at_a_time
 def reconstruct(
     detection: Detection,
@@ -1108,27 +1133,7 @@ def reconstruct(
     )
     t_iter = time.perf_counter()
     intensity, std, bias2 = _intensity_and_std(su, graph, u, marg, state, prior, opt["rho"], rng)
-    auto_alpha, alpha_a, ups_a, eps_a = prior
-    hyper = {
-        "classes": su.classes,
-        "n_classes": K,
-        "signatures": su.sig.copy(),
-        "signature_scale": su.signature_scale,
-        "gamma": opt["gamma"],
-        "class_proportions": pi,
-        "rho": opt["rho"],
-        "alpha": alpha_a,
-        "alpha_mode": "auto" if auto_alpha else "fixed",
-        "shading_bias2": bias2,
-        "upsilon": ups_a,
-        "epsilon": eps_a,
-        "links": su.links,
-        "depth_gate": su.gate,
-        "irf_fwhm": su.fwhm,
-        "max_iter": opt["max_iter"],
-        "tol": opt["tol"],
-        "n_links": graph.n_edges,
-    }
+    hyper = _hyperparameters(su, opt, prior, pi, bias2, graph)
     t_end = time.perf_counter()
     timings = {
         "setup": t_graph - t0,
