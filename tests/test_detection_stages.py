@@ -213,3 +213,15 @@ def test_detect_passes_selects_the_clean_up_passes(net_map):
         "map", "isolated", "dark_regions", "slopes", "select",
     ]  # fmt: skip
     assert no_spill.options["n_spill_over"] == 0 and no_spill.options["spill_llr"] is None
+
+
+def test_detect_refuses_a_cube_larger_than_free_memory(monkeypatch):
+    # the memory guard runs at detect's entry for Python callers too: refused with the
+    # figure and the way out, before anything large is allocated
+    from splidar import Cube, SplidarError, gaussian_irf
+    from splidar.detection import detect
+
+    cube = Cube(np.zeros((32, 32, 1, 400), np.uint16), irf=gaussian_irf(3.0))
+    monkeypatch.setenv("SPLIDAR_MEMORY_LIMIT", "1M")
+    with pytest.raises(SplidarError, match=r"(?s)detection on 32 x 32 pixels.*store="):
+        detect(cube)

@@ -123,5 +123,6 @@ def check_detect_memory(cube, *, store=None) -> None:
         detect_peak_bytes(cube.shape),
         f"detection on {rows} x {cols} pixels x {n_bins} bins",
         "process a crop (a smaller region, or --window START STOP over the bins), or save "
-        "the cube as Zarr (splidar simulate/io.save to .zarr) and pass --store DIR",
+        "the cube as Zarr (splidar.io.save(cube, 'cube.zarr')) and detect it with a store "
+        "(store='det.zarr' in Python, --store DIR on the command line)",
     )

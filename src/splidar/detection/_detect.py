@@ -9,6 +9,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from .._memory import check_detect_memory
 from .._validation import (
     SplidarError,
     check_choice,
@@ -225,6 +226,7 @@ def detect(
     """
     t_start, timings = time.perf_counter(), {}
     o = _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence)
+    check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
@@ -244,27 +246,11 @@ def detect(
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if tiled:
-        mp = map_candidates_tiled(  # 4, tile by tile on the active Dask scheduler
-            cube.counts, filters, nul, _map_options(o, T), block_rows=o["block_rows"],
-            store=store,
-        )  # fmt: skip
-    else:
-        mp = map_candidates(  # 4
-            cube.counts, filters, nul, _map_options(o, T), block_rows=o["block_rows"],
-            n_jobs=n_jobs, store=store,
-        )  # fmt: skip
+    mp = _map_pass(cube, filters, nul, o, store, tiled)  # 4
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     done = _clean_up(cube, o, mp, bg, corr, rng)  # 5
-    surfaces = select_surfaces(  # 6
-        done[-1].table, mp.histograms, max_surfaces=o["max_surfaces"],
-        n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
-    )  # fmt: skip
-    t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
-    if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
-        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])  # 7
-        surfaces = aligned.surfaces
+    surfaces, aligned, t_sel = _select_and_align(cube, o, mp, done, t0)  # 6, 7
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
         timings["slopes"] = next(p.seconds for p in done if p.name == "slopes")
@@ -299,6 +285,34 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     # peaks closer than the IRF's FWHM are one surface (the former min_separation)
     o["min_separation"] = int(np.ceil(o["fwhm"]))
     return o
+
+
+def _select_and_align(cube, o, mp, done, t0: float):
+    """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depth alignment;
+    with the selection's own seconds (since ``t0``, less the clean-up passes')."""
+    surfaces = select_surfaces(
+        done[-1].table, mp.histograms, max_surfaces=o["max_surfaces"],
+        n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
+    )  # fmt: skip
+    t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
+    if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
+        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])
+        surfaces = aligned.surfaces
+    return surfaces, aligned, t_sel
+
+
+def _map_pass(cube, filters, nul, o, store, tiled: bool):
+    """Stage 4, the one pass over every voxel: tile by tile on the active Dask scheduler
+    for a Dask cube (``_tiled.py``), else in row blocks on ``n_jobs`` threads."""
+    opts = _map_options(o, cube.shape[3])
+    if tiled:
+        return map_candidates_tiled(
+            cube.counts, filters, nul, opts, block_rows=o["block_rows"], store=store
+        )
+    return map_candidates(
+        cube.counts, filters, nul, opts, block_rows=o["block_rows"], n_jobs=o["n_jobs"],
+        store=store,
+    )  # fmt: skip
 
 
 def _check_resources(passes, block_rows, n_jobs, presence: str) -> dict:
