@@ -32,7 +32,8 @@ def reference(tmp_path_factory):
     scene = d / "scene.npz"
     args = ["--size", "16", "16", "--bins", "80", "--ppp", "10", "--sbr", "1", "--seed", "2"]
     assert main(["simulate", "multispectral", *args, "--out", str(scene), "-q"]) == 0
-    ref = d / "ref"
+    ref = d / "ref" / "out"  # named as the runs' folders: view.html's title is the folder name
+    ref.parent.mkdir()
     assert main(["run", str(scene), "--out", str(ref), "--no-figures", "-q"]) == 0
     return scene, ref, _digest(ref)
 
