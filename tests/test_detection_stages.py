@@ -225,3 +225,31 @@ def test_detect_refuses_a_cube_larger_than_free_memory(monkeypatch):
     monkeypatch.setenv("SPLIDAR_MEMORY_LIMIT", "1M")
     with pytest.raises(SplidarError, match=r"(?s)detection on 32 x 32 pixels.*store="):
         detect(cube)
+
+
+def test_rescue_dark_ignores_pools_whose_members_peak_at_their_own_depths():
+    # the halo of empty pixels around a bright object: each rejected candidate's depth
+    # sits on one background photon of its own, at one of three depths 3.5 bins apart
+    # (within the FWHM of each other, outside each other's half-maximum window). Counted
+    # about their own depths the pool holds 25 photons for a background of 12.5:
+    # "significant"; about the pool's depth only a third of them: background.
+    from splidar.detection._quality import rescue_dark
+
+    g = np.asarray(gaussian_irf(2.0), float)[None]
+    n, W = 25, 13
+    r, c = np.divmod(np.arange(n), 5)
+    depth = np.array([2.5, 6.0, 9.5])[(r + c) % 3]
+    cnt = np.zeros((n, 1, W), np.int32)
+    cnt[np.arange(n), 0, np.round(depth).astype(int)] = 1
+    surf = dict(
+        row=r, col=c, depth_bin=depth, offset=np.zeros(n, int), own_counts=cnt,
+        own_background=np.full((n, 1, W), 0.1, np.float32), evidence=np.ones(n),
+        image_shape=(5, 5),
+    )  # fmt: skip
+    kw = dict(irf=g, peak=np.array([g.argmax()]), fwhm=4.7, half=4, pfa=0.01, llr_level=-3.0)
+    assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == 0
+    # the same pixels with their photon at one common depth: a dim patch, restored
+    cnt[:] = 0
+    cnt[:, 0, 6] = 1
+    surf.update(own_counts=cnt, depth_bin=np.full(n, 6.0))
+    assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == n

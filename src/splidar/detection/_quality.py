@@ -612,14 +612,15 @@ def _dark_pools(
     """Suspects of :func:`rescue_dark` and the sums of their pools.
 
     Returns the suspects' indices (m,), the pooled counts, background and IRF fraction
-    in the half-maximum windows, per wavelength ((m, L) each), and the pools' sizes.
+    in the half-maximum windows about the suspect's depth, per wavelength ((m, L)
+    each), the pools' sizes, and the pooled counts and background about each member's
+    own depth ((m,) each).
     """
     S = row.size
     L = counts.shape[1]
     W = counts.shape[2]
     n_l = np.zeros((S, L))
     b_l = np.zeros((S, L))
-    f_l = np.zeros((S, L))
     member = np.zeros(S, np.bool_)
     for i in range(S):
         nt = 0.0
@@ -633,7 +634,6 @@ def _dark_pools(
                 if abs(x) <= hw:
                     n_l[i, l] += counts[i, l, w]
                     b_l[i, l] += b
-                    f_l[i, l] += _interp_irf(irf[l], x + peak[l])
             nt += n_l[i, l]
             bt += b_l[i, l]
         if keep[i]:
@@ -661,6 +661,8 @@ def _dark_pools(
     pb = np.zeros((m, L))
     pf = np.zeros((m, L))
     size = np.zeros(m, np.int64)
+    n0 = np.zeros(m)  # the same pool counted about each member's own depth
+    b0 = np.zeros(m)
     k = 0
     for p in range(R * C):
         i = sus[p]
@@ -677,11 +679,22 @@ def _dark_pools(
                     if member[a] and abs(d[a] - d[i]) <= fwhm:
                         size[k] += 1
                         for l in range(L):
-                            pn[k, l] += n_l[a, l]
-                            pb[k, l] += b_l[a, l]
-                            pf[k, l] += f_l[a, l]
+                            n0[k] += n_l[a, l]
+                            b0[k] += b_l[a, l]
+                        # counted about the pool's depth d[i], not the member's own: a
+                        # member's depth sits on its own counts' peak, and summed over
+                        # the pool that bias alone passes the test (the halo of empty
+                        # pixels around a bright object)
+                        for l in range(L):
+                            for w in range(W):
+                                b = np.float64(bkg[a, l, w])
+                                x = offset[a] + w - d[i]
+                                if b > 0.0 and abs(x) <= hw:
+                                    pn[k, l] += counts[a, l, w]
+                                    pb[k, l] += b
+                                    pf[k, l] += _interp_irf(irf[l], x + peak[l])
         k += 1
-    return idx, pn, pb, pf, size
+    return idx, pn, pb, pf, size, n0, b0
 
 
 def rescue_dark(
@@ -707,9 +720,14 @@ def rescue_dark(
     of largest evidence (a *suspect*) is pooled with the other suspects and the kept
     candidates whose own counts are weak (z < ``weak_z`` in the half-maximum window),
     within ``half`` pixels and at the same depth (within ``fwhm``): their own counts
-    ``n`` and background ``B`` in the half-maximum window about each one's depth. It is
-    restored when ``P(N >= n | B) <= pfa`` and its own counts do not reject a return of
-    the pool's mean intensity (own log-likelihood ratio ``>= llr_level``).
+    ``n`` and background ``B`` in the half-maximum window about the suspect's depth (the
+    pool's). It is restored when ``P(N >= n | B) <= pfa``, also with each member's
+    counts taken about its own depth (the former test), and its own counts do not
+    reject a return of the pool's mean intensity (own log-likelihood ratio
+    ``>= llr_level``). Each member's depth sits on its own counts' peak: summed about
+    those depths, a pool of background-only pixels (the halo of empty pixels beside a
+    bright object, whose coarse boxes planted the candidates) passed the test on that
+    bias alone.
 
     Parameters
     ----------
@@ -773,7 +791,7 @@ def rescue_dark(
     counts = np.ascontiguousarray(surf["own_counts"])
     bkg = np.ascontiguousarray(surf["own_background"], np.float32)
     hw = max(1.0, 0.5 * float(fwhm))
-    sus, pn, pb, pf, size = _dark_pools(
+    sus, pn, pb, pf, size, n0, b0 = _dark_pools(
         row, col, d, off, counts, bkg, np.ascontiguousarray(keep),
         np.asarray(surf["evidence"], np.float64), order, starts, int(R), int(C),
         np.ascontiguousarray(irf, np.float64), np.asarray(peak, np.float64), hw,
@@ -782,6 +800,10 @@ def rescue_dark(
     if sus.size == 0:
         return out
     p = stats.poisson.sf(pn.sum(axis=1) - 1, np.maximum(pb.sum(axis=1), 1e-12))
+    # the same pool counted about each member's own depth: the former test, kept as a
+    # second condition (alone, the pool's depth let suspects of wrong depth through on
+    # a true surface beside them: single surface PPP 1, SBR 1, false restored 4 -> 35)
+    p = np.maximum(p, stats.poisson.sf(n0 - 1, np.maximum(b0, 1e-12)))
     sig = np.flatnonzero((p <= pfa) & (size >= min_pool))
     if sig.size == 0:
         return out
