@@ -242,9 +242,7 @@ def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk,
         zreq = opts["presence_z"]
         if opts["presence"] == "adaptive":
             # presence_z, or presence_z below the predicted z when the neighbourhood
-            # is too dim for a true return to reach presence_z; zpred is the local z
-            # plus its largest shortfall below the selected and the coarser scales
-            # (_kernels._local_z): no relaxation where a bright neighbour fills them
+            # is too dim for a true return to reach presence_z
             zreq = np.minimum(zreq, zpred - opts["presence_z"])
         keep = (zloc >= zreq) & (llr >= -opts["presence_llr"])
     o["row"] = rows + r0

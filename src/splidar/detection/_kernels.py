@@ -455,40 +455,22 @@ def _own_pixel(
 
 
 @njit(cache=True, nogil=True)
-def _local_z(resp, bh, gsq, signal_sel, scales, qloc, dw):
-    """z of the local scale's response at the depth, and that z plus its largest
-    shortfall (the adaptive presence test's ``zpred``, ``_4_map._extract``).
-
-    The shortfall is the larger of: the response a return of the selected scale's
-    intensity would give, minus the local response, over the local noise; and, for each
-    coarser scale, its response minus the local one over the local noise of a pixel
-    holding that coarser return (background plus the return's own Poisson variance).
-    A bright neighbour spread into the coarse boxes leaves the local box empty: the
-    local response falls short of theirs by many standard deviations, also where the
-    local scale is the selected one (its own prediction can show no shortfall). The
-    return's variance keeps true dim pixels at low counts, whose local responses
-    scatter that much about the coarse ones (PPP 1 cells of benchmarks/bench_halo.py).
-    """
+def _local_z(resp, bh, gsq, signal_sel, scale, dw):
+    """z of the local scale's response at the depth and the z a return of the selected
+    scale's intensity would give there."""
     L, W = bh.shape
-    Q = resp.shape[0]
     wd = int(np.rint(dw))
     wd = min(max(wd, 0), W - 1)
-    r = np.zeros(Q, np.float64)
-    vs = np.zeros(Q, np.float64)  # the coarser returns' own (Poisson) variance
+    r_loc = np.float32(0.0)
     var = 0.0
     zp = 0.0
     for l in range(L):
-        for q in range(qloc, Q):
-            r[q] += resp[q, l, wd]
-            vs[q] += max(resp[q, l, wd], 0.0) * gsq[l]
+        r_loc += resp[l, wd]
         var += bh[l, wd] * gsq[l]
         zp += signal_sel[l] * gsq[l]
-    k2 = scales[qloc] * scales[qloc]
-    sd = np.sqrt(max(var / k2, 1e-12))
-    short = (zp - r[qloc]) / sd
-    for q in range(qloc + 1, Q):
-        short = max(short, (r[q] - r[qloc]) / np.sqrt(max((var + vs[q]) / k2, 1e-12)))
-    return r[qloc] / sd, r[qloc] / sd + short
+    var /= scale * scale
+    sd = np.sqrt(max(var, 1e-12))
+    return r_loc / sd, zp / sd
 
 
 @njit(cache=True, nogil=True)
@@ -634,7 +616,7 @@ def extract_surfaces(
             for l in range(L):
                 s_tmp[l] = o_signal[s, qbar, l]
             o_llr_sel[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
-        o_zloc[s], o_zpred[s] = _local_z(resp, bh, gsq, o_signal[s, qbar], scales, qloc, dw)
+        o_zloc[s], o_zpred[s] = _local_z(resp[qloc], bh, gsq, o_signal[s, qbar], scales[qloc], dw)
 
 
 @njit(cache=True, nogil=True)
