@@ -3,8 +3,8 @@
 Runs ``splidar.detect`` on an object of 3 materials (4 wavelengths) in front of empty
 pixels (``benchmarks/paper``'s ``object_scene``, 64 x 64, SBR 1.3, PPP 4 and 50) and on
 the detection benchmark's headline cells (single surface PPP 4, SBR 0.25 and PPP 1,
-SBR 1; net scene PPP 10, SBR 1; uniform and decaying background), and prints per cell
-F_true (tau = 3 bins), the false surfaces (count on the pixel count), the stage that
+SBR 1; net scene PPP 10, SBR 1 and PPP 1, SBR 1; uniform and decaying background), and
+prints per cell F_true (tau = 3 bins), the false surfaces (count on the pixel count), the stage that
 keeps each false surface (``Surfaces.stage``) and, on the object, the surfaces in empty
 pixels farther than 2 pixels from it. Compare two versions by running the script under
 each (same seeds, same cubes)::
@@ -40,6 +40,7 @@ CELLS = (
     ("two_layer", "uniform", 10, 1.0),
     ("two_layer", "decaying", 10, 1.0),
     ("single", "uniform", 1, 1.0),
+    ("two_layer", "uniform", 1, 1.0),
     ("object", "uniform", 4, 1.3),
     ("object", "uniform", 50, 1.3),
 )
