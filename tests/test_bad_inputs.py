@@ -784,3 +784,19 @@ def _table() -> str:
 
 if __name__ == "__main__":
     sys.exit(print(_table()))
+
+
+def test_load_npy_header_claiming_more_than_the_file_is_refused_before_allocating(tmp_path):
+    # 72.8 TiB claimed, 64 bytes stored: refused from the header, not by a failed allocation
+    from splidar import SplidarError
+    from splidar.io import load, load_irf
+
+    p = tmp_path / "claims.npy"
+    with open(p, "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f8", "fortran_order": False, "shape": (10**7, 10**6)}
+        )
+        f.write(b"\0" * 64)
+    for reader in (load, load_irf):
+        with pytest.raises(SplidarError, match=r"claims 72\.8 TiB .* at most 64 bytes"):
+            reader(p)

@@ -411,9 +411,24 @@ def _read_container(p: Path) -> dict[str, Any]:
 
 
 def _read_npy(p: Path) -> np.ndarray:
-    """One array from a ``.npy`` file (never unpickled: object arrays are refused)."""
+    """One array from a ``.npy`` file (never unpickled: object arrays are refused; the
+    header's size is checked against the file's before anything is allocated)."""
     try:
+        fmt = np.lib.format
+        with open(p, "rb") as fp:
+            try:
+                v = fmt.read_magic(fp)
+                read = fmt.read_array_header_1_0 if v == (1, 0) else fmt.read_array_header_2_0
+                shape, _, dtype = read(fp)
+            except Exception:  # a broken header: np.load below names the problem
+                shape, dtype = None, None
+            holds = os.fstat(fp.fileno()).st_size - fp.tell()
+        if shape is not None and not dtype.hasobject:  # object arrays: np.load refuses them
+            nbytes = math.prod(shape) * dtype.itemsize
+            _claims_too_much(p, f"array {tuple(shape)}", nbytes, holds)
         return np.load(p, allow_pickle=False)
+    except SplidarError:
+        raise
     except ValueError as exc:
         raise SplidarError(
             f"cannot read '{p}' as a numeric .npy array ({exc}); splidar opens .npy files "
