@@ -63,7 +63,7 @@ from ._core import (
 from ._graph import build_graph
 from ._result import ConvergenceHistory, Reconstruction
 
-__all__ = ["MARGIN", "TILE_BYTES", "reconstruct", "reconstruct_tiled", "strips"]
+__all__ = ["MARGIN", "TILE_BYTES", "StreamedRun", "reconstruct", "reconstruct_tiled", "strips"]
 
 log = logging.getLogger(__name__)
 
@@ -80,15 +80,19 @@ MARGIN = 16
 TILE_BYTES = 256 * 2**20
 
 
-def strips(n_rows: int, n_surfaces: int, n_wavelengths: int, n_classes: int) -> list:
-    """Core row ranges ``[r0, r1)`` of the strips: as many rows as fit :data:`TILE_BYTES`
-    with the margins, at least :data:`MARGIN`; one strip when the whole image fits."""
-    per_surface = reconstruct_peak_bytes(1, n_wavelengths, n_classes)
-    per_row = max(n_surfaces / max(n_rows, 1), 1e-9)
-    core = max(int(TILE_BYTES / per_surface / per_row) - 2 * MARGIN, MARGIN)
+def strips(n_rows: int, n_surfaces: int, n_wavelengths: int, n_classes: int, *, core=None) -> list:
+    """Core row ranges ``[r0, r1)`` of the strips: ``core`` rows, default as many as fit
+    :data:`TILE_BYTES` with the margins, at least :data:`MARGIN`; one strip when the whole
+    image fits."""
+    if core is None:
+        per_surface = reconstruct_peak_bytes(1, n_wavelengths, n_classes)
+        per_row = max(n_surfaces / max(n_rows, 1), 1e-9)
+        core = max(int(TILE_BYTES / per_surface / per_row) - 2 * MARGIN, MARGIN)
+    core = max(int(core), 1)
     if core >= n_rows:
         return [(0, n_rows)]
-    return tile_bounds(n_rows, core, MARGIN)  # a last strip under MARGIN rows joins the one before
+    # a last strip shorter than MARGIN (or core) rows joins the one before
+    return tile_bounds(n_rows, core, min(MARGIN, core))
 
 
 def _seed(base: int, r0: int, salt: int) -> int:
@@ -174,14 +178,15 @@ def _fit_tile(st: _Strip, u, marg, shared, eb):
     return intensity[core], std[core], bias2, n_core, n_links, hist, prior
 
 
-def _history(hists: list) -> ConvergenceHistory:
+def _history(metas: list) -> ConvergenceHistory:
     """One history for the strips: the most sweeps, the largest change at each sweep."""
-    n = max(h.n_iter for h in hists)
+    n = max(m["n_iter"] for m in metas)
     change = np.zeros(n)
-    for h in hists:
-        change[: h.n_iter] = np.maximum(change[: h.n_iter], h.change)
-    longest = max(hists, key=lambda h: h.n_iter)
-    converged = all(h.converged for h in hists)
+    for m in metas:
+        k = len(m.get("change", ()))
+        change[:k] = np.maximum(change[:k], m.get("change", ()))
+    longest = max(metas, key=lambda m: m["n_iter"])
+    converged = all(m["converged"] for m in metas)
     return ConvergenceHistory(
         # the strips' objectives overlap in their margins: no sum is the image's
         objective=np.full(n + 1, np.nan),
@@ -189,57 +194,52 @@ def _history(hists: list) -> ConvergenceHistory:
         n_iter=int(n),
         converged=converged,
         reason="tol" if converged else "max_iter",
-        alpha_updates=longest.alpha_updates,
+        alpha_updates=tuple(longest.get("alpha_updates", ())),
         label_changes=np.zeros(n, np.int64),
     )
 
 
-def _run(tasks: list, name: str) -> list:
-    out = [None] * len(tasks)
-
-    def take(i, result):
-        out[i] = result
-
+def _run(tasks: dict, name: str, take) -> None:
+    """Compute ``{strip: task}`` on the active scheduler; ``take(strip, result)`` as each
+    finishes (on a cluster in the order they finish)."""
+    keys = list(tasks)
     t = time.perf_counter()
-    compute_each(tasks, take)
-    log.info("reconstruct: %d %s task(s), %.3f s", len(tasks), name, time.perf_counter() - t)
-    return out
+    compute_each([tasks[n] for n in keys], lambda i, result: take(keys[i], result))
+    log.info("reconstruct: %d %s task(s), %.3f s", len(keys), name, time.perf_counter() - t)
 
 
-def reconstruct_tiled(detection, **options) -> Reconstruction:
-    """:func:`splidar.reconstruct` (same keywords) on overlapping strips of rows, as Dask
-    tasks on the active scheduler (steps in the module docstring); in memory when the
-    whole image fits one strip."""
-    import dask
+@dataclasses.dataclass(frozen=True)
+class StreamedRun:
+    """What :func:`reconstruct_tiled` returns with ``assemble=False``: the points are in
+    the store, not in memory."""
 
+    n_points: int
+    cores: tuple
+    skipped: tuple  #: strips whose results the store already held (not recomputed)
+    hyperparameters: dict
+    timings: dict
+    detection: object  #: the Detection the strips came from
+
+
+def _plan(detection, options, strip_rows):
+    """Checked options, the strips' cores and the number of classes."""
     opt = _check_options(
         detection, options["gamma"], options["rho"], options["max_iter"], options["tol"],
         options["links"], options["signature_scale"], options["classes"], options["n_classes"],
     )  # fmt: skip
-    surf = detection.surfaces
-    R, C = detection.image_shape
-    L = detection.n_wavelengths
-    classes, lib = _resolve_classes(detection, options["library"], opt["classes"], opt["n_classes"])
+    R = detection.image_shape[0]
+    _, lib = _resolve_classes(detection, options["library"], opt["classes"], opt["n_classes"])
     K = lib.n_classes if lib is not None else (opt["n_classes"] or 1)
-    cores = strips(R, len(surf), L, K)
-    if len(cores) == 1 or len(surf) == 0:
-        return _core.reconstruct(detection, **options)
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(options["rng"])
-    with _KERNEL_LOCK:  # numba kernels: the IRF fractions and the class likelihoods
-        su = _setup(detection, options["library"], opt, rng)
-        K = su.sig.shape[0]
-        base = int(rng.integers(2**31))  # where the in-memory run seeds its label sampler
-        pi = em_proportions(class_loglik(su.y, su.b, su.eta, su.sig)) if K > 1 else np.ones(1)
-    prior = _prior_arrays(options["alpha"], options["upsilon"], su.sig)
+    n = len(detection.surfaces)
+    cores = strips(R, n, detection.n_wavelengths, K, core=strip_rows)
+    return opt, cores
+
+
+def _cut(detection, su, cores):
+    """Per strip: the surfaces' indices (core and margins), the ``_Strip``, the core's."""
+    surf = detection.surfaces
     order = np.argsort(surf.row, kind="stable")
     srow = surf.row[order]
-    empty = np.zeros((0, L))
-    shared = dict(
-        setup=dataclasses.replace(su, y=empty, b=empty, eta=empty, intensity_raw=empty),
-        n_cols=int(C), n_slots=int(surf.n_slots), gamma=opt["gamma"], rho=opt["rho"],
-        max_iter=opt["max_iter"], tol=opt["tol"], prior=prior, pi=pi, base=base,
-    )  # fmt: skip
     idx, strips_ = [], []
     for r0, r1 in cores:
         lo, hi = np.searchsorted(srow, [r0 - MARGIN, r1 + MARGIN])
@@ -258,79 +258,169 @@ def reconstruct_tiled(detection, **options) -> Reconstruction:
                 su.eta[i],
             )  # fmt: skip
         )
-    core_idx = [i[st.core] for i, st in zip(idx, strips_, strict=True)]
+    return idx, strips_, [i[st.core] for i, st in zip(idx, strips_, strict=True)]
+
+
+def _points(detection, ci, intensity, std, u, conf) -> dict:
+    """One strip's core points as columns (``surface``: index in the detection's table)."""
+    s = detection.surfaces
+    return dict(
+        surface=ci, row=s.row[ci], col=s.col[ci], depth_bin=s.depth_bin[ci], layer=s.slot[ci],
+        intensity=intensity, intensity_std=std, label=u, label_confidence=conf,
+    )  # fmt: skip
+
+
+def _labels_pass(detection, su, strips_, core_idx, sh, token, K, store):
+    """Steps 2-3: labels, marginals and (``alpha="auto"``) the global (alpha, upsilon)."""
+    import dask
+
+    S = len(detection.surfaces)
+    u = np.zeros(S, np.int64)
+    marg = np.ones((S, 1)) if K == 1 else np.zeros((S, K))
+    h_nb = np.zeros(S)
+
+    def take(n, result):
+        uc, mc, hc = result
+        ci = core_idx[n]
+        u[ci], marg[ci] = uc, mc
+        if hc is not None:
+            h_nb[ci] = hc
+        if store is not None:
+            store.put_labels(n, result)
+
+    tasks = {}
+    for n, st in enumerate(strips_):
+        done = None if store is None else store.labels(n)
+        if done is not None:
+            take(n, done)
+        else:
+            tasks[n] = dask.delayed(_labels_tile, pure=True)(
+                st, sh, dask_key_name=(f"splidar-labels-tile-{token}", n)
+            )
+    _run(tasks, "labels", take)
+    return u, marg, h_nb
+
+
+def reconstruct_tiled(
+    detection, *, strip_rows=None, store=None, assemble=True, **options
+) -> Reconstruction | StreamedRun:
+    """:func:`splidar.reconstruct` (same keywords) on overlapping strips of rows, as Dask
+    tasks on the active scheduler (steps in the module docstring); in memory when the
+    whole image fits one strip.
+
+    ``strip_rows``: core rows per strip (default: from :data:`TILE_BYTES`). ``store``: an
+    object that keeps each strip's results as it finishes and gives back those of an
+    earlier, interrupted run (``splidar._stream.StripStore``, used by ``splidar run``);
+    ``assemble=False`` (with a store) returns a :class:`StreamedRun` instead of holding
+    every point in memory.
+    """
+    import dask
+
+    options = inspect.signature(_core.reconstruct).bind(detection, **options)
+    options.apply_defaults()
+    options = {k: v for k, v in options.arguments.items() if k != "detection"}
+    opt, cores = _plan(detection, options, strip_rows)
+    surf = detection.surfaces
+    S, L = len(surf), detection.n_wavelengths
+    if store is not None:
+        store.begin(cores)
+    if len(cores) == 1 or S == 0:
+        rec = _core.reconstruct(detection, **options)
+        if store is not None and store.fitted(0) is None:
+            p = rec.points
+            ci = np.arange(S)
+            meta = dict(bias2=0.0, n_links=0, n_iter=rec.history.n_iter, converged=True)
+            pts = _points(detection, ci, p.intensity, p.intensity_std, p.label, p.label_confidence)
+            store.put_fit(0, (0, detection.image_shape[0]), pts, meta)
+        return rec
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(options["rng"])
+    with _KERNEL_LOCK:  # numba kernels: the IRF fractions and the class likelihoods
+        su = _setup(detection, options["library"], opt, rng)
+        K = su.sig.shape[0]
+        base = int(rng.integers(2**31))  # where the in-memory run seeds its label sampler
+        pi = em_proportions(class_loglik(su.y, su.b, su.eta, su.sig)) if K > 1 else np.ones(1)
+    prior = _prior_arrays(options["alpha"], options["upsilon"], su.sig)
+    empty = np.zeros((0, L))
+    shared = dict(
+        setup=dataclasses.replace(su, y=empty, b=empty, eta=empty, intensity_raw=empty),
+        n_cols=int(detection.image_shape[1]), n_slots=int(surf.n_slots), gamma=opt["gamma"],
+        rho=opt["rho"], max_iter=opt["max_iter"], tol=opt["tol"], prior=prior, pi=pi, base=base,
+    )  # fmt: skip
+    idx, strips_, core_idx = _cut(detection, su, cores)
     t_setup = time.perf_counter()
     token = dask.base.tokenize(strips_, shared)
     sh = dask.delayed(shared, pure=True)
-    S = len(surf)
-    u = np.zeros(S, np.int64)
-    marg = np.ones((S, 1)) if K == 1 else np.zeros((S, K))
+    u, marg = np.zeros(S, np.int64), np.ones((S, 1))
     eb = None
     if K > 1 or prior[0]:
-        labelled = _run(
-            [
-                dask.delayed(_labels_tile, pure=True)(
-                    st, sh, dask_key_name=(f"splidar-labels-tile-{token}", n)
-                )
-                for n, st in enumerate(strips_)
-            ],
-            "labels",
-        )
-        h_nb = np.zeros(S)
-        for ci, (uc, mc, hc) in zip(core_idx, labelled, strict=True):
-            u[ci], marg[ci] = uc, mc
-            if hc is not None:
-                h_nb[ci] = hc
+        u, marg, h_nb = _labels_pass(detection, su, strips_, core_idx, sh, token, K, store)
         if prior[0]:
             with _KERNEL_LOCK:
                 eb = _split_variability(estimate_alpha(su.y, su.b, su.eta, h_nb, u, su.sig))
+    if eb is not None:  # the prior every strip used: (auto, alpha, upsilon, epsilon)
+        prior = (True, eb[0], eb[1], su.sig * (eb[1] - 1.0) / eb[0])
     t_cls = time.perf_counter()
-    fitted = _run(
-        [
-            dask.delayed(_fit_tile, pure=True)(
-                st, u[i], marg[i], sh, eb, dask_key_name=(f"splidar-reconstruct-tile-{token}", n)
-            )
-            for n, (st, i) in enumerate(zip(strips_, idx, strict=True))
-        ],
-        "reconstruct",
-    )
-    intensity, std = np.zeros((S, L)), np.zeros((S, L))
-    bias2, n_links, hists = 0.0, 0, []
-    for ci, (ic, sc, b2, n_core, n_l, hist, _) in zip(core_idx, fitted, strict=True):
-        intensity[ci], std[ci] = ic, sc
-        bias2 += (b2 or 0.0) * n_core
-        n_links += n_l
-        hists.append(hist)
-    t_iter = time.perf_counter()
     conf = marg.max(axis=1)
+    intensity, std = (np.zeros((S, L)), np.zeros((S, L))) if assemble else (None, None)
+    metas = [None] * len(cores)
+
+    def take(n, result):
+        ic, sc, b2, n_core, n_l, hist, _ = result
+        ci = core_idx[n]
+        metas[n] = dict(
+            bias2=float(b2 or 0.0) * n_core, n_links=n_l, n_iter=hist.n_iter,
+            converged=hist.converged, change=hist.change.tolist(),
+            alpha_updates=list(hist.alpha_updates),
+        )  # fmt: skip
+        if store is not None:
+            store.put_fit(n, cores[n], _points(detection, ci, ic, sc, u[ci], conf[ci]), metas[n])
+        if assemble:
+            intensity[ci], std[ci] = ic, sc
+
+    tasks, skipped = {}, []
+    for n, (st, i) in enumerate(zip(strips_, idx, strict=True)):
+        done = None if store is None else store.fitted(n)
+        if done is not None:
+            skipped.append(n)
+            metas[n] = done[1]
+            if assemble:
+                intensity[done[0]["surface"]] = done[0]["intensity"]
+                std[done[0]["surface"]] = done[0]["intensity_std"]
+            continue
+        tasks[n] = dask.delayed(_fit_tile, pure=True)(
+            st, u[i], marg[i], sh, eb, dask_key_name=(f"splidar-reconstruct-tile-{token}", n)
+        )
+    _run(tasks, "reconstruct", take)
+    t_iter = time.perf_counter()
+    bias2 = sum(m["bias2"] for m in metas) / S
     hyper = _hyperparameters(
-        su, opt, fitted[0][6], marg.mean(axis=0), bias2 / S if prior[0] else None,
-        types.SimpleNamespace(n_edges=n_links // 2),
+        su, opt, prior, marg.mean(axis=0), bias2 if prior[0] else None,
+        types.SimpleNamespace(n_edges=sum(m["n_links"] for m in metas) // 2),
     )  # fmt: skip
     hyper["tiles"] = dict(cores=tuple(cores), margin=MARGIN, seeds="rng and first row")
-    if prior[0]:
-        hyper["shading_bias2"] = bias2 / S  # mean over the strips, weighted by their surfaces
-    t_end = time.perf_counter()
     timings = {
         "setup": t_setup - t0,
         "classify": t_cls - t_setup,
         "iterations": t_iter - t_cls,
-        "outputs": t_end - t_iter,
-        "total": t_end - t0,
+        "outputs": 0.0,
+        "total": t_iter - t0,
     }
     log.info(
-        "reconstruct: %d surfaces in %d strips of %d rows (+ %d each side), %.3f s",
-        S, len(cores), cores[0][1] - cores[0][0], MARGIN, timings["total"],
+        "reconstruct: %d surfaces in %d strips of %d rows (+ %d each side; %d done before), "
+        "%.3f s", S, len(cores), cores[0][1] - cores[0][0], MARGIN, len(skipped),
+        timings["total"],
     )  # fmt: skip
-    history = _history(hists)
+    if not assemble:
+        return StreamedRun(S, tuple(cores), tuple(skipped), hyper, timings, detection)
+    history = _history(metas)
     return _result(detection, su, None, u, conf, intensity, std, history, hyper, timings)
 
 
 @functools.wraps(_core.reconstruct)
 def reconstruct(detection, **options):
     # splidar.reconstruct: the in-memory function, or the strips for a Dask cube's detection
-    bound = inspect.signature(_core.reconstruct).bind(detection, **options)
+    inspect.signature(_core.reconstruct).bind(detection, **options)  # unknown keywords
     if isinstance(detection, Detection) and detection.options.get("dask", False):
-        bound.apply_defaults()
-        return reconstruct_tiled(detection, **bound.kwargs)
+        return reconstruct_tiled(detection, **options)
     return _core.reconstruct(detection, **options)
