@@ -113,3 +113,20 @@ def test_cli_run_dask_input_streams_and_resumes_after_a_kill(zarr_cube, tmp_path
     ra, rb = np.load(ref / "result.npz"), np.load(out / "result.npz")
     for k in ("points_intensity", "points_label", "intensity_map"):
         np.testing.assert_array_equal(rb[k], ra[k])
+
+
+def test_cli_run_large_result_writes_only_the_streamed_outputs(zarr_cube, tmp_path, monkeypatch):
+    import splidar.cli
+
+    monkeypatch.setattr(splidar.cli, "SMALL_RESULT", 10)  # "large": more than 10 points
+    out = tmp_path / "big"
+    args = ["run", str(zarr_cube), "--out", str(out), "--strip-rows", "12", "-q", "--seed", "0"]
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["maps.zarr", "points.parquet", "summary.json"]
+    summary = json.loads((out / "summary.json").read_text())
+    p = read_points(out / "points.parquet")
+    assert summary["n_points"] == p["surface"].size > 10 and len(summary["streamed"]["strips"]) == 4
+    np.testing.assert_array_equal(p["surface"], np.arange(p["surface"].size))
+    labels = zarr.open_group(str(out / "maps.zarr"), mode="r")["label"][:]
+    np.testing.assert_array_equal(labels[p["row"], p["col"], p["layer"]], p["label"])
+    assert np.count_nonzero(labels >= 0) == p["surface"].size
