@@ -46,6 +46,10 @@ def test_strip_store_resumes_only_the_same_run(tmp_path):
     cols, meta = b.fitted(0)
     assert meta == dict(n_iter=3) and np.array_equal(cols["intensity"], pts["intensity"])
     assert zarr.open_group(str(tmp_path / "r" / "maps.zarr"))["depth_bin"][1, 1, 0] == 7.0
+    (tmp_path / "r" / "points.parquet" / "tile=0000" / "part-0.parquet").unlink()
+    d = StripStore(tmp_path / "r", "key-a", (4, 2), 1, 2)
+    d.begin([(0, 2), (2, 4)])
+    assert d.resumed == ()  # a listed strip whose points are gone is computed again
     for key, cores in (("key-b", [(0, 2), (2, 4)]), ("key-a", [(0, 4)])):
         c = StripStore(tmp_path / "r", key, (4, 2), 1, 2)
         c.begin(cores)  # another input or options, or other strips: start afresh

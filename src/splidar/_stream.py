@@ -86,6 +86,8 @@ class StripStore:
         cores = [list(map(int, c)) for c in cores]
         man = self.folder / "manifest.json"
         old = json.loads(man.read_text()) if man.is_file() else None
+        if not all((self.folder / d).is_dir() for d in ("labels", "points.parquet", "maps.zarr")):
+            old = None  # moved into an output that was not finished (interrupted at the end)
         if old is None or old.get("key") != self.key or old.get("cores") != cores:
             if self.folder.exists():
                 shutil.rmtree(self.folder)
@@ -104,6 +106,8 @@ class StripStore:
                                fill_value=fill)  # fmt: skip
             old = {"key": self.key, "cores": cores, "finished": {}}
             _replace_json(man, old)
+        # a strip listed whose points file is gone is computed again
+        old["finished"] = {n: m for n, m in old["finished"].items() if self._part(int(n)).is_file()}
         self.manifest = old
         self.resumed = tuple(sorted(int(n) for n in old["finished"]))
 
