@@ -31,7 +31,7 @@ from ._validation import SplidarError
 
 __all__ = ["StripStore", "read_points"]
 
-_EXTRA = "pip install 'splidar[distributed]'"
+_EXTRA = "pip install 'splidar[dask]' (or 'splidar[distributed]')"
 
 
 def _pyarrow():
