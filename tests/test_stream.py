@@ -14,7 +14,7 @@ pytest.importorskip("pyarrow")
 zarr = pytest.importorskip("zarr")
 pytest.importorskip("dask.array")
 
-from splidar._stream import StripStore, read_points  # noqa: E402
+from splidar._stream import StripStore, load_detection, read_points, save_detection  # noqa: E402
 from splidar.cli import main  # noqa: E402
 from splidar.io import save  # noqa: E402
 from splidar.scenes import multispectral_scene  # noqa: E402
@@ -56,6 +56,23 @@ def test_strip_store_resumes_only_the_same_run(tmp_path):
         assert c.resumed == () and c.fitted(0) is None
 
 
+def test_save_detection_is_read_back_for_the_same_run_only(tmp_path):
+    import splidar
+
+    sim = multispectral_scene((12, 10), n_bins=60).simulate(ppp=10, sbr=1, rng=0)
+    det = splidar.detect(sim.cube, rng=0)
+    save_detection(tmp_path / "r", "key-a", det)
+    got = load_detection(tmp_path / "r", "key-a")
+    for name in ("row", "col", "depth_bin", "counts", "background", "signal"):
+        np.testing.assert_array_equal(getattr(got.surfaces, name), getattr(det.surfaces, name))
+    np.testing.assert_array_equal(got.saliency, det.saliency)
+    np.testing.assert_array_equal(got.mask, det.mask)
+    assert got.options == det.options and got.null.scale == det.null.scale
+    assert load_detection(tmp_path / "r", "key-b") is None  # another run's
+    StripStore(tmp_path / "r", "key-a", (12, 10), 1, 4).begin([(0, 6), (6, 12)])
+    assert load_detection(tmp_path / "r", "key-a") is not None  # a new manifest keeps it
+
+
 def _check_streamed_outputs(out):
     """points.parquet and maps.zarr hold what result.npz (the assembled result) holds."""
     summary = json.loads((out / "summary.json").read_text())
@@ -80,10 +97,12 @@ def _check_streamed_outputs(out):
 def test_cli_run_dask_input_streams_and_resumes_after_a_kill(zarr_cube, tmp_path):
     """A run on a Zarr cube writes its points per strip (Parquet) and its maps (Zarr);
     one killed (SIGKILL) after some strips finished leaves its resume folder, and the
-    rerun skips those strips and writes the points of an uninterrupted run."""
+    rerun reads the detection it kept, skips those strips and writes the points of an
+    uninterrupted run."""
     ref = tmp_path / "ref"
     assert main(["run", str(zarr_cube), "--out", str(ref), *COMMON]) == 0
-    assert _check_streamed_outputs(ref)["streamed"]["strips_resumed"] == []
+    streamed = _check_streamed_outputs(ref)["streamed"]
+    assert streamed["strips_resumed"] == [] and not streamed["detection_resumed"]
     assert not (tmp_path / ".ref.resume").exists()
     out = tmp_path / "b"
     manifest = tmp_path / ".b.resume" / "manifest.json"
@@ -107,8 +126,11 @@ def test_cli_run_dask_input_streams_and_resumes_after_a_kill(zarr_cube, tmp_path
     assert not out.exists()
     finished = sorted(int(n) for n in json.loads(manifest.read_text())["finished"])
     assert 1 <= len(finished) < 24  # killed mid-way
+    assert (manifest.parent / "detection" / "detection.pkl").is_file()  # kept before the strips
     assert main(["run", str(zarr_cube), "--out", str(out), *COMMON]) == 0
-    assert _check_streamed_outputs(out)["streamed"]["strips_resumed"] == finished
+    streamed = _check_streamed_outputs(out)["streamed"]
+    assert streamed["strips_resumed"] == finished
+    assert streamed["detection_resumed"]  # read back, not recomputed
     assert not manifest.parent.exists()
     a, b = read_points(ref / "points.parquet"), read_points(out / "points.parquet")
     assert a.keys() == b.keys()

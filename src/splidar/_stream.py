@@ -12,6 +12,9 @@ The reconstruction's strips (``reconstruction/_tiled.py``) hand their core point
   the strip's own labels with its margins), ``labels/NNNN.resid.npz`` its residuals
   behind the std's smoothing-bias term (one term for the image: a restart needs every
   strip's);
+- ``detection/``: the run's Detection (:func:`save_detection`: its saliency and mask
+  in ``detection/maps.zarr`` when they are in memory, the rest pickled), so that a
+  restart skips the detection too;
 - ``manifest.json``: the run's key (input and options) and the strips finished, with
   what the assembled history needs. It is rewritten (atomically) after a strip's files.
 
@@ -27,12 +30,13 @@ import json
 import os
 import shutil
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
 from ._validation import SplidarError
 
-__all__ = ["StripStore", "read_points"]
+__all__ = ["StripStore", "load_detection", "read_points", "save_detection"]
 
 _EXTRA = "pip install 'splidar[dask]' (or 'splidar[distributed]')"
 
@@ -92,9 +96,11 @@ class StripStore:
         if not all((self.folder / d).is_dir() for d in ("labels", "points.parquet", "maps.zarr")):
             old = None  # moved into an output that was not finished (interrupted at the end)
         if old is None or old.get("key") != self.key or old.get("cores") != cores:
-            if self.folder.exists():
-                shutil.rmtree(self.folder)
-            self.folder.mkdir(parents=True)
+            if self.folder.exists():  # afresh, but the detection (its own key) stays
+                for p in self.folder.iterdir():
+                    if p.name != "detection":
+                        shutil.rmtree(p) if p.is_dir() else p.unlink()
+            self.folder.mkdir(parents=True, exist_ok=True)
             (self.folder / "labels").mkdir()
             (self.folder / "points.parquet").mkdir()
             (R, C), K, L = self.image_shape, self.n_slots, self.n_wavelengths
@@ -204,6 +210,61 @@ class StripStore:
         g["label"][r0:r1] = label
         self.manifest["finished"][str(n)] = meta
         _replace_json(self.folder / "manifest.json", self.manifest)
+
+
+def _proxy(d: dict) -> MappingProxyType:
+    return MappingProxyType(d)
+
+
+def save_detection(folder, key: str, detection) -> None:
+    """Keep ``detection`` in ``folder/detection`` for a restart of the run ``key``: the
+    saliency and mask in Zarr (chunked by 64 rows) when they are NumPy arrays (a
+    detection with ``store=`` already has them on disk, the pickle refers to them),
+    the rest (surface table, background, null model, options) pickled. Written under a
+    temporary name and renamed: a run killed meanwhile leaves no detection."""
+    import dataclasses
+    import pickle
+
+    import zarr
+
+    final = Path(folder) / "detection"
+    tmp = Path(folder) / "detection.tmp"
+    for p in (tmp, final):
+        if p.exists():
+            shutil.rmtree(p)
+    tmp.mkdir(parents=True)
+    swap = {}
+    for name in ("saliency", "mask"):
+        a = getattr(detection, name)
+        if isinstance(a, np.ndarray):
+            z = zarr.create_array(str(tmp / f"{name}.zarr"), shape=a.shape, dtype=a.dtype,
+                                  chunks=(min(64, a.shape[0]),) + a.shape[1:])  # fmt: skip
+            z[...] = a
+            swap[name] = None
+    det = dataclasses.replace(detection, **swap)
+    with open(tmp / "detection.pkl", "wb") as f:
+        pickler = pickle.Pickler(f, protocol=pickle.HIGHEST_PROTOCOL)
+        pickler.dispatch_table = {MappingProxyType: lambda m: (_proxy, (dict(m),))}
+        pickler.dump((key, sorted(swap), det))
+    os.replace(tmp, final)
+
+
+def load_detection(folder, key: str):
+    """The Detection :func:`save_detection` kept for the run ``key``, or None (none kept,
+    or another run's). Its saliency and mask are read back into memory."""
+    import dataclasses
+    import pickle
+
+    import zarr
+
+    d = Path(folder) / "detection"
+    if not (d / "detection.pkl").is_file():
+        return None
+    old_key, swapped, det = pickle.loads((d / "detection.pkl").read_bytes())
+    if old_key != key:
+        return None
+    arrays = {n: zarr.open_array(str(d / f"{n}.zarr"), mode="r")[...] for n in swapped}
+    return dataclasses.replace(det, **arrays)
 
 
 def read_points(path) -> dict:

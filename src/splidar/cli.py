@@ -885,9 +885,18 @@ def _pipeline(cube, args, stages: _Stages, *, library=None, stream=None):
     if getattr(args, "jobs", None) is not None:
         det_kw["n_jobs"] = args.jobs
     rec_kw = _given(args, _RECON_OPTS)
-    _check_detect_memory(cube, det_kw)
-    with stages.stage("detecting surfaces"), _damaged_chunks(cube, getattr(args, "input", "")):
-        det = detect(cube, rng=args.seed, **det_kw)
+    det = None if stream is None else _resumed_detection(stream)
+    if det is None:
+        _check_detect_memory(cube, det_kw)
+        with (
+            stages.stage("detecting surfaces"),
+            _damaged_chunks(cube, getattr(args, "input", "")),
+        ):
+            det = detect(cube, rng=args.seed, **det_kw)
+        if stream is not None and det.options.get("dask", False):
+            from ._stream import save_detection
+
+            save_detection(stream["folder"], stream["key"], det)
     if stream is not None and det.options.get("dask", False):
         return _reconstruct_streamed(det, library, _given(args, _RECON_OPTS), args, stages, stream)
     _check_reconstruct_memory(det, library)
@@ -899,6 +908,21 @@ def _pipeline(cube, args, stages: _Stages, *, library=None, stream=None):
     with stages.stage("reconstructing"):
         rec = reconstruct(det, library=library, rng=args.seed, **rec_kw)
     return rec
+
+
+def _resumed_detection(stream: dict):
+    """The detection an interrupted run of the same key kept in its resume folder, or
+    None; ``stream["detection_resumed"]`` says which."""
+    from ._stream import load_detection
+
+    det = load_detection(stream["folder"], stream["key"]) if stream["folder"].is_dir() else None
+    stream["detection_resumed"] = det is not None
+    if det is not None:
+        log.warning(
+            "resumed an interrupted run: detection read from %s (not recomputed)",
+            stream["folder"] / "detection",
+        )
+    return det
 
 
 @contextmanager
@@ -1098,6 +1122,7 @@ def _move_streamed(stream: dict, rec, tmp: Path) -> dict:
         "files": ["points.parquet/", "maps.zarr/"],
         "strips": [list(c) for c in store.manifest["cores"]],
         "strips_resumed": list(store.resumed),
+        "detection_resumed": bool(stream.get("detection_resumed", False)),
     }
 
 
