@@ -525,6 +525,7 @@ def classify_surfaces(
     n_keep: int = 8,
     seed: int = 0,
     proportions: np.ndarray | None = None,
+    loglik: np.ndarray | None = None,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
 
@@ -555,6 +556,9 @@ def classify_surfaces(
     proportions : ndarray (K,), optional
         Class proportions to start from instead of the EM estimate on these surfaces (a
         tile of a tiled reconstruction passes the whole image's).
+    loglik : ndarray (S, K), optional
+        :func:`class_loglik` of these surfaces (with this ``alpha``) when already
+        computed (a tiled reconstruction computes it once for the whole image).
 
     Returns
     -------
@@ -571,7 +575,7 @@ def classify_surfaces(
     >>> c.label.tolist()
     [0, 0, 0, 0]
     """
-    ll = class_loglik(y, background, eta, signatures, alpha=alpha)
+    ll = class_loglik(y, background, eta, signatures, alpha=alpha) if loglik is None else loglik
     S, K = ll.shape
     pi = em_proportions(ll) if proportions is None else np.asarray(proportions, np.float64)
     marg = np.full((S, K), 1.0 / K)
