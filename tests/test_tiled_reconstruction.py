@@ -117,14 +117,19 @@ def test_reconstruct_dask_detection_that_fits_one_strip_is_the_in_memory_result(
 
 
 def test_reconstruct_tiled_on_local_cluster_same_result_and_recomputes_a_killed_worker(
-    small_strips,
+    small_strips, tmp_path
 ):
-    """Two worker processes give the result of the threads, bit for bit; then the first
-    worker to finish a strip is killed (SIGKILL) as it does: the scheduler recomputes
-    that strip elsewhere and the result is the same again."""
+    """Two worker processes give the result of the threads, bit for bit; then, with the
+    strips' surfaces read by the tasks from a store's folder (``surfaces.zarr``), the
+    first worker to finish a strip is killed (SIGKILL) as it does: the scheduler
+    recomputes that strip (and the earlier steps' results the worker held) elsewhere and
+    the result is the same again."""
     distributed = pytest.importorskip("distributed")
+    pytest.importorskip("pyarrow")
     from distributed.diagnostics.plugin import SchedulerPlugin
     from distributed.utils import key_split
+
+    from splidar._stream import StripStore
 
     class KillFirstStripWorker(SchedulerPlugin):
         def __init__(self, pids):
@@ -152,8 +157,10 @@ def test_reconstruct_tiled_on_local_cluster_same_result_and_recomputes_a_killed_
         b = splidar.reconstruct(lazy, library=lazy.library, rng=0)
         plugin = KillFirstStripWorker(client.run(os.getpid))
         cluster.scheduler.add_plugin(plugin, name="kill-first-strip-worker")
-        c = splidar.reconstruct(lazy, library=lazy.library, rng=0)
+        store = StripStore(tmp_path / "r", "k", lazy.image_shape, 1, 4)
+        c = _tiled.reconstruct_tiled(lazy, store=store, library=lazy.library, rng=0)
         story = cluster.scheduler.story(plugin.key)
+    assert (tmp_path / "r" / "surfaces.zarr").is_dir()
     _assert_identical(a, b)
     assert plugin.killed is not None, "no strip reached memory on a known worker"
     finishes = [s[2] for s in story if s[0] == plugin.key]

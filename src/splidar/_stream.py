@@ -15,6 +15,8 @@ The reconstruction's strips (``reconstruction/_tiled.py``) hand their core point
 - ``detection/``: the run's Detection (:func:`save_detection`: its saliency and mask
   in ``detection/maps.zarr`` when they are in memory, the rest pickled), so that a
   restart skips the detection too;
+- ``surfaces.zarr``: the surfaces' data the strips' tasks read (rows sorted by image
+  row), when the workers see the folder;
 - ``manifest.json``: the run's key (input and options) and the strips finished, with
   what the assembled history needs. It is rewritten (atomically) after a strip's files.
 
@@ -73,12 +75,18 @@ class StripStore:
         ``K_s`` and ``L`` of the maps.
     bin_width_ps : float or None
         Adds a ``depth_m`` column when known.
+    workers_see_folder : bool
+        The workers can read files the calling process writes in ``folder`` (threads, a
+        LocalCluster): the strips' surfaces are then written once to
+        ``folder/surfaces.zarr`` (:attr:`surfaces_folder`) and each task reads its own,
+        instead of travelling in the task graph.
     """
 
     def __init__(self, folder, key: str, image_shape, n_slots: int, n_wavelengths: int, *,
-                 bin_width_ps=None):  # fmt: skip
+                 bin_width_ps=None, workers_see_folder: bool = True):  # fmt: skip
         _pyarrow()
         self.folder = Path(folder)
+        self.surfaces_folder = self.folder if workers_see_folder else None
         self.key, self.image_shape = key, tuple(image_shape)
         self.n_slots, self.n_wavelengths = int(n_slots), int(n_wavelengths)
         self.bin_width_ps = bin_width_ps

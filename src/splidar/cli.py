@@ -859,6 +859,8 @@ def _reconstruct_streamed(det, library, rec_kw, args, stages: _Stages, stream: d
     store = StripStore(
         stream["folder"], stream["key"], det.image_shape, int(det.surfaces.n_slots),
         det.n_wavelengths, bin_width_ps=det.bin_width_ps,
+        # a cluster joined by --scheduler may not see this machine's files
+        workers_see_folder=getattr(args, "scheduler", None) is None,
     )  # fmt: skip
     stream["store"] = store
     with stages.stage("reconstructing"):

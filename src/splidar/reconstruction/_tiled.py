@@ -37,6 +37,7 @@ import inspect
 import logging
 import time
 import types
+from pathlib import Path
 
 import numpy as np
 
@@ -178,6 +179,7 @@ def _labels_tile(st: _Strip, shared):
     core surface's neighbours, and the labels of the whole strip (its own, margins
     included: a restart redoes the first phase with them). ``carry`` stays where the task
     ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state."""
+    st = _as_strip(st)
     su = _strip_setup(st, shared)
     graph = _strip_graph(st, su, shared)
     S, K = st.y.shape[0], su.sig.shape[0]
@@ -222,6 +224,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
         st, graph, state = carry["strip"], carry["graph"], carry["state"]
         su = _strip_setup(st, shared)
     else:
+        st = _as_strip(st)
         su = _strip_setup(st, shared)
         graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
@@ -318,31 +321,71 @@ def _plan(detection, options, strip_rows):
     return opt, cores
 
 
-def _cut(detection, su, cores, ll):
-    """Per strip: the surfaces' indices (core and margins), the ``_Strip``, the core's."""
+@dataclasses.dataclass(frozen=True)
+class _StripRef:
+    """A strip that its task reads itself: rows ``[lo, hi)`` of the surface table sorted
+    by image row, kept in the Zarr group ``path`` (:func:`_write_table`), so its surfaces
+    do not travel in the task graph; a task recomputed on another worker reads it again.
+    ``run`` tells tables written by different runs apart (in the tasks' keys)."""
+
+    path: str
+    lo: int
+    hi: int
+    r0: int
+    r1: int
+    run: str
+
+    def load(self) -> _Strip:
+        import zarr
+
+        g = zarr.open_group(self.path, mode="r")
+        return _Strip(self.r0, self.r1, *(g[f][self.lo : self.hi] for f in _Strip.FIELDS))
+
+
+def _as_strip(st):
+    return st.load() if isinstance(st, _StripRef) else st
+
+
+def _write_table(path: str, order, columns: dict, chunk: int = 2**16) -> None:
+    """The columns, rows sorted by ``order``, to the Zarr group ``path`` (by chunks)."""
+    import zarr
+
+    g = zarr.open_group(path, mode="w")
+    for name, a in columns.items():
+        z = g.create_array(
+            name, shape=a.shape, dtype=a.dtype, chunks=(min(chunk, max(len(a), 1)),) + a.shape[1:]
+        )
+        for k in range(0, len(order), chunk):
+            z[k : k + chunk] = a[order[k : k + chunk]]
+
+
+def _cut(detection, su, cores, ll, folder=None):
+    """Per strip: the surfaces' indices (core and margins), the ``_Strip`` (or, with a
+    ``folder`` the workers see, a ``_StripRef`` to the table written there), the core's."""
     surf = detection.surfaces
     order = np.argsort(surf.row, kind="stable")
     srow = surf.row[order]
-    idx, strips_ = [], []
+    columns = dict(
+        row=surf.row, col=surf.col, slot=surf.slot, depth=surf.depth_bin, y=su.y, b=su.b,
+        eta=su.eta, ll=ll,
+    )  # fmt: skip
+    path = run = None
+    if folder is not None:
+        import uuid
+
+        path, run = str(Path(folder) / "surfaces.zarr"), uuid.uuid4().hex
+        _write_table(path, order, columns)
+    idx, strips_, core_idx = [], [], []
     for r0, r1 in cores:
-        lo, hi = np.searchsorted(srow, [r0 - MARGIN, r1 + MARGIN])
+        lo, hi = (int(k) for k in np.searchsorted(srow, [r0 - MARGIN, r1 + MARGIN]))
         i = order[lo:hi]
         idx.append(i)
-        strips_.append(
-            _Strip(
-                r0,
-                r1,
-                surf.row[i],
-                surf.col[i],
-                surf.slot[i],
-                surf.depth_bin[i],
-                su.y[i],
-                su.b[i],
-                su.eta[i],
-                ll[i],
-            )  # fmt: skip
-        )
-    return idx, strips_, [i[st.core] for i, st in zip(idx, strips_, strict=True)]
+        core_idx.append(i[(srow[lo:hi] >= r0) & (srow[lo:hi] < r1)])
+        if path is not None:
+            strips_.append(_StripRef(path, lo, hi, r0, r1, run))
+        else:
+            strips_.append(_Strip(r0, r1, *(columns[f][i] for f in _Strip.FIELDS)))
+    return idx, strips_, core_idx
 
 
 def _points(detection, ci, intensity, std, u, conf) -> dict:
@@ -491,7 +534,8 @@ def reconstruct_tiled(
         n_cols=int(detection.image_shape[1]), n_slots=int(surf.n_slots), gamma=opt["gamma"],
         rho=opt["rho"], max_iter=opt["max_iter"], tol=opt["tol"], prior=prior, pi=pi, base=base,
     )  # fmt: skip
-    idx, strips_, core_idx = _cut(detection, su, cores, ll)
+    folder = getattr(store, "surfaces_folder", None)
+    idx, strips_, core_idx = _cut(detection, su, cores, ll, folder)
     del ll
     t_setup = time.perf_counter()
     token = dask.base.tokenize(strips_, shared)
