@@ -8,20 +8,32 @@ as for any detection. The method and its error bound are in ``docs/distributed.m
 1. **Global quantities, in the calling process, on the whole surface table** (the
    table is gathered there by the detection): the class signatures and their scale
    (k-means for ``classes="cluster"``, seeded as in memory), the class likelihood of every
-   surface and the EM class proportions from it (the in-memory values, bit for bit).
+   surface (computed once: the strips take their rows of it) and the EM class
+   proportions from it (the in-memory values, bit for bit).
 2. **Labels, one Dask task per strip** (``splidar-labels-tile`` in the dashboard): the
-   strip's core rows plus :data:`MARGIN` rows on each side, its surface graph, the
    Swendsen-Wang label sampler of :func:`~splidar.reconstruction.classify_surfaces` with
-   the global proportions, seeded from the strip's first row (not from the worker or the
-   order of the tasks); with ``alpha="auto"`` also the first phase of the sweeps, whose
-   shading of the neighbours feeds the empirical-Bayes estimate. Only the core rows'
-   results are kept.
+   the global proportions on the strip's core rows plus :data:`LABEL_MARGIN` rows on each
+   side, seeded from the strip's first row (not from the worker or the order of the
+   tasks); with ``alpha="auto"`` also the first phase of the sweeps on the core plus
+   :data:`MARGIN` rows each side, whose shading of the neighbours feeds the
+   empirical-Bayes estimate. The core's labels and that shading go to the calling
+   process; the strip, its graph and the first phase's state stay where the task ran
+   (``dask.persist``: on a cluster, on the worker, recomputed from the graph if it is lost).
 3. **Empirical Bayes, in the calling process**: ``alpha`` and ``upsilon`` per class from
    every surface's counts (:func:`~splidar.reconstruction.estimate_alpha`), as in memory.
-4. **Intensities, one Dask task per strip** (``splidar-reconstruct-tile``): the same
-   strips, the labels of step 2 (a margin's labels are those of the strip that owns the
-   rows), the sweeps with the global ``alpha`` and ``upsilon``, the posterior intensity and
-   its std; the core rows' results are kept and assembled into one Reconstruction.
+4. **Sweeps, one Dask task per strip** (``splidar-fit-tile``): from step 2's state, the
+   labels of the strip's owners (a margin's labels are those of the strip that owns the
+   rows), the second phase with the global ``alpha`` and ``upsilon``; the core's residuals
+   behind the std's smoothing-bias term go to the calling process, which estimates one
+   term for the image from them (as in memory); the state stays.
+5. **Intensities, one Dask task per strip** (``splidar-reconstruct-tile``): the posterior
+   intensity and its std from step 4's state with the image's smoothing-bias term; the
+   core rows' results are assembled into one Reconstruction (or streamed to a store).
+
+A strip's surfaces travel in the task graph once (step 2); with a store whose folder the
+workers see (``splidar run``), they are written there once (``surfaces.zarr``, sorted by
+row) and each task reads its rows itself. After a restart, a strip whose step-2 state is
+gone redoes its first phase from the labels step 2 kept (the same state, bit for bit).
 
 The tasks run on whatever Dask scheduler is active (threads by default: one strip at a
 time, each using the numba threads; a ``dask.distributed.Client`` when one is open: one
