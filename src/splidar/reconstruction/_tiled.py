@@ -240,8 +240,8 @@ def _fit_tile(carry, st, u, own, shared, eb):
         su = _strip_setup(st, shared)
         graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
-    if state is None:  # fixed alpha: the only phase, with these labels
-        state = _phase_one_state(su, graph, own if auto else u, shared)
+    if state is None:  # fixed alpha: the only phase, with these labels (or no surfaces)
+        state = _phase_one_state(su, graph, own if auto and own is not None else u, shared)
     else:  # a copy: the carry may be used again if this task is recomputed
         state = {k: (v.copy() if hasattr(v, "copy") else v) for k, v in state.items()}
     prior = shared["prior"]
@@ -259,6 +259,8 @@ def _fit_tile(carry, st, u, own, shared, eb):
         )
         keep = core[ok]
         resid = (e2[keep], knv[keep])
+    elif auto:  # a strip without surfaces
+        resid = (np.zeros(0), np.zeros(0))
     n_links = int(np.diff(graph.indptr)[core].sum())
     small = (resid, int(np.count_nonzero(core)), n_links, hist)
     return small, dict(strip=st, graph=graph, state=state, prior=prior)
