@@ -57,6 +57,7 @@ from .._memory import reconstruct_peak_bytes
 from ..detection._result import Detection
 from ..detection._tiled import compute_each, tile_bounds
 from . import _core
+from . import _kernels as kern
 from ._classify import class_loglik, classify_surfaces, em_proportions
 from ._core import (
     _KERNEL_LOCK,
@@ -263,6 +264,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
         resid = (np.zeros(0), np.zeros(0))
     n_links = int(np.diff(graph.indptr)[core].sum())
     small = (resid, int(np.count_nonzero(core)), n_links, hist)
+    state.pop("z"), state.pop("q")  # the last E-step's: step 5 redoes it (less to keep)
     return small, dict(strip=st, graph=graph, state=state, prior=prior)
 
 
@@ -271,6 +273,9 @@ def _std_tile(carry, u, marg, shared, bias2):
     """Step 5: the core's intensities and std, with the run's smoothing-bias term."""
     st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
     su = _strip_setup(st, shared)
+    z, q = np.empty(st.y.shape), np.empty(st.y.shape)
+    kern.estep(st.y, st.b, st.eta, state["r"], state["h"], z, q)  # as _sweeps_end did
+    state = {**state, "z": z, "q": q}
     rng = np.random.default_rng(_seed(shared["base"], st.r0, 1))
     intensity, std, _ = _intensity_and_std(
         su, graph, u, marg, state, prior, shared["rho"], rng, bias2=bias2
