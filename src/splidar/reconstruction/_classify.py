@@ -52,6 +52,22 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    surface's label is its most probable marginal class and ``label_confidence`` that
    marginal probability.
 
+   Two refinements of the field (session 8, ``docs/classification.md``):
+
+   * **Contrast-weighted links** (:func:`link_contrast`): a link's strength is
+     multiplied by ``w_sj = min(1, exp(D_sj + 2 gamma))``, where ``D_sj = max_k (A_k +
+     B_k) - max_k A_k - max_k B_k <= 0`` and ``A`` (``B``) is the class log-likelihood
+     summed over s (j) and its two neighbours beside the link: the photons of 2 x 3
+     surfaces must favour two different classes by more than the ``2 gamma`` nats a
+     one-pixel strand pays for its two cross links before the link weakens. A strand
+     whose own evidence is strong survives; weak evidence (low counts, the inside of a
+     region) leaves the links at full strength, so pooling is unchanged.
+   * **Chains spread over the strength** (:func:`chain_gammas`): the chains run at
+     strengths evenly spread over ``[log(1 + sqrt(K)), 2 gamma - log(1 + sqrt(K))]``
+     (the ordering threshold of the K-state Potts model and as far above ``gamma``),
+     their marginals pooled with equal weights: the rule fixes the order of the
+     strength, not its value, and the confidence averages over that.
+
 The interaction strength is a fixed rule, not fitted to a scene (:func:`link_gamma`):
 ``gamma = 1.5`` nats per link between two surfaces of 4 links each, scaled so that a
 surface's links weigh about ``4 gamma`` in all whatever their number (a strand of a net
