@@ -127,6 +127,7 @@ def _loglik_kernel(y, b, eta, c, alpha, a0, abar, out):
     S, L = y.shape
     K = c.shape[0]
     G = _N_GRID
+    labar = math.log(abar)
     for s in prange(S):
         # grid in log a about the data's estimate, wide enough for the prior's bulk at
         # low counts and fine enough (half-width ~ 6 / sqrt(photons)) at high counts
@@ -142,13 +143,18 @@ def _loglik_kernel(y, b, eta, c, alpha, a0, abar, out):
         lo = math.log(ahat) - half
         step = 2.0 * half / (G - 1)
         lp = np.empty(G)
+        ag = np.empty(G)
+        prior = np.empty(G)
+        for g in range(G):
+            la = lo + g * step
+            ag[g] = math.exp(la)
+            # gamma prior of a, with the Jacobian a of the log grid
+            prior[g] = a0 * (la - labar) - a0 * ag[g] / abar
         for k in range(K):
             m = -1e300
             for g in range(G):
-                la = lo + g * step
-                a = math.exp(la)
-                # gamma prior of a, with the Jacobian a of the log grid
-                v = a0 * (la - math.log(abar)) - a0 * a / abar
+                a = ag[g]
+                v = prior[g]
                 for l in range(L):
                     lam = a * eta[s, l] * c[k, l]
                     v += _nb_logpmf(y[s, l], lam + b[s, l], lam, alpha[k])
@@ -318,15 +324,16 @@ def _draw(logp, x):
 
 
 @njit(cache=True, parallel=_PARALLEL)
-def _heat_bath(unary, indptr, indices, gam_e, parity, u, seed, it):
+def _heat_bath(unary, indptr, indices, gam_e, parity, u, seed, it, work):
     """One heat-bath sweep of single surfaces, red then black pixels (surfaces of
-    same-colour pixels are never linked, so each half-sweep is exact in parallel)."""
+    same-colour pixels are never linked, so each half-sweep is exact in parallel).
+    ``work`` (S, K): scratch rows, one per surface (no allocation in the loop)."""
     S, K = unary.shape
     for colour in range(2):
         for s in prange(S):
             if parity[s] != colour:
                 continue
-            lp = np.empty(K)
+            lp = work[s]
             for k in range(K):
                 lp[k] = unary[s, k]
             for e in range(indptr[s], indptr[s + 1]):
@@ -345,12 +352,14 @@ def _bonds(indptr, indices, p_bond, u, seed, it, bond):
 
 @njit(cache=True, parallel=_PARALLEL)
 def _draw_clusters(csum, root, logpi, u, seed, it):
+    """New label of every cluster root from its summed log-likelihoods (``csum``, which
+    is overwritten) plus ``logpi``."""
     S, K = csum.shape
     for s in prange(S):
         if root[s] == s:
-            lp = np.empty(K)
+            lp = csum[s]
             for k in range(K):
-                lp[k] = csum[s, k] + logpi[k]
+                lp[k] += logpi[k]
             u[s] = _draw(lp, _uniform(seed, it, s, 4))
 
 
@@ -367,6 +376,7 @@ def _swendsen_wang(unary, logpi, indptr, indices, gam_e, parity, u, n_burn, n_ke
     for e in range(gam_e.size):
         p_bond[e] = -math.expm1(-gam_e[e])
     csum = np.empty((S, K))
+    work = np.empty((S, K))
     for it in range(n_burn + n_keep):
         _bonds(indptr, indices, p_bond, u, seed, it, bond)
         for s in range(S):
@@ -395,7 +405,7 @@ def _swendsen_wang(unary, logpi, indptr, indices, gam_e, parity, u, n_burn, n_ke
             u[s] = u[root[s]]
         # SW moves whole regions but rarely the surfaces on their boundaries (bonded
         # to their region with probability ~0.95): a heat-bath sweep moves those
-        _heat_bath(unary, indptr, indices, gam_e, parity, u, seed, it)
+        _heat_bath(unary, indptr, indices, gam_e, parity, u, seed, it, work)
         if it >= n_burn:
             for s in range(S):
                 counts[s, u[s]] += 1
