@@ -639,6 +639,32 @@ def _interp_table(x, xs, ys):
     return slope * (x - xs[lo]) + ys[lo]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _walk(x, xs, G, lo):
+    """The interval ``lo`` of the table with ``xs[lo] <= x < xs[lo + 1]`` (clipped to
+    ``[0, G - 2]``), found by stepping from a previous ``lo``: the same interval as the
+    bisection of :func:`_interp_table` wherever ``x`` lies strictly inside the table."""
+    if G < 2:
+        return 0
+    while lo > 0 and xs[lo] > x:
+        lo -= 1
+    while lo < G - 2 and xs[lo + 1] <= x:
+        lo += 1
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _interp_at(x, xs, ys, G, lo):
+    """:func:`_interp_table` with the interval ``lo`` given (by :func:`_walk`): the
+    same value (same interval, same formula)."""
+    if G == 1 or x <= xs[0]:
+        return ys[0]
+    if x >= xs[G - 1]:
+        return ys[G - 1]
+    slope = (ys[lo + 1] - ys[lo]) / (xs[lo + 1] - xs[lo])
+    return slope * (x - xs[lo]) + ys[lo]
+
+
 @njit(cache=True, nogil=True)
 def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
@@ -668,10 +694,14 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
     L = y.shape[2]
     n_ph = 0
     n_kept = 0
+    G = xs.size
     for i in range(r):
         for j in range(C):
+            lo = 0  # the table interval of the previous bin: the level varies slowly in t
             for t in range(T):
-                th = np.float32(_interp_table(np.float64(level[i, j, t]), xs, ys))
+                x = np.float64(level[i, j, t])
+                lo = _walk(x, xs, G, lo)
+                th = np.float32(_interp_at(x, xs, ys, G, lo))
                 if store_thr:
                     thr_out[i, j, t] = th
                 s = sal[i, j, t]
@@ -680,13 +710,13 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
                 cand[i, j, t] = m and d[i, j, t] > 0
                 e = s / max(th, np.float32(1e-12)) - np.float32(1.0)
                 ev[i, j, t] = e if e > 0 else np.float32(0.0)
+            mr = mask[i, j]
             for l in range(L):
                 yr = y[y_row0 + i, j, l]
-                for t in range(T):
+                for t in range(T):  # integer sums, branch-free (vectorised)
                     v = np.int64(yr[t])
                     n_ph += v
-                    if mask[i, j, t]:
-                        n_kept += v
+                    n_kept += v * np.int64(mr[t])
     return n_ph, n_kept
 
 
