@@ -501,6 +501,7 @@ def extract_surfaces(
     ici_gamma,
     qloc,
     want_llr_sel,
+    order,
     i_begin,
     i_end,
     o_depth,
@@ -521,17 +522,19 @@ def extract_surfaces(
 ):
     """Clean histograms, scale selection, depth and presence statistics of candidates.
 
-    One candidate at a time (rows ``[i_begin, i_end)`` of the candidate arrays), every
-    output written in place; see :func:`splidar.detection._4_map._extract` for the
-    meaning of each. Box means at every scale (``mode="reflect"``) are read from the
-    correlated block ``c`` (``(er, C, L, T)`` from image row ``e0``), the background
-    ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
-    ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``). ``o_own_counts``
-    and ``o_own_background`` (S, L, W) receive the pixel's raw counts and ``bhat`` over
-    the window, zero outside the support. ``box`` (L, Qb, r, C, T), when ``Qb > 0``,
-    holds the box means of the block's rows (from ``r0``) at the scales ``q`` with
-    ``bidx[q] >= 0`` (written by the saliency pass; scale 1 is read from ``c``);
-    otherwise (``Qb = 0``) the boxes are summed here, about each candidate.
+    One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
+    arrays, in the order they are computed; each candidate's outputs do not depend on
+    it), every output written in place at the candidate's index; see
+    :func:`splidar.detection._4_map._extract` for the meaning of each. Box means at
+    every scale (``mode="reflect"``) are read from the correlated block ``c`` (``(er, C,
+    L, T)`` from image row ``e0``), the background ``bhat`` (``eq:background_3``) from
+    the factored estimate ``sp`` (rows from ``r0``) and ``dev``, raw counts from ``y``
+    (rows from ``e0``). ``o_own_counts`` and ``o_own_background`` (S, L, W) receive the
+    pixel's raw counts and ``bhat`` over the window, zero outside the support. ``box``
+    (L, Qb, r, C, T), when ``Qb > 0``, holds the box means of the block's rows (from
+    ``r0``) at the scales ``q`` with ``bidx[q] >= 0`` (written by the saliency pass;
+    scale 1 is read from ``c``); otherwise (``Qb = 0``) the boxes are summed here, about
+    each candidate.
     """
     Q = scales.size
     L = c.shape[2]
@@ -558,7 +561,8 @@ def extract_surfaces(
         while scales[q] // 2 < m:
             q += 1
         qring[m] = q
-    for s in range(i_begin, i_end):
+    for ii in range(i_begin, i_end):
+        s = order[ii]
         irow = rows[s] + r0
         jcol = cols[s]
         centre = peak_bin[s]
