@@ -25,7 +25,13 @@ SPILL_LLR = 0.0
 
 
 def remove_spill_over(
-    table: CandidateTable, *, irf: np.ndarray, peak: np.ndarray, fwhm: float, llr_level: float
+    table: CandidateTable,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    llr_level: float,
+    vouch_level: float = -np.inf,
 ) -> PassResult:
     """Reject the kept candidates that are a neighbour's spread; repeated to convergence.
 
@@ -39,6 +45,9 @@ def remove_spill_over(
         The IRF's FWHM (bins): "the same depth" is within it.
     llr_level : float
         Own-pixel log-likelihood ratio below which a candidate is spread (``spill_llr``).
+    vouch_level : float
+        Own-pixel log-likelihood ratio a neighbour needs to enclose a candidate
+        (``-presence_llr``; see :func:`~splidar.detection._quality.reject_spill_over`).
     """
     if not table.keep.any():
         return skipped("spill_over", table)
@@ -51,6 +60,7 @@ def remove_spill_over(
         peak=peak,
         fwhm=fwhm,
         llr_level=llr_level,
+        vouch_level=vouch_level,
         max_iter=max(R, C),
     )
     return with_keep("spill_over", table, table.keep & ~spill, t0)
