@@ -3,7 +3,10 @@
 Coarse boxes spread a return into the pixels beside a thin structure or across a depth
 edge. A candidate is such spread when a neighbour holds a candidate at its depth, no
 opposite pair of 4-neighbours continues the surface through it, and its own counts
-favour "no return" (:func:`~splidar.detection._quality.reject_spill_over`).
+favour "no return" (:func:`~splidar.detection._quality.reject_spill_over`). A strip of
+spread over the pixels' own surfaces does not continue itself: a pair whose members
+are both such spread (further candidates whose counts reject their return below
+``-PRESENCE_LLR``) encloses no further candidate.
 """
 
 from __future__ import annotations
@@ -46,8 +49,10 @@ def remove_spill_over(
     llr_level : float
         Own-pixel log-likelihood ratio below which a candidate is spread (``spill_llr``).
     vouch_level : float
-        Own-pixel log-likelihood ratio a neighbour needs to enclose a candidate
-        (``-presence_llr``; see :func:`~splidar.detection._quality.reject_spill_over`).
+        Own-pixel log-likelihood ratio below which a neighbour that is a further
+        candidate of its pixel does not enclose a further candidate (``detect`` passes
+        ``-PRESENCE_LLR``; ``-inf``: the former test; see
+        :func:`~splidar.detection._quality.reject_spill_over`).
     """
     if not table.keep.any():
         return skipped("spill_over", table)

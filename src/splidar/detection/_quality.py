@@ -17,7 +17,11 @@ depth where the pixel itself holds nothing. Such a candidate
    west/east) holds candidates whose mean depth is within the FWHM of its depth. A
    continuous surface (flat or sloped) passes through a pixel it surrounds, so a pixel
    inside a surface keeps the benefit of the spatial pooling; a pixel beside a strand or
-   on the far side of a depth edge has same-depth neighbours on one side only;
+   on the far side of a depth edge has same-depth neighbours on one side only. The
+   spread beside an edge forms a strip over the pixels' own surfaces, and each member
+   of the strip is enclosed along it by the others: a *further* candidate (its pixel
+   holds another that the own counts support) is enclosed only by a pair with a member
+   that is not itself a further candidate whose counts reject its return;
 3. is not supported by its own counts: the own-pixel Poisson log-likelihood ratio of a
    return as bright as the source (its own-pixel signal) against background only,
    ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` (the test of ``_own_llr``
@@ -172,9 +176,8 @@ def spill_over_features(
         Own log-likelihood ratio at which a candidate is supported by its counts.
     vouch_level : float
         Own log-likelihood ratio (for its own source's return, ``+inf`` without a
-        source) that at least one candidate of an enclosing pair needs when the pixel
-        holds another supported candidate (see :func:`reject_spill_over`; ``-inf``:
-        any pair encloses).
+        source) below which a further candidate does not enclose a further candidate
+        of a neighbour (see :func:`reject_spill_over`; ``-inf``: any pair encloses).
 
     Returns
     -------
@@ -244,22 +247,23 @@ def spill_over_features(
         counts[sub], bkg[sub], irf, peak, d[has] - np.asarray(surf["offset"])[sub], sig[has]
     )
     # 2. enclosure: an opposite pair of 4-neighbours interpolates to the candidate's
-    # depth; beside another candidate of the pixel that its own counts support
-    # (log-ratio >= llr_level), at least one of the two with a log-ratio >= vouch_level
+    # depth; a further candidate (beside another of its pixel that the own counts
+    # support, log-ratio >= llr_level) needs one of the two to be no further candidate
+    # or to reach vouch_level
     own_llr = np.full(idx.size, np.inf)
     own_llr[has] = llr_s
-    V, _ = _dense(row, col, (R, C), own_llr >= vouch_level, False)  # (R+2, C+2, K)
     sup = own_llr >= llr_level
     n_sup = np.zeros(R * C, np.int64)
     np.add.at(n_sup, row * C + col, sup)
-    strict = (n_sup[row * C + col] - sup) > 0
+    further = (n_sup[row * C + col] - sup) > 0
+    V, _ = _dense(row, col, (R, C), ~further | (own_llr >= vouch_level), False)
     enc = np.zeros(idx.size, bool)
     for (ar, ac), (br, bc) in _PAIRS:
         a = D[r1 + ar, c1 + ac]  # (n, K)
         b = D[r1 + br, c1 + bc]
         mid = 0.5 * (a[:, :, None] + b[:, None, :])
         ok = V[r1 + ar, c1 + ac][:, :, None] | V[r1 + br, c1 + bc][:, None, :]
-        ok |= ~strict[:, None, None]
+        ok |= ~further[:, None, None]
         enc |= np.any((np.abs(mid - d[:, None, None]) <= fwhm) & ok, axis=(1, 2))
     has_source[idx] = has
     enclosed[idx] = enc
@@ -285,15 +289,15 @@ def reject_spill_over(
     neighbours, is not enclosed by that surface (no opposite 4-neighbour pair
     interpolating to its depth) and its own counts give a log-likelihood ratio below
     ``llr_level`` for a return as bright as the source (see the module docstring).
-    Beside another candidate of its pixel that the own counts support (log-ratio
-    ``>= llr_level``: the tested one is then a further surface of the pixel), a pair
-    encloses only when at least one of its two candidates has an own log-likelihood
-    ratio (for its own source's return; ``+inf`` without a source) of at least
-    ``vouch_level``: a strip of spread along a depth edge or beside a strand, over the
-    pixels' own surfaces, is enclosed along the strip by its own members, whose counts
-    all reject the return (a pixel with no photon at the depth gives about ``-s``).
-    A pixel's only surface keeps the former rule (a dim surface's pixels, whose counts
-    speak weakly either way, enclose one another).
+    A *further* candidate (its pixel holds another that the own counts support:
+    log-ratio ``>= llr_level``) is enclosed only by a pair of which at least one
+    candidate is no further candidate with an own log-likelihood ratio (for its own
+    source's return; ``+inf`` without a source) below ``vouch_level``: a strip of
+    spread along a depth edge or beside a strand lies over the pixels' own surfaces and
+    encloses itself along the strip with such members only (a pixel with no photon at
+    the depth gives about ``-s``). A pixel's only candidate keeps the former rule (a
+    dim surface's pixels, whose counts speak weakly either way, enclose one another),
+    and it vouches for its neighbours (a dim surface behind a strand).
 
     Parameters
     ----------
@@ -311,10 +315,10 @@ def reject_spill_over(
         Natural log of the likelihood ratio below which the own counts reject a return
         of the source's intensity (0: the counts favour "no return").
     vouch_level : float
-        Own log-likelihood ratio a candidate needs to take part in a pair enclosing a
-        further surface of a pixel (``-inf``: every candidate does, the former test;
-        ``detect`` passes ``-presence_llr``: counts that reject a return as strongly as
-        the presence test requires do not vouch for a neighbour).
+        Own log-likelihood ratio below which a further candidate does not enclose a
+        further candidate of a neighbour (``-inf``: every pair encloses, the former
+        test; ``detect`` passes ``-presence_llr``: counts that reject a return as
+        strongly as the presence test requires do not vouch for a neighbour).
     max_iter : int
         Most passes; each one removes the spread one pixel further from the sources.
 
@@ -403,11 +407,10 @@ def _pair_encloses(r, c, pair, depth_i, d, mask, order, starts, R, C, fwhm):
 
 
 @njit(cache=True, nogil=True)
-def _pair_vouches(i, pair, d, mask, llr, vouch, row, col, order, starts, R, C, fwhm):
-    """As :func:`_pair_encloses` for candidate ``i``, but the pair encloses only when
-    the own log-likelihood ratio of at least one of its two candidates reaches
-    ``vouch`` (a strip of spread along a depth edge or a strand encloses itself along
-    the strip, with members whose own counts all reject the return)."""
+def _pair_vouches(i, pair, d, mask, mute, strict, row, col, order, starts, R, C, fwhm):
+    """As :func:`_pair_encloses` for candidate ``i``; when ``strict``, a pair whose two
+    candidates are both ``mute`` does not enclose (a strip of spread over the pixels'
+    own surfaces encloses itself along the strip, with such members only)."""
     r = row[i]
     c = col[i]
     ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
@@ -421,7 +424,7 @@ def _pair_vouches(i, pair, d, mask, llr, vouch, row, col, order, starts, R, C, f
             continue
         for kb in range(starts[pb], starts[pb + 1]):
             jb = order[kb]
-            if not mask[jb] or (llr[ja] < vouch and llr[jb] < vouch):
+            if not mask[jb] or (strict and mute[ja] and mute[jb]):
                 continue
             if abs(0.5 * (d[ja] + d[jb]) - d[i]) <= fwhm:
                 return True
@@ -527,14 +530,17 @@ def _spill_kernel(
     ``order`` sorts the candidates by pixel, ``starts`` (R * C + 1) delimits each
     pixel's run in it. Each pass computes the own log-ratio of every active candidate
     that has a source (``+inf`` without one), then rejects those below ``level`` that
-    no opposite pair of 4-neighbours encloses; beside another candidate of the pixel at
-    or above ``level``, a pair needs one of its two at or above ``vouch`` (all at once,
-    as :func:`spill_over_features`). Returns the number of passes.
+    no opposite pair of 4-neighbours encloses; a further candidate (beside another of
+    its pixel at or above ``level``) needs a pair of which one is no further candidate
+    below ``vouch`` (all at once, as :func:`spill_over_features`). Returns the number
+    of passes.
     """
     n = row.size
     L = counts.shape[1]
     active = np.ones(n, np.bool_)
     llr = np.full(n, np.inf)
+    further = np.zeros(n, np.bool_)
+    mute = np.zeros(n, np.bool_)
     new = np.zeros(n, np.bool_)
     # a log-ratio changes only where the 3 x 3 neighbourhood lost a candidate in the
     # last pass (the source may have gone): recompute those (all in the first pass)
@@ -549,23 +555,27 @@ def _spill_kernel(
                     i, row, col, d, offset, counts, bkg, own, active, order, starts,
                     R, C, irf, peak, fwhm, sig,
                 )  # fmt: skip
+        # further candidates: beside another candidate of the pixel that its own
+        # counts support; mute: further ones whose counts reject their source's return
+        for i in range(n):
+            further[i] = False
+            if active[i]:
+                p = row[i] * C + col[i]
+                for kk in range(starts[p], starts[p + 1]):
+                    j = order[kk]
+                    if j != i and active[j] and llr[j] >= level:
+                        further[i] = True
+                        break
+            mute[i] = further[i] and llr[i] < vouch
         n_new = 0
         for i in range(n):
             new[i] = False
             if not active[i] or not llr[i] < level:
                 continue
-            # the stricter enclosure applies beside another surface of the pixel that
-            # its own counts support (the candidate is then a further one)
-            v = -np.inf
-            p = row[i] * C + col[i]
-            for kk in range(starts[p], starts[p + 1]):
-                j = order[kk]
-                if j != i and active[j] and llr[j] >= level:
-                    v = vouch
-                    break
+            f = further[i]
             if not (
-                _pair_vouches(i, 0, d, active, llr, v, row, col, order, starts, R, C, fwhm)
-                or _pair_vouches(i, 1, d, active, llr, v, row, col, order, starts, R, C, fwhm)
+                _pair_vouches(i, 0, d, active, mute, f, row, col, order, starts, R, C, fwhm)
+                or _pair_vouches(i, 1, d, active, mute, f, row, col, order, starts, R, C, fwhm)
             ):
                 new[i] = True
                 n_new += 1
