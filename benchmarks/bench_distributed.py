@@ -36,6 +36,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -190,7 +191,9 @@ def _timed(cube, **kw):
     return det, time.perf_counter() - t0
 
 
-def _cluster_run(cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None):
+def _cluster_run(
+    cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None, process=False
+):
     """Detection of ``cube`` on a fresh LocalCluster of ``n`` workers: ``(Detection,
     seconds, worker peaks in bytes, calling process's peak in bytes, restarted workers,
     CPU seconds of the workers and the calling process)``."""
@@ -214,7 +217,14 @@ def _cluster_run(cube, n: int, memory_limit: str, store: Path, tiny, block_rows=
         pids = client.run(os.getpid)
         pids["caller"] = os.getpid()
         with _Sampler(pids) as s:
-            det, t = _timed(cube, store=store, block_rows=block_rows)
+            if process:  # detection and reconstruction (on strips for a Dask cube)
+                t0 = time.perf_counter()
+                rec = splidar.process(cube, rng=0, store=store, block_rows=block_rows)
+                t = time.perf_counter() - t0
+                timings = {**rec.detection.timings, "reconstruct": rec.timings["reconstruct"]}
+                det = dataclasses.replace(rec.detection, timings=timings)
+            else:
+                det, t = _timed(cube, store=store, block_rows=block_rows)
         restarted = sum(1 for w, p in client.run(os.getpid).items() if pids.get(w) != p) + max(
             0, n - len(client.scheduler_info()["workers"])
         )
@@ -249,11 +259,12 @@ def large(args) -> int:
             store = base / f"det-{n}.zarr"
             shutil.rmtree(store, ignore_errors=True)
             det, t, peaks, caller, restarted, cpu = _cluster_run(
-                lazy, n, args.memory_limit, store, tiny, args.block_rows
+                lazy, n, args.memory_limit, store, tiny, args.block_rows, args.process
             )
             dets[n] = det
             print(f"cluster-{n}: {t:.1f} s ({cpu:.1f} s CPU), stages " + _stages(det), flush=True)
-            rows.append((f"cluster-{n}", n, t, n_vox, peaks, caller, restarted, cpu))
+            name = f"cluster-{n}" + ("-process" if args.process else "")
+            rows.append((name, n, t, n_vox, peaks, caller, restarted, cpu))
             shutil.rmtree(store, ignore_errors=True)
         fit = args.fit_rows
         mem = splidar.Cube(scene_rows(0, fit, C, T), irf=lazy.irf)
@@ -271,7 +282,7 @@ def large(args) -> int:
             shutil.rmtree(base, ignore_errors=True)
     ns_of = {r[0]: 1e9 * r[2] / r[3] for r in rows}
     cpu_of = {r[0]: 1e9 * r[7] / r[3] for r in rows}
-    t_one = next((r[2] for r in rows if r[0] == "cluster-1"), None)
+    t_one = next((r[2] for r in rows if r[0].startswith("cluster-1")), None)
     lim = _bytes(args.memory_limit)
     print(
         f"\nin-memory slab: {fit} x {C} x 1 x {T}; x memory: time per voxel against the "
@@ -310,6 +321,7 @@ def large(args) -> int:
 
 def _stages(det) -> str:
     keep = ("background_temporal", "null", "saliency_and_surfaces", "quality_and_selection")
+    keep += ("reconstruct",)
     return ", ".join(f"{k} {det.timings[k]:.1f}" for k in keep if k in det.timings)
 
 
@@ -334,6 +346,9 @@ def main(argv=None) -> int:
     p.add_argument("--large", action="store_true", help="the issue's figures at scale")
     p.add_argument("--fit-rows", type=int, default=256, help="--large: in-memory slab rows")
     p.add_argument("--data", default=None, help="--large: folder for the cube (kept)")
+    p.add_argument(
+        "--process", action="store_true", help="--large: splidar.process on the clusters"
+    )
     args = p.parse_args(argv)
     if args.large:
         for k, v in (("rows", 2048), ("cols", 1536), ("bins", 1000)):
