@@ -311,9 +311,16 @@ def _cluster_options(p: argparse.ArgumentParser) -> None:
         metavar="SIZE",
         help="per-worker memory limit of --workers' cluster, e.g. 1GB (default: RAM / N)",
     )
+    g.add_argument(
+        "--strip-rows",
+        type=_positive(int),
+        metavar="N",
+        help="Dask input: image rows per reconstruction strip (default: from a 256 MiB "
+        "budget per strip); the points are streamed per strip to points.parquet/",
+    )
 
 
-def _pipeline_on_dask(cube, args, stages: _Stages):
+def _pipeline_on_dask(cube, args, stages: _Stages, *, stream=None):
     """:func:`_pipeline` on the Dask scheduler the options ask for: a lazy cube on
     threads, any cube on a cluster (--workers, --scheduler); an in-memory cube without
     them as before."""
@@ -331,7 +338,7 @@ def _pipeline_on_dask(cube, args, stages: _Stages):
         progress=not args.quiet,
     )
     with session:
-        return _pipeline(as_dask_cube(cube) if on_cluster else cube, args, stages)
+        return _pipeline(as_dask_cube(cube) if on_cluster else cube, args, stages, stream=stream)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -790,7 +797,7 @@ def _write_outputs(
             files += [f"figures/{p.name}" for p in paths.values()]
     extra = dict(extra or {})
     extra["timings_s_command"] = stages.timings
-    extra["files"] = files + ["summary.json"]
+    extra["files"] = files + extra.get("streamed", {}).get("files", []) + ["summary.json"]
     export.write_summary(rec, folder / "summary.json", metrics=metrics, extra=extra)
     return files
 
@@ -838,7 +845,37 @@ _RECON_OPTS = (
 )
 
 
-def _pipeline(cube, args, stages: _Stages, *, library=None):
+#: a streamed run (Dask input) writes the usual CSV, PLY, npz, view and figures beside the
+#: Parquet points and Zarr maps up to this many points (some 100 MB of CSV)
+SMALL_RESULT = 1_000_000
+
+
+def _reconstruct_streamed(det, library, rec_kw, args, stages: _Stages, stream: dict):
+    """Strips of a Dask cube's detection, each strip's points written as it finishes
+    (``_stream.StripStore`` in ``stream["folder"]``); ``stream["store"]`` is set."""
+    from ._stream import StripStore
+    from .reconstruction._tiled import reconstruct_tiled
+
+    store = StripStore(
+        stream["folder"], stream["key"], det.image_shape, int(det.surfaces.n_slots),
+        det.n_wavelengths, bin_width_ps=det.bin_width_ps,
+    )  # fmt: skip
+    stream["store"] = store
+    with stages.stage("reconstructing"):
+        out = reconstruct_tiled(
+            det, strip_rows=getattr(args, "strip_rows", None), store=store,
+            assemble=len(det.surfaces) <= SMALL_RESULT, library=library, rng=args.seed,
+            **rec_kw,
+        )  # fmt: skip
+    if store.resumed:
+        log.warning(
+            "resumed an interrupted run: %d of %d strip(s) already finished, not recomputed",
+            len(store.resumed), len(store.manifest["cores"]),
+        )  # fmt: skip
+    return out
+
+
+def _pipeline(cube, args, stages: _Stages, *, library=None, stream=None):
     from .detection import PASSES, detect
     from .reconstruction import reconstruct
 
@@ -851,6 +888,8 @@ def _pipeline(cube, args, stages: _Stages, *, library=None):
     _check_detect_memory(cube, det_kw)
     with stages.stage("detecting surfaces"), _damaged_chunks(cube, getattr(args, "input", "")):
         det = detect(cube, rng=args.seed, **det_kw)
+    if stream is not None and det.options.get("dask", False):
+        return _reconstruct_streamed(det, library, _given(args, _RECON_OPTS), args, stages, stream)
     _check_reconstruct_memory(det, library)
     log.info(
         "%d surfaces detected; %.3g %% of voxels kept",
@@ -972,6 +1011,7 @@ def _indent(text: str, n: int = 2) -> str:
 
 def _cmd_run(args) -> int:
     from .io import load
+    from .reconstruction import Reconstruction
 
     inp = Path(args.input)
     if not inp.exists():
@@ -996,39 +1036,86 @@ def _cmd_run(args) -> int:
         with stages.stage("loading"):
             cube = load(inp, **load_kw)
         log.info("loaded %r", cube)
-        rec = _pipeline_on_dask(cube, args, stages)
+        stream = None
+        if cube.is_lazy or args.workers is not None or args.scheduler is not None:
+            # points per strip to Parquet; a killed run leaves this folder to resume from
+            stream = {"folder": out.parent / f".{out.name}.resume", "key": _run_key(args)}
+        rec = _pipeline_on_dask(cube, args, stages, stream=stream)
+        extra = {
+            "command": "run",
+            "input": str(inp),
+            "load_options": load_kw,
+            "cube": {
+                "shape": list(cube.shape),
+                "bin_width_ps": cube.bin_width_ps,
+                "metadata": dict(cube.metadata),
+            },
+        }
         with _staging(out) as tmp:
-            _write_outputs(
-                tmp,
-                rec,
-                cube=cube,
-                args=args,
-                extra={
-                    "command": "run",
-                    "input": str(inp),
-                    "load_options": load_kw,
-                    "cube": {
-                        "shape": list(cube.shape),
-                        "bin_width_ps": cube.bin_width_ps,
-                        "metadata": dict(cube.metadata),
-                    },
-                },
-                stages=stages,
-            )
+            if stream is not None and "store" in stream:
+                extra["streamed"] = _move_streamed(stream, rec, tmp)
+            if isinstance(rec, Reconstruction):
+                _write_outputs(tmp, rec, cube=cube, args=args, extra=extra, stages=stages)
+            else:
+                _write_streamed_summary(tmp, rec, extra, stages)
+        if stream is not None and "store" in stream:
+            shutil.rmtree(stream["folder"], ignore_errors=True)
     finally:
         stages.close()
-    p = rec.points
+    det = rec.detection
     c = cube
     args.json_summary = _json_result(out)
     _say(
         args,
         f"{inp}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} wavelength(s), {c.n_bins} bins",
-        f"{len(p)} surfaces in {rec.n_layers} layer(s); "
-        f"{100 * rec.detection.reduction.voxel_fraction:.3g} % of voxels kept",
-        _timing_line(rec.detection, rec),
+        f"{len(det.surfaces)} surfaces in {int(det.surfaces.n_slots)} layer(s); "
+        f"{100 * det.reduction.voxel_fraction:.3g} % of voxels kept",
+        _timing_line(det, rec),
         f"outputs written to {out}/",
     )
     return EXIT_OK
+
+
+def _run_key(args) -> str:
+    """What makes two runs the same: the input file (path, size, time) and every option."""
+    import hashlib
+
+    st = Path(args.input).stat()
+    skip = {"out", "force", "quiet", "verbose", "json", "workers", "scheduler", "memory_limit",
+            "no_figures", "no_view", "func", "json_summary"}  # fmt: skip
+    opts = {k: repr(v) for k, v in sorted(vars(args).items()) if k not in skip}
+    text = json.dumps([str(Path(args.input).resolve()), st.st_size, st.st_mtime_ns, opts,
+                       __version__])  # fmt: skip
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _move_streamed(stream: dict, rec, tmp: Path) -> dict:
+    """Move the streamed points and maps into the staging folder; what summary.json says."""
+    store = stream["store"]
+    for name in ("points.parquet", "maps.zarr"):
+        os.replace(stream["folder"] / name, tmp / name)
+    return {
+        "files": ["points.parquet/", "maps.zarr/"],
+        "strips": [list(c) for c in store.manifest["cores"]],
+        "strips_resumed": list(store.resumed),
+    }
+
+
+def _write_streamed_summary(tmp: Path, run, extra: dict, stages: _Stages) -> None:
+    """summary.json of a run too large for the usual outputs (points and maps streamed)."""
+    from . import export
+
+    det = run.detection
+    with stages.stage("writing points and maps"):
+        summary = dict(extra)
+        summary.update(
+            versions=export._versions(),
+            image_shape=list(det.image_shape), n_wavelengths=det.n_wavelengths,
+            n_points=run.n_points, n_layers=int(det.surfaces.n_slots),
+            timings_s={"detect": (det.timings or {}).get("total"), **run.timings},
+            files=extra["streamed"]["files"] + ["summary.json"],
+        )  # fmt: skip
+        (tmp / "summary.json").write_text(json.dumps(_json_clean(summary), indent=2))
 
 
 def _truth_path(out: Path) -> Path:

@@ -431,6 +431,8 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             block_rows=mp.block_rows,
             n_jobs=o["n_jobs"],
             store=None if store is None else str(store),
+            # a Dask cube: splidar.reconstruct runs on overlapping strips of rows as well
+            dask=is_dask(cube.counts),
             window=mp.width,
             n_candidates=mp.n_candidates,
             n_rejected=mp.n_rejected + rec["spill_over"].removed + rec["isolated"].removed,

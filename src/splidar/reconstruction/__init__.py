@@ -9,10 +9,11 @@ from ._classify import (
     potts_marginals,
     unknown_llr,
 )
-from ._core import estimate_alpha, irf_fraction, kmeans_signatures, nearest_signature, reconstruct
+from ._core import estimate_alpha, irf_fraction, kmeans_signatures, nearest_signature
 from ._graph import SurfaceGraph, build_graph, irf_fwhm
 from ._result import ConvergenceHistory, Reconstruction
 from ._synthetic import synthetic_detection
+from ._tiled import reconstruct
 from ._unknown import flag_unknown
 
 __all__ = [

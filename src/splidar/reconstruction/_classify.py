@@ -524,6 +524,7 @@ def classify_surfaces(
     n_burn: int = 8,
     n_keep: int = 8,
     seed: int = 0,
+    proportions: np.ndarray | None = None,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
 
@@ -551,6 +552,9 @@ def classify_surfaces(
         single chain of 15 + 30): the same labels, marginals about half as
         over-confident on Art (see the module docstring).
     seed : int
+    proportions : ndarray (K,), optional
+        Class proportions to start from instead of the EM estimate on these surfaces (a
+        tile of a tiled reconstruction passes the whole image's).
 
     Returns
     -------
@@ -569,7 +573,7 @@ def classify_surfaces(
     """
     ll = class_loglik(y, background, eta, signatures, alpha=alpha)
     S, K = ll.shape
-    pi = em_proportions(ll)
+    pi = em_proportions(ll) if proportions is None else np.asarray(proportions, np.float64)
     marg = np.full((S, K), 1.0 / K)
     start = None
     for i in range(n_rounds):

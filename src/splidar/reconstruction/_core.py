@@ -857,9 +857,11 @@ def _start(su: _Setup, u):
     return r, h, h.copy()
 
 
-def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol):
+def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol, eb=None):
     """Coordinate descent with the labels fixed: one phase, or two with ``alpha="auto"``.
 
+    ``eb``: the ``(alpha, upsilon)`` arrays (K, L) the empirical-Bayes step uses instead of
+    estimating them from these surfaces (a tile of a tiled run: ``_tiled.py``).
     Returns ``(state dict, prior (auto, alpha, ups, eps), history)``.
     """
     y, b, eta, sig = su.y, su.b, su.eta, su.sig
@@ -886,7 +888,10 @@ def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol):
         if auto_alpha:
             # empirical Bayes: the prior of r as wide as the data say, labels kept
             h_nb = np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1)
-            alpha_a, ups_a = _split_variability(estimate_alpha(y, b, eta, h_nb, u, sig))
+            if eb is None:
+                alpha_a, ups_a = _split_variability(estimate_alpha(y, b, eta, h_nb, u, sig))
+            else:
+                alpha_a, ups_a = eb
             eps_a = sig * (ups_a - 1.0) / alpha_a
             # warm start under the new prior: r at its prior joint mode with beta, r =
             # m (alpha - 1)(upsilon - 1) / (alpha (upsilon + 2)) (near the signature when
@@ -1039,6 +1044,11 @@ def reconstruct(
     modes given the labels, by coordinate descent (``eqt:Modes_Param_top``,
     ``eqt:Modes_Param_bottom``), with a posterior std. The updates, their cost and what
     was measured are in the notes of the module ``splidar/reconstruction/_core.py``.
+
+    A detection of a Dask-backed cube (``detection.options["dask"]``) is reconstructed
+    on overlapping strips of rows, one Dask task each, on the active scheduler, when its
+    surfaces do not fit one strip's memory budget (``_tiled.py``, ``docs/distributed.md``:
+    the margin, the tolerance against this in-memory run, the seeds).
 
     Parameters
     ----------
