@@ -8,7 +8,10 @@ The reconstruction's strips (``reconstruction/_tiled.py``) hand their core point
   ``pandas.read_parquet`` read them all, with a ``tile`` column);
 - ``maps.zarr``: ``depth_bin`` (rows, cols, K_s), ``intensity`` (rows, cols, K_s, L)
   and ``label`` (rows, cols, K_s), each strip writing its rows;
-- ``labels/NNNN.npz``: the strip's labels pass (labels, marginals, neighbours' shading);
+- ``labels/NNNN.npz``: the strip's labels pass (labels, marginals, neighbours' shading,
+  the strip's own labels with its margins), ``labels/NNNN.resid.npz`` its residuals
+  behind the std's smoothing-bias term (one term for the image: a restart needs every
+  strip's);
 - ``manifest.json``: the run's key (input and options) and the strips finished, with
   what the assembled history needs. It is rewritten (atomically) after a strip's files.
 
@@ -113,21 +116,40 @@ class StripStore:
 
     # the labels pass -------------------------------------------------------------
     def labels(self, n: int):
+        """``(labels, marginals, h_nb, own)`` of strip ``n``'s labels pass, or None."""
         p = self.folder / "labels" / f"{n:04d}.npz"
         if not p.is_file():
             return None
         with np.load(p) as z:
-            return z["label"], z["marginals"], (z["h_nb"] if "h_nb" in z else None)
+            if "own" not in z:
+                return None
+            h_nb = z["h_nb"] if "h_nb" in z else None
+            return z["label"], z["marginals"], h_nb, z["own"]
 
     def put_labels(self, n: int, result) -> None:
-        u, marg, h_nb = result
-        arrays = dict(label=u, marginals=marg)
+        u, marg, h_nb, own = result
+        arrays = dict(label=u, marginals=marg, own=own)
         if h_nb is not None:
             arrays["h_nb"] = h_nb
-        p = self.folder / "labels" / f"{n:04d}.npz"
-        tmp = p.with_name(f"{n:04d}.tmp.npz")
+        self._save(self.folder / "labels" / f"{n:04d}.npz", arrays)
+
+    def residuals(self, n: int):
+        """Strip ``n``'s residuals behind the std's smoothing-bias term, or None."""
+        p = self.folder / "labels" / f"{n:04d}.resid.npz"
+        if not p.is_file():
+            return None
+        with np.load(p) as z:
+            return z["e2"], z["knv"]
+
+    def put_residuals(self, n: int, resid) -> None:
+        e2, knv = resid
+        self._save(self.folder / "labels" / f"{n:04d}.resid.npz", dict(e2=e2, knv=knv))
+
+    @staticmethod
+    def _save(path: Path, arrays: dict) -> None:
+        tmp = path.with_name(path.name[: -len(".npz")] + ".tmp.npz")
         np.savez(tmp, **arrays)
-        os.replace(tmp, p)
+        os.replace(tmp, path)
 
     # the intensities ---------------------------------------------------------------
     def _part(self, n: int) -> Path:

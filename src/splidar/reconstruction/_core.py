@@ -555,6 +555,14 @@ def _h_variance_eb(y, b, eta, r, h, alpha_u, graph, rho, n_iter: int = 5):
     nv_s`` (weights ``1 / (kappa nv + B)**2``, iterated), floored at 0. Surfaces without
     links get the data's variance ``1 / N_s``. Returns ``(var_h (S,), B)``.
     """
+    var0, N, ok, e2, knv = _h_variance_parts(y, b, eta, r, h, alpha_u, graph, rho)
+    B = _shading_bias2(e2, knv, n_iter)
+    return _h_variance_with(h, var0, N, ok, B), B
+
+
+def _h_variance_parts(y, b, eta, r, h, alpha_u, graph, rho):
+    """The per-surface parts of :func:`_h_variance_eb`: ``(V, N, ok, e2, knv)``, the last
+    two for the linked surfaces (``ok``) only (what the estimate of ``B`` needs)."""
     deg = np.diff(graph.indptr)
     lam = eta * h[:, None] * r
     n = lam * lam / np.maximum(lam + b, 1e-300)
@@ -569,14 +577,22 @@ def _h_variance_eb(y, b, eta, r, h, alpha_u, graph, rho, n_iter: int = 5):
     e = ((y - b).sum(axis=1) / E - h) / h
     nv = (lam + b).sum(axis=1) / (E * h) ** 2  # expected Poisson variance of h_raw / h
     ok = deg > 0
+    return V, N, ok, e[ok] ** 2, (kappa * nv)[ok]
+
+
+def _shading_bias2(e2, knv, n_iter: int = 5) -> float:
+    """``B`` of :func:`_h_variance_eb` from the linked surfaces' ``e2`` and ``knv``."""
     B = 0.0
-    if np.any(ok):
-        e2, knv = e[ok] ** 2, (kappa * nv)[ok]
+    if e2.size:
         B = float(np.mean(np.maximum(e2 - knv, 0.0)))  # start
         for _ in range(n_iter):
             wgt = 1.0 / (knv + B + 1e-12) ** 2
             B = max(float(np.sum(wgt * (e2 - knv)) / np.sum(wgt)), 0.0)
-    return h**2 * np.where(ok, V + B, 1.0 / N), B
+    return B
+
+
+def _h_variance_with(h, V, N, ok, B) -> np.ndarray:
+    return h**2 * np.where(ok, V + B, 1.0 / N)
 
 
 def kmeans_signatures(
@@ -857,87 +873,135 @@ def _start(su: _Setup, u):
     return r, h, h.copy()
 
 
-def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol, eb=None):
-    """Coordinate descent with the labels fixed: one phase, or two with ``alpha="auto"``.
-
-    ``eb``: the ``(alpha, upsilon)`` arrays (K, L) the empirical-Bayes step uses instead of
-    estimating them from these surfaces (a tile of a tiled run: ``_tiled.py``).
-    Returns ``(state dict, prior (auto, alpha, ups, eps), history)``.
-    """
-    y, b, eta, sig = su.y, su.b, su.eta, su.sig
-    auto_alpha, alpha_a, ups_a, eps_a = prior
-    S, L = y.shape
+def _sweep_start(su: _Setup, u, prior, max_iter) -> dict:
+    """The sweeps' state before the first sweep (``r, beta, h, w`` and the history)."""
     r, h, w = _start(su, u)
-    beta = sig[u] / alpha_a[u]
-    conf = np.ones(S)
-    z, q = np.empty((S, L)), np.empty((S, L))
-    obj, change = np.zeros(max_iter + 1), np.zeros(max_iter)
-    n_changed = np.zeros(max_iter, np.int64)
-    alpha_updates, n_iter = [], 0
-    if S:
-        deg = np.diff(graph.indptr)
-        src = np.repeat(np.arange(S), deg)
-        # with alpha="auto" this first phase only gives a start for the alpha estimate
-        tol1 = tol * _PHASE1_TOL if auto_alpha else tol
-        n_iter += kern.run(
-            y, b, eta, graph.parity, graph.indptr, graph.indices, alpha_a, ups_a, eps_a,
-            rho, gamma, max(max_iter // 2, 1) if auto_alpha else max_iter, tol1, False, r,
-            beta, h, w, u, conf, z, q, obj, change, n_changed, _INNER, _HW_PASSES,
-            int(tol1 * S), _OBJ_EVERY,
-        )  # fmt: skip
-        if auto_alpha:
-            # empirical Bayes: the prior of r as wide as the data say, labels kept
-            h_nb = np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1)
-            if eb is None:
-                alpha_a, ups_a = _split_variability(estimate_alpha(y, b, eta, h_nb, u, sig))
-            else:
-                alpha_a, ups_a = eb
-            eps_a = sig * (ups_a - 1.0) / alpha_a
-            # warm start under the new prior: r at its prior joint mode with beta, r =
-            # m (alpha - 1)(upsilon - 1) / (alpha (upsilon + 2)) (near the signature when
-            # the prior is tight), h keeping each surface's expected signal sum_l eta h r,
-            # w and beta their conditional modes. Measured: the second phase then takes
-            # 2-4 sweeps instead of 5-8 (same result within tol).
-            r0 = (sig * (alpha_a - 1.0) * (ups_a - 1.0) / (alpha_a * (ups_a + 2.0)))[u]
-            h = (eta * h[:, None] * r).sum(axis=1) / (eta * r0).sum(axis=1)
-            r = np.ascontiguousarray(r0)
-            kern.update_w(h, graph.indptr, graph.indices, w)
-            beta = (r + eps_a[u]) / (alpha_a + ups_a + 1.0)[u]
-            alpha_updates.append(n_iter)
-            if n_iter < max_iter:
-                n_iter += kern.run(
-                    y, b, eta, graph.parity, graph.indptr, graph.indices, alpha_a, ups_a,
-                    eps_a, rho, gamma, max_iter - n_iter, tol, False, r, beta, h, w, u, conf,
-                    z, q, obj[n_iter:], change[n_iter:], n_changed[n_iter:], _INNER,
-                    _HW_PASSES, int(tol * S), _OBJ_EVERY,
-                )  # fmt: skip
-        converged = bool(change[n_iter - 1] < tol) if n_iter else False
+    S, L = su.y.shape
+    return dict(
+        r=r, beta=su.sig[u] / prior[1][u], h=h, w=w, n_iter=0, alpha_updates=[],
+        obj=np.zeros(max_iter + 1), change=np.zeros(max_iter),
+        n_changed=np.zeros(max_iter, np.int64),
+    )  # fmt: skip
+
+
+def _run_phase(su: _Setup, graph, u, st, prior, rho, gamma, n_max, tol) -> None:
+    """``n_max`` sweeps at most (``kern.run``) from ``st``, updated in place."""
+    auto, alpha_a, ups_a, eps_a = prior
+    S, L = su.y.shape
+    n = st["n_iter"]
+    st["z"], st["q"] = np.empty((S, L)), np.empty((S, L))
+    st["n_iter"] += kern.run(
+        su.y, su.b, su.eta, graph.parity, graph.indptr, graph.indices, alpha_a, ups_a, eps_a,
+        rho, gamma, n_max, tol, False, st["r"], st["beta"], st["h"], st["w"], u, np.ones(S),
+        st["z"], st["q"], st["obj"][n:], st["change"][n:], st["n_changed"][n:], _INNER,
+        _HW_PASSES, int(tol * S), _OBJ_EVERY,
+    )  # fmt: skip
+
+
+def _phase_one(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol) -> None:
+    """The first phase of :func:`_sweeps`: with ``alpha="auto"`` (``prior[0]``) at the
+    starting alpha, at most ``max_iter // 2`` sweeps, stopped at ``10 tol``; else the
+    only phase."""
+    if su.y.shape[0]:
+        tol1 = tol * _PHASE1_TOL if prior[0] else tol
+        n_max = max(max_iter // 2, 1) if prior[0] else max_iter
+        _run_phase(su, graph, u, st, prior, rho, gamma, n_max, tol1)
+
+
+def _neighbour_shading(graph, h) -> np.ndarray:
+    """Mean ``h`` of each surface's linked neighbours (0 without links)."""
+    S = h.shape[0]
+    deg = np.diff(graph.indptr)
+    src = np.repeat(np.arange(S), deg)
+    return np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1)
+
+
+def _phase_two(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol, eb=None):
+    """The second phase of :func:`_sweeps` (``alpha="auto"``): the empirical-Bayes
+    ``(alpha, upsilon)`` (from these surfaces, or ``eb``), a warm start under them, the
+    sweeps. Returns the new prior ``(True, alpha, upsilon, eps)``."""
+    y, b, eta, sig = su.y, su.b, su.eta, su.sig
+    # empirical Bayes: the prior of r as wide as the data say, labels kept
+    if eb is None:
+        h_nb = _neighbour_shading(graph, st["h"])
+        alpha_a, ups_a = _split_variability(estimate_alpha(y, b, eta, h_nb, u, sig))
+    else:
+        alpha_a, ups_a = eb
+    eps_a = sig * (ups_a - 1.0) / alpha_a
+    # warm start under the new prior: r at its prior joint mode with beta, r =
+    # m (alpha - 1)(upsilon - 1) / (alpha (upsilon + 2)) (near the signature when
+    # the prior is tight), h keeping each surface's expected signal sum_l eta h r,
+    # w and beta their conditional modes. Measured: the second phase then takes
+    # 2-4 sweeps instead of 5-8 (same result within tol).
+    r0 = (sig * (alpha_a - 1.0) * (ups_a - 1.0) / (alpha_a * (ups_a + 2.0)))[u]
+    st["h"] = (eta * st["h"][:, None] * st["r"]).sum(axis=1) / (eta * r0).sum(axis=1)
+    st["r"] = np.ascontiguousarray(r0)
+    kern.update_w(st["h"], graph.indptr, graph.indices, st["w"])
+    st["beta"] = (st["r"] + eps_a[u]) / (alpha_a + ups_a + 1.0)[u]
+    st["alpha_updates"].append(st["n_iter"])
+    prior = (True, alpha_a, ups_a, eps_a)
+    if st["n_iter"] < max_iter:
+        _run_phase(su, graph, u, st, prior, rho, gamma, max_iter - st["n_iter"], tol)
+    return prior
+
+
+def _sweeps_end(su: _Setup, st, tol):
+    """The last E-step and the history; returns ``(state, history)``."""
+    n_iter = st["n_iter"]
+    if su.y.shape[0]:
+        converged = bool(st["change"][n_iter - 1] < tol) if n_iter else False
         reason = "tol" if converged else "max_iter"
-        kern.estep(y, b, eta, r, h, z, q)
+        S, L = su.y.shape
+        z, q = np.empty((S, L)), np.empty((S, L))
+        kern.estep(su.y, su.b, su.eta, st["r"], st["h"], z, q)
     else:
         converged, reason = True, "no surfaces"
+        z, q = np.empty((0, su.y.shape[1])), np.empty((0, su.y.shape[1]))
     history = ConvergenceHistory(
-        objective=obj[: n_iter + 1].copy(),
-        change=change[:n_iter].copy(),
-        label_changes=n_changed[:n_iter].copy(),
+        objective=st["obj"][: n_iter + 1].copy(),
+        change=st["change"][:n_iter].copy(),
+        label_changes=st["n_changed"][:n_iter].copy(),
         n_iter=int(n_iter),
         converged=converged,
         reason=reason,
-        alpha_updates=tuple(alpha_updates),
+        alpha_updates=tuple(st["alpha_updates"]),
     )
-    state = {"r": r, "beta": beta, "h": h, "w": w, "z": z, "q": q}
-    return state, (auto_alpha, alpha_a, ups_a, eps_a), history
+    state = {"r": st["r"], "beta": st["beta"], "h": st["h"], "w": st["w"], "z": z, "q": q}
+    return state, history
 
 
-def _intensity_and_std(su: _Setup, graph, u, marginals, state, prior, rho, rng):
-    """Posterior intensity and its std (with the label term when K > 1 and "auto")."""
+def _sweeps(su: _Setup, graph, u, prior, rho, gamma, max_iter, tol, eb=None):
+    """Coordinate descent with the labels fixed: one phase, or two with ``alpha="auto"``
+    (:func:`_phase_one`, :func:`_phase_two`; the tiled run calls them in separate tasks).
+
+    ``eb``: the ``(alpha, upsilon)`` arrays (K, L) the empirical-Bayes step uses instead of
+    estimating them from these surfaces.
+    Returns ``(state dict, prior (auto, alpha, ups, eps), history)``.
+    """
+    st = _sweep_start(su, u, prior, max_iter)
+    _phase_one(su, graph, u, st, prior, rho, gamma, max_iter, tol)
+    if prior[0] and su.y.shape[0]:
+        prior = _phase_two(su, graph, u, st, prior, rho, gamma, max_iter, tol, eb)
+    state, history = _sweeps_end(su, st, tol)
+    return state, prior, history
+
+
+def _intensity_and_std(su: _Setup, graph, u, marginals, state, prior, rho, rng, bias2=None):
+    """Posterior intensity and its std (with the label term when K > 1 and "auto").
+
+    ``bias2``: the smoothing-bias term ``B`` to use (a tiled run's, estimated on every
+    strip) instead of estimating it from these surfaces."""
     y, b, eta, sig = su.y, su.b, su.eta, su.sig
     auto_alpha, alpha_a, ups_a, eps_a = prior
     st = state
     S = y.shape[0]
-    var_h, bias2 = None, None
+    var_h = None
     if auto_alpha and S:
-        var_h, bias2 = _h_variance_eb(y, b, eta, st["r"], st["h"], alpha_a[u], graph, rho)
+        if bias2 is None:
+            var_h, bias2 = _h_variance_eb(y, b, eta, st["r"], st["h"], alpha_a[u], graph, rho)
+        else:
+            V, N, ok, _, _ = _h_variance_parts(y, b, eta, st["r"], st["h"], alpha_a[u], graph, rho)
+            var_h = _h_variance_with(st["h"], V, N, ok, bias2)
     intensity, std = _posterior_intensity(
         y, eta, st["z"], st["q"], st["r"], st["beta"], st["h"], u, alpha_a, ups_a, eps_a,
         graph, rho, st["w"], auto_alpha, var_h,

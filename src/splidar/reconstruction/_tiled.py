@@ -47,17 +47,22 @@ from . import _core
 from ._classify import class_loglik, classify_surfaces, em_proportions
 from ._core import (
     _KERNEL_LOCK,
-    _PHASE1_TOL,
     _check_options,
+    _h_variance_parts,
     _hyperparameters,
     _intensity_and_std,
+    _neighbour_shading,
     _one_at_a_time,
+    _phase_one,
+    _phase_two,
     _prior_arrays,
     _resolve_classes,
     _result,
     _setup,
+    _shading_bias2,
     _split_variability,
-    _sweeps,
+    _sweep_start,
+    _sweeps_end,
     estimate_alpha,
 )
 from ._graph import build_graph
@@ -120,23 +125,41 @@ class _Strip:
 
 
 def _strip_setup(st: _Strip, shared):
-    """The strip's ``_Setup`` and surface graph (red-black colours of the whole image)."""
-    su = dataclasses.replace(shared["setup"], y=st.y, b=st.b, eta=st.eta, intensity_raw=st.y)
+    """The strip's ``_Setup`` (its surfaces' data on the run's signatures)."""
+    return dataclasses.replace(shared["setup"], y=st.y, b=st.b, eta=st.eta, intensity_raw=st.y)
+
+
+def _strip_graph(st: _Strip, su, shared):
+    """The strip's surface graph (red-black colours of the whole image)."""
     e0 = int(st.row.min()) if st.row.size else 0
     n_rows = int(st.row.max()) - e0 + 1 if st.row.size else 1
     graph = build_graph(
         st.row - e0, st.col, st.slot, st.depth, (n_rows, shared["n_cols"]), shared["n_slots"],
         links=su.links, gate=su.gate,
     )  # fmt: skip
-    graph = dataclasses.replace(graph, parity=((st.row + st.col) % 2).astype(np.int64))
-    return su, graph
+    return dataclasses.replace(graph, parity=((st.row + st.col) % 2).astype(np.int64))
+
+
+def _phase_one_state(su, graph, u, shared):
+    """The sweeps' state after the first phase (the in-memory run's, given ``u``)."""
+    state = _sweep_start(su, u, shared["prior"], shared["max_iter"])
+    _phase_one(
+        su, graph, u, state, shared["prior"], shared["rho"], shared["gamma"],
+        shared["max_iter"], shared["tol"],
+    )  # fmt: skip
+    state.pop("z", None), state.pop("q", None)  # recomputed by the next sweep
+    return state
 
 
 @_one_at_a_time
 def _labels_tile(st: _Strip, shared):
-    """Step 2: the core's labels and marginals, and with ``alpha="auto"`` the first
-    phase's mean shading of each core surface's neighbours."""
-    su, graph = _strip_setup(st, shared)
+    """Step 2: ``(small, carry)``. ``small`` goes to the calling process: the core's
+    labels and marginals, with ``alpha="auto"`` the first phase's mean shading of each
+    core surface's neighbours, and the labels of the whole strip (its own, margins
+    included: a restart redoes the first phase with them). ``carry`` stays where the task
+    ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state."""
+    su = _strip_setup(st, shared)
+    graph = _strip_graph(st, su, shared)
     S, K = st.y.shape[0], su.sig.shape[0]
     if K > 1:
         cls = classify_surfaces(
@@ -147,35 +170,62 @@ def _labels_tile(st: _Strip, shared):
     else:
         u, marg = np.zeros(S, np.int64), np.ones((S, 1))
     core = st.core
-    h_nb = None
-    auto, alpha_a, ups_a, eps_a = shared["prior"]
-    if auto and S:
-        # the in-memory first phase: alpha = 6, stopped at 10 tol, max_iter // 2 sweeps
-        state, _, _ = _sweeps(
-            su, graph, u, (False, alpha_a, ups_a, eps_a), shared["rho"], shared["gamma"],
-            max(shared["max_iter"] // 2, 1), shared["tol"] * _PHASE1_TOL,
-        )  # fmt: skip
-        deg = np.diff(graph.indptr)
-        src = np.repeat(np.arange(S), deg)
-        h = state["h"]
-        h_nb = (np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1))[core]
-    return u[core], marg[core], h_nb
+    h_nb, state = None, None
+    if shared["prior"][0] and S:
+        state = _phase_one_state(su, graph, u, shared)
+        h_nb = _neighbour_shading(graph, state["h"])[core]
+    return (u[core], marg[core], h_nb, u), dict(strip=st, graph=graph, state=state)
 
 
 @_one_at_a_time
-def _fit_tile(st: _Strip, u, marg, shared, eb):
-    """Step 4: the core's intensities and std, the sweeps' history and the core's links."""
-    su, graph = _strip_setup(st, shared)
-    state, prior, hist = _sweeps(
-        su, graph, u, shared["prior"], shared["rho"], shared["gamma"], shared["max_iter"],
-        shared["tol"], eb=eb,
-    )  # fmt: skip
-    rng = np.random.default_rng(_seed(shared["base"], st.r0, 1))
-    intensity, std, bias2 = _intensity_and_std(su, graph, u, marg, state, prior, shared["rho"], rng)
+def _fit_tile(carry, st, u, own, shared, eb):
+    """Step 4: the sweeps from the first phase's state (``carry`` of step 2; when None,
+    after a restart, the first phase again on ``st`` with the strip's ``own`` labels:
+    the same state). Returns ``(small, carry)``: the core's residuals for the std's
+    smoothing-bias term, its surfaces and links, the history; the state for step 5."""
+    auto = shared["prior"][0]
+    state = None
+    if carry is not None:
+        st, graph, state = carry["strip"], carry["graph"], carry["state"]
+        su = _strip_setup(st, shared)
+    else:
+        su = _strip_setup(st, shared)
+        graph = _strip_graph(st, su, shared)
+    S = st.y.shape[0]
+    if state is None:  # fixed alpha: the only phase, with these labels
+        state = _phase_one_state(su, graph, own if auto else u, shared)
+    else:  # a copy: the carry may be used again if this task is recomputed
+        state = {k: (v.copy() if hasattr(v, "copy") else v) for k, v in state.items()}
+    prior = shared["prior"]
+    if auto and S:
+        prior = _phase_two(
+            su, graph, u, state, prior, shared["rho"], shared["gamma"], shared["max_iter"],
+            shared["tol"], eb=eb,
+        )  # fmt: skip
+    state, hist = _sweeps_end(su, state, shared["tol"])
     core = st.core
+    resid = None
+    if auto and S:
+        _, _, ok, e2, knv = _h_variance_parts(
+            su.y, su.b, su.eta, state["r"], state["h"], prior[1][u], graph, shared["rho"]
+        )
+        keep = core[ok]
+        resid = (e2[keep], knv[keep])
     n_links = int(np.diff(graph.indptr)[core].sum())
-    n_core = int(np.count_nonzero(core))
-    return intensity[core], std[core], bias2, n_core, n_links, hist, prior
+    small = (resid, int(np.count_nonzero(core)), n_links, hist)
+    return small, dict(strip=st, graph=graph, state=state, prior=prior)
+
+
+@_one_at_a_time
+def _std_tile(carry, u, marg, shared, bias2):
+    """Step 5: the core's intensities and std, with the run's smoothing-bias term."""
+    st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
+    su = _strip_setup(st, shared)
+    rng = np.random.default_rng(_seed(shared["base"], st.r0, 1))
+    intensity, std, _ = _intensity_and_std(
+        su, graph, u, marg, state, prior, shared["rho"], rng, bias2=bias2
+    )
+    return intensity[st.core], std[st.core]
 
 
 def _history(metas: list) -> ConvergenceHistory:
@@ -270,17 +320,34 @@ def _points(detection, ci, intensity, std, u, conf) -> dict:
     )  # fmt: skip
 
 
-def _labels_pass(detection, su, strips_, core_idx, sh, token, K, store):
-    """Steps 2-3: labels, marginals and (``alpha="auto"``) the global (alpha, upsilon)."""
+def _persist(tasks: dict, name: str, take) -> dict:
+    """Compute ``{strip: task}`` (each returning ``(small, carry)``) on the active
+    scheduler, keeping the results where they are (``dask.persist``: on a cluster, on the
+    workers, recomputed from the graph if one is lost); ``take(strip, small)`` as each
+    small part arrives. Returns ``{strip: the persisted task}`` for the next step."""
+    import dask
+
+    keys = list(tasks)
+    t = time.perf_counter()
+    kept = dict(zip(keys, dask.persist(*[tasks[n] for n in keys]), strict=True))
+    compute_each([kept[n][0] for n in keys], lambda i, small: take(keys[i], small))
+    log.info("reconstruct: %d %s task(s), %.3f s", len(keys), name, time.perf_counter() - t)
+    return kept
+
+
+def _labels_pass(detection, strips_, core_idx, sh, token, K, store):
+    """Step 2: labels, marginals, neighbours' shading (``alpha="auto"``), each strip's own
+    labels; the persisted tasks (their carry) of the strips computed."""
     import dask
 
     S = len(detection.surfaces)
     u = np.zeros(S, np.int64)
     marg = np.ones((S, 1)) if K == 1 else np.zeros((S, K))
     h_nb = np.zeros(S)
+    own = [None] * len(strips_)
 
     def take(n, result):
-        uc, mc, hc = result
+        uc, mc, hc, own[n] = result
         ci = core_idx[n]
         u[ci], marg[ci] = uc, mc
         if hc is not None:
@@ -294,11 +361,53 @@ def _labels_pass(detection, su, strips_, core_idx, sh, token, K, store):
         if done is not None:
             take(n, done)
         else:
-            tasks[n] = dask.delayed(_labels_tile, pure=True)(
+            tasks[n] = dask.delayed(_labels_tile, pure=True, nout=2)(
                 st, sh, dask_key_name=(f"splidar-labels-tile-{token}", n)
             )
-    _run(tasks, "labels", take)
-    return u, marg, h_nb
+    kept = _persist(tasks, "labels", take)
+    return u, marg, h_nb, own, kept
+
+
+def _fit_pass(strips_, idx, core_idx, u, own, carries, sh, eb, token, store, skip):
+    """Step 4: the sweeps of every strip not in ``skip``; the residuals behind the std's
+    smoothing-bias term (per strip, in strip order), the metas, the persisted tasks."""
+    import dask
+
+    resid, metas = [None] * len(strips_), [None] * len(strips_)
+
+    def take(n, result):
+        res, n_core, n_l, hist = result
+        resid[n] = res
+        metas[n] = dict(
+            n_links=n_l, n_iter=hist.n_iter, converged=hist.converged,
+            change=hist.change.tolist(), alpha_updates=list(hist.alpha_updates),
+        )  # fmt: skip
+        if store is not None and res is not None:
+            store.put_residuals(n, res)
+
+    tasks = {}
+    for n, (st, i) in enumerate(zip(strips_, idx, strict=True)):
+        if n in skip:
+            metas[n], resid[n] = skip[n]
+            continue
+        carry = carries[n][1] if n in carries else None
+        tasks[n] = dask.delayed(_fit_tile, pure=True, nout=2)(
+            carry, st if carry is None else None, u[i], own[n] if carry is None else None,
+            sh, eb, dask_key_name=(f"splidar-fit-tile-{token}", n),
+        )  # fmt: skip
+    kept = _persist(tasks, "sweeps", take)
+    return resid, metas, kept
+
+
+def _finished(store, n_strips, auto) -> dict:
+    """``{strip: (meta, residuals)}`` of the strips an earlier run finished."""
+    out = {}
+    for n in range(n_strips):
+        done = None if store is None else store.fitted(n)
+        res = None if (done is None or not auto) else store.residuals(n)
+        if done is not None and (res is not None or not auto):
+            out[n] = (done[1], res)
+    return out
 
 
 def reconstruct_tiled(
@@ -329,7 +438,7 @@ def reconstruct_tiled(
         if store is not None and store.fitted(0) is None:
             p = rec.points
             ci = np.arange(S)
-            meta = dict(bias2=0.0, n_links=0, n_iter=rec.history.n_iter, converged=True)
+            meta = dict(n_links=0, n_iter=rec.history.n_iter, converged=True)
             pts = _points(detection, ci, p.intensity, p.intensity_std, p.label, p.label_confidence)
             store.put_fit(0, (0, detection.image_shape[0]), pts, meta)
         return rec
@@ -352,67 +461,75 @@ def reconstruct_tiled(
     token = dask.base.tokenize(strips_, shared)
     sh = dask.delayed(shared, pure=True)
     u, marg = np.zeros(S, np.int64), np.ones((S, 1))
+    own, carries = [None] * len(cores), {}
     eb = None
+    finished = _finished(store, len(cores), prior[0])
     if K > 1 or prior[0]:
-        u, marg, h_nb = _labels_pass(detection, su, strips_, core_idx, sh, token, K, store)
+        u, marg, h_nb, own, carries = _labels_pass(
+            detection, strips_, core_idx, sh, token, K, store
+        )
         if prior[0]:
             with _KERNEL_LOCK:
                 eb = _split_variability(estimate_alpha(su.y, su.b, su.eta, h_nb, u, su.sig))
     if eb is not None:  # the prior every strip used: (auto, alpha, upsilon, epsilon)
         prior = (True, eb[0], eb[1], su.sig * (eb[1] - 1.0) / eb[0])
     t_cls = time.perf_counter()
+    resid, metas, fits = _fit_pass(
+        strips_, idx, core_idx, u, own, carries, sh, eb, token, store, finished
+    )
+    del carries
+    bias2 = None
+    if prior[0]:  # one smoothing-bias term for the image, as in memory (strip order)
+        bias2 = _shading_bias2(
+            np.concatenate([r[0] for r in resid]), np.concatenate([r[1] for r in resid])
+        )
+    t_fit = time.perf_counter()
     conf = marg.max(axis=1)
     intensity, std = (np.zeros((S, L)), np.zeros((S, L))) if assemble else (None, None)
-    metas = [None] * len(cores)
 
     def take(n, result):
-        ic, sc, b2, n_core, n_l, hist, _ = result
+        ic, sc = result
         ci = core_idx[n]
-        metas[n] = dict(
-            bias2=float(b2 or 0.0) * n_core, n_links=n_l, n_iter=hist.n_iter,
-            converged=hist.converged, change=hist.change.tolist(),
-            alpha_updates=list(hist.alpha_updates),
-        )  # fmt: skip
         if store is not None:
             store.put_fit(n, cores[n], _points(detection, ci, ic, sc, u[ci], conf[ci]), metas[n])
         if assemble:
             intensity[ci], std[ci] = ic, sc
 
-    tasks, skipped = {}, []
-    for n, (st, i) in enumerate(zip(strips_, idx, strict=True)):
-        done = None if store is None else store.fitted(n)
-        if done is not None:
-            skipped.append(n)
-            metas[n] = done[1]
+    tasks = {}
+    for n, i in enumerate(idx):
+        if n in finished:
             if assemble:
-                intensity[done[0]["surface"]] = done[0]["intensity"]
-                std[done[0]["surface"]] = done[0]["intensity_std"]
+                pts = store.fitted(n)[0]
+                intensity[pts["surface"]] = pts["intensity"]
+                std[pts["surface"]] = pts["intensity_std"]
             continue
-        tasks[n] = dask.delayed(_fit_tile, pure=True)(
-            st, u[i], marg[i], sh, eb, dask_key_name=(f"splidar-reconstruct-tile-{token}", n)
-        )
+        tasks[n] = dask.delayed(_std_tile, pure=True)(
+            fits[n][1], u[i], marg[i], sh, bias2,
+            dask_key_name=(f"splidar-reconstruct-tile-{token}", n),
+        )  # fmt: skip
     _run(tasks, "reconstruct", take)
+    del fits, tasks
     t_iter = time.perf_counter()
-    bias2 = sum(m["bias2"] for m in metas) / S
     hyper = _hyperparameters(
-        su, opt, prior, marg.mean(axis=0), bias2 if prior[0] else None,
+        su, opt, prior, marg.mean(axis=0), bias2,
         types.SimpleNamespace(n_edges=sum(m["n_links"] for m in metas) // 2),
     )  # fmt: skip
     hyper["tiles"] = dict(cores=tuple(cores), margin=MARGIN, seeds="rng and first row")
     timings = {
         "setup": t_setup - t0,
         "classify": t_cls - t_setup,
-        "iterations": t_iter - t_cls,
-        "outputs": 0.0,
+        "iterations": t_fit - t_cls,
+        "outputs": t_iter - t_fit,
         "total": t_iter - t0,
     }
+    skipped = tuple(sorted(finished))
     log.info(
         "reconstruct: %d surfaces in %d strips of %d rows (+ %d each side; %d done before), "
         "%.3f s", S, len(cores), cores[0][1] - cores[0][0], MARGIN, len(skipped),
         timings["total"],
     )  # fmt: skip
     if not assemble:
-        return StreamedRun(S, tuple(cores), tuple(skipped), hyper, timings, detection)
+        return StreamedRun(S, tuple(cores), skipped, hyper, timings, detection)
     history = _history(metas)
     return _result(detection, su, None, u, conf, intensity, std, history, hyper, timings)
 
