@@ -478,6 +478,12 @@ def link_contrast(loglik: np.ndarray, graph, margin: float) -> np.ndarray:
     surroundings. Inside a region, or where the evidence is weak, ``D`` stays near 0
     and the link keeps its strength, so the pooling of weak evidence is unchanged.
 
+    The neighbours beside a link are found from the graph alone. On the depth-gated
+    graph (the default) they are the surfaces of the two pixels beside the link at the
+    depth of s; with ``links="all"`` and two surfaces in a pixel, the other surface of
+    j's pixel closes 4-cycles too and is pooled with s's side (it is linked to s and to
+    j's neighbours): the factor then mixes the layers, as the links themselves do.
+
     Parameters
     ----------
     loglik : ndarray (S, K)
