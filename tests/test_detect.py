@@ -619,35 +619,6 @@ def test_reject_spill_over_strip_of_spread_does_not_enclose_itself():
     assert alone.tolist() == old.tolist()
 
 
-def test_reject_spill_over_tests_the_source_depth():
-    from splidar.detection._quality import _own_llr, reject_spill_over, spill_over_features
-
-    # a source at depth 4 (4 photons) and beside it a candidate at depth 7 (within the
-    # FWHM) whose depth sits on its own 2 background photons: at its own depth they
-    # favour a return as bright as the source (log-ratio > 0, selection alone), at the
-    # source's depth, where the spread would continue the source's return, they do not
-    g = np.asarray(IRF, float)[None]
-    pk = np.array([int(g.argmax())])
-    W = 13
-    cnt = np.zeros((2, 1, W), np.int32)
-    cnt[0, 0, 3:6] = [1, 2, 1]
-    cnt[1, 0, 7] = 2
-    bkg = np.full((2, 1, W), 0.05, np.float32)
-    surf = dict(
-        row=np.array([0, 0]), col=np.array([0, 1]), depth_bin=np.array([4.0, 7.0]),
-        offset=np.array([0, 0]), own_counts=cnt, own_background=bkg, image_shape=(1, 2),
-    )  # fmt: skip
-    keep = np.ones(2, bool)
-    f = spill_over_features(surf, keep, irf=g, peak=pk, fwhm=3.0)
-    s = f["source_signal"][1:2]
-    at_own = _own_llr(cnt[1:], bkg[1:].astype(float), g, pk, np.array([7.0]), s)[0]
-    at_src = _own_llr(cnt[1:], bkg[1:].astype(float), g, pk, np.array([4.0]), s)[0]
-    assert at_own > 0 > at_src
-    assert f["llr_source"][1] == pytest.approx(at_src)
-    rej = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0)
-    assert rej.tolist() == [False, True]
-
-
 def test_detect_spill_over_removes_net_spread():
     from splidar.metrics import evaluate
     from splidar.scenes import two_layer_scene

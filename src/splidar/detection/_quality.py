@@ -23,12 +23,9 @@ depth where the pixel itself holds nothing. Such a candidate
    holds another that the own counts support) is enclosed only by a pair with a member
    that is not itself a further candidate whose counts reject its return;
 3. is not supported by its own counts: the own-pixel Poisson log-likelihood ratio of a
-   return as bright as the source (its own-pixel signal) at the source's depth against
-   background only, ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` (the
-   test of ``_own_llr`` with the source's intensity and depth), is below ``llr_level``.
-   The source's depth, not the candidate's: the spread continues the source's return
-   there, and the candidate's own depth may have been drawn to its own counts' peak
-   (a background photon near the depth then favours a return by selection alone).
+   return as bright as the source (its own-pixel signal) against background only,
+   ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` (the test of ``_own_llr``
+   with the source's intensity), is below ``llr_level``.
 
 Only candidates meeting all three are rejected; the test is repeated until nothing
 changes (a rejected candidate is no longer a source nor part of an enclosing pair, so the
@@ -234,7 +231,6 @@ def spill_over_features(
     # 1. source: the same-depth neighbour of largest own-pixel signal (summed over L)
     best = np.full(idx.size, -np.inf)
     sig = np.zeros((idx.size, L))
-    src_d = d.copy()  # the source's depth
     for dr, dc in _NEIGHBOURS:
         dn = D[r1 + dr, c1 + dc]  # (n, K)
         sn = SIG[r1 + dr, c1 + dc]  # (n, K, L)
@@ -244,12 +240,11 @@ def spill_over_features(
         better = tk > best
         best = np.where(better, tk, best)
         sig[better] = sn[np.arange(idx.size), k][better]
-        src_d[better] = dn[np.arange(idx.size), k][better]
     has = np.isfinite(best)
     # 3. own-pixel log-likelihood ratio of a return as bright as the source
     sub = idx[has]
     llr_s = _own_llr(
-        counts[sub], bkg[sub], irf, peak, src_d[has] - np.asarray(surf["offset"])[sub], sig[has]
+        counts[sub], bkg[sub], irf, peak, d[has] - np.asarray(surf["offset"])[sub], sig[has]
     )
     # 2. enclosure: an opposite pair of 4-neighbours interpolates to the candidate's
     # depth; a further candidate (beside another of its pixel that the own counts
@@ -487,16 +482,16 @@ def _spill_suspect(
         return np.inf
     for l in range(L):
         sig[l] = max(own[src, l], 1e-9)
-    return _llr_at(i, sig, d[src], offset, counts, bkg, irf, peak)
+    return _llr_at(i, sig, d, offset, counts, bkg, irf, peak)
 
 
 @njit(cache=True, nogil=True)
-def _llr_at(i, sig, depth, offset, counts, bkg, irf, peak):
+def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
     """Own-pixel log-likelihood ratio of candidate ``i`` for a return of ``sig`` (L,)
     photons against background only (``_own_llr`` for one candidate)."""
     L = counts.shape[1]
     W = counts.shape[2]
-    dw = depth - offset[i]
+    dw = d[i] - offset[i]
     llr = 0.0
     for l in range(L):
         for w in range(W):
