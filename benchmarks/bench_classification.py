@@ -17,7 +17,9 @@ majority filter (:func:`splidar.baselines.majority_filter_labels`), the most com
 class rate among the matched true labels, accuracy on thin strands / nets and on small
 patches, time of classification against the whole ``process``. Then the expected
 calibration error (ECE, 10 equal-width bins of confidence) of ``label_confidence``
-over all matched points of the multispectral cells, and a reliability figure.
+over all matched points of the multispectral cells, and a reliability figure. On Art
+also the accuracy of an oracle that sums the same class likelihood over the *true*
+regions (:func:`oracle_regions`): the ceiling of any spatial pooling of it.
 
 Usage::
 
@@ -39,7 +41,7 @@ import numpy as np
 
 import splidar
 from splidar.metrics import match_points
-from splidar.reconstruction import irf_fraction, nearest_signature
+from splidar.reconstruction import class_loglik, irf_fraction, nearest_signature
 from splidar.scenes import art_scene, multispectral_scene
 
 try:  # the baselines added with issue 14 (absent before it: computed here then)
@@ -129,6 +131,36 @@ def colour_boundary(truth, shape):
     return out
 
 
+def oracle_regions(det, truth, est, true_idx, sig, shape):
+    """Accuracy of an oracle that knows the true regions: each matched surface's class
+    log-likelihood (:func:`splidar.reconstruction.class_loglik`, the classifier's own
+    evidence) summed over its true region (connected pixels of one label in one layer),
+    argmax. The ceiling of any spatial pooling of this likelihood."""
+    from scipy import ndimage
+
+    s = det.surfaces
+    L = det.n_wavelengths
+    y = np.asarray(s.counts, np.float64).reshape(len(s), L)
+    b = np.asarray(s.background, np.float64).reshape(len(s), L)
+    eta = np.maximum(irf_fraction(np.atleast_2d(det.irf), s.depth_bin, s.start, s.stop), 1e-6)
+    ll = class_loglik(y, b, eta, sig)[est]
+    region = np.zeros(len(truth.label), np.int64)
+    n = 0
+    for layer in np.unique(truth.layer):
+        m = truth.layer == layer
+        img = np.full(shape, -1)
+        img[truth.row[m], truth.col[m]] = truth.label[m]
+        for k in np.unique(truth.label[m]):
+            lab, nk = ndimage.label(img == k)
+            sel = m & (truth.label == k)
+            region[sel] = lab[truth.row[sel], truth.col[sel]] + n
+            n += nk + 1
+    r = region[true_idx]
+    sums = np.zeros((n + 1, ll.shape[1]))
+    np.add.at(sums, r, ll)
+    return float(np.mean(np.argmax(sums[r], axis=1) == truth.label[true_idx]))
+
+
 def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None):
     sim = scene.simulate(ppp=ppp, sbr=1.0, background=bg, rng=seed)
     truth = sim.truth
@@ -162,6 +194,8 @@ def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special
     if flag_unknown is not None:  # known materials flagged "unknown" at level 1e-3
         flagged = flag_unknown(rec, level=1e-3).points.label == -1
         row["unknown_rate"] = float(flagged[e].mean())
+    if scene.name.startswith("art"):
+        row["oracle_regions"] = oracle_regions(rec.detection, truth, e, t, sig, scene.shape)
     conf = rec.points.label_confidence
     calib = (conf[e], ok) if conf is not None else None
     return row, calib
@@ -175,6 +209,7 @@ def _fmt(r):
         ) + (
             f" colour boundary ({r['boundary']:.2f} of them) {r['special']:.3f} "
             f"(pp {r['special_pp']:.3f}), inside {r['special2']:.3f} (pp {r['special2_pp']:.3f})"
+            + (f", oracle regions {r['oracle_regions']:.3f}" if "oracle_regions" in r else "")
         )
     if "special" in r:
         extra = f" thin/net {r['special']:.3f} (pp {r['special_pp']:.3f})"

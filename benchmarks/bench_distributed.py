@@ -15,16 +15,28 @@ the high-water mark across ``exec``), and checks that every run gives the in-mem
 surfaces (identical depths). Each cluster first detects a tiny cube (numba's cached
 kernels are loaded once per worker process), which is not timed.
 
+``--large`` measures the issue's figures at scale instead: a cube of a few GB
+(:func:`scene_rows`, a coherent scene, PPP about 8, SBR about 1, written to Zarr band by
+band, never whole in memory) detected with ``store=`` on LocalClusters of 1 and 2
+workers limited to ``--memory-limit`` each, against the in-memory run (``n_jobs`` 1 and
+2) on a slab of the same scene that fits (``--fit-rows`` rows). The resident memory of
+every worker process and of the calling process is sampled with psutil every 0.1 s from
+a thread of the calling process (by pid: the workers are not asked, so a busy worker is
+sampled too); a worker restarted by its nanny (over 95 % of its limit) shows as a new pid.
+
 Usage::
 
     python benchmarks/bench_distributed.py                       # 256 x 256 x 1 x 600
     python benchmarks/bench_distributed.py --rows 128 --cols 128 --bins 400   # quick
     python benchmarks/bench_distributed.py --workers 1 2 4 --memory-limit 1GB
+    python benchmarks/bench_distributed.py --large               # 3072 x 1024 x 1 x 1000
+    python benchmarks/bench_distributed.py --large --rows 512 --data /tmp/b16   # quicker
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -36,6 +48,104 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_out_of_core import write_cube  # noqa: E402
 
 import splidar  # noqa: E402
+
+
+def scene_rows(r0: int, r1: int, cols: int, n_bins: int, *, seed: int = 0) -> np.ndarray:
+    """Rows ``[r0, r1)`` of a large coherent scene, ``(r1 - r0, cols, 1, n_bins)`` uint8.
+
+    A wavy ground with raised blocks (depth steps of ``0.12 T``), textured reflectivity,
+    empty discs (no return), and a half-transparent net ``0.15 T`` in front on a
+    checkerboard of 80-pixel squares (two surfaces per pixel there); 4 signal photons
+    per surface at full reflectivity (half each under the net), 4 uniform background
+    photons per pixel (PPP about 7, SBR about 1), a Gaussian IRF of FWHM 3 bins. The
+    scene depends on the absolute row and column only and each band of rows is seeded by
+    ``(seed, r0)``, so a slab ``[0, n)`` is the top of the larger cube's scene.
+    """
+    rng = np.random.default_rng([seed, r0])
+    rr, cc = np.mgrid[r0:r1, 0:cols].astype(np.float64)
+    wave = np.sin(2 * np.pi * rr / 700) * np.cos(2 * np.pi * cc / 900)
+    far = n_bins * (0.40 + 0.12 * wave + 0.1 * np.sin(2 * np.pi * cc / 1500))
+    blocks = ((rr // 96).astype(int) * 7 + (cc // 128).astype(int) * 3) % 5 == 0
+    far += 0.12 * n_bins * blocks
+    refl = 0.6 + 0.4 * np.cos(2 * np.pi * rr / 37) * np.sin(2 * np.pi * cc / 53)
+    refl[((rr % 512) - 256) ** 2 + ((cc % 640) - 320) ** 2 < 90**2] = 0.0
+    net = ((rr // 80) + (cc // 80)) % 4 == 1
+    near, sigma = far - 0.15 * n_bins, 3.0 / 2.3548
+    out = np.empty((r1 - r0, cols, 1, n_bins), np.uint8)
+    pix = np.arange(cols)
+    for i in range(r1 - r0):  # photons binned row by row (integer counts)
+        k = rng.poisson(4.0, cols)
+        parts = [np.repeat(pix, k) * n_bins + rng.integers(0, n_bins, k.sum())]
+        for depth, amp in (
+            (far[i], 4.0 * refl[i] * np.where(net[i], 0.5, 1.0)),
+            (near[i], np.where(net[i], 2.0, 0.0)),
+        ):
+            k = rng.poisson(amp)
+            t = np.rint(np.repeat(depth, k) + rng.normal(0.0, sigma, k.sum())).astype(np.int64)
+            p, ok = np.repeat(pix, k), (t >= 0) & (t < n_bins)
+            parts.append(p[ok] * n_bins + t[ok])
+        h = np.bincount(np.concatenate(parts), minlength=cols * n_bins)
+        out[i, :, 0, :] = np.minimum(h, 255).reshape(cols, n_bins)
+    return out
+
+
+def write_scene(path: Path, rows: int, cols: int, n_bins: int, *, chunk_rows: int = 32):
+    """:func:`scene_rows` written to a Zarr cube band by band (one band in memory at a time)."""
+    import zarr
+
+    from splidar.irf import gaussian_irf
+
+    first = scene_rows(0, min(rows, chunk_rows), cols, n_bins)
+    splidar.save(splidar.Cube(first, irf=gaussian_irf(3.0)), path, chunks=(chunk_rows, cols))
+    z = zarr.open_group(str(path), mode="r+")["counts"]
+    z.resize((rows, cols, 1, n_bins))
+    for r0 in range(first.shape[0], rows, chunk_rows):
+        r1 = min(rows, r0 + chunk_rows)
+        z[r0:r1] = scene_rows(r0, r1, cols, n_bins)
+
+
+class _Sampler:
+    """Peak resident memory of some processes, sampled by pid every ``dt`` seconds."""
+
+    def __init__(self, pids: dict, dt: float = 0.1):
+        import threading
+
+        import psutil
+
+        self.procs = {k: psutil.Process(p) for k, p in pids.items()}
+        self.peaks = {k: 0 for k in pids}
+        self.done, self.dt = threading.Event(), dt
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+
+    def _poll(self):
+        while not self.done.is_set():
+            for k, pr in self.procs.items():
+                try:
+                    self.peaks[k] = max(self.peaks[k], pr.memory_info().rss)
+                except Exception:  # a worker killed by its nanny: its last sample stays
+                    pass
+            self.done.wait(self.dt)
+
+    def _cpu(self) -> float:
+        total = 0.0
+        for pr in self.procs.values():
+            try:
+                t = pr.cpu_times()
+                total += t.user + t.system
+            except Exception:
+                pass
+        return total
+
+    def __enter__(self):
+        self.cpu0 = self._cpu()
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.done.set()
+        self.thread.join()
+        #: CPU seconds of all the sampled processes during the run
+        self.cpu = self._cpu() - self.cpu0
 
 
 def _rss_mb() -> float:
@@ -67,6 +177,17 @@ def _sampled_peaks(client, fn):
     return out, sorted(peaks.values())
 
 
+@dataclasses.dataclass(frozen=True)
+class _Digest:
+    row: np.ndarray
+    col: np.ndarray
+    depth_bin: np.ndarray
+
+    @property
+    def surfaces(self):
+        return self
+
+
 def _same(a, b) -> bool:
     return bool(
         np.array_equal(a.surfaces.row, b.surfaces.row)
@@ -81,6 +202,154 @@ def _timed(cube, **kw):
     return det, time.perf_counter() - t0
 
 
+def _cluster_run(
+    cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None, process=False
+):
+    """Detection of ``cube`` on a fresh LocalCluster of ``n`` workers: ``(Detection,
+    seconds, worker peaks in bytes, calling process's peak in bytes, restarted workers,
+    CPU seconds of the workers and the calling process)``."""
+    import os
+
+    import dask.array
+    import distributed
+
+    with (
+        distributed.LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_limit,
+            dashboard_address=":0",
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        # numba's cached kernels loaded once per worker process (not timed)
+        splidar.detect(splidar.Cube(dask.array.from_array(tiny.counts), irf=tiny.irf))
+        pids = client.run(os.getpid)
+        pids["caller"] = os.getpid()
+        print(f"cluster-{n}: calling process at {_rss_mb():.0f} MB before the run", flush=True)
+        with _Sampler(pids) as s:
+            if process:  # detection and reconstruction (on strips for a Dask cube)
+                t0 = time.perf_counter()
+                rec = splidar.process(cube, rng=0, store=store, block_rows=block_rows)
+                t = time.perf_counter() - t0
+                timings = {**rec.detection.timings, "reconstruct": rec.timings["reconstruct"]}
+                det = dataclasses.replace(rec.detection, timings=timings)
+            else:
+                det, t = _timed(cube, store=store, block_rows=block_rows)
+        restarted = sum(1 for w, p in client.run(os.getpid).items() if pids.get(w) != p) + max(
+            0, n - len(client.scheduler_info()["workers"])
+        )
+    caller = s.peaks.pop("caller")
+    return det, t, sorted(s.peaks.values()), caller, restarted, s.cpu
+
+
+def large(args) -> int:
+    """The issue's figures: a cube several times a worker's memory limit (see the module)."""
+    import os
+    import shutil
+
+    R, C, T = args.rows, args.cols, args.bins
+    base = Path(args.data or tempfile.mkdtemp(prefix="bench16-"))
+    base.mkdir(parents=True, exist_ok=True)
+    path = base / "large.zarr"
+    try:
+        t0 = time.perf_counter()
+        if not (path / "counts").exists() or splidar.load(path).shape != (R, C, 1, T):
+            write_scene(path, R, C, T)
+        lazy = splidar.load(path)
+        n_vox = R * C * T
+        print(
+            f"cube {lazy.shape} uint8: {n_vox / 1e9:.2f} G voxels, {n_vox / 1e9:.2f} GB in "
+            f"memory, {_du(path) / 1e9:.2f} GB on disk (Zarr, compressed); "
+            f"{time.perf_counter() - t0:.0f} s to write"
+        )
+        tiny = splidar.Cube(scene_rows(0, 24, 24, T), irf=lazy.irf)
+        splidar.detect(tiny, rng=0)  # numba kernels loaded in this process
+        rows, dets = [], {}
+        for n in args.workers:
+            store = base / f"det-{n}.zarr"
+            shutil.rmtree(store, ignore_errors=True)
+            det, t, peaks, caller, restarted, cpu = _cluster_run(
+                lazy, n, args.memory_limit, store, tiny, args.block_rows, args.process
+            )
+            # the surfaces only: a Detection kept here would count in the next run's
+            # calling-process peak
+            dets[n] = _Digest(det.surfaces.row, det.surfaces.col, det.surfaces.depth_bin)
+            print(f"cluster-{n}: {t:.1f} s ({cpu:.1f} s CPU), stages " + _stages(det), flush=True)
+            del det
+            name = f"cluster-{n}" + ("-process" if args.process else "")
+            rows.append((name, n, t, n_vox, peaks, caller, restarted, cpu))
+            shutil.rmtree(store, ignore_errors=True)
+        fit = args.fit_rows
+        mem = splidar.Cube(scene_rows(0, fit, C, T), irf=lazy.irf)
+        for n in sorted(set(args.workers)):
+            for kw in ({}, {"store": base / "det-memory.zarr"}):
+                shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
+                with _Sampler({"caller": os.getpid()}) as s:
+                    det, t = _timed(mem, n_jobs=n, **kw)
+                name = f"memory-{n}" + ("-store" if kw else "")
+                print(f"{name}: {t:.1f} s ({s.cpu:.1f} s CPU), stages " + _stages(det), flush=True)
+                rows.append((name, n, t, mem.counts.size, None, None, 0, s.cpu))
+            shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
+    finally:
+        if args.data is None:
+            shutil.rmtree(base, ignore_errors=True)
+    ns_of = {r[0]: 1e9 * r[2] / r[3] for r in rows}
+    cpu_of = {r[0]: 1e9 * r[7] / r[3] for r in rows}
+    t_one = next((r[2] for r in rows if r[0].startswith("cluster-1")), None)
+    lim = _bytes(args.memory_limit)
+    print(
+        f"\nin-memory slab: {fit} x {C} x 1 x {T}; x memory: time per voxel against the "
+        "in-memory run with as many threads (n_jobs) as workers, without / with store="
+    )
+    print(
+        f"{'run':<15} {'s':>7} {'ns/voxel':>9} {'x memory':>13} {'CPU ns/vox':>10} "
+        f"{'CPU x mem':>11} {'speed-up':>8} {'eff.':>5}"
+        f"  worker peak MB (limit {lim / 1e6:.0f})  caller peak MB  restarts"
+    )
+    ok_mem, ok_store, ok_limit = True, True, True
+    for name, n, t, nv, peaks, caller, restarted, cpu in rows:
+        ns, cns = 1e9 * t / nv, 1e9 * cpu / nv
+        x, xs = ns / ns_of[f"memory-{n}"], ns / ns_of[f"memory-{n}-store"]
+        cx, cxs = cns / cpu_of[f"memory-{n}"], cns / cpu_of[f"memory-{n}-store"]
+        line = f"{name:<15} {t:7.1f} {ns:9.1f} {x:6.2f} / {xs:4.2f} {cns:10.1f} "
+        line += f"{cx:4.2f} / {cxs:4.2f}"
+        if peaks is not None:
+            sp = t_one / t if t_one else float("nan")
+            line += f" {sp:8.2f} {sp / n:5.2f}  " + ", ".join(f"{p / 1e6:.0f}" for p in peaks)
+            line += f"   {caller / 1e6:.0f}   {restarted}"
+            ok_limit &= max(peaks) < lim and restarted == 0
+            ok_mem &= x <= 1.3
+            ok_store &= xs <= 1.3
+        print(line)
+    ok = ok_limit
+    if len(dets) > 1:
+        a, *others = dets.values()
+        same = all(_same(a, b) for b in others)
+        print(f"same surfaces whatever the number of workers: {same}")
+        ok &= same
+    print(f"every worker under its limit, none restarted: {ok_limit}")
+    print(f"time per voxel <= 1.3 x in memory: {ok_mem}; with store=: {ok_store}")
+    return 0 if ok else 1
+
+
+def _stages(det) -> str:
+    keep = ("background_temporal", "null", "saliency_and_surfaces", "quality_and_selection")
+    keep += ("reconstruct",)
+    return ", ".join(f"{k} {det.timings[k]:.1f}" for k in keep if k in det.timings)
+
+
+def _du(path: Path) -> int:
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+
+
+def _bytes(s: str) -> int:
+    from dask.utils import parse_bytes
+
+    return int(parse_bytes(s))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--rows", type=int, default=256)
@@ -89,7 +358,18 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     p.add_argument("--memory-limit", default="1GB", help="per worker (default 1GB)")
     p.add_argument("--block-rows", type=int, default=None, help="rows per tile")
+    p.add_argument("--large", action="store_true", help="the issue's figures at scale")
+    p.add_argument("--fit-rows", type=int, default=256, help="--large: in-memory slab rows")
+    p.add_argument("--data", default=None, help="--large: folder for the cube (kept)")
+    p.add_argument(
+        "--process", action="store_true", help="--large: splidar.process on the clusters"
+    )
     args = p.parse_args(argv)
+    if args.large:
+        for k, v in (("rows", 3072), ("cols", 1024), ("bins", 1000)):
+            if f"--{k}" not in (argv if argv is not None else sys.argv):
+                setattr(args, k, v)
+        return large(args)
     import dask
     import distributed
 

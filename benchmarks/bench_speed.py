@@ -6,13 +6,14 @@ wavelength's IRF (``scipy.fft`` rfft/irfft, float32 input, complex64 IRF spectru
 precomputed, blocks of rows). No detector can avoid that pass (the matched filter of
 ``eq:4.s1``), so ``time / floor`` says how much the rest of the method costs.
 
-Figures (targets from issue 6, on the 2-core development machine):
+Figures (targets from issues 6 and 15, on the 2-core development machine):
 
 * main cube 200 x 200 pixels, L = 4, T = 1500 (the paper's multispectral Lego size),
   PPP 30, SBR 1, two surfaces where a net is in front: time and peak memory above the
   input of (a) the floor, (b) ``detect``, (c) ``reconstruct``, (d) ``process``; targets
-  ``process <= 8 x floor`` and ``peak memory above the input <= 3 x`` the cube's
-  float32 size;
+  (issue 15) ``process <= 3 x floor`` (wall time; the CPU-time ratio is printed beside
+  it, less sensitive to other load) and ``peak memory above the input <= 2 x`` the
+  cube's float32 size (issue 6 asked 8 x and 3 x);
 * the Art-size cube (185 x 232 x 3 x 164, two surfaces per pixel): ``process`` < 1 s;
 * reconstruction of 80,000 surfaces (200 x 200, two surfaces in every pixel) < 1 s;
 * cost linear in pixels and in time bins: exponents ``log(t_4x / t_1x) / log 4`` of
@@ -30,6 +31,7 @@ Usage::
     python benchmarks/bench_speed.py            # full run (5-20 minutes, depending on load)
     python benchmarks/bench_speed.py --quick    # smaller sizes, 1-3 minutes
     python benchmarks/bench_speed.py --json speed.json --seed 1
+    python benchmarks/bench_speed.py --compare before.json after.json  # side by side
 """
 
 from __future__ import annotations
@@ -60,6 +62,11 @@ from splidar.scenes import art_scene, multispectral_scene  # noqa: E402
 from splidar.simulation import simulate  # noqa: E402
 
 ART_DIR_DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury-art"
+
+# Issue 15: ``process`` within 3 floors, peak memory above the input within 2 float32
+# cubes (issue 6 asked 8 and 3).
+PROCESS_MAX_FLOORS = 3.0
+PROCESS_MAX_MEMORY = 2.0
 
 # Tolerance on "linear": an exponent up to 1.15 (t_4x / t_1x <= 4.9) still passes; fixed
 # per-call costs push small sizes up and the exponent below 1, cache effects the other way.
@@ -692,11 +699,15 @@ def format_report(fig: dict) -> str:
         d = main[name]
         ratio = d.get("ratio", 1.0)
         target = ""
-        if name == "process":
-            ok_t = ratio <= 8.0
-            ok_m = d["mem_ratio"] <= 3.0
-            target = f"time <= 8x floor {_verdict(ok_t)}; mem <= 3x f32 {_verdict(ok_m)}"
         cpu = min(d.get("cpu") or [float("nan")])
+        if name == "process":
+            ok_t = ratio <= PROCESS_MAX_FLOORS
+            ok_c = cpu / floor_cpu <= PROCESS_MAX_FLOORS
+            ok_m = d["mem_ratio"] <= PROCESS_MAX_MEMORY
+            target = (
+                f"time <= {PROCESS_MAX_FLOORS:g}x floor {_verdict(ok_t)} (cpu {_verdict(ok_c)}); "
+                f"mem <= {PROCESS_MAX_MEMORY:g}x f32 {_verdict(ok_m)}"
+            )
         lines.append(
             f"{name:14s} {d['best']:8.3f} {d['median']:9.3f} {ratio:8.2f} {cpu:7.2f} "
             f"{cpu / floor_cpu:8.2f} {_mb(d['mem_rss']):>11s} {_mb(d['mem_traced']):>11s} "
@@ -773,6 +784,37 @@ def format_report(fig: dict) -> str:
     return "\n".join(lines)
 
 
+def format_comparison(before: dict, after: dict) -> str:
+    """Two saved runs (``--json``) side by side: time and CPU per floor, memory, Art."""
+    lines = [
+        f"{'stage':12s} {'x floor before':>15s} {'after':>7s} {'cpu x fl before':>16s} "
+        f"{'after':>7s} {'mem/f32 before':>15s} {'after':>7s}"
+    ]
+
+    def row(fig, name):
+        m = fig["main"]
+        d = m.get(name)
+        if d is None:
+            return (float("nan"),) * 3
+        cpu = min(d.get("cpu") or [float("nan")]) / min(m["floor"]["cpu"])
+        return d.get("ratio", 1.0), cpu, d["mem_ratio"]
+
+    for name in ("detect", "reconstruct", "process"):
+        b, a = row(before, name), row(after, name)
+        lines.append(
+            f"{name:12s} {b[0]:15.2f} {a[0]:7.2f} {b[1]:16.2f} {a[1]:7.2f} {b[2]:15.2f} {a[2]:7.2f}"
+        )
+    for fig, label in ((before, "before"), (after, "after")):
+        m = fig["main"]
+        la = fig.get("load_average_start", [float("nan")])[0]
+        art = fig.get("art", {}).get("best", float("nan"))
+        lines.append(
+            f"{label}: floor {m['floor']['best']:.3f} s wall, {min(m['floor']['cpu']):.3f} s cpu; "
+            f"Art-size process {art:.3f} s; load average at start {la:.2f}"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller sizes (1-3 minutes)")
@@ -783,7 +825,17 @@ def main(argv=None) -> int:
     ap.add_argument("--art-dir", default=str(ART_DIR_DEFAULT), help="Middlebury Art folder")
     ap.add_argument("--no-scaling", action="store_true", help="skip the scaling exponents")
     ap.add_argument("--repeat", type=int, default=None, help="timed calls per figure (best of)")
+    ap.add_argument(
+        "--compare",
+        nargs=2,
+        metavar=("BEFORE", "AFTER"),
+        help="print two saved --json runs side by side and exit",
+    )
     args = ap.parse_args(argv)
+    if args.compare:
+        before, after = (json.loads(Path(f).read_text()) for f in args.compare)
+        print(format_comparison(before, after))
+        return 0
     sizes = QUICK if args.quick else FULL
     if args.repeat is not None:
         sizes = dataclasses.replace(sizes, repeat=max(1, args.repeat))

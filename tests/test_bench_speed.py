@@ -101,3 +101,8 @@ def test_run_benchmark_tiny_end_to_end():
         assert set(fig["scaling"]["process"]) == {"pixels", "bins"}
     text = bench.format_report(fig)
     assert "floor" in text and "targets" in text
+    assert "time <= 3x floor" in text and "mem <= 2x f32" in text
+    # two saved runs side by side (here the same run twice): the same ratios in both
+    side = bench.format_comparison(fig, fig).splitlines()
+    proc = next(line for line in side if line.startswith("process")).split()
+    assert proc[1] == proc[2] and proc[3] == proc[4] and proc[5] == proc[6]

@@ -570,6 +570,55 @@ def test_reject_spill_over_keeps_enclosed_and_supported_candidates():
     assert not rej.any()
 
 
+def test_reject_spill_over_strip_of_spread_does_not_enclose_itself():
+    from splidar.detection._quality import reject_spill_over
+
+    # a bright block (columns 0-2, 8 photons) at depth 40 beside a depth edge; column 3
+    # holds its own surface at depth 80 (8 photons) and the coarse boxes' spread at 40
+    # (no photons) except two pixels with 4 photons (own counts that favour the return:
+    # not suspects). Between them the spread is enclosed along the column by its own
+    # members: kept by the former test (any pair encloses), rejected when beside the
+    # pixel's own surface a pair needs a member whose counts do not reject the return
+    # (log-ratio >= -3; an empty pixel gives about -8)
+    depth = np.full((12, 6), np.nan)
+    depth[:, :4] = 40.0
+    counts = np.zeros((12, 6))
+    counts[:, :3] = 8
+    counts[[3, 8], 3] = 4
+    near, g, pk = _table(depth, counts)
+    back = np.full((12, 6), np.nan)
+    back[:, 3] = 80.0
+    far, _, _ = _table(back, np.full((12, 6), 8.0))
+    surf = {k: near[k] if k == "image_shape" else np.concatenate([near[k], far[k]]) for k in near}
+    n_near = near["row"].size
+    keep = np.ones(surf["row"].size, bool)
+    ghost = np.zeros(surf["row"].size, bool)
+    ghost[:n_near] = (near["col"] == 3) & (counts[near["row"], near["col"]] == 0)
+    old = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=12)
+    new = reject_spill_over(
+        surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, vouch_level=-3.0, max_iter=12
+    )
+    between = ghost & (surf["row"] > 3) & (surf["row"] < 8)
+    assert not old[between].any() and old[ghost & ~between].all()
+    assert new.tolist() == ghost.tolist()
+    # a pixel's only candidate vouches for its neighbours (a dim surface behind a
+    # strand): without the surface at 80 in rows 5 and 7, their spread encloses row 6's
+    drop = np.zeros(surf["row"].size, bool)
+    drop[n_near:] = np.isin(far["row"], [5, 7])
+    some = reject_spill_over(
+        surf, keep & ~drop, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, vouch_level=-3.0,
+        max_iter=12,
+    )  # fmt: skip
+    assert some.tolist() == old.tolist()
+    # without the surface at 80 the spread is the pixels' only candidate: the former
+    # rule (a dim surface's pixels enclose one another)
+    keep[n_near:] = False
+    alone = reject_spill_over(
+        surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, vouch_level=-3.0, max_iter=12
+    )
+    assert alone.tolist() == old.tolist()
+
+
 def test_detect_spill_over_removes_net_spread():
     from splidar.metrics import evaluate
     from splidar.scenes import two_layer_scene
@@ -673,16 +722,23 @@ def test_reject_spill_over_matches_numpy_reference_on_random_tables():
             image_shape=(R, C),
         )
         keep = rng.random(row.size) < 0.9
-        ref = np.zeros(row.size, bool)
-        for _ in range(24):
-            f = spill_over_features(surf, keep & ~ref, irf=g, peak=pk, fwhm=3.0)
-            new = keep & ~ref & f["has_source"] & ~f["enclosed"] & (f["llr_source"] < 0.0)
-            if not new.any():
-                break
-            ref |= new
-        got = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=24)
-        assert ref.any()
-        np.testing.assert_array_equal(got, ref)
+        for vouch in (-np.inf, -3.0, 0.0):  # the former test, detect's level, strict
+            ref = np.zeros(row.size, bool)
+            for _ in range(24):
+                f = spill_over_features(
+                    surf, keep & ~ref, irf=g, peak=pk, fwhm=3.0, llr_level=0.0,
+                    vouch_level=vouch,
+                )  # fmt: skip
+                new = keep & ~ref & f["has_source"] & ~f["enclosed"] & (f["llr_source"] < 0.0)
+                if not new.any():
+                    break
+                ref |= new
+            got = reject_spill_over(
+                surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, vouch_level=vouch,
+                max_iter=24,
+            )  # fmt: skip
+            assert ref.any()
+            np.testing.assert_array_equal(got, ref)
 
 
 # ----------------------------------------------------------------------------------------

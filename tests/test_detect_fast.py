@@ -327,3 +327,105 @@ def test_select_sorted_matches_lexsort_selection(k_max):
     idx_p, slot_p = _select({key: v[perm] for key, v in surf.items()}, keep[perm], k_max)
     np.testing.assert_array_equal(perm[idx_p], idx)
     np.testing.assert_array_equal(slot_p, slot)
+
+
+def _correlate_reference(y, irf):
+    """``C[t] = sum_j g[j] Y[t - p + j]`` in float64, Y mirrored (half-sample) at the
+    window edges, one tap at a time."""
+    y = np.asarray(y, np.float64)
+    T = y.shape[-1]
+    out = np.zeros(y.shape)
+    for l, g in enumerate(irf):
+        p = int(np.argmax(g))
+        for j, gj in enumerate(g):
+            idx = np.arange(T) - p + j
+            idx = np.where(idx < 0, -idx - 1, idx)
+            idx = np.where(idx >= T, 2 * T - 1 - idx, idx)
+            out[..., l, :] += gj * y[..., l, idx]
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_correlator_direct_matches_reference_and_fft(dtype):
+    # short IRFs (the direct sum) and a long one (the FFT): both the float64 reference
+    # to float32 rounding; an asymmetric IRF with its peak near one end checks the
+    # mirrored edges on both sides
+    from splidar.detection._filters import DIRECT_MAX_TAPS
+
+    rng = np.random.default_rng(3)
+    T = 150
+    tail = np.exp(-np.arange(9) / 2.0)
+    irfs = [
+        np.stack([gaussian_irf(2.0, length=13), gaussian_irf(3.0, length=13)]),
+        np.stack([tail / tail.sum(), tail[::-1] / tail.sum()]),  # peak at either end
+    ]
+    y = rng.poisson(np.full((4, 5, 2, T), 2.0)).astype(dtype)
+    for irf in irfs:
+        c = Correlator(irf, T)
+        assert c.direct and irf.shape[1] <= DIRECT_MAX_TAPS
+        ref = _correlate_reference(y, irf)
+        got = c(y)
+        assert got.dtype == np.float32
+        # float64 sums rounded once to float32: within one float32 ulp of the reference
+        np.testing.assert_allclose(got, ref, rtol=6e-8, atol=1e-12)
+        # threads over the rows: the same result; a given ``out`` is written
+        out = np.empty(y.shape, np.float32)
+        np.testing.assert_array_equal(c(y, workers=2, out=out), got)
+        np.testing.assert_array_equal(out, got)
+        # the FFT path (long IRFs) agrees to float32 rounding of the largest response
+        c.direct = False
+        np.testing.assert_allclose(c(y), ref, rtol=0, atol=2e-6 * np.abs(ref).max())
+
+
+def test_correlator_long_irf_uses_fft():
+    from splidar.detection._filters import DIRECT_MAX_TAPS
+
+    g = gaussian_irf(15.0)
+    assert g.size > DIRECT_MAX_TAPS
+    c = Correlator(g[None, :], 200)
+    assert not c.direct
+    y = np.random.default_rng(0).poisson(1.0, size=(3, 1, 200)).astype(np.uint16)
+    np.testing.assert_allclose(
+        c(y), _correlate_reference(y, g[None, :]), rtol=0, atol=1e-5 * y.max()
+    )
+
+
+def test_threshold_pass_walk_equals_bisection():
+    # the table interval found by stepping from the previous bin gives the same
+    # threshold as the bisection, also for levels on the table's points and beyond it
+    from splidar.detection._kernels import _interp_table, threshold_pass
+
+    rng = np.random.default_rng(4)
+    r, C, T, L = 3, 5, 300, 2
+    xs = np.sort(rng.uniform(0, 10, 12))
+    ys = rng.uniform(1, 5, 12)
+    level = rng.uniform(-1, 11, (r, C, T)).astype(np.float32)
+    level[0, 0] = np.float32(xs[3])
+    level[0, 1] = np.linspace(-1, 11, T, dtype=np.float32)  # slow drift, both ends
+    sal = rng.uniform(0, 6, (r, C, T)).astype(np.float32)
+    d = rng.normal(size=(r, C, T)).astype(np.float32)
+    y = rng.poisson(1.0, (r + 2, C, L, T)).astype(np.uint16)
+    thr = np.empty((r, C, T), np.float32)
+    mask = np.empty((r, C, T), bool)
+    cand, ev = np.empty_like(mask), np.empty((r, C, T), np.float32)
+    n_ph, n_kept = threshold_pass(sal, d, level, xs, ys, y, 1, thr, True, mask, cand, ev)
+    ref = np.vectorize(lambda v: np.float32(_interp_table(np.float64(v), xs, ys)))(level)
+    np.testing.assert_array_equal(thr, ref.astype(np.float32))
+    np.testing.assert_array_equal(mask, sal > ref)
+    assert n_ph == int(y[1:4].astype(np.int64).sum())
+    assert n_kept == int((y[1:4].astype(np.int64) * mask[:, :, None, :]).sum())
+
+
+def test_extraction_order_does_not_change_detection(monkeypatch):
+    # candidates are extracted by depth band, then pixel (cache); in raster order every
+    # output must be the same bit for bit
+    from splidar.detection import _4_map, detect
+    from splidar.scenes import two_layer_scene
+
+    sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=10, sbr=1.0, rng=5)
+    ref = detect(sim.cube, rng=0, n_jobs=1)
+    monkeypatch.setattr(_4_map, "_ORDER_BAND", 1 << 40)
+    other = detect(sim.cube, rng=0, n_jobs=1)
+    assert len(ref.surfaces) > 300
+    for name in ("depth_bin", "histograms", "evidence", "presence_llr", "signal"):
+        np.testing.assert_array_equal(getattr(other.surfaces, name), getattr(ref.surfaces, name))

@@ -241,3 +241,46 @@ def test_process_dask_multispectral_cube_matches_in_memory():
     _assert_same_detection(a.detection, b.detection)
     np.testing.assert_array_equal(b.points.intensity, a.points.intensity)
     np.testing.assert_array_equal(b.points.label, a.points.label)
+
+
+def test_tile_rows_fit_the_workers_memory_share(caplog):
+    from splidar.detection._tiled import TILE_SHARE, _rows_for, tile_bytes
+
+    shape, h = (3072, 1024, 1, 1000), 5
+    rows = _rows_for(10**9, shape, 1, h, 3, 64)
+    # the most rows whose tile fits the share of a 1 GB worker, not the in-memory 64
+    assert h <= rows < 64
+    assert (
+        tile_bytes(rows, shape, 1, h, 3) <= TILE_SHARE * 1e9 < tile_bytes(rows + 1, shape, 1, h, 3)
+    )
+    assert _rows_for(10**12, shape, 1, h, 3, 64) == 64  # never more than asked
+    # rows too wide for the worker: a tile of the halo's rows, and a warning saying so
+    with caplog.at_level("WARNING", logger="splidar.detection._tiled"):
+        assert _rows_for(10**8, shape, 1, h, 3, 64) == h
+    assert "more than 40 % of the workers' memory limit" in caplog.text
+
+
+def test_detect_on_cluster_sizes_tiles_to_the_memory_limit():
+    distributed = pytest.importorskip("distributed")
+    from splidar.detection._tiled import _rows_for
+
+    cube, lazy = _cubes(*_varying_cube(shape=(30, 22), n_bins=120, seed=5), (10, 22, 1, 120))
+    a = splidar.detect(cube, rng=1)
+    # threads in this process: the workers' memory monitor is off (it would measure the
+    # whole test process); 4 MB per worker leaves tiles of 10-11 rows on this cube
+    off = {f"distributed.worker.memory.{k}": False for k in ("target", "spill", "pause")}
+    with (
+        dask.config.set(off),
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, memory_limit="4MB",
+            dashboard_address=":0",
+        ) as cluster,
+        distributed.Client(cluster),
+    ):  # fmt: skip
+        b = splidar.detect(lazy, rng=1)
+    n_box = (0, 3)  # box means kept for extraction or not (map_plan's choice)
+    fits = {_rows_for(4 * 10**6, lazy.shape, lazy.counts.dtype.itemsize, 5, q, 30) for q in n_box}
+    # without a limit the tile would be the in-memory block (the whole image here)
+    assert a.options["block_rows"] == 30 and b.options["block_rows"] in fits
+    assert b.options["block_rows"] < 30
+    _assert_same_detection(a, b)

@@ -208,5 +208,10 @@ def test_reconstruct_tiled_strips_without_surfaces():
     b = _tiled.reconstruct_tiled(lazy, strip_rows=16, library=det.library, rng=0)
     assert len(b.hyperparameters["tiles"]["cores"]) == 7
     same = b.points.label == a.points.label
-    assert same.mean() >= 0.98  # measured 0.9994
-    assert np.median(_rel(a, b)[same]) < 1e-3  # measured 5e-5
+    # measured 0.9975 and 1.0
+    assert same.mean() >= 0.98 and np.mean(_rel(a, b)[same] < 1e-2) >= 0.99
+    a = splidar.reconstruct(det, classes="one")
+    b = _tiled.reconstruct_tiled(lazy, strip_rows=16, classes="one")
+    # the stopping rule's precision at tol = 1e-3 (docs/distributed.md: up to 6.6e-3 on
+    # the benchmark scene); measured 3.7e-3
+    assert _rel(a, b).max() < 1e-2

@@ -49,6 +49,8 @@ REFINE = True
 #: z the own pixel's matched-filter peak needs to take part in the depth refinement
 #: (ICI) and to centre a long run's window: a 3-sigma peak, rarely noise in one window.
 REFINE_Z = 3.0
+#: Bins per depth band of the order in which candidates are extracted (speed only).
+_ORDER_BAND = 16
 #: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
@@ -223,14 +225,18 @@ def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk,
         o["own_background"],
     )
     n_threads = max(1, min(int(ctx.workers), S // 2000))
+    # candidates taken by depth band, then raster order: consecutive ones read the same
+    # stretch of t from neighbouring pixels (in cache; 23 % faster on the 200 x 200 x 4
+    # x 1500 cube). Each candidate is computed the same way in any order.
+    order = np.lexsort((cols, rows, np.asarray(peak) // _ORDER_BAND)).astype(np.int64)
     if n_threads == 1:
-        extract_surfaces(*args, 0, S, *outs)
+        extract_surfaces(*args, order, 0, S, *outs)
     else:
         cuts = np.linspace(0, S, n_threads + 1).round().astype(np.int64)
         with ThreadPoolExecutor(n_threads) as ex:
             list(
                 ex.map(
-                    lambda ab: extract_surfaces(*args, int(ab[0]), int(ab[1]), *outs),
+                    lambda ab: extract_surfaces(*args, order, int(ab[0]), int(ab[1]), *outs),
                     zip(cuts[:-1], cuts[1:], strict=True),
                 )
             )
@@ -437,13 +443,23 @@ def _open_store(store, shape, block_rows: int, with_threshold: bool) -> dict:
             f"`store` '{path}' exists and is not an empty directory; name a new directory "
             "(detect does not overwrite files)."
         )
+    from zarr.codecs import BloscCodec
+
     g = zarr.open_group(str(path), mode="w")
     R, C, T = shape
     ch = (min(block_rows, R), C, T)
+    # the saliency's float noise does not compress (zstd: 1.1 x, at a fifth of the disk's
+    # write speed); the threshold, a smooth field, 2.4 x with lz4 at disk speed; the
+    # sparse mask ~150 x with Zarr's default zstd
+    fast = [BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")]
     out = dict(
-        saliency=g.create_array("saliency", shape=shape, chunks=ch, dtype="float32"),
+        saliency=g.create_array(
+            "saliency", shape=shape, chunks=ch, dtype="float32", compressors=None
+        ),
         mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
-        threshold=g.create_array("threshold", shape=shape, chunks=ch, dtype="float32")
+        threshold=g.create_array(
+            "threshold", shape=shape, chunks=ch, dtype="float32", compressors=fast
+        )
         if with_threshold
         else None,
     )

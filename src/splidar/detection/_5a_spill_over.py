@@ -3,7 +3,10 @@
 Coarse boxes spread a return into the pixels beside a thin structure or across a depth
 edge. A candidate is such spread when a neighbour holds a candidate at its depth, no
 opposite pair of 4-neighbours continues the surface through it, and its own counts
-favour "no return" (:func:`~splidar.detection._quality.reject_spill_over`).
+favour "no return" (:func:`~splidar.detection._quality.reject_spill_over`). A strip of
+spread over the pixels' own surfaces does not continue itself: a pair whose members
+are both such spread (further candidates whose counts reject their return below
+``-PRESENCE_LLR``) encloses no further candidate.
 """
 
 from __future__ import annotations
@@ -25,7 +28,13 @@ SPILL_LLR = 0.0
 
 
 def remove_spill_over(
-    table: CandidateTable, *, irf: np.ndarray, peak: np.ndarray, fwhm: float, llr_level: float
+    table: CandidateTable,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    llr_level: float,
+    vouch_level: float = -np.inf,
 ) -> PassResult:
     """Reject the kept candidates that are a neighbour's spread; repeated to convergence.
 
@@ -39,6 +48,11 @@ def remove_spill_over(
         The IRF's FWHM (bins): "the same depth" is within it.
     llr_level : float
         Own-pixel log-likelihood ratio below which a candidate is spread (``spill_llr``).
+    vouch_level : float
+        Own-pixel log-likelihood ratio below which a neighbour that is a further
+        candidate of its pixel does not enclose a further candidate (``detect`` passes
+        ``-PRESENCE_LLR``; ``-inf``: the former test; see
+        :func:`~splidar.detection._quality.reject_spill_over`).
     """
     if not table.keep.any():
         return skipped("spill_over", table)
@@ -51,6 +65,7 @@ def remove_spill_over(
         peak=peak,
         fwhm=fwhm,
         llr_level=llr_level,
+        vouch_level=vouch_level,
         max_iter=max(R, C),
     )
     return with_keep("spill_over", table, table.keep & ~spill, t0)

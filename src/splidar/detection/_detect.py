@@ -375,7 +375,8 @@ def _clean_up(cube, o: dict, mp, bg, corr, rng) -> list:
         return done[-1].table
 
     table = run("spill_over", lambda t: remove_spill_over(
-        t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR))  # fmt: skip
+        t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
+        vouch_level=-PRESENCE_LLR))  # fmt: skip
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
         t, irf=irf, peak=peak, fwhm=fwhm, half=int(o["scales"].max()) // 2, pfa=surface_pfa,

@@ -501,6 +501,7 @@ def extract_surfaces(
     ici_gamma,
     qloc,
     want_llr_sel,
+    order,
     i_begin,
     i_end,
     o_depth,
@@ -521,17 +522,19 @@ def extract_surfaces(
 ):
     """Clean histograms, scale selection, depth and presence statistics of candidates.
 
-    One candidate at a time (rows ``[i_begin, i_end)`` of the candidate arrays), every
-    output written in place; see :func:`splidar.detection._4_map._extract` for the
-    meaning of each. Box means at every scale (``mode="reflect"``) are read from the
-    correlated block ``c`` (``(er, C, L, T)`` from image row ``e0``), the background
-    ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from
-    ``r0``) and ``dev``, raw counts from ``y`` (rows from ``e0``). ``o_own_counts``
-    and ``o_own_background`` (S, L, W) receive the pixel's raw counts and ``bhat`` over
-    the window, zero outside the support. ``box`` (L, Qb, r, C, T), when ``Qb > 0``,
-    holds the box means of the block's rows (from ``r0``) at the scales ``q`` with
-    ``bidx[q] >= 0`` (written by the saliency pass; scale 1 is read from ``c``);
-    otherwise (``Qb = 0``) the boxes are summed here, about each candidate.
+    One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
+    arrays, in the order they are computed; each candidate's outputs do not depend on
+    it), every output written in place at the candidate's index; see
+    :func:`splidar.detection._4_map._extract` for the meaning of each. Box means at
+    every scale (``mode="reflect"``) are read from the correlated block ``c`` (``(er, C,
+    L, T)`` from image row ``e0``), the background ``bhat`` (``eq:background_3``) from
+    the factored estimate ``sp`` (rows from ``r0``) and ``dev``, raw counts from ``y``
+    (rows from ``e0``). ``o_own_counts`` and ``o_own_background`` (S, L, W) receive the
+    pixel's raw counts and ``bhat`` over the window, zero outside the support. ``box``
+    (L, Qb, r, C, T), when ``Qb > 0``, holds the box means of the block's rows (from
+    ``r0``) at the scales ``q`` with ``bidx[q] >= 0`` (written by the saliency pass;
+    scale 1 is read from ``c``); otherwise (``Qb = 0``) the boxes are summed here, about
+    each candidate.
     """
     Q = scales.size
     L = c.shape[2]
@@ -558,7 +561,8 @@ def extract_surfaces(
         while scales[q] // 2 < m:
             q += 1
         qring[m] = q
-    for s in range(i_begin, i_end):
+    for ii in range(i_begin, i_end):
+        s = order[ii]
         irow = rows[s] + r0
         jcol = cols[s]
         centre = peak_bin[s]
@@ -639,6 +643,32 @@ def _interp_table(x, xs, ys):
     return slope * (x - xs[lo]) + ys[lo]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _walk(x, xs, G, lo):
+    """The interval ``lo`` of the table with ``xs[lo] <= x < xs[lo + 1]`` (clipped to
+    ``[0, G - 2]``), found by stepping from a previous ``lo``: the same interval as the
+    bisection of :func:`_interp_table` wherever ``x`` lies strictly inside the table."""
+    if G < 2:
+        return 0
+    while lo > 0 and xs[lo] > x:
+        lo -= 1
+    while lo < G - 2 and xs[lo + 1] <= x:
+        lo += 1
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _interp_at(x, xs, ys, G, lo):
+    """:func:`_interp_table` with the interval ``lo`` given (by :func:`_walk`): the
+    same value (same interval, same formula)."""
+    if G == 1 or x <= xs[0]:
+        return ys[0]
+    if x >= xs[G - 1]:
+        return ys[G - 1]
+    slope = (ys[lo + 1] - ys[lo]) / (xs[lo + 1] - xs[lo])
+    return slope * (x - xs[lo]) + ys[lo]
+
+
 @njit(cache=True, nogil=True)
 def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
@@ -668,10 +698,14 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
     L = y.shape[2]
     n_ph = 0
     n_kept = 0
+    G = xs.size
     for i in range(r):
         for j in range(C):
+            lo = 0  # the table interval of the previous bin: the level varies slowly in t
             for t in range(T):
-                th = np.float32(_interp_table(np.float64(level[i, j, t]), xs, ys))
+                x = np.float64(level[i, j, t])
+                lo = _walk(x, xs, G, lo)
+                th = np.float32(_interp_at(x, xs, ys, G, lo))
                 if store_thr:
                     thr_out[i, j, t] = th
                 s = sal[i, j, t]
@@ -680,13 +714,13 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
                 cand[i, j, t] = m and d[i, j, t] > 0
                 e = s / max(th, np.float32(1e-12)) - np.float32(1.0)
                 ev[i, j, t] = e if e > 0 else np.float32(0.0)
+            mr = mask[i, j]
             for l in range(L):
                 yr = y[y_row0 + i, j, l]
-                for t in range(T):
+                for t in range(T):  # integer sums, branch-free (vectorised)
                     v = np.int64(yr[t])
                     n_ph += v
-                    if mask[i, j, t]:
-                        n_kept += v
+                    n_kept += v * np.int64(mr[t])
     return n_ph, n_kept
 
 

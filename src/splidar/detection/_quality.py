@@ -17,7 +17,11 @@ depth where the pixel itself holds nothing. Such a candidate
    west/east) holds candidates whose mean depth is within the FWHM of its depth. A
    continuous surface (flat or sloped) passes through a pixel it surrounds, so a pixel
    inside a surface keeps the benefit of the spatial pooling; a pixel beside a strand or
-   on the far side of a depth edge has same-depth neighbours on one side only;
+   on the far side of a depth edge has same-depth neighbours on one side only. The
+   spread beside an edge forms a strip over the pixels' own surfaces, and each member
+   of the strip is enclosed along it by the others: a *further* candidate (its pixel
+   holds another that the own counts support) is enclosed only by a pair with a member
+   that is not itself a further candidate whose counts reject its return;
 3. is not supported by its own counts: the own-pixel Poisson log-likelihood ratio of a
    return as bright as the source (its own-pixel signal) against background only,
    ``sum_t y_t log(1 + s g(t - d) / b_t) - s sum_t g(t - d)`` (the test of ``_own_llr``
@@ -141,7 +145,14 @@ def _own_llr(counts, bkg, irf, peak, depth_w, s) -> np.ndarray:
 
 
 def spill_over_features(
-    surf: dict, keep: np.ndarray, *, irf: np.ndarray, peak: np.ndarray, fwhm: float
+    surf: dict,
+    keep: np.ndarray,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    llr_level: float = 0.0,
+    vouch_level: float = -np.inf,
 ) -> dict:
     """Source, enclosure and source-intensity log-likelihood ratio of each candidate.
 
@@ -161,6 +172,12 @@ def spill_over_features(
         Sample of each IRF's peak (the depth reference).
     fwhm : float
         Depth tolerance (bins): the IRF's full width at half maximum.
+    llr_level : float
+        Own log-likelihood ratio at which a candidate is supported by its counts.
+    vouch_level : float
+        Own log-likelihood ratio (for its own source's return, ``+inf`` without a
+        source) below which a further candidate does not enclose a further candidate
+        of a neighbour (see :func:`reject_spill_over`; ``-inf``: any pair encloses).
 
     Returns
     -------
@@ -224,18 +241,30 @@ def spill_over_features(
         best = np.where(better, tk, best)
         sig[better] = sn[np.arange(idx.size), k][better]
     has = np.isfinite(best)
-    # 2. enclosure: an opposite pair of 4-neighbours interpolates to the candidate's depth
-    enc = np.zeros(idx.size, bool)
-    for (ar, ac), (br, bc) in _PAIRS:
-        a = D[r1 + ar, c1 + ac]  # (n, K)
-        b = D[r1 + br, c1 + bc]
-        mid = 0.5 * (a[:, :, None] + b[:, None, :])
-        enc |= np.any(np.abs(mid - d[:, None, None]) <= fwhm, axis=(1, 2))
     # 3. own-pixel log-likelihood ratio of a return as bright as the source
     sub = idx[has]
     llr_s = _own_llr(
         counts[sub], bkg[sub], irf, peak, d[has] - np.asarray(surf["offset"])[sub], sig[has]
     )
+    # 2. enclosure: an opposite pair of 4-neighbours interpolates to the candidate's
+    # depth; a further candidate (beside another of its pixel that the own counts
+    # support, log-ratio >= llr_level) needs one of the two to be no further candidate
+    # or to reach vouch_level
+    own_llr = np.full(idx.size, np.inf)
+    own_llr[has] = llr_s
+    sup = own_llr >= llr_level
+    n_sup = np.zeros(R * C, np.int64)
+    np.add.at(n_sup, row * C + col, sup)
+    further = (n_sup[row * C + col] - sup) > 0
+    V, _ = _dense(row, col, (R, C), ~further | (own_llr >= vouch_level), False)
+    enc = np.zeros(idx.size, bool)
+    for (ar, ac), (br, bc) in _PAIRS:
+        a = D[r1 + ar, c1 + ac]  # (n, K)
+        b = D[r1 + br, c1 + bc]
+        mid = 0.5 * (a[:, :, None] + b[:, None, :])
+        ok = V[r1 + ar, c1 + ac][:, :, None] | V[r1 + br, c1 + bc][:, None, :]
+        ok |= ~further[:, None, None]
+        enc |= np.any((np.abs(mid - d[:, None, None]) <= fwhm) & ok, axis=(1, 2))
     has_source[idx] = has
     enclosed[idx] = enc
     src_sig[idx] = sig
@@ -251,6 +280,7 @@ def reject_spill_over(
     peak: np.ndarray,
     fwhm: float,
     llr_level: float,
+    vouch_level: float = -np.inf,
     max_iter: int = 10,
 ) -> np.ndarray:
     """Candidates that are a neighbour's return spread by the coarse scales.
@@ -259,6 +289,15 @@ def reject_spill_over(
     neighbours, is not enclosed by that surface (no opposite 4-neighbour pair
     interpolating to its depth) and its own counts give a log-likelihood ratio below
     ``llr_level`` for a return as bright as the source (see the module docstring).
+    A *further* candidate (its pixel holds another that the own counts support:
+    log-ratio ``>= llr_level``) is enclosed only by a pair of which at least one
+    candidate is no further candidate with an own log-likelihood ratio (for its own
+    source's return; ``+inf`` without a source) below ``vouch_level``: a strip of
+    spread along a depth edge or beside a strand lies over the pixels' own surfaces and
+    encloses itself along the strip with such members only (a pixel with no photon at
+    the depth gives about ``-s``). A pixel's only candidate keeps the former rule (a
+    dim surface's pixels, whose counts speak weakly either way, enclose one another),
+    and it vouches for its neighbours (a dim surface behind a strand).
 
     Parameters
     ----------
@@ -275,6 +314,11 @@ def reject_spill_over(
     llr_level : float
         Natural log of the likelihood ratio below which the own counts reject a return
         of the source's intensity (0: the counts favour "no return").
+    vouch_level : float
+        Own log-likelihood ratio below which a further candidate does not enclose a
+        further candidate of a neighbour (``-inf``: every pair encloses, the former
+        test; ``detect`` passes ``-presence_llr``: counts that reject a return as
+        strongly as the presence test requires do not vouch for a neighbour).
     max_iter : int
         Most passes; each one removes the spread one pixel further from the sources.
 
@@ -327,6 +371,7 @@ def reject_spill_over(
         np.ascontiguousarray(peak, np.float64),
         float(fwhm),
         float(llr_level),
+        float(vouch_level),
         int(max_iter),
         out,
     )
@@ -362,6 +407,104 @@ def _pair_encloses(r, c, pair, depth_i, d, mask, order, starts, R, C, fwhm):
 
 
 @njit(cache=True, nogil=True)
+def _pair_vouches(i, pair, d, mask, mute, strict, row, col, order, starts, R, C, fwhm):
+    """As :func:`_pair_encloses` for candidate ``i``; when ``strict``, a pair whose two
+    candidates are both ``mute`` does not enclose (a strip of spread over the pixels'
+    own surfaces encloses itself along the strip, with such members only)."""
+    r = row[i]
+    c = col[i]
+    ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
+    if ra < 0 or ca < 0 or rb >= R or cb >= C:
+        return False
+    pa = ra * C + ca
+    pb = rb * C + cb
+    for ka in range(starts[pa], starts[pa + 1]):
+        ja = order[ka]
+        if not mask[ja]:
+            continue
+        for kb in range(starts[pb], starts[pb + 1]):
+            jb = order[kb]
+            if not mask[jb] or (strict and mute[ja] and mute[jb]):
+                continue
+            if abs(0.5 * (d[ja] + d[jb]) - d[i]) <= fwhm:
+                return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _spill_suspect(
+    i,
+    row,
+    col,
+    d,
+    offset,
+    counts,
+    bkg,
+    own,
+    active,
+    order,
+    starts,
+    R,
+    C,
+    irf,
+    peak,
+    fwhm,
+    sig,
+):
+    """Conditions 1 and 3 of the spill-over test for candidate ``i``: the own-pixel
+    log-likelihood ratio of a return as bright as its source (the same-depth candidate
+    of largest own signal among the active 8 neighbours); ``+inf`` without a source."""
+    L = counts.shape[1]
+    r = row[i]
+    c = col[i]
+    best = -np.inf
+    src = -1
+    for dr in range(-1, 2):
+        for dc in range(-1, 2):
+            if dr == 0 and dc == 0:
+                continue
+            rr = r + dr
+            cc = c + dc
+            if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                continue
+            p = rr * C + cc
+            for kk in range(starts[p], starts[p + 1]):
+                j = order[kk]
+                if not active[j] or abs(d[j] - d[i]) > fwhm:
+                    continue
+                tot = 0.0
+                for l in range(L):
+                    tot += own[j, l]
+                if tot > best:
+                    best = tot
+                    src = j
+    if src < 0:
+        return np.inf
+    for l in range(L):
+        sig[l] = max(own[src, l], 1e-9)
+    return _llr_at(i, sig, d, offset, counts, bkg, irf, peak)
+
+
+@njit(cache=True, nogil=True)
+def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
+    """Own-pixel log-likelihood ratio of candidate ``i`` for a return of ``sig`` (L,)
+    photons against background only (``_own_llr`` for one candidate)."""
+    L = counts.shape[1]
+    W = counts.shape[2]
+    dw = d[i] - offset[i]
+    llr = 0.0
+    for l in range(L):
+        for w in range(W):
+            b = bkg[i, l, w]
+            if not b > 0:
+                continue  # outside the support
+            g = _interp_irf(irf[l], w - dw + peak[l])
+            llr += counts[i, l, w] * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
+            llr -= sig[l] * g
+    return llr
+
+
+@njit(cache=True, nogil=True)
 def _spill_kernel(
     row,
     col,
@@ -378,79 +521,62 @@ def _spill_kernel(
     peak,
     fwhm,
     level,
+    vouch,
     max_iter,
     rej,
 ):
     """Iterated spill-over test of :func:`reject_spill_over` on ``n`` candidates.
 
     ``order`` sorts the candidates by pixel, ``starts`` (R * C + 1) delimits each
-    pixel's run in it. Each pass tests every active candidate against the active ones
-    of the previous pass (all at once, as :func:`spill_over_features`). Returns the
-    number of passes.
+    pixel's run in it. Each pass computes the own log-ratio of every active candidate
+    that has a source (``+inf`` without one), then rejects those below ``level`` that
+    no opposite pair of 4-neighbours encloses; a further candidate (beside another of
+    its pixel at or above ``level``) needs a pair of which one is no further candidate
+    below ``vouch`` (all at once, as :func:`spill_over_features`). Returns the number
+    of passes.
     """
     n = row.size
     L = counts.shape[1]
-    W = counts.shape[2]
     active = np.ones(n, np.bool_)
+    llr = np.full(n, np.inf)
+    further = np.zeros(n, np.bool_)
+    mute = np.zeros(n, np.bool_)
     new = np.zeros(n, np.bool_)
-    # only candidates whose 3 x 3 neighbourhood lost a candidate in the last pass can
-    # change their verdict: test those (all of them in the first pass)
+    # a log-ratio changes only where the 3 x 3 neighbourhood lost a candidate in the
+    # last pass (the source may have gone): recompute those (all in the first pass)
     dirty = np.ones(R * C, np.bool_)
     sig = np.empty(L, np.float64)
     passes = 0
     for _ in range(max_iter):
         passes += 1
+        for i in range(n):
+            if active[i] and dirty[row[i] * C + col[i]]:
+                llr[i] = _spill_suspect(
+                    i, row, col, d, offset, counts, bkg, own, active, order, starts,
+                    R, C, irf, peak, fwhm, sig,
+                )  # fmt: skip
+        # further candidates: beside another candidate of the pixel that its own
+        # counts support; mute: further ones whose counts reject their source's return
+        for i in range(n):
+            further[i] = False
+            if active[i]:
+                p = row[i] * C + col[i]
+                for kk in range(starts[p], starts[p + 1]):
+                    j = order[kk]
+                    if j != i and active[j] and llr[j] >= level:
+                        further[i] = True
+                        break
+            mute[i] = further[i] and llr[i] < vouch
         n_new = 0
         for i in range(n):
             new[i] = False
-            if not active[i] or not dirty[row[i] * C + col[i]]:
+            if not active[i] or not llr[i] < level:
                 continue
-            r = row[i]
-            c = col[i]
-            # 1. source: the same-depth neighbour of largest own signal (first max in the
-            # order of the 8 neighbours, then of the pixel's candidates)
-            best = -np.inf
-            src = -1
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
-                    rr = r + dr
-                    cc = c + dc
-                    if rr < 0 or rr >= R or cc < 0 or cc >= C:
-                        continue
-                    p = rr * C + cc
-                    for kk in range(starts[p], starts[p + 1]):
-                        j = order[kk]
-                        if not active[j] or abs(d[j] - d[i]) > fwhm:
-                            continue
-                        tot = 0.0
-                        for l in range(L):
-                            tot += own[j, l]
-                        if tot > best:
-                            best = tot
-                            src = j
-            if src < 0:
-                continue
-            # 2. enclosure: opposite 4-neighbours whose mean depth is the candidate's
-            if _pair_encloses(r, c, 0, d[i], d, active, order, starts, R, C, fwhm) or (
-                _pair_encloses(r, c, 1, d[i], d, active, order, starts, R, C, fwhm)
+            f = further[i]
+            if not (
+                _pair_vouches(i, 0, d, active, mute, f, row, col, order, starts, R, C, fwhm)
+                or _pair_vouches(i, 1, d, active, mute, f, row, col, order, starts, R, C, fwhm)
             ):
-                continue
-            # 3. own-pixel log-likelihood ratio of a return as bright as the source
-            for l in range(L):
-                sig[l] = max(own[src, l], 1e-9)
-            dw = d[i] - offset[i]
-            llr = 0.0
-            for l in range(L):
-                for w in range(W):
-                    b = bkg[i, l, w]
-                    if not b > 0:
-                        continue  # outside the support
-                    g = _interp_irf(irf[l], w - dw + peak[l])
-                    llr += counts[i, l, w] * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
-                    llr -= sig[l] * g
-            if llr < level:
                 new[i] = True
                 n_new += 1
         if n_new == 0:

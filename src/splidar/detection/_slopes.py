@@ -862,18 +862,25 @@ def _split(n: int, n_jobs: int, fn) -> None:
         list(ex.map(lambda ab: fn(int(ab[0]), int(ab[1])), zip(cuts[:-1], cuts[1:], strict=True)))
 
 
+#: Bytes of one band of rows read from a lazy (Dask / Zarr) array by :func:`_row_bands`.
+BAND_BYTES = 128_000_000
+
+
 def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     """``(selection, y, y0)`` for the items at image ``rows``: the raw counts of the rows
     they need (``y`` holds image rows from ``y0``, ``halo`` rows beyond the items').
 
     An in-memory cube is used whole, without a copy; a lazy (Dask / Zarr) one is read a
-    band of ``band`` rows at a time, only where there are items.
+    band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`:
+    the calling process holds one band), only where there are items.
     """
     R = counts.shape[0]
     rows = np.asarray(rows, np.int64)
     if isinstance(counts, np.ndarray):
         yield np.arange(rows.size), counts, 0
         return
+    row_bytes = np.dtype(counts.dtype).itemsize * int(np.prod(counts.shape[1:]))
+    band = int(max(1, min(band, BAND_BYTES // max(row_bytes, 1))))
     for a in range(0, R, band):
         sel = np.flatnonzero((rows >= a) & (rows < a + band))
         if sel.size == 0:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 
 import numpy as np
 
@@ -43,14 +44,23 @@ __all__ = [
     "compute_each",
     "is_dask",
     "map_candidates_tiled",
+    "release_work",
     "tile_bounds",
+    "tile_bytes",
     "tiled_window_means",
+    "worker_memory_limit",
 ]
 
 logger = logging.getLogger(__name__)
 
 #: Image rows read by one task of the global-statistics pass.
 STATS_ROWS = 64
+
+#: Share of a worker's memory limit that one tile may take (:func:`tile_bytes`). The
+#: rest holds the worker process itself (about 300 MB with Python, NumPy, Dask and
+#: numba's kernels loaded), its input chunks, and keeps it below Dask's pause (80 % of
+#: the limit) and its nanny's restart (95 %).
+TILE_SHARE = 0.4
 
 
 def is_dask(a) -> bool:
@@ -104,6 +114,97 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
     return np.concatenate(parts, axis=0)
 
 
+def _client():
+    """The active ``dask.distributed`` client, or None (threads, synchronous)."""
+    import dask
+
+    client = getattr(dask.base.get_scheduler(), "__self__", None)
+    if type(client).__name__ != "Client" or not hasattr(client, "compute"):
+        return None
+    return client
+
+
+def worker_memory_limit() -> int | None:
+    """The smallest memory limit (bytes) of the active client's workers; None without a
+    ``dask.distributed`` client or when no worker has a limit."""
+    client = _client()
+    if client is None:
+        return None
+    workers = client.scheduler_info(n_workers=-1).get("workers", {}).values()
+    limits = [int(w.get("memory_limit") or 0) for w in workers]
+    limits = [x for x in limits if x > 0]
+    return min(limits) if limits else None
+
+
+def tile_bytes(rows: int, shape, itemsize: int, halo: int, n_box: int) -> int:
+    """Peak bytes of the buffers of one stage-4 tile of ``rows`` image rows.
+
+    Per image row of the tile, ``C T`` float32 each: saliency, signed response, level,
+    evidence, threshold and the copy a compressor makes on writing to a store, plus the
+    bool candidates and mask, plus ``n_box`` box means per wavelength (the scales above
+    1 pixel when they are kept for extraction); per row with its halo (``rows + 2 halo``),
+    ``C L T`` of counts twice (the halo exchange's copy) and of float32 correlated counts.
+    """
+    _, C, L, T = shape
+    own = C * T * (6 * 4 + 2) + C * L * T * 4 * n_box
+    ext = C * L * T * (2 * itemsize + 4)
+    return int(rows * own + (rows + 2 * halo) * ext)
+
+
+def _rows_for(limit: int, shape, itemsize: int, halo: int, n_box: int, most: int) -> int:
+    """The most rows (at most ``most``, at least the halo) whose tile fits
+    :data:`TILE_SHARE` of a worker's ``limit``."""
+    budget = TILE_SHARE * limit
+    one = tile_bytes(1, shape, itemsize, halo, n_box) - tile_bytes(0, shape, itemsize, halo, n_box)
+    rows = int((budget - tile_bytes(0, shape, itemsize, halo, n_box)) // one)
+    if rows < max(halo, 1):
+        logger.warning(
+            "detect: a tile of %d rows (the halo) needs %.0f MB, more than %.0f %% of the "
+            "workers' memory limit (%.0f MB): give the workers more memory (the rows of "
+            "this cube are too wide for it)",
+            max(halo, 1),
+            tile_bytes(max(halo, 1), shape, itemsize, halo, n_box) / 1e6,
+            100 * TILE_SHARE,
+            limit / 1e6,
+        )
+    return max(min(rows, most), halo, 1)
+
+
+#: Work buffers of the tiles, per thread (a worker process runs tile after tile: the
+#: pages are touched once, not once per tile); released when a map pass ends.
+_WORK: dict = {}
+_WORK_LOCK = threading.Lock()
+
+
+def _work(rows: int, n_ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
+    """This thread's ``(work, corr)`` buffers for tiles of up to ``rows`` own rows and
+    ``n_ext`` rows with their halo (grown when a larger tile comes)."""
+    _, C, L, T = shape
+    key = threading.get_ident()
+    with _WORK_LOCK:
+        have = _WORK.get(key)
+    if have is not None and have[0] >= (rows, n_ext) and have[1] == (C, L, T, n_box):
+        return have[2], have[3]
+    work = dict(
+        d=np.empty((rows, C, T), np.float32),
+        level=np.empty((rows, C, T), np.float32),
+        cand=np.empty((rows, C, T), bool),
+        ev=np.empty((rows, C, T), np.float32),
+    )
+    if n_box:
+        work["box"] = np.empty(L * n_box * rows * C * T, np.float32)
+    corr = np.empty((n_ext, C, L, T), np.float32)
+    with _WORK_LOCK:
+        _WORK[key] = ((rows, n_ext), (C, L, T, n_box), work, corr)
+    return work, corr
+
+
+def release_work() -> None:
+    """Free the tiles' work buffers of this process (every thread's)."""
+    with _WORK_LOCK:
+        _WORK.clear()
+
+
 def compute_each(tasks: list, take) -> None:
     """Compute ``tasks`` on the active scheduler, calling ``take(i, result)`` for each.
 
@@ -113,8 +214,8 @@ def compute_each(tasks: list, take) -> None:
     """
     import dask
 
-    client = getattr(dask.base.get_scheduler(), "__self__", None)
-    if type(client).__name__ != "Client" or not hasattr(client, "compute"):
+    client = _client()
+    if client is None:
         for i, result in enumerate(dask.compute(*tasks)):
             take(i, result)
         return
@@ -139,11 +240,17 @@ class _Rows:
         self.array[rows.start - self.first_row : rows.stop - self.first_row] = value
 
 
-def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path):
-    """Stage 4 on image rows ``[r0, r1)``; ``y`` holds rows ``[e0, e0 + len(y))``."""
+def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path, most: tuple):
+    """Stage 4 on image rows ``[r0, r1)``; ``y`` holds rows ``[e0, e0 + len(y))``.
+
+    ``most`` = ``(own rows, rows with halo)`` of the largest tile: the size of this
+    thread's reused work buffers.
+    """
     y = np.ascontiguousarray(y)
     C, L, T = y.shape[1:]
-    c_ext = ctx.corr(y, workers=ctx.workers)
+    n_box = int((ctx.scales > 1).sum()) if opts["store_boxes"] else 0
+    work, corr = _work(most[0], most[1], (0, C, L, T), n_box)
+    c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.shape[0]])
     own = dict(spatial=np.empty((r1 - r0, C, L), np.float32))
     if store_path is None:
         own["saliency"] = np.empty((r1 - r0, C, T), np.float32)
@@ -156,7 +263,12 @@ def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path):
         g = zarr.open_group(store_path, mode="r+")
         out = dict(saliency=g["saliency"], mask=g["mask"], spatial=_Rows(own["spatial"], r0))
         out["threshold"] = g["threshold"] if "threshold" in g else None
-    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out)
+    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work)
+    if res.histograms is not None and res.kept.size < len(res.histograms):
+        # only the histograms of the candidates in the table travel back (in memory the
+        # block's whole array is kept and indexed by ``kept``: the same values)
+        res.histograms = np.ascontiguousarray(res.histograms[res.kept])
+        res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
     return res, own
 
 
@@ -178,8 +290,9 @@ def map_candidates_tiled(
     filters, null, options
         As for the in-memory pass.
     block_rows : int or None
-        Rows per tile (None: about 64 MB of work buffers per tile, as in memory); at
-        least the halo ``max k // 2``.
+        Rows per tile (None: about 64 MB of work buffers per tile, as in memory, and on
+        a ``dask.distributed`` cluster no more than fits :data:`TILE_SHARE` of the
+        workers' memory limit, :func:`tile_bytes`); at least the halo ``max k // 2``.
     store : path, optional
         A new directory: the tiles write saliency, mask (and a per-voxel threshold)
         there as Zarr arrays, one chunk of rows per tile; otherwise they come back to
@@ -195,10 +308,20 @@ def map_candidates_tiled(
 
     R, C, L, T = counts.shape
     h = int(filters.scales.max()) // 2
+    given = block_rows
     opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
+    n_box = int((filters.scales > 1).sum()) if opts["store_boxes"] else 0
+    limit = worker_memory_limit() if given is None else None
+    if limit is not None:
+        item = np.dtype(counts.dtype).itemsize
+        block_rows = _rows_for(limit, counts.shape, item, h, n_box, block_rows)
     block_rows = min(max(block_rows, h, 1), R)
     table = null.table(per_voxel=store is not None)
     tiles = tile_bounds(R, block_rows, h)
+    most = (
+        max(b - a for a, b in tiles),
+        max(min(R, b + h) - max(0, a - h) for a, b in tiles),
+    )
     x = counts.rechunk({0: tuple(b - a for a, b in tiles), 1: -1, 2: -1, 3: -1})
     if len(tiles) > 1 and h > 0:
         x = da.overlap.overlap(x, depth={0: h, 1: 0, 2: 0, 3: 0}, boundary="none")
@@ -223,6 +346,7 @@ def map_candidates_tiled(
             shared[0],
             shared[1],
             store_path,
+            most,
             dask_key_name=(name, i),
         )  # fmt: skip
         for i, (blk, (r0, r1)) in enumerate(zip(blocks, tiles, strict=True))
@@ -244,5 +368,11 @@ def map_candidates_tiled(
             out[k][r0:r1] = v
         outs[i] = res
 
-    compute_each(tasks, take)
+    try:
+        compute_each(tasks, take)
+    finally:
+        client = _client()
+        if client is not None:
+            client.run(release_work)
+        release_work()
     return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)

@@ -2,9 +2,11 @@
 
 from ._classify import (
     Classification,
+    chain_gammas,
     class_loglik,
     classify_surfaces,
     em_proportions,
+    link_contrast,
     link_gamma,
     potts_marginals,
     unknown_llr,
@@ -18,9 +20,11 @@ from ._unknown import flag_unknown
 
 __all__ = [
     "Classification",
+    "chain_gammas",
     "class_loglik",
     "classify_surfaces",
     "em_proportions",
+    "link_contrast",
     "link_gamma",
     "potts_marginals",
     "unknown_llr",

@@ -1106,13 +1106,9 @@ def reconstruct(
     probable marginal class and ``label_confidence`` its marginal probability
     (calibrated: ``docs/classification.md``). The intensities are then the posterior
     modes given the labels, by coordinate descent (``eqt:Modes_Param_top``,
-    ``eqt:Modes_Param_bottom``), with a posterior std. The updates, their cost and what
-    was measured are in the notes of the module ``splidar/reconstruction/_core.py``.
-
-    A detection of a Dask-backed cube (``detection.options["dask"]``) is reconstructed
-    on overlapping strips of rows, one Dask task each, on the active scheduler, when its
-    surfaces do not fit one strip's memory budget (``_tiled.py``, ``docs/distributed.md``:
-    the margin, the tolerance against this in-memory run, the seeds).
+    ``eqt:Modes_Param_bottom``), with a posterior std (notes: module ``_core.py``).
+    A Dask cube's detection too large for one strip is reconstructed on overlapping
+    strips of rows, one Dask task each (``docs/distributed.md``: margin, tolerance, seeds).
 
     Parameters
     ----------
@@ -1130,6 +1126,9 @@ def reconstruct(
     gamma : float
         Interaction strength of the label field, nats per link (>= 0; default 1.5, a
         rule independent of the scene: see :func:`splidar.reconstruction.link_gamma`).
+        The sampler's chains run at strengths spread about it
+        (:func:`splidar.reconstruction.chain_gammas`) and each link is weakened where
+        the photons show a boundary (:func:`splidar.reconstruction.link_contrast`).
     rho : float
         gamma-MRF coupling (> 0); larger smooths h more.
     alpha : float, array (K, L) or "auto"
