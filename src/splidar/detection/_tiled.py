@@ -130,7 +130,11 @@ def worker_memory_limit() -> int | None:
     client = _client()
     if client is None:
         return None
-    workers = client.scheduler_info(n_workers=-1).get("workers", {}).values()
+    try:  # every worker (recent versions list 5 by default)
+        info = client.scheduler_info(n_workers=-1)
+    except TypeError:  # distributed before 2025: always every worker
+        info = client.scheduler_info()
+    workers = info.get("workers", {}).values()
     limits = [int(w.get("memory_limit") or 0) for w in workers]
     limits = [x for x in limits if x > 0]
     return min(limits) if limits else None
