@@ -1565,7 +1565,10 @@ def entry() -> None:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; no output was written", file=sys.stderr)
         code = EXIT_INTERRUPTED
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the work is over: exit with `code`
+    # the work is over (the output is complete, or cleaned up): exit with `code`; a
+    # SIGTERM arriving now would otherwise kill the process with status -15
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if code in (EXIT_INTERRUPTED, EXIT_TERMINATED):
         # An interrupt that landed inside an extension's PyRun_String while importing
         # marks it "unhandled" for good, and Python would then kill itself with SIGINT
