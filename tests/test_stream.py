@@ -73,6 +73,32 @@ def test_save_detection_is_read_back_for_the_same_run_only(tmp_path):
     assert load_detection(tmp_path / "r", "key-a") is not None  # a new manifest keeps it
 
 
+def test_load_detection_refuses_a_pickle_naming_other_code(tmp_path):
+    """A resume folder is a file like any other: its pickle may only name splidar's
+    result classes, NumPy and Zarr; one that would run a command is refused unrun."""
+    import pickle
+
+    import splidar
+    from splidar import SplidarError
+
+    sim = multispectral_scene((12, 10), n_bins=60).simulate(ppp=10, sbr=1, rng=0)
+    det = splidar.detect(sim.cube, rng=0, store=tmp_path / "det.zarr")
+    save_detection(tmp_path / "r", "key", det)  # saliency and mask are Zarr handles here
+    got = load_detection(tmp_path / "r", "key")
+    np.testing.assert_array_equal(np.asarray(got.mask), np.asarray(det.mask))
+
+    marker = tmp_path / "ran"
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    (tmp_path / "r" / "detection" / "detection.pkl").write_bytes(pickle.dumps(("key", [], Evil())))
+    with pytest.raises(SplidarError, match="posix.system|os.system|nt.system"):
+        load_detection(tmp_path / "r", "key")
+    assert not marker.exists()
+
+
 def _check_streamed_outputs(out):
     """points.parquet and maps.zarr hold what result.npz (the assembled result) holds."""
     summary = json.loads((out / "summary.json").read_text())

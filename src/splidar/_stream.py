@@ -28,8 +28,11 @@ so a strip killed while writing is simply not listed and is computed again.
 
 from __future__ import annotations
 
+import importlib
+import io
 import json
 import os
+import pickle
 import shutil
 from pathlib import Path
 from types import MappingProxyType
@@ -231,7 +234,6 @@ def save_detection(folder, key: str, detection) -> None:
     the rest (surface table, background, null model, options) pickled. Written under a
     temporary name and renamed: a run killed meanwhile leaves no detection."""
     import dataclasses
-    import pickle
 
     import zarr
 
@@ -257,18 +259,58 @@ def save_detection(folder, key: str, detection) -> None:
     os.replace(tmp, final)
 
 
+# What a kept detection's pickle may name: splidar's own result classes, NumPy's array
+# reconstruction, and (for a detection with ``store=``) the Zarr array handles and their
+# codecs. Anything else (``os.system``, ``builtins.eval``, ...) is refused before it is
+# called: a resume folder is read back like any other file, and splidar never runs code
+# from a file (docs/reliability.md).
+_ALLOWED = {
+    ("splidar._stream", "_proxy"),
+    ("splidar.library", "SpectralLibrary"),
+    ("numpy", "dtype"),
+    ("numpy._core.numeric", "_frombuffer"),
+    ("numpy.core.numeric", "_frombuffer"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy", "ndarray"),
+    ("pathlib", "PosixPath"),
+    ("pathlib", "WindowsPath"),
+    ("pathlib", "Path"),
+}
+_ALLOWED_MODULES = ("splidar.detection._result", "splidar.detection._threshold")
+_ALLOWED_PREFIXES = ("zarr.", "numcodecs.")
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    """An unpickler that resolves only the names a kept Detection needs."""
+
+    def find_class(self, module: str, name: str):
+        ok = (module, name) in _ALLOWED or module in _ALLOWED_MODULES
+        if not ok and module.startswith(_ALLOWED_PREFIXES):
+            ok = isinstance(getattr(importlib.import_module(module), name, None), type)
+        if not ok:
+            raise SplidarError(
+                f"the kept detection in the resume folder names {module}.{name}, which a "
+                "splidar detection never holds; delete the folder .OUT.resume beside the "
+                "output (the run then starts afresh)"
+            )
+        return super().find_class(module, name)
+
+
 def load_detection(folder, key: str):
     """The Detection :func:`save_detection` kept for the run ``key``, or None (none kept,
     or another run's). Its saliency and mask are read back into memory."""
     import dataclasses
-    import pickle
 
     import zarr
 
     d = Path(folder) / "detection"
     if not (d / "detection.pkl").is_file():
         return None
-    old_key, swapped, det = pickle.loads((d / "detection.pkl").read_bytes())
+    data = (d / "detection.pkl").read_bytes()
+    old_key, swapped, det = _RestrictedUnpickler(io.BytesIO(data)).load()
     if old_key != key:
         return None
     arrays = {n: zarr.open_array(str(d / f"{n}.zarr"), mode="r")[...] for n in swapped}
