@@ -386,33 +386,12 @@ def reject_spill_over(
 
 
 @njit(cache=True, nogil=True)
-def _pair_encloses(r, c, pair, depth_i, d, mask, order, starts, R, C, fwhm):
+def _pair_encloses(r, c, pair, depth_i, d, mask, mute, strict, order, starts, R, C, fwhm):
     """Whether the opposite 4-neighbours of pixel ``(r, c)`` (``pair`` 0: north/south,
     1: west/east) hold candidates of ``mask`` whose mean depth is within ``fwhm`` of
-    ``depth_i`` (False at the image border)."""
-    ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
-    if ra < 0 or ca < 0 or rb >= R or cb >= C:
-        return False
-    pa = ra * C + ca
-    pb = rb * C + cb
-    for ka in range(starts[pa], starts[pa + 1]):
-        ja = order[ka]
-        if not mask[ja]:
-            continue
-        for kb in range(starts[pb], starts[pb + 1]):
-            jb = order[kb]
-            if mask[jb] and abs(0.5 * (d[ja] + d[jb]) - depth_i) <= fwhm:
-                return True
-    return False
-
-
-@njit(cache=True, nogil=True)
-def _pair_vouches(i, pair, d, mask, mute, strict, row, col, order, starts, R, C, fwhm):
-    """As :func:`_pair_encloses` for candidate ``i``; when ``strict``, a pair whose two
+    ``depth_i`` (False at the image border). When ``strict``, a pair whose two
     candidates are both ``mute`` does not enclose (a strip of spread over the pixels'
     own surfaces encloses itself along the strip, with such members only)."""
-    r = row[i]
-    c = col[i]
     ra, ca, rb, cb = (r - 1, c, r + 1, c) if pair == 0 else (r, c - 1, r, c + 1)
     if ra < 0 or ca < 0 or rb >= R or cb >= C:
         return False
@@ -426,7 +405,7 @@ def _pair_vouches(i, pair, d, mask, mute, strict, row, col, order, starts, R, C,
             jb = order[kb]
             if not mask[jb] or (strict and mute[ja] and mute[jb]):
                 continue
-            if abs(0.5 * (d[ja] + d[jb]) - d[i]) <= fwhm:
+            if abs(0.5 * (d[ja] + d[jb]) - depth_i) <= fwhm:
                 return True
     return False
 
@@ -574,8 +553,12 @@ def _spill_kernel(
                 continue
             f = further[i]
             if not (
-                _pair_vouches(i, 0, d, active, mute, f, row, col, order, starts, R, C, fwhm)
-                or _pair_vouches(i, 1, d, active, mute, f, row, col, order, starts, R, C, fwhm)
+                _pair_encloses(
+                    row[i], col[i], 0, d[i], d, active, mute, f, order, starts, R, C, fwhm
+                )
+                or _pair_encloses(
+                    row[i], col[i], 1, d[i], d, active, mute, f, order, starts, R, C, fwhm
+                )
             ):
                 new[i] = True
                 n_new += 1
@@ -1114,8 +1097,12 @@ def _enclosed_kernel(
                     dup = True
             if dup:
                 continue
-            if _pair_encloses(r, c, 0, depth[i], depth, keep, order, starts, R, C, fwhm) and (
-                _pair_encloses(r, c, 1, depth[i], depth, keep, order, starts, R, C, fwhm)
+            if _pair_encloses(
+                r, c, 0, depth[i], depth, keep, keep, False, order, starts, R, C, fwhm
+            ) and (
+                _pair_encloses(
+                    r, c, 1, depth[i], depth, keep, keep, False, order, starts, R, C, fwhm
+                )
             ):
                 best = i
         if best >= 0:
