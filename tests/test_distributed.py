@@ -14,7 +14,7 @@ import dask  # noqa: E402
 
 import splidar  # noqa: E402
 from splidar import Cube, gaussian_irf  # noqa: E402
-from splidar.detection._tiled import is_dask, tile_bounds  # noqa: E402
+from splidar.detection._tiled import is_dask, tile_bounds, tiled_window_means  # noqa: E402
 from splidar.scenes import single_surface_scene  # noqa: E402
 
 
@@ -284,3 +284,19 @@ def test_detect_on_cluster_sizes_tiles_to_the_memory_limit():
     assert a.options["block_rows"] == 30 and b.options["block_rows"] in fits
     assert b.options["block_rows"] < 30
     _assert_same_detection(a, b)
+
+
+def test_tiled_window_means_sampled_columns_equal_loop():
+    # a wide image: the grid's windows cover part of the columns, which the tasks take
+    # from the chunks alone; the means must equal the in-memory loop's bit for bit
+    from splidar.detection._background import sample_grid
+    from splidar.detection._fast import window_means
+
+    y = np.random.default_rng(5).poisson(2.0, (90, 300, 2, 40)).astype(np.uint8)
+    kr, kc, rows, cols = sample_grid(y.shape, 7, n_samples=60)
+    assert (cols[:, None] + np.arange(kc)).size < y.shape[1]  # columns are skipped
+    ref = np.stack([window_means(y[a : a + kr], cols, kc) for a in rows])
+    with dask.config.set(scheduler="threads"):
+        got = tiled_window_means(da.from_array(y, chunks=(16, 128, 2, 40)), rows, kr, cols, kc)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, ref)

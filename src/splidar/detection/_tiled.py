@@ -99,15 +99,26 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
     if row_starts.size == 0:
         return np.empty((0, col_starts.size) + tuple(counts.shape[2:]), np.float32)
     band = np.asarray(row_starts // max(STATS_ROWS, kr))
+    # only the columns the windows cover travel into a task: the band's rows are taken
+    # from each chunk before they are joined (on a wide image the grid's windows cover a
+    # small share of the columns; the in-memory loop reads only those too). The windows
+    # are whole runs of ``kc`` columns, so each stays contiguous in the kept columns.
+    cols = np.unique((np.asarray(col_starts, np.int64)[:, None] + np.arange(kc)).ravel())
+    if cols.size < counts.shape[1]:
+        col_starts = np.searchsorted(cols, col_starts)
+    else:
+        cols = slice(None)
     tasks = []
     # keys named for the dashboard: "splidar-window-means"
-    name = "splidar-window-means-" + dask.base.tokenize(counts.name, row_starts, kr, col_starts, kc)
+    name = "splidar-window-means-" + dask.base.tokenize(
+        counts.name, row_starts, kr, col_starts, kc, cols
+    )
     for i, b in enumerate(np.unique(band)):
         starts = row_starts[band == b]
         a0, a1 = int(starts[0]), int(starts[-1]) + kr
         tasks.append(
             dask.delayed(_window_band, pure=True)(
-                counts[a0:a1], starts - a0, kr, col_starts, kc, dask_key_name=(name, i)
+                counts[a0:a1, cols], starts - a0, kr, col_starts, kc, dask_key_name=(name, i)
             )
         )
     parts = dask.compute(*tasks)
