@@ -23,3 +23,30 @@ def shared_data() -> Path:
     if p is None:
         pytest.skip("../shared/data is absent (real data sets are not part of a fresh clone)")
     return p
+
+
+def kill_first_worker(pids: dict, task: str):
+    """A dask.distributed scheduler plugin that SIGKILLs the worker holding the first
+    finished task named ``task`` (``pids``: worker address -> pid, ``client.run(os.getpid)``).
+    After the run, ``.killed`` is that worker's address and ``.key`` the task's key: the
+    scheduler must have recomputed it elsewhere."""
+    import signal
+
+    from distributed.diagnostics.plugin import SchedulerPlugin
+    from distributed.utils import key_split
+
+    class KillFirstWorker(SchedulerPlugin):
+        def __init__(self):
+            self.pids, self.killed, self.key = pids, None, None
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if (
+                self.killed is None
+                and finish == "memory"
+                and key_split(key) == task
+                and kwargs.get("worker") in self.pids
+            ):
+                self.killed, self.key = kwargs["worker"], key
+                os.kill(self.pids[self.killed], signal.SIGKILL)
+
+    return KillFirstWorker()

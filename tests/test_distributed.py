@@ -174,24 +174,8 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
     the scheduler recomputes that tile elsewhere and the Detection is the same."""
     distributed = pytest.importorskip("distributed")
     import os
-    import signal
 
-    from distributed.diagnostics.plugin import SchedulerPlugin
-    from distributed.utils import key_split
-
-    class KillFirstTileWorker(SchedulerPlugin):
-        def __init__(self, pids):
-            self.pids, self.killed, self.key = pids, None, None
-
-        def transition(self, key, start, finish, *args, **kwargs):
-            if (
-                self.killed is None
-                and finish == "memory"
-                and key_split(key) == "splidar-map-tile"
-                and kwargs.get("worker") in self.pids
-            ):
-                self.killed, self.key = kwargs["worker"], key
-                os.kill(self.pids[self.killed], signal.SIGKILL)
+    from conftest import kill_first_worker
 
     cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
     a = splidar.detect(cube, rng=1)
@@ -206,7 +190,7 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
         # compiling under load must not be what the test exercises)
         small, _ = _cubes(*_varying_cube(shape=(12, 8), n_bins=60, seed=1), (6, 8, 1, 60))
         splidar.detect(Cube(da.from_array(small.counts, chunks=(6, 8, 1, 60)), irf=small.irf))
-        plugin = KillFirstTileWorker(client.run(os.getpid))
+        plugin = kill_first_worker(client.run(os.getpid), "splidar-map-tile")
         cluster.scheduler.add_plugin(plugin, name="kill-first-tile-worker")
         b = splidar.detect(lazy, rng=1, block_rows=5)  # 8 tiles
         story = cluster.scheduler.story(plugin.key)

@@ -11,7 +11,6 @@ are identical, and the intensities of surfaces with the same label stay within 1
 
 import dataclasses
 import os
-import signal
 
 import numpy as np
 import pytest
@@ -126,24 +125,10 @@ def test_reconstruct_tiled_on_local_cluster_same_result_and_recomputes_a_killed_
     the result is the same again."""
     distributed = pytest.importorskip("distributed")
     pytest.importorskip("pyarrow")
-    from distributed.diagnostics.plugin import SchedulerPlugin
-    from distributed.utils import key_split
+
+    from conftest import kill_first_worker
 
     from splidar._stream import StripStore
-
-    class KillFirstStripWorker(SchedulerPlugin):
-        def __init__(self, pids):
-            self.pids, self.killed, self.key = pids, None, None
-
-        def transition(self, key, start, finish, *args, **kwargs):
-            if (
-                self.killed is None
-                and finish == "memory"
-                and key_split(key) == "splidar-reconstruct-tile"
-                and kwargs.get("worker") in self.pids
-            ):
-                self.killed, self.key = kwargs["worker"], key
-                os.kill(self.pids[self.killed], signal.SIGKILL)
 
     _, lazy = _detections(n_classes=2)
     a = splidar.reconstruct(lazy, library=lazy.library, rng=0)
@@ -155,7 +140,7 @@ def test_reconstruct_tiled_on_local_cluster_same_result_and_recomputes_a_killed_
     ):
         client.wait_for_workers(2)
         b = splidar.reconstruct(lazy, library=lazy.library, rng=0)
-        plugin = KillFirstStripWorker(client.run(os.getpid))
+        plugin = kill_first_worker(client.run(os.getpid), "splidar-reconstruct-tile")
         cluster.scheduler.add_plugin(plugin, name="kill-first-strip-worker")
         store = StripStore(tmp_path / "r", "k", lazy.image_shape, 1, 4)
         c = _tiled.reconstruct_tiled(lazy, store=store, library=lazy.library, rng=0)
