@@ -39,6 +39,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from ._files import atomic_path, savez
 from ._validation import SplidarError
 
 __all__ = ["StripStore", "load_detection", "read_points", "save_detection"]
@@ -58,9 +59,8 @@ def _pyarrow():
 
 
 def _replace_json(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj))
 
 
 class StripStore:
@@ -148,7 +148,7 @@ class StripStore:
         arrays = dict(label=u, marginals=marg, own=own)
         if h_nb is not None:
             arrays["h_nb"] = h_nb
-        self._save(self.folder / "labels" / f"{n:04d}.npz", arrays)
+        savez(self.folder / "labels" / f"{n:04d}.npz", arrays, compress=False)
 
     def residuals(self, n: int):
         """Strip ``n``'s residuals behind the std's smoothing-bias term, or None."""
@@ -160,13 +160,7 @@ class StripStore:
 
     def put_residuals(self, n: int, resid) -> None:
         e2, knv = resid
-        self._save(self.folder / "labels" / f"{n:04d}.resid.npz", dict(e2=e2, knv=knv))
-
-    @staticmethod
-    def _save(path: Path, arrays: dict) -> None:
-        tmp = path.with_name(path.name[: -len(".npz")] + ".tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
+        savez(self.folder / "labels" / f"{n:04d}.resid.npz", dict(e2=e2, knv=knv), compress=False)
 
     # the intensities ---------------------------------------------------------------
     def _part(self, n: int) -> Path:
@@ -204,9 +198,8 @@ class StripStore:
         cols["label_confidence"] = points["label_confidence"]
         part = self._part(n)
         part.parent.mkdir(exist_ok=True)
-        tmp = part.with_name("part-0.parquet.tmp")
-        pq.write_table(pa.table({k: np.asarray(v) for k, v in cols.items()}), tmp)
-        os.replace(tmp, part)
+        with atomic_path(part) as tmp:  # a hidden name: Parquet readers skip it
+            pq.write_table(pa.table({k: np.asarray(v) for k, v in cols.items()}), tmp)
         r0, r1 = core
         g = zarr.open_group(str(self.folder / "maps.zarr"), mode="r+")
         rr, cc, ll = points["row"] - r0, points["col"], points["layer"]
