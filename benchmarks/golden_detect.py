@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from splidar.detection import detect
+from splidar.detection._result import StoredHistograms
 from splidar.scenes import multispectral_scene, single_surface_scene, two_layer_scene
 
 SHAPE = (24, 24)
@@ -65,6 +66,8 @@ def _arrays(sim, det) -> dict[str, np.ndarray]:
     for k, v in vars(s).items():
         if isinstance(v, np.ndarray):
             out[f"surfaces.{k}"] = v
+        elif isinstance(v, StoredHistograms):  # store=: the histograms stay on disk
+            out[f"surfaces.{k}"] = np.asarray(v)
     out["saliency"] = np.asarray(det.saliency)
     out["mask"] = np.asarray(det.mask)
     out["threshold"] = np.asarray(det.threshold, dtype=np.float32)

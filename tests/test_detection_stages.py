@@ -1,5 +1,7 @@
 """Each stage of ``splidar.detect`` on its own, and the provenance that ties them together."""
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -183,6 +185,35 @@ def test_select_surfaces_keeps_at_most_k_per_pixel_in_depth_order(net_map):
         two = np.flatnonzero(s.slot == 1)
         assert np.all(s.depth_bin[two] > s.depth_bin[two - 1])
         assert s.histograms.shape == (len(s), 4, 1, mp.width)
+
+
+def test_select_surfaces_from_a_compacted_table_in_parts_is_the_same(net_map, monkeypatch):
+    """The compact integer types hold every value, and the surfaces selected from the
+    compacted table, their histograms gathered a few at a time into a given array, are
+    the ones of the table as the map pass gave it."""
+    from splidar.detection import _6_select
+    from splidar.detection._table import compact_columns
+
+    _, _, mp = net_map
+    table = mp.candidates
+    small = table.compacted(120)
+    for k, v in table.columns.items():
+        np.testing.assert_array_equal(small.columns[k], v, err_msg=k)
+    assert small.columns["row"].dtype == np.int32 and small.columns["offset"].dtype == np.int32
+    assert small.columns["scale_index"].dtype == np.int16 and small.hist_row.dtype == np.int32
+    # an image of more than 2**31 pixels keeps int64 rows and columns (row * C + col)
+    big = compact_columns(table.columns, (50_000, 50_000), 120)
+    assert big["row"].dtype == np.int64 and big["start"].dtype == np.int32
+    opts = dict(max_surfaces=2, n_scales=4, n_wavelengths=1, width=mp.width)
+    a = select_surfaces(table, mp.histograms, **opts)
+    monkeypatch.setattr(_6_select, "GATHER_CHUNK", 7)
+    out = functools.partial(np.zeros, dtype=np.float32)
+    b = select_surfaces(small, mp.histograms, histograms_out=out, **opts)
+    for name, x in vars(a).items():
+        if isinstance(x, np.ndarray):
+            y = getattr(b, name)
+            assert y.dtype == x.dtype, name
+            np.testing.assert_array_equal(y, x, err_msg=name)
 
 
 def test_detect_provenance_accounts_for_every_surface(net_map):

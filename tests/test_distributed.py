@@ -123,6 +123,30 @@ def test_detect_on_local_cluster_matches_in_memory(local_client):
     assert {"splidar-map-tile", "splidar-window-means"} <= names
 
 
+def test_detect_on_local_cluster_store_keeps_the_histograms_there(local_client, tmp_path):
+    """With ``store=`` the tiles write their candidates' histograms to the store and the
+    selected surfaces' ones stay there (``StoredHistograms``): the calling process never
+    holds them all, and they read back as the in-memory run's, bit for bit."""
+    import pickle
+
+    from splidar.detection._result import StoredHistograms
+
+    cube, lazy = _cubes(*_varying_cube(shape=(24, 20), n_bins=100, seed=9), (6, 20, 1, 100))
+    a = splidar.detect(cube, rng=2)
+    b = splidar.detect(lazy, rng=2, block_rows=6, store=tmp_path / "s")
+    h = b.surfaces.histograms
+    assert isinstance(h, StoredHistograms) and h.shape == a.surfaces.histograms.shape
+    _assert_same_detection(a, b)
+    idx = np.array([len(a.surfaces) - 1, 0, 3, 3])
+    np.testing.assert_array_equal(h[idx], a.surfaces.histograms[idx])
+    np.testing.assert_array_equal(h[:, 0], a.surfaces.histograms[:, 0])
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(h)), a.surfaces.histograms)
+    # the candidates' histograms the tiles wrote are gone once the surfaces are selected
+    assert sorted(p.name for p in (tmp_path / "s").iterdir() if p.is_dir()) == [
+        "mask", "saliency", "surface_histograms", "threshold",
+    ]  # fmt: skip
+
+
 def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_client):
     cube, lazy = _cubes(*_border_cube(border=16), (8, 24, 1, 100))
     a = splidar.detect(cube, rng=0)

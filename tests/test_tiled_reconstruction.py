@@ -153,6 +153,46 @@ def test_reconstruct_tiled_on_local_cluster_same_result_and_recomputes_a_killed_
     _assert_identical(a, c)
 
 
+def test_reconstruct_tiled_on_local_cluster_tasks_read_their_strips(
+    small_strips, tmp_path, monkeypatch
+):
+    """On a cluster the strips' surfaces and labels reach the tasks through a folder the
+    workers see (in the detection's ``store`` when it has one, else a temporary one),
+    each task reading its rows: no task graph over 100 kB is sent, where the same run
+    with the strips in the graph sends larger ones (the control); the result is the same
+    bit for bit and the folder is removed at the end."""
+    import warnings
+
+    distributed = pytest.importorskip("distributed")
+    pytest.importorskip("zarr")
+    _, lazy = _detections(n_classes=2)
+    (tmp_path / "det").mkdir()
+    stored = dataclasses.replace(lazy, options={**lazy.options, "store": str(tmp_path / "det")})
+
+    def run(det):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rec = _tiled.reconstruct_tiled(det, library=lazy.library, rng=0)
+        return rec, [str(w.message) for w in caught if "large graph" in str(w.message)]
+
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster),
+        dask.config.set({"distributed.admin.large-graph-warning-threshold": "100kB"}),
+    ):
+        a, warned_a = run(stored)
+        b, warned_b = run(lazy)
+        with monkeypatch.context() as m:  # the control: the strips in the task graph
+            m.setattr(_tiled, "_scratch_folder", lambda detection: None)
+            c, warned_c = run(lazy)
+    assert warned_c and not warned_a and not warned_b, (warned_a, warned_b, warned_c)
+    _assert_identical(c, a)
+    _assert_identical(c, b)
+    assert list((tmp_path / "det").iterdir()) == []
+
+
 def test_process_dask_cube_reconstructs_in_strips(small_strips, monkeypatch):
     from splidar.scenes import multispectral_scene
 

@@ -502,8 +502,10 @@ def _threshold(spatial, dev, table, null: NullCalibration, out, store):
 
 
 def _table(outs, image_shape) -> CandidateTable:
-    keys = outs[0].surf.keys()
-    surf = {k: np.concatenate([o.surf[k] for o in outs], axis=0) for k in keys}
+    keys = list(outs[0].surf.keys())
+    # column by column, the blocks' parts released once joined (the calling process
+    # holds one column twice at most, not the whole table)
+    surf = {k: np.concatenate([o.surf.pop(k) for o in outs], axis=0) for k in keys}
     # where each candidate's histograms are: block and row in that block's array
     hist_block = np.concatenate([np.full(o.kept.size, b, np.int64) for b, o in enumerate(outs)])
     hist_row = np.concatenate([o.kept for o in outs])

@@ -15,6 +15,10 @@ from ._table import CandidateTable, _position_in_pixel, _raster_ordered
 
 __all__ = ["select_surfaces"]
 
+#: Surfaces whose histograms :func:`_gather` reads at a time (about 13 MB at Q = 4, L = 1,
+#: W = 13): the calling process holds one such part when they go to a store.
+GATHER_CHUNK = 2**16
+
 
 def _select(surf: dict, keep: np.ndarray, k_max: int):
     """Keep at most ``k_max`` candidates per pixel (largest saliency mass), depth order."""
@@ -49,18 +53,23 @@ def _select(surf: dict, keep: np.ndarray, k_max: int):
     return idx, _position_in_pixel(row[idx], col[idx])
 
 
-def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple) -> np.ndarray:
-    """The selected candidates' histograms from the blocks' (and passes') arrays."""
-    hist = np.empty((idx.size,) + histograms[0].shape[1:], np.float32)
-    hb, hr = table.hist_block[idx], table.hist_row[idx]
-    for b, h in enumerate(histograms):
-        sel = np.flatnonzero(hb == b)
-        if sel.size:
-            hist[sel] = h[hr[sel]]
-    sel = np.flatnonzero(hb == -1)
-    if sel.size:
-        hist[sel] = table.extra_histograms[hr[sel]]
-    return hist
+def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None) -> np.ndarray:
+    """The selected candidates' histograms from the blocks' (and passes') arrays (NumPy
+    or Zarr), into ``out`` (an array-like of shape ``(idx.size, Q, L, W)``, e.g. a Zarr
+    array: filled :data:`GATHER_CHUNK` surfaces at a time) or a new array."""
+    shape = (idx.size,) + tuple(histograms[0].shape[1:])
+    if out is None:
+        out = np.empty(shape, np.float32)
+    for a in range(0, idx.size, GATHER_CHUNK):
+        part = idx[a : a + GATHER_CHUNK]
+        hist = np.empty((part.size,) + shape[1:], np.float32)
+        hb, hr = table.hist_block[part], table.hist_row[part]
+        for b in np.unique(hb):
+            sel = np.flatnonzero(hb == b)
+            src = table.extra_histograms if b == -1 else histograms[b]
+            hist[sel] = src[hr[sel]]
+        out[a : a + part.size] = hist
+    return out
 
 
 def select_surfaces(
@@ -71,6 +80,7 @@ def select_surfaces(
     n_scales: int,
     n_wavelengths: int,
     width: int,
+    histograms_out=None,
 ) -> Surfaces:
     """Keep at most ``max_surfaces`` kept candidates per pixel as :class:`Surfaces`.
 
@@ -83,33 +93,49 @@ def select_surfaces(
         ``K_s``.
     n_scales, n_wavelengths, width : int
         Q, L and W (the shape of an empty histogram array).
+    histograms_out : callable, optional
+        ``histograms_out(shape)`` gives an array-like the selected histograms are written
+        to part by part (e.g. a Zarr array in the detection's store) and that becomes
+        ``Surfaces.histograms``; default a NumPy array.
     """
     idx, slot = _select(table.columns, table.keep, max_surfaces)
-    surf = {k: v[idx] for k, v in table.columns.items()}
+    cols = table.columns
+
+    def take(name, dtype, shape=None):
+        # one column at a time: the selected rows in the Surfaces' type (no second copy
+        # when the table already has it)
+        v = cols[name][idx].astype(dtype, copy=False)
+        return v if shape is None else v.reshape(shape)
+
     Q, L = n_scales, n_wavelengths
-    if idx.size == 0:
+    if histograms_out is not None:
+        hist = histograms_out((idx.size, Q, L, width))
+        if idx.size:
+            _gather(table, idx, histograms, hist)
+    elif idx.size == 0:
         hist = np.zeros((0, Q, L, width), np.float32)
     else:
         hist = _gather(table, idx, histograms)
     R, C = table.image_shape
+    i8, f8 = np.int64, np.float64
     return Surfaces(
-        row=surf["row"].astype(np.int64),
-        col=surf["col"].astype(np.int64),
-        slot=slot.astype(np.int64),
-        depth_bin=surf["depth_bin"].astype(np.float64),
-        start=surf["start"].astype(np.int64),
-        stop=surf["stop"].astype(np.int64),
-        scale_index=surf["scale_index"].astype(np.int64),
-        offset=surf["offset"].astype(np.int64),
+        row=take("row", i8),
+        col=take("col", i8),
+        slot=slot.astype(i8, copy=False),
+        depth_bin=take("depth_bin", f8),
+        start=take("start", i8),
+        stop=take("stop", i8),
+        scale_index=take("scale_index", i8),
+        offset=take("offset", i8),
         histograms=hist,
-        signal=surf["signal"].reshape(-1, Q, L),
-        counts=surf["counts"].reshape(-1, L),
-        background=surf["background"].reshape(-1, L),
-        saliency_mass=surf["saliency_mass"].astype(np.float64),
-        evidence=surf["evidence"].astype(np.float64),
-        presence_llr=surf["presence_llr"].astype(np.float64),
-        presence_z=surf["presence_z"].astype(np.float64),
+        signal=take("signal", cols["signal"].dtype, (-1, Q, L)),
+        counts=take("counts", cols["counts"].dtype, (-1, L)),
+        background=take("background", cols["background"].dtype, (-1, L)),
+        saliency_mass=take("saliency_mass", f8),
+        evidence=take("evidence", f8),
+        presence_llr=take("presence_llr", f8),
+        presence_z=take("presence_z", f8),
         image_shape=(R, C),
         n_slots=max_surfaces,
-        stage=table.origin[idx].astype(np.int8),
+        stage=table.origin[idx].astype(np.int8, copy=False),
     )

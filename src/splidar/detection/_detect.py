@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 import os
+import shutil
 import time
+from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
@@ -38,8 +42,8 @@ from ._5e_enclosed import restore_enclosed_holes
 from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
-from ._result import Background, Detection, StageRecord
-from ._table import skipped
+from ._result import Background, Detection, StageRecord, StoredHistograms
+from ._table import skipped, store_histograms
 from ._tiled import is_dask, map_candidates_tiled, tiled_window_means
 
 __all__ = ["PASSES", "detect"]
@@ -246,15 +250,16 @@ def detect(
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    mp = _map_pass(cube, filters, nul, o, store, tiled)  # 4
+    mp, held, n_map = _map_pass(cube, filters, nul, o, store, tiled)  # 4
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    done = _clean_up(cube, o, mp, bg, corr, rng)  # 5
-    surfaces, aligned, t_sel = _select_and_align(cube, o, mp, done, t0)  # 6, 7
+    done = _clean_up(cube, o, mp, held, bg, corr, rng)  # 5
+    surfaces, aligned, t_sel, n_kept = _select_and_align(cube, o, mp, done, t0, store)  # 6, 7
+    mp = dataclasses.replace(mp, histograms=())
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
         timings["slopes"] = next(p.seconds for p in done if p.name == "slopes")
-    provenance = _provenance(mp, done, len(surfaces), t_sel, aligned, timings)
+    provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
 
@@ -287,32 +292,58 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     return o
 
 
-def _select_and_align(cube, o, mp, done, t0: float):
+def _select_and_align(cube, o, mp, done, t0: float, store):
     """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depth alignment;
-    with the selection's own seconds (since ``t0``, less the clean-up passes')."""
+    with the selection's own seconds (since ``t0``, less the clean-up passes').
+
+    With a ``store``, the surfaces' histograms are written there part by part and stay
+    there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed.
+    The last pass's table is released (``done[-1]`` keeps its counts only)."""
+    out = None if store is None else functools.partial(_stored_histograms, store)
     surfaces = select_surfaces(
         done[-1].table, mp.histograms, max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
+        histograms_out=out,
     )  # fmt: skip
+    n_kept = int(done[-1].table.keep.sum())
+    done[-1] = dataclasses.replace(done[-1], table=None)
+    if store is not None:
+        surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
+        shutil.rmtree(Path(os.fspath(store)) / "candidate_histograms", ignore_errors=True)
     t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
         aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])
         surfaces = aligned.surfaces
-    return surfaces, aligned, t_sel
+    return surfaces, aligned, t_sel, n_kept
+
+
+def _stored_histograms(store, shape):
+    """A new Zarr array ``surface_histograms`` of ``shape`` in the detection's store."""
+    import zarr
+
+    g = zarr.open_group(os.fspath(store), mode="r+")
+    return store_histograms(g, "surface_histograms", shape)
 
 
 def _map_pass(cube, filters, nul, o, store, tiled: bool):
     """Stage 4, the one pass over every voxel: tile by tile on the active Dask scheduler
-    for a Dask cube (``_tiled.py``), else in row blocks on ``n_jobs`` threads."""
+    for a Dask cube (``_tiled.py``), else in row blocks on ``n_jobs`` threads.
+
+    Returns the map without its candidate table, the table (compacted) in a list, and
+    the number of candidates the map kept: the table goes to the clean-up passes alone,
+    which release each pass's input once it has run."""
     opts = _map_options(o, cube.shape[3])
     if tiled:
-        return map_candidates_tiled(
+        mp = map_candidates_tiled(
             cube.counts, filters, nul, opts, block_rows=o["block_rows"], store=store
         )
-    return map_candidates(
-        cube.counts, filters, nul, opts, block_rows=o["block_rows"], n_jobs=o["n_jobs"],
-        store=store,
-    )  # fmt: skip
+    else:
+        mp = map_candidates(
+            cube.counts, filters, nul, opts, block_rows=o["block_rows"], n_jobs=o["n_jobs"],
+            store=store,
+        )  # fmt: skip
+    held, n_map = [mp.candidates.compacted(cube.shape[3])], int(mp.candidates.keep.sum())
+    return dataclasses.replace(mp, candidates=None), held, n_map
 
 
 def _check_resources(passes, block_rows, n_jobs, presence: str) -> dict:
@@ -361,18 +392,23 @@ def _map_options(o: dict, T: int) -> MapOptions:
     )
 
 
-def _clean_up(cube, o: dict, mp, bg, corr, rng) -> list:
-    """Stage 5: the clean-up passes over the candidate table of the whole image (they
-    need the neighbours across block borders), in order; a pass not in ``passes`` (or
-    without the presence test) is recorded as not run."""
+def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
+    """Stage 5: the clean-up passes over the candidate table ``held.pop()`` of the whole
+    image (they need the neighbours across block borders), in order; a pass not in
+    ``passes`` (or without the presence test) is recorded as not run. Only the last
+    result keeps its table: a pass's input is released once it has run (the passes
+    build new arrays), so the calling process holds one table and the pass's new one."""
     irf, fwhm, peak = o["irf"], o["fwhm"], np.asarray(corr.peak)
     on = set(o["passes"]) if o["checks"] else set()
     surface_pfa, T = o["surface_pfa"], cube.shape[3]
-    table, done = mp.candidates, []
+    table, done = held.pop(), []
 
     def run(name, fn):
-        done.append(fn(table) if name in on else skipped(name, table))
-        return done[-1].table
+        res = fn(table) if name in on else skipped(name, table)
+        if done:
+            done[-1] = dataclasses.replace(done[-1], table=None)
+        done.append(res)
+        return res.table
 
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
@@ -382,6 +418,7 @@ def _clean_up(cube, o: dict, mp, bg, corr, rng) -> list:
         t, irf=irf, peak=peak, fwhm=fwhm, half=int(o["scales"].max()) // 2, pfa=surface_pfa,
         llr_level=-PRESENCE_LLR))  # fmt: skip
     table = table.without("own_counts", "own_background")
+    done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
     table = run("slopes", lambda t: recover_slope_surfaces(
         t, cube.counts, saliency=mp.saliency, threshold=mp.threshold, spatial=mp.spatial,
         dev=bg.dev, irf=irf, scales=o["scales"], width=mp.width, fwhm=fwhm,
@@ -393,11 +430,10 @@ def _clean_up(cube, o: dict, mp, bg, corr, rng) -> list:
     return done
 
 
-def _provenance(mp, done, n_surfaces, t_sel, aligned, timings) -> tuple:
-    n_kept = int(done[-1].table.keep.sum())
+def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, aligned, timings) -> tuple:
     return (
         StageRecord(
-            "map", True, int(mp.candidates.keep.sum()), mp.n_rejected,
+            "map", True, n_map, mp.n_rejected,
             seconds=timings["saliency_and_surfaces"],
         ),
         *(StageRecord(p.name, p.ran, p.added, p.removed, seconds=p.seconds) for p in done),

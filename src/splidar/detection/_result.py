@@ -23,6 +23,7 @@ __all__ = [
     "Detection",
     "NullModel",
     "StageRecord",
+    "StoredHistograms",
     "Surfaces",
 ]
 
@@ -116,6 +117,57 @@ class DataReduction:
     n_photons: int  #: photons kept
 
 
+class StoredHistograms:
+    """The surfaces' clean histograms kept in a Zarr array on disk (``detect(store=...)``),
+    read where they are indexed: a read-only stand-in for the ``(S, Q, L, W)`` float32
+    array, so a large detection does not hold them in memory.
+
+    ``h[key]`` reads the selection (integers, slices, integer arrays on the first axis)
+    as a NumPy array; ``np.asarray(h)`` reads them all.
+    """
+
+    __slots__ = ("array",)
+
+    def __init__(self, array):
+        #: the Zarr array (``surface_histograms`` in the detection's store)
+        self.array = array
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(self.array.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.array.dtype)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    def __getitem__(self, key) -> np.ndarray:
+        return np.asarray(self.array[key])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = np.asarray(self.array[...])
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+    def __getstate__(self):
+        return self.array
+
+    def __setstate__(self, array) -> None:
+        self.array = array
+
+    def __repr__(self) -> str:
+        return f"StoredHistograms(shape={self.shape}, dtype=float32, store={self.array.store})"
+
+
 @dataclass(frozen=True)
 class Surfaces:
     """Candidate surfaces extracted from the binary map, at most ``n_slots`` per pixel.
@@ -137,9 +189,11 @@ class Surfaces:
         Selected scale (``eq:scale_sel``), an index into ``Detection.scales``.
     offset : ndarray (S,), int64
         Time bin of ``histograms[..., 0]``.
-    histograms : ndarray (S, Q, L, W), float32
+    histograms : ndarray (S, Q, L, W), float32, or StoredHistograms
         Clean (background-free) histograms ``max(Y^q * g - bhat, 0)`` of every scale
-        (``eq:background_final``), zero outside the support.
+        (``eq:background_final``), zero outside the support. With ``detect(store=...)``
+        they stay in the store (:class:`StoredHistograms`: indexing reads them,
+        ``np.asarray`` reads them all).
     signal : ndarray (S, Q, L), float64
         ``ybar`` of every scale: the clean histograms summed over time.
     counts : ndarray (S, L), float64

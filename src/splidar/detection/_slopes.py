@@ -863,7 +863,10 @@ def _split(n: int, n_jobs: int, fn) -> None:
 
 
 #: Bytes of one band of rows read from a lazy (Dask / Zarr) array by :func:`_row_bands`.
-BAND_BYTES = 128_000_000
+#: The calling process holds about twice that per array read (Zarr's and Dask's chunk
+#: buffers beside the band), and the saliency and threshold together: 128 MB bands took
+#: it 545 MB above the rest (a 128 x 1024 x 1000 slab on one worker), 32 MB ones ~140 MB.
+BAND_BYTES = 32_000_000
 
 
 def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):

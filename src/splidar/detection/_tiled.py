@@ -284,7 +284,24 @@ def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path, most: 
         # block's whole array is kept and indexed by ``kept``: the same values)
         res.histograms = np.ascontiguousarray(res.histograms[res.kept])
         res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
+    _compact_result(res, store_path, r0, opts["image_shape"], T)
     return res, own
+
+
+def _compact_result(res, store_path, r0: int, image_shape, n_bins: int) -> None:
+    """What a tile sends back, made small for the calling process (which gathers every
+    tile's): the candidates' integer columns in compact types (same values), and with a
+    store, the histograms written there (``candidate_histograms/<first row>``; the
+    calling process reads the selected surfaces' rows only) and replaced by the Zarr
+    array's handle."""
+    from ._table import compact_columns, store_histograms
+
+    res.surf = compact_columns(res.surf, image_shape, n_bins)
+    if store_path is not None and res.histograms is not None:
+        import zarr
+
+        g = zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+")
+        res.histograms = store_histograms(g, str(r0), res.histograms.shape, data=res.histograms)
 
 
 def map_candidates_tiled(
@@ -344,6 +361,10 @@ def map_candidates_tiled(
     if store is not None:
         out = _open_store(store, (R, C, T), block_rows, table[2])
         store_path = str(store)
+        import zarr
+
+        # the tiles write their candidates' histograms here (_compact_result)
+        zarr.open_group(store_path, mode="r+").create_group("candidate_histograms")
     else:
         out, store_path = None, None
     # the set-up every tile shares travels once (one key), not once per task

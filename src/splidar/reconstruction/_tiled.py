@@ -47,6 +47,8 @@ import dataclasses
 import functools
 import inspect
 import logging
+import os
+import shutil
 import time
 import types
 from pathlib import Path
@@ -232,7 +234,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
     the same state). Returns ``(small, carry)``: the core's residuals for the std's
     smoothing-bias term, its surfaces and links, the history; the state for step 5."""
     auto = shared["prior"][0]
-    state = None
+    state, u = None, _loaded(u)
     if carry is not None:
         st, graph, state = carry["strip"], carry["graph"], carry["state"]
         su = _strip_setup(st, shared)
@@ -272,6 +274,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
 def _std_tile(carry, u, marg, shared, bias2):
     """Step 5: the core's intensities and std, with the run's smoothing-bias term."""
     st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
+    u, marg = _loaded(u), _loaded(marg)
     su = _strip_setup(st, shared)
     z, q = np.empty(st.y.shape), np.empty(st.y.shape)
     kern.estep(st.y, st.b, st.eta, state["r"], state["h"], z, q)  # as _sweeps_end did
@@ -365,15 +368,58 @@ def _as_strip(st):
     return st.load() if isinstance(st, _StripRef) else st
 
 
-def _write_table(path: str, order, columns: dict, chunk: int = 2**16) -> None:
-    """The columns, rows sorted by ``order``, to the Zarr group ``path`` (by chunks)."""
+@dataclasses.dataclass(frozen=True)
+class _RowsRef:
+    """Rows ``[lo, hi)`` of the per-surface array ``name`` in the Zarr group ``path``
+    (sorted as the strips' table, :func:`_write_table`): what a task reads instead of
+    receiving the array in the task graph."""
+
+    path: str
+    name: str
+    lo: int
+    hi: int
+
+    def load(self) -> np.ndarray:
+        import zarr
+
+        return zarr.open_group(self.path, mode="r")[self.name][self.lo : self.hi]
+
+
+def _loaded(x):
+    return x.load() if isinstance(x, _RowsRef) else x
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pieces:
+    """The strips' surfaces: per strip, their indices in the detection's table (core and
+    margins, ``idx``); with ``path`` (the strips' Zarr group, whose rows are the table's
+    sorted by ``order``; strip ``n`` holds rows ``bounds[n]``) per-surface arrays reach
+    the tasks as :class:`_RowsRef`, else sliced into the task graph."""
+
+    idx: list
+    path: str | None = None
+    order: np.ndarray | None = None
+    bounds: tuple = ()
+
+    def put(self, name: str, a: np.ndarray) -> list:
+        """Per strip, its rows of ``a`` (one row per surface of the detection)."""
+        if self.path is None:
+            return [a[i] for i in self.idx]
+        _write_table(self.path, self.order, {name: a}, mode="a")
+        return [_RowsRef(self.path, name, lo, hi) for lo, hi in self.bounds]
+
+
+def _write_table(path: str, order, columns: dict, chunk: int = 2**16, mode: str = "w") -> None:
+    """The columns, rows sorted by ``order``, to the Zarr group ``path`` (by chunks; a new
+    group with ``mode="w"``, added to it with ``"a"``)."""
     import zarr
 
-    g = zarr.open_group(path, mode="w")
+    g = zarr.open_group(path, mode=mode)
     for name, a in columns.items():
         z = g.create_array(
-            name, shape=a.shape, dtype=a.dtype, chunks=(min(chunk, max(len(a), 1)),) + a.shape[1:]
-        )
+            name, shape=a.shape, dtype=a.dtype, chunks=(min(chunk, max(len(a), 1)),) + a.shape[1:],
+            overwrite=True,
+        )  # fmt: skip
         for k in range(0, len(order), chunk):
             z[k : k + chunk] = a[order[k : k + chunk]]
 
@@ -394,17 +440,19 @@ def _cut(detection, su, cores, ll, folder=None):
 
         path, run = str(Path(folder) / "surfaces.zarr"), uuid.uuid4().hex
         _write_table(path, order, columns)
-    idx, strips_, core_idx = [], [], []
+    idx, strips_, core_idx, bounds = [], [], [], []
     for r0, r1 in cores:
         lo, hi = (int(k) for k in np.searchsorted(srow, [r0 - MARGIN, r1 + MARGIN]))
         i = order[lo:hi]
         idx.append(i)
+        bounds.append((lo, hi))
         core_idx.append(i[(srow[lo:hi] >= r0) & (srow[lo:hi] < r1)])
         if path is not None:
             strips_.append(_StripRef(path, lo, hi, r0, r1, run))
         else:
             strips_.append(_Strip(r0, r1, *(columns[f][i] for f in _Strip.FIELDS)))
-    return idx, strips_, core_idx
+    pieces = _Pieces(idx) if path is None else _Pieces(idx, path, order, tuple(bounds))
+    return pieces, strips_, core_idx
 
 
 def _points(detection, ci, intensity, std, u, conf) -> dict:
@@ -464,9 +512,10 @@ def _labels_pass(detection, strips_, core_idx, sh, token, K, store):
     return u, marg, h_nb, own, kept
 
 
-def _fit_pass(strips_, idx, core_idx, u, own, carries, sh, eb, token, store, skip):
-    """Step 4: the sweeps of every strip not in ``skip``; the residuals behind the std's
-    smoothing-bias term (per strip, in strip order), the metas, the persisted tasks."""
+def _fit_pass(strips_, core_idx, us, own, carries, sh, eb, token, store, skip):
+    """Step 4: the sweeps of every strip not in ``skip`` (``us``: each strip's labels, or
+    their :class:`_RowsRef`); the residuals behind the std's smoothing-bias term (per
+    strip, in strip order), the metas, the persisted tasks."""
     import dask
 
     resid, metas = [None] * len(strips_), [None] * len(strips_)
@@ -482,17 +531,51 @@ def _fit_pass(strips_, idx, core_idx, u, own, carries, sh, eb, token, store, ski
             store.put_residuals(n, res)
 
     tasks = {}
-    for n, (st, i) in enumerate(zip(strips_, idx, strict=True)):
+    for n, st in enumerate(strips_):
         if n in skip:
             metas[n], resid[n] = skip[n]
             continue
         carry = carries[n][1] if n in carries else None
         tasks[n] = dask.delayed(_fit_tile, pure=True, nout=2)(
-            carry, st if carry is None else None, u[i], own[n] if carry is None else None,
+            carry, st if carry is None else None, us[n], own[n] if carry is None else None,
             sh, eb, dask_key_name=(f"splidar-fit-tile-{token}", n),
         )  # fmt: skip
     kept = _persist(tasks, "sweeps", take)
     return resid, metas, kept
+
+
+def _scratch_folder(detection) -> str | None:
+    """On a ``dask.distributed`` cluster, a new folder that every worker sees, for the
+    strips' surfaces (the tasks read their own rows there instead of receiving them in
+    the task graph, which the scheduler would hold and send whole: 16 MB for 150,000
+    surfaces): inside the detection's ``store`` when it has one (its tiles were written
+    there by the workers), else in the temporary directory, if the workers see it (a
+    LocalCluster). None on the local schedulers (nothing is sent) or when the workers do
+    not see it."""
+    import tempfile
+    import uuid
+
+    from ..detection._tiled import _client
+
+    client = _client()
+    if client is None:
+        return None
+    base = detection.options.get("store")
+    try:
+        if base is not None and Path(base).is_dir():
+            path = Path(base) / f"reconstruct-{uuid.uuid4().hex[:12]}"
+            path.mkdir()
+            path = str(path)
+        else:
+            path = tempfile.mkdtemp(prefix="splidar-strips-")
+        seen = client.run(os.path.isdir, path)
+    except OSError:
+        return None
+    if seen and all(seen.values()):
+        return path
+    shutil.rmtree(path, ignore_errors=True)
+    log.info("reconstruct: the workers do not see %s; the strips travel in the task graph", path)
+    return None
 
 
 def _finished(store, n_strips, auto) -> dict:
@@ -519,14 +602,11 @@ def reconstruct_tiled(
     ``assemble=False`` (with a store) returns a :class:`StreamedRun` instead of holding
     every point in memory.
     """
-    import dask
-
     options = inspect.signature(_core.reconstruct).bind(detection, **options)
     options.apply_defaults()
     options = {k: v for k, v in options.arguments.items() if k != "detection"}
     opt, cores = _plan(detection, options, strip_rows)
-    surf = detection.surfaces
-    S, L = len(surf), detection.n_wavelengths
+    S = len(detection.surfaces)
     if store is not None:
         store.begin(cores)
     if len(cores) == 1 or S == 0:
@@ -538,6 +618,23 @@ def reconstruct_tiled(
             pts = _points(detection, ci, p.intensity, p.intensity_std, p.label, p.label_confidence)
             store.put_fit(0, (0, detection.image_shape[0]), pts, meta)
         return rec
+    folder = getattr(store, "surfaces_folder", None)
+    scratch = _scratch_folder(detection) if folder is None else None
+    try:
+        return _on_strips(detection, opt, cores, options, store, assemble, folder or scratch)
+    finally:
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _on_strips(detection, opt, cores, options, store, assemble, folder):
+    """Steps 1-5 of the module docstring on the strips of these ``cores``; ``folder``: where
+    the strips' surfaces (and labels) are written for the tasks to read, or None (they
+    travel in the task graph)."""
+    import dask
+
+    surf = detection.surfaces
+    S, L = len(surf), detection.n_wavelengths
     t0 = time.perf_counter()
     rng = np.random.default_rng(options["rng"])
     with _KERNEL_LOCK:  # numba kernels: the IRF fractions and the class likelihoods
@@ -553,7 +650,6 @@ def reconstruct_tiled(
         n_cols=int(detection.image_shape[1]), n_slots=int(surf.n_slots), gamma=opt["gamma"],
         rho=opt["rho"], max_iter=opt["max_iter"], tol=opt["tol"], prior=prior, pi=pi, base=base,
     )  # fmt: skip
-    folder = getattr(store, "surfaces_folder", None)
     idx, strips_, core_idx = _cut(detection, su, cores, ll, folder)
     del ll
     t_setup = time.perf_counter()
@@ -573,8 +669,9 @@ def reconstruct_tiled(
     if eb is not None:  # the prior every strip used: (auto, alpha, upsilon, epsilon)
         prior = (True, eb[0], eb[1], su.sig * (eb[1] - 1.0) / eb[0])
     t_cls = time.perf_counter()
+    us = idx.put("u", u)  # each strip's labels: read by its tasks of steps 4 and 5
     resid, metas, fits = _fit_pass(
-        strips_, idx, core_idx, u, own, carries, sh, eb, token, store, finished
+        strips_, core_idx, us, own, carries, sh, eb, token, store, finished
     )
     del carries
     bias2 = None
@@ -595,7 +692,8 @@ def reconstruct_tiled(
             intensity[ci], std[ci] = ic, sc
 
     tasks = {}
-    for n, i in enumerate(idx):
+    margs = idx.put("marginals", marg)
+    for n in range(len(cores)):
         if n in finished:
             if assemble:
                 pts = store.fitted(n)[0]
@@ -603,7 +701,7 @@ def reconstruct_tiled(
                 std[pts["surface"]] = pts["intensity_std"]
             continue
         tasks[n] = dask.delayed(_std_tile, pure=True)(
-            fits[n][1], u[i], marg[i], sh, bias2,
+            fits[n][1], us[n], margs[n], sh, bias2,
             dask_key_name=(f"splidar-reconstruct-tile-{token}", n),
         )  # fmt: skip
     _run(tasks, "reconstruct", take)
