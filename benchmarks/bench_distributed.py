@@ -31,6 +31,13 @@ Usage::
     python benchmarks/bench_distributed.py --workers 1 2 4 --memory-limit 1GB
     python benchmarks/bench_distributed.py --large               # 3072 x 1024 x 1 x 1000
     python benchmarks/bench_distributed.py --large --rows 512 --data /tmp/b16   # quicker
+    python benchmarks/bench_distributed.py --caller              # 128 x 1024 x 1 x 1000
+
+``--caller`` breaks the calling process's memory down instead: a slab of the large
+scene detected with ``store=`` on a LocalCluster of one worker, the bytes per pixel
+tracemalloc counts before, during (peak) and after each step of ``detect``, and the
+process's sampled resident peak; then the reconstruction on strips of ``--strip-rows``
+rows and the large task graphs Dask warned of.
 """
 
 from __future__ import annotations
@@ -334,6 +341,113 @@ def large(args) -> int:
     return 0 if ok else 1
 
 
+#: The steps of ``detect`` whose memory ``--caller`` reports (functions of its module).
+_CALLER_STEPS = (
+    "map_candidates_tiled", "remove_spill_over", "remove_isolated", "restore_dark_regions",
+    "recover_slope_surfaces", "restore_enclosed_holes", "select_surfaces",
+    "align_surface_depths", "_detection",
+)  # fmt: skip
+
+
+def _traced_steps(module, names, records: list):
+    """Wrap ``module``'s functions ``names`` (for the measurement only) so that each call
+    appends ``(name, traced bytes before, peak during, after)`` to ``records`` while
+    tracemalloc traces. Returns a function that restores them."""
+    import functools
+    import tracemalloc
+
+    saved = {n: getattr(module, n) for n in names}
+
+    def wrap(name, fn):
+        @functools.wraps(fn)
+        def traced(*args, **kw):
+            if not tracemalloc.is_tracing():
+                return fn(*args, **kw)
+            before = tracemalloc.get_traced_memory()[0]
+            tracemalloc.reset_peak()
+            out = fn(*args, **kw)
+            now, peak = tracemalloc.get_traced_memory()
+            records.append((name, before, peak, now))
+            return out
+
+        return traced
+
+    for n, fn in saved.items():
+        setattr(module, n, wrap(n, fn))
+    return lambda: [setattr(module, n, fn) for n, fn in saved.items()]
+
+
+def caller(args) -> int:
+    """The calling process's memory when a Dask cube is detected with ``store=`` on a
+    LocalCluster of one worker (``--caller``), step by step, per pixel; then the
+    reconstruction on strips of ``--strip-rows`` rows, with the task graphs Dask warned
+    of (over its 10 MB threshold)."""
+    import os
+    import shutil
+    import tracemalloc
+    import warnings
+
+    import dask.array
+    import distributed
+
+    from splidar.detection import _detect
+    from splidar.reconstruction._tiled import reconstruct_tiled
+
+    R, C, T = args.rows, args.cols, args.bins
+    base = Path(args.data or tempfile.mkdtemp(prefix="bench16c-"))
+    base.mkdir(parents=True, exist_ok=True)
+    path, store = base / f"slab-{R}x{C}x{T}.zarr", base / "det.zarr"
+    records: list = []
+    restore = _traced_steps(_detect, _CALLER_STEPS, records)
+    try:
+        if not (path / "counts").exists():
+            write_scene(path, R, C, T)
+        lazy = splidar.load(path)
+        tiny = splidar.Cube(scene_rows(0, 24, 24, T), irf=lazy.irf)
+        splidar.detect(tiny, rng=0)  # numba kernels loaded in this process
+        shutil.rmtree(store, ignore_errors=True)
+        with (
+            distributed.LocalCluster(
+                n_workers=1, threads_per_worker=1, processes=True,
+                memory_limit=args.memory_limit, dashboard_address=":0",
+            ) as cluster,
+            distributed.Client(cluster),
+        ):  # fmt: skip
+            splidar.detect(splidar.Cube(dask.array.from_array(tiny.counts), irf=tiny.irf))
+            rss0 = _rss_mb() * 1e6
+            with _Sampler({"caller": os.getpid()}, dt=0.05) as s:
+                tracemalloc.start()
+                t0 = time.perf_counter()
+                det = splidar.detect(lazy, rng=0, store=store)
+                t_det = time.perf_counter() - t0
+                held = tracemalloc.get_traced_memory()[0]
+                tracemalloc.stop()
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                t0 = time.perf_counter()
+                rec = reconstruct_tiled(det, strip_rows=args.strip_rows, rng=0)
+                t_rec = time.perf_counter() - t0
+        graphs = [str(w.message).split(".")[0] for w in caught if "large graph" in str(w.message)]
+    finally:
+        restore()
+        shutil.rmtree(store, ignore_errors=True)
+        if args.data is None:
+            shutil.rmtree(base, ignore_errors=True)
+    npix, S = R * C, len(det.surfaces)
+    print(
+        f"slab {R} x {C} x 1 x {T}: {S} surfaces ({S / npix:.2f} per pixel); detect {t_det:.1f} s"
+    )
+    print(f"calling process RSS: {rss0 / 1e6:.0f} MB before, peak {s.peaks['caller'] / 1e6:.0f} MB "
+          f"({(s.peaks['caller'] - rss0) / npix:.0f} B/pixel above the start)")  # fmt: skip
+    print(f"traced (tracemalloc) bytes per pixel, step by step; {held / npix:.0f} held at the end")
+    print(f"{'step':<24} {'held before':>11} {'peak':>6} {'held after':>10}")
+    for name, before, peak, now in records:
+        print(f"{name:<24} {before / npix:11.0f} {peak / npix:6.0f} {now / npix:10.0f}")
+    print(f"reconstruction on strips of {args.strip_rows} rows: {t_rec:.1f} s, "
+          f"{len(rec.points)} points; large task graphs: {graphs or 'none'}")  # fmt: skip
+    return 0
+
+
 def _stages(det) -> str:
     keep = ("background_temporal", "null", "saliency_and_surfaces", "quality_and_selection")
     keep += ("reconstruct",)
@@ -364,7 +478,16 @@ def main(argv=None) -> int:
     p.add_argument(
         "--process", action="store_true", help="--large: splidar.process on the clusters"
     )
+    p.add_argument(
+        "--caller", action="store_true", help="the calling process's memory, step by step"
+    )
+    p.add_argument("--strip-rows", type=int, default=32, help="--caller: reconstruction strips")
     args = p.parse_args(argv)
+    if args.caller:
+        for k, v in (("rows", 128), ("cols", 1024), ("bins", 1000)):
+            if f"--{k}" not in (argv if argv is not None else sys.argv):
+                setattr(args, k, v)
+        return caller(args)
     if args.large:
         for k, v in (("rows", 3072), ("cols", 1024), ("bins", 1000)):
             if f"--{k}" not in (argv if argv is not None else sys.argv):

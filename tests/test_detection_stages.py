@@ -201,6 +201,7 @@ def test_select_surfaces_from_a_compacted_table_in_parts_is_the_same(net_map, mo
         np.testing.assert_array_equal(small.columns[k], v, err_msg=k)
     assert small.columns["row"].dtype == np.int32 and small.columns["offset"].dtype == np.int32
     assert small.columns["scale_index"].dtype == np.int16 and small.hist_row.dtype == np.int32
+    assert small.columns["own_counts"].dtype == np.int16
     # an image of more than 2**31 pixels keeps int64 rows and columns (row * C + col)
     big = compact_columns(table.columns, (50_000, 50_000), 120)
     assert big["row"].dtype == np.int64 and big["start"].dtype == np.int32
