@@ -427,7 +427,7 @@ def caller(args) -> int:
                 t0 = time.perf_counter()
                 rec = reconstruct_tiled(det, strip_rows=args.strip_rows, rng=0)
                 t_rec = time.perf_counter() - t0
-        graphs = [str(w.message).split(".")[0] for w in caught if "large graph" in str(w.message)]
+        graphs = [str(w.message).splitlines()[0] for w in caught if "large graph" in str(w.message)]
     finally:
         restore()
         shutil.rmtree(store, ignore_errors=True)
