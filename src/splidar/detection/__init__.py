@@ -34,6 +34,7 @@ from ._result import (
     Detection,
     NullModel,
     StageRecord,
+    StoredHistograms,
     Surfaces,
 )
 from ._threshold import ThresholdField
@@ -46,6 +47,7 @@ __all__ = [
     "Detection",
     "NullModel",
     "StageRecord",
+    "StoredHistograms",
     "Surfaces",
     "ThresholdField",
     "detect",
