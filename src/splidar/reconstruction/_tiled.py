@@ -563,7 +563,7 @@ def _scratch_folder(detection) -> str | None:
     base = detection.options.get("store")
     try:
         if base is not None and Path(base).is_dir():
-            path = Path(base) / f"reconstruct-{uuid.uuid4().hex[:12]}"
+            path = Path(base).resolve() / f"reconstruct-{uuid.uuid4().hex[:12]}"
             path.mkdir()
             path = str(path)
         else:
