@@ -349,10 +349,38 @@ _CALLER_STEPS = (
 )  # fmt: skip
 
 
-def _traced_steps(module, names, records: list):
+class _RssPeak:
+    """This process's resident memory sampled every ``dt`` s: the peak since ``reset()``."""
+
+    def __init__(self, dt: float = 0.02):
+        import threading
+
+        import psutil
+
+        self.proc, self.dt, self.peak = psutil.Process(), dt, 0
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._poll, daemon=True)
+        self.thread.start()
+
+    def _poll(self):
+        while not self.done.is_set():
+            self.peak = max(self.peak, self.proc.memory_info().rss)
+            self.done.wait(self.dt)
+
+    def reset(self) -> int:
+        self.peak = rss = self.proc.memory_info().rss
+        return rss
+
+    def close(self):
+        self.done.set()
+        self.thread.join()
+
+
+def _traced_steps(module, names, records: list, rss: _RssPeak):
     """Wrap ``module``'s functions ``names`` (for the measurement only) so that each call
-    appends ``(name, traced bytes before, peak during, after)`` to ``records`` while
-    tracemalloc traces. Returns a function that restores them."""
+    appends ``(name, traced bytes before, peak during, after, resident bytes before, peak
+    during)`` to ``records`` while tracemalloc traces. Returns a function that restores
+    them."""
     import functools
     import tracemalloc
 
@@ -363,11 +391,11 @@ def _traced_steps(module, names, records: list):
         def traced(*args, **kw):
             if not tracemalloc.is_tracing():
                 return fn(*args, **kw)
-            before = tracemalloc.get_traced_memory()[0]
+            before, rss0 = tracemalloc.get_traced_memory()[0], rss.reset()
             tracemalloc.reset_peak()
             out = fn(*args, **kw)
             now, peak = tracemalloc.get_traced_memory()
-            records.append((name, before, peak, now))
+            records.append((name, before, peak, now, rss0, max(rss.peak, rss.reset())))
             return out
 
         return traced
@@ -397,8 +425,12 @@ def caller(args) -> int:
     base = Path(args.data or tempfile.mkdtemp(prefix="bench16c-"))
     base.mkdir(parents=True, exist_ok=True)
     path, store = base / f"slab-{R}x{C}x{T}.zarr", base / "det.zarr"
+    from splidar.reconstruction import _tiled as rec_tiled
+
     records: list = []
-    restore = _traced_steps(_detect, _CALLER_STEPS, records)
+    rss = _RssPeak()
+    restore = _traced_steps(_detect, _CALLER_STEPS, records, rss)
+    restore_rec = _traced_steps(rec_tiled, ("_on_strips",), records, rss)
     try:
         if not (path / "counts").exists():
             write_scene(path, R, C, T)
@@ -424,12 +456,14 @@ def caller(args) -> int:
                 tracemalloc.stop()
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
+                tracemalloc.start()
                 t0 = time.perf_counter()
                 rec = reconstruct_tiled(det, strip_rows=args.strip_rows, rng=0)
                 t_rec = time.perf_counter() - t0
+                tracemalloc.stop()
         graphs = [str(w.message).splitlines()[0] for w in caught if "large graph" in str(w.message)]
     finally:
-        restore()
+        restore(), restore_rec(), rss.close()
         shutil.rmtree(store, ignore_errors=True)
         if args.data is None:
             shutil.rmtree(base, ignore_errors=True)
@@ -439,10 +473,13 @@ def caller(args) -> int:
     )
     print(f"calling process RSS: {rss0 / 1e6:.0f} MB before, peak {s.peaks['caller'] / 1e6:.0f} MB "
           f"({(s.peaks['caller'] - rss0) / npix:.0f} B/pixel above the start)")  # fmt: skip
-    print(f"traced (tracemalloc) bytes per pixel, step by step; {held / npix:.0f} held at the end")
-    print(f"{'step':<24} {'held before':>11} {'peak':>6} {'held after':>10}")
-    for name, before, peak, now in records:
-        print(f"{name:<24} {before / npix:11.0f} {peak / npix:6.0f} {now / npix:10.0f}")
+    print(f"bytes per pixel, step by step: traced by tracemalloc (held before the step, peak "
+          f"during it, held after), and the process's resident peak during it above the "
+          f"start; {held / npix:.0f} traced held at the end of detect")  # fmt: skip
+    print(f"{'step':<24} {'held before':>11} {'peak':>6} {'held after':>10} {'RSS peak':>9}")
+    for name, before, peak, now, _, rss_peak in records:
+        line = f"{name:<24} {before / npix:11.0f} {peak / npix:6.0f} {now / npix:10.0f}"
+        print(line + f" {(rss_peak - rss0) / npix:9.0f}")
     print(f"reconstruction on strips of {args.strip_rows} rows: {t_rec:.1f} s, "
           f"{len(rec.points)} points; large task graphs: {graphs or 'none'}")  # fmt: skip
     return 0
