@@ -87,6 +87,30 @@ def test_saliency_wavelength_box_output_matches_box_filters(scales):
         )
 
 
+@pytest.mark.parametrize("rate", [0.005, 0.5, 3.9, 4.1, 30.0])
+def test_poisson_background_counts_are_independent_poisson(rate):
+    # arrivals walked for rates up to 4 per bin, direct draws above (a rate that
+    # crosses 4 along t mixes both): per bin, the mean and the variance equal the rate,
+    # P(0) = exp(-rate), and neighbouring bins are uncorrelated. 2,500 draws per bin,
+    # 300 bins: every tolerance is 5 standard errors of the pooled statistic.
+    sp = np.full((50, 50, 1), rate, np.float32)
+    dev = (rate * np.linspace(-0.5, 0.5, 300)).astype(np.float32)[None]
+    y = poisson_background(sp, dev, np.random.default_rng(7)).astype(np.float64)
+    lam = (sp[0, 0, 0] + dev[0]).astype(np.float64)
+    n = 2500
+    z_mean = (y.mean(axis=(0, 1, 2)) - lam) / np.sqrt(lam / n)
+    assert abs(z_mean.mean()) < 5 / np.sqrt(lam.size) and np.sqrt(np.mean(z_mean**2)) < 1.2
+    # variance of a Poisson sample variance: (lam + 2 lam^2) / n, pooled over the bins
+    v_ratio = (y.var(axis=(0, 1, 2)) / lam).mean()
+    assert abs(v_ratio - 1) < 5 * np.sqrt(np.mean((1 / lam + 2) / n) / lam.size)
+    p0 = (y == 0).mean(axis=(0, 1, 2))
+    se0 = np.sqrt(np.mean(np.exp(-lam) * (1 - np.exp(-lam))) / (n * lam.size))
+    assert abs(np.mean(p0 - np.exp(-lam))) < 5 * se0 + 1e-12
+    r = y - lam
+    corr = np.mean(r[..., :-1] * r[..., 1:]) / np.sqrt(np.mean(lam[:-1] * lam[1:]))
+    assert abs(corr) < 5 / np.sqrt(n * (lam.size - 1))
+
+
 @pytest.mark.parametrize("n, g", [(10, 3), (5, 1), (12345, 5), (200_000, 12)])
 @pytest.mark.parametrize("ties", [False, True])
 def test_equal_count_groups_match_stable_sort(n, g, ties):
