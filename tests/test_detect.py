@@ -969,7 +969,7 @@ def _ramp_3x3(centre_photons: float):
 
     r, c = np.divmod(np.arange(9), 3)
     true = 40.0 + 5 * r + c
-    g = np.asarray(gaussian_irf(3.0 / 2.3548), np.float64).ravel()
+    g = np.asarray(gaussian_irf(3.0), np.float64).ravel()
     g /= g.sum()
     off = (np.rint(true) - 6).astype(np.int64)
     off[4] = 40  # the centre's window is centred on its wrong depth, 46
