@@ -61,8 +61,10 @@ candidate too (a one-pixel hole of a net is enclosed by the strands).
 Depth alignment
 ---------------
 On a steep slope a low-count peak of the 3 x 3 box can fall on a neighbouring row's
-return; :func:`align_depths` moves a depth that the 4-neighbours and the own counts
-both place elsewhere.
+return; :func:`align_depths` re-decides a depth that the 4-neighbours place more than
+half the FWHM away with the 3 x 3 box sheared along their plane (each neighbour's clean
+histogram shifted by the plane's depth difference before pooling), unless the own
+counts favour the current depth by more than their noise.
 """
 
 from __future__ import annotations
@@ -1039,7 +1041,7 @@ def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_ow
 
 def align_depths(
     row, col, slot, depth, offset, own_hist, *, image_shape, n_slots: int, fwhm: float,
-    noise=None, z_own: float = 3.0,
+    noise=None, z_own: float = 1.0,
 ) -> tuple[np.ndarray, int]:  # fmt: skip
     """Depths that the 4-neighbours' plane and the sheared 3 x 3 pool place elsewhere, moved.
 
@@ -1056,9 +1058,10 @@ def align_depths(
     flat surface does in the square box). The surface moves to that pool's peak within
     half the FWHM of the prediction (sub-bin, parabola) when the pool is higher there
     than at the current depth, unless the own counts favour the current depth by more
-    than ``z_own`` standard deviations of the background (a bright pixel off the plane
-    keeps its own depth, as in the scale selection's intersection of confidence
-    intervals). Predictions use the depths before any move (the result does not depend
+    than ``z_own`` standard deviations of the background's noise (the own pixel's depth
+    wins where its counts can tell it from the plane's: a bright pixel off the plane, a
+    curved surface at high counts; as in the scale selection's intersection of
+    confidence intervals). Predictions use the depths before any move (the result does not depend
     on the order).
 
     Parameters
