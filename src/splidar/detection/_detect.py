@@ -296,7 +296,7 @@ def _select_and_align(cube, o, mp, done, t0: float):
     )  # fmt: skip
     t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
-        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])
+        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"], irf=o["irf"])
         surfaces = aligned.surfaces
     return surfaces, aligned, t_sel
 
