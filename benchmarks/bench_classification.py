@@ -19,7 +19,12 @@ patches, time of classification against the whole ``process``. Then the expected
 calibration error (ECE, 10 equal-width bins of confidence) of ``label_confidence``
 over all matched points of the multispectral cells, and a reliability figure. On Art
 also the accuracy of an oracle that sums the same class likelihood over the *true*
-regions (:func:`oracle_regions`): the ceiling of any spatial pooling of it.
+regions (:func:`oracle_regions`): the ceiling of any spatial pooling of it. Every cell
+also prints :func:`evidence_budget`: what the photons say about the true labels (the
+class log-likelihood of the expected counts, true class against the best other, summed)
+against what the true label map costs under the Potts prior (its cut links' strength),
+and whether the field's errors follow the photons' noise (docs/classification.md, "The
+evidence budget").
 
 Usage::
 
@@ -41,7 +46,13 @@ import numpy as np
 
 import splidar
 from splidar.metrics import match_points
-from splidar.reconstruction import class_loglik, irf_fraction, nearest_signature
+from splidar.reconstruction import (
+    build_graph,
+    class_loglik,
+    irf_fraction,
+    link_gamma,
+    nearest_signature,
+)
 from splidar.scenes import art_scene, multispectral_scene
 
 try:  # the baselines added with issue 14 (absent before it: computed here then)
@@ -161,6 +172,58 @@ def oracle_regions(det, truth, est, true_idx, sig, shape):
     return float(np.mean(np.argmax(sums[r], axis=1) == truth.label[true_idx]))
 
 
+def evidence_budget(rec, truth, est, true_idx, sig, gamma=1.5):
+    """What the photons can tell about the labels against what the truth's map costs.
+
+    ``evidence``: over the matched surfaces, the class log-likelihood
+    (:func:`splidar.reconstruction.class_loglik`) of each surface's *expected* counts
+    (its true intensity times its IRF fraction, plus its background) under its true
+    class minus under the best other class, summed (nats; what the photons say about the
+    labels on average, no noise). ``boundary``: the interaction strength
+    (:func:`splidar.reconstruction.link_gamma`, ``gamma``) summed over the links of the
+    depth-gated graph that join two matched surfaces of different true labels, i.e. what
+    the truth's label map costs under the Potts prior. Where ``evidence`` is well below
+    ``boundary`` no Potts-type field can find the true map. Also the selection signature
+    of the field's errors: on the surfaces ``rec`` gets wrong, the mean log-likelihood
+    ratio (given label minus true label) of their photons and of their expected counts.
+    """
+    det = rec.detection
+    s = det.surfaces
+    L = det.n_wavelengths
+    y = np.asarray(s.counts, np.float64).reshape(len(s), L)
+    b = np.asarray(s.background, np.float64).reshape(len(s), L)
+    eta = np.maximum(irf_fraction(np.atleast_2d(det.irf), s.depth_bin, s.start, s.stop), 1e-6)
+    tl = truth.label[true_idx]
+    ye = eta[est] * np.asarray(truth.intensity, np.float64)[true_idx] + b[est]
+    lle = class_loglik(ye, b[est], eta[est], sig)
+    other = np.where(np.arange(sig.shape[0])[None, :] == tl[:, None], -np.inf, lle)
+    ev = lle[np.arange(tl.size), tl] - other.max(axis=1)
+    gate = rec.hyperparameters.get("depth_gate", np.inf)
+    links = "all" if not np.isfinite(gate) else "depth"
+    g = build_graph(
+        s.row, s.col, s.slot, s.depth_bin, s.image_shape, int(s.n_slots), links=links, gate=gate
+    )
+    lab = np.full(len(s), -1)
+    lab[est] = tl
+    src = np.repeat(np.arange(len(s)), np.diff(g.indptr))
+    cut = (src < g.indices) & (lab[src] >= 0) & (lab[g.indices] >= 0)
+    cut &= lab[src] != lab[g.indices]
+    boundary = float(link_gamma(g, gamma)[cut].sum())
+    given = rec.points.label[est]
+    wrong = given != tl
+    ll = class_loglik(y[est][wrong], b[est][wrong], eta[est][wrong], sig)
+    llw = class_loglik(ye[wrong], b[est][wrong], eta[est][wrong], sig)
+    i = np.arange(int(wrong.sum()))
+    gw, tw = given[wrong], tl[wrong]
+    return {
+        "evidence": float(ev.sum()),
+        "evidence_per_surface": float(ev.mean()),
+        "boundary_cost": boundary,
+        "wrong_llr_photons": float(np.mean(ll[i, gw] - ll[i, tw])) if i.size else float("nan"),
+        "wrong_llr_expected": float(np.mean(llw[i, gw] - llw[i, tw])) if i.size else float("nan"),
+    }
+
+
 def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None):
     sim = scene.simulate(ppp=ppp, sbr=1.0, background=bg, rng=seed)
     truth = sim.truth
@@ -196,6 +259,7 @@ def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special
         row["unknown_rate"] = float(flagged[e].mean())
     if scene.name.startswith("art"):
         row["oracle_regions"] = oracle_regions(rec.detection, truth, e, t, sig, scene.shape)
+    row.update(evidence_budget(rec, truth, e, t, sig))
     conf = rec.points.label_confidence
     calib = (conf[e], ok) if conf is not None else None
     return row, calib
@@ -217,6 +281,12 @@ def _fmt(r):
         extra += f" patch {r['special2']:.3f} (pp {r['special2_pp']:.3f})"
     if "unknown_rate" in r:
         extra += f" unknown@1e-3 {r['unknown_rate']:.3f}"
+    if "evidence" in r:
+        extra += (
+            f" | evidence {r['evidence']:.0f} nats ({r['evidence_per_surface']:.3f}/surf)"
+            f" vs boundary {r['boundary_cost']:.0f}; errors' llr photons "
+            f"{r['wrong_llr_photons']:+.3f} expected {r['wrong_llr_expected']:+.3f}"
+        )
     frac = r["t_classify"] / r["t_process"]
     return (
         f"{r['scene']:<24} {r['bg']:<8} {r['ppp']:>4g} {r['n_match']:>6d} {r['acc']:>6.3f} "

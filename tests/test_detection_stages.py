@@ -71,6 +71,62 @@ def test_estimate_temporal_background_recovers_a_decaying_shape():
     assert abs(t.mean() - rate.mean()) < 0.1 * rate.mean()
 
 
+def _low_median_truth(levels, rate, irf, k, reps, rng):
+    """Mean over ``reps`` simulated coarse cubes of stage 1's estimator (the median of the
+    lowest 10 %), less the mean rate: the exact window sums of Poisson counts (a sum of
+    k^2 Poisson counts is Poisson) correlated with the IRF, as temporal_shape forms them."""
+    from splidar.detection._background import LOW_FRACTION, _low_median
+
+    n, T = levels.size, rate.size
+    mu = np.maximum(levels[:, None] + rate[None, :], 0.0)
+    corr = Correlator(irf, T)
+    m = int(np.ceil(LOW_FRACTION * n))
+    est = np.empty((reps, T))
+    for i in range(reps):
+        sums = rng.poisson(mu * k * k).astype(np.float32) / (k * k)
+        est[i] = _low_median(corr(sums[:, None, :])[:, 0], m)
+    return est.mean(axis=0) - mu.mean(axis=0), est.std(axis=0) / np.sqrt(reps), m
+
+
+@pytest.mark.parametrize("rate", [0.05, 0.5, 3.0])
+def test_low_quantile_bias_matches_a_large_simulation(rate):
+    # levels spread over a factor 3 across the pixels, a decaying shape in t, 7 to 440
+    # photons' worth of variance per coarse value: the computed bias equals the simulated
+    # one within 3 Monte-Carlo standard errors plus 4 % of the coarse values' standard
+    # deviation per bin, 1 % on average (the model's error, three cumulants and Blom's
+    # position, measured with 100 draws: at most 3.2 % and 0.6 % at rate 0.05, 1.2 % and
+    # 0.02 % at 0.5). The simulation of 600 pixels x 4 draws it replaces erred by 6-11 %
+    # rms here, 2-25 x more.
+    from splidar.detection._background import low_quantile_bias
+
+    rng = np.random.default_rng(3)
+    g = gaussian_irf(2.0).reshape(1, -1)
+    k, T, n = 7, 80, 2000
+    levels = rate * rng.uniform(0.5, 1.5, n)
+    shape_t = rate * (0.6 * np.exp(-np.arange(T) / 30.0) - 0.2)
+    truth, se, m = _low_median_truth(levels, shape_t, g, k, 30, rng)
+    vf = float((g**2).sum()) / k**2
+    sf = float((g**3).sum()) / k**4
+    got = low_quantile_bias(levels + shape_t.mean(), shape_t - shape_t.mean(), vf, sf, m)
+    sd = np.sqrt(rate * vf)
+    inner = slice(5, T - 5)  # the mirrored edges of the matched filter
+    err = np.abs(got - truth)[inner]
+    assert np.all(err <= 3 * se[inner] + 0.04 * sd)
+    assert abs(np.mean((got - truth)[inner])) <= 0.01 * sd + np.mean(se[inner])
+
+
+def test_low_quantile_bias_sparse_counts_take_the_whole_mean():
+    # most coarse values are 0 at 1e-4 photons per bin: the low median is 0, so its bias
+    # is minus the mean level, exactly
+    from splidar.detection._background import low_quantile_bias
+
+    g = gaussian_irf(2.0)
+    levels = np.full(500, 1e-4)
+    dev = np.linspace(-5e-5, 5e-5, 40)
+    got = low_quantile_bias(levels, dev, (g**2).sum() / 49, (g**3).sum() / 49**2, 50)
+    np.testing.assert_allclose(got, -(levels[0] + dev), rtol=1e-9)
+
+
 def test_block_saliency_peaks_at_a_planted_return():
     # one bright return at bin 50 in every pixel over a flat background: the saliency of
     # every pixel peaks within one bin of it

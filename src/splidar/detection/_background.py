@@ -10,12 +10,12 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage, signal, special
 
 from ._fast import window_means
 from ._filters import Correlator
 
-__all__ = ["robust_level", "sample_grid", "temporal_shape"]
+__all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
 
 #: Fraction of pixels whose median gives the temporal shape (``eq:background_1``).
 LOW_FRACTION = 0.10
@@ -23,12 +23,9 @@ LOW_FRACTION = 0.10
 #: Symmetric, so the clipped mean of background-only values is unbiased; returns
 #: leaking in from neighbours (weak, positive) are cut beyond it.
 CLIP = 2.5
-#: Seed of the (fixed) simulation that measures the low-quantile bias (_debias_profile).
-_DEBIAS_SEED = 12345
-#: Pixels simulated per wavelength in _debias_profile (a subsample when more are sampled).
-_DEBIAS_PIXELS = 600
-#: Simulated draws per pixel and bin in _debias_profile.
-_DEBIAS_SIMS = 4
+#: Values of ``dev`` at which :func:`low_quantile_bias` is computed (then interpolated):
+#: the bias is a smooth function of ``dev`` on the scale of the coarse values' spread.
+_BIAS_GRID = 33
 
 
 def temporal_shape(
@@ -55,7 +52,7 @@ def temporal_shape(
     at least twice as wide as a return): it removes bumps narrower than half the window
     and keeps monotone shapes (a decay, pile-up) unchanged. With ``refine`` (default)
     the shape is then re-estimated without the low-quantile bias
-    (:func:`_refine_profile`).
+    (:func:`_debias_profile`).
 
     ``windows``, when given, reads the grid's window means instead of the loop here:
     ``windows(counts, row_starts, kr, col_starts, kc)`` returns the float32 array
@@ -79,22 +76,19 @@ def temporal_shape(
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
     n = coarse.shape[0]
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
-    low = np.partition(coarse, m - 1, axis=0)[:m] if m < n else coarse
-    prof = np.median(low, axis=0).astype(np.float64)  # eq:background_1
+    prof = _low_median(coarse, m).astype(np.float64)  # eq:background_1
     if smooth > 1:
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     if refine:
         var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
-        # one independent stream per wavelength (spawned from a fixed seed), so the
-        # wavelengths run on threads (numpy's Poisson draws release the GIL) and the
-        # result does not depend on the number of threads
-        rngs = np.random.default_rng(_DEBIAS_SEED).spawn(L)
+        skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
 
         def one(l):
             quantum = float(corr.irf[l].max()) / (kr * kc)
             return _debias_profile(
-                coarse[:, l], prof[l], float(var_factor[l]), m, smooth, rngs[l], quantum=quantum
-            )
+                coarse[:, l], prof[l], float(var_factor[l]), float(skew_factor[l]), m, smooth,
+                quantum=quantum,
+            )  # fmt: skip
 
         n_thr = max(1, min(int(workers), L))
         if n_thr > 1:
@@ -123,49 +117,162 @@ def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:
     return kr, kc, row_starts, col_starts
 
 
-def _debias_profile(x, prof, var_factor, m, smooth, rng, n_iter=1, n_sim=None, quantum=0.0):
+def _low_median(x: np.ndarray, m: int) -> np.ndarray:
+    """Median over axis 0 of the ``m`` lowest values of ``x`` (float32).
+
+    The same as ``np.median(np.partition(x, m - 1, axis=0)[:m], axis=0)``, bit for bit:
+    the middle of the lowest ``m`` are the order statistics ``(m - 1) // 2`` and
+    ``m // 2`` of all, found by one selection; their float32 mean as ``np.median``
+    takes it.
+    """
+    n = x.shape[0]
+    if m >= n:
+        return np.median(x, axis=0)
+    k1, k2 = (m - 1) // 2, m // 2
+    part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
+    return (part[k1] + part[k2]) / x.dtype.type(2)
+
+
+def _debias_profile(x, prof, var_factor, skew_factor, m, smooth, quantum=0.0):
     """Remove the low-quantile bias of ``eq:background_1`` (robust to signal).
 
     The median of the lowest 10 % sits below the background mean by an amount that
     grows with the level and with the skew of low counts, which distorts a decaying
-    shape and then mis-calibrates the threshold along t. The bias is measured by
-    applying the same estimator to simulated background-only coarse values (a scaled
-    Poisson ``v Pois(b / v)`` with the coarse cube's mean ``b`` and variance ``b v``,
-    per sampled pixel and bin) and subtracted. The estimator itself keeps the paper's
+    shape and then mis-calibrates the threshold along t. The bias of that estimator on
+    background-only coarse values, with each sampled pixel at its own level
+    (:func:`robust_level`, detrended by the biased shape), is computed by
+    :func:`low_quantile_bias` and subtracted. The estimator itself keeps the paper's
     robustness to returns in up to 90 % of the pixels.
     """
-    n, T = x.shape
-    n_sim = _DEBIAS_SIMS if n_sim is None else n_sim
-    if n > _DEBIAS_PIXELS:
-        # the bias is a property of the estimator at this sample size: simulate it on a
-        # subsample of the pixels with the same 10 % fraction (cost)
-        x = x[rng.choice(n, _DEBIAS_PIXELS, replace=False)]
-        n = _DEBIAS_PIXELS
-        m = max(1, int(np.ceil(LOW_FRACTION * n)))
-    est = prof.copy()
-    for _ in range(n_iter):
-        dev = (est - est.mean()).astype(np.float32)
-        lvl = robust_level(x, dev, var_factor, quantum=quantum).astype(np.float64)  # (n,)
-        mu = np.maximum(lvl[:, None] + dev[None, :], 0.0)  # (n, T)
-        bias = np.zeros(T)
-        mu_mean = mu.mean(axis=0)
-        # all draws in one call (the same stream as n_sim successive (n, T) draws); each
-        # is transposed so that the selection and the median run along contiguous memory
-        draws = rng.poisson(mu / var_factor, size=(n_sim, n, T))
-        for i in range(n_sim):
-            sim = var_factor * np.ascontiguousarray(draws[i].T)  # (T, n)
-            low = np.partition(sim, m - 1, axis=-1)[:, :m] if m < n else sim
-            bias += np.median(low, axis=-1) - mu_mean
-        bias /= n_sim
-        if smooth > 1:
-            bias = ndimage.median_filter(bias, size=smooth, mode="nearest")
-        est = prof - bias
+    T = x.shape[1]
+    dev = (prof - prof.mean()).astype(np.float32)
+    # the levels from every s-th bin: the coarse series is smooth over the IRF's width,
+    # so this keeps nearly all its information at a quarter of the cost (T >= 1024)
+    s = max(1, min(4, T // 256))
+    lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
+    bias = low_quantile_bias(lvl, dev.astype(np.float64), var_factor, skew_factor, m)
+    if smooth > 1:
+        bias = ndimage.median_filter(bias, size=smooth, mode="nearest")
+    est = prof - bias
     win = min(max(5, smooth | 1), T if T % 2 else T - 1)
     if win >= 5:
         # a local quadratic fit (Savitzky-Golay, polynomial at the window edges) takes
         # the sampling noise of the low quantile off the shape; bumps are gone already
         est = signal.savgol_filter(est, win, 2, mode="interp")
     return est
+
+
+def low_quantile_bias(
+    levels: np.ndarray,
+    dev: np.ndarray,
+    var_factor: float,
+    skew_factor: float,
+    m: int,
+    *,
+    n_grid: int = _BIAS_GRID,
+) -> np.ndarray:
+    """Expected error of the median of the lowest ``m`` of ``n`` background coarse values.
+
+    A coarse value of pixel ``i`` at bin ``t`` is a weighted sum of Poisson counts
+    (``Box_k(Y) (*) g``) with mean ``mu_{i,t} = max(levels_i + dev_t, 0)``, variance
+    ``mu var_factor`` and third cumulant ``mu skew_factor``. It is modelled by the
+    gamma distribution with those three cumulants (Pearson type III: shifted,
+    ``theta = skew_factor / (2 var_factor)``, shape ``mu var_factor / theta^2``), a
+    continuous law like the coarse values themselves. The median of the lowest ``m``
+    is the order statistic of rank ``r = (m + 1) / 2`` (the mean of two ranks for even
+    ``m``); its expectation is the mixture's quantile at Blom's position
+    ``(r - 0.375) / (n + 0.25)`` (the order statistic's spread is ``O(n^-1/2)`` and its
+    skew ``O(1/n)``: n is in the thousands here), clipped at 0 like the data.
+
+    The bias depends on t only through ``dev_t``: it is computed on ``n_grid`` values
+    of ``dev`` and interpolated. The pixels enter as level groups (equal counts, finer
+    in the lowest quarter of the levels where the low quantile sits). Checked against
+    large simulations of the coarse cube (``tests/test_detection_stages.py``): the rms
+    error is 0.5, 5, 1.4 and 0.4 % of the coarse values' standard deviation at 1.5, 3,
+    7 and 74 photons' worth of variance per value (``mu / var_factor``), where the
+    simulation of 600 pixels x 4 draws it replaces (a scaled Poisson, on a lattice the
+    coarse values do not have) erred by 1.4, 9, 8 and 11 %. It costs no random draws.
+
+    Parameters
+    ----------
+    levels : ndarray (n,)
+        Level of each sampled pixel (``b_{n,l}`` on the coarse scale).
+    dev : ndarray (T,)
+        ``bbar_t - mean_t bbar``.
+    var_factor, skew_factor : float
+        Variance and third cumulant of one coarse value per unit mean:
+        ``sum g^2 / k^2`` and ``sum g^3 / k^4``.
+    m : int
+        How many of the lowest values the median is taken over.
+
+    Returns
+    -------
+    bias : ndarray (T,) float64
+        Expected estimate less the mean of ``mu_{., t}`` over the pixels.
+    """
+    n, T = levels.size, dev.size
+    srt = np.sort(np.asarray(levels, np.float64))
+    r = 0.5 * (min(m, n) + 1)
+    p = (r - 0.375) / (n + 0.25)
+    theta = max(float(skew_factor), 1e-300) / (2.0 * max(float(var_factor), 1e-300))
+    w, rep = _level_groups(srt)
+    c_min, c_max = float(dev.min()), float(dev.max())
+    cs = np.linspace(c_min, c_max, n_grid) if c_max > c_min else np.array([c_min])
+    mu = np.maximum(rep[:, None] + cs[None, :], 0.0)  # (groups, grid)
+    shape = np.maximum(mu * var_factor / theta**2, 1e-300)
+    shift = mu - shape * theta
+    lo = np.minimum(shift.min(axis=0), 0.0)
+    hi = (mu + 20.0 * np.sqrt(mu * var_factor) + 20.0 * theta).max(axis=0)
+    q = _mixture_quantile(w, shape, shift, theta, p, lo, hi)
+    mean_mu = np.maximum(srt[:, None] + cs[None, :], 0.0).mean(axis=0)
+    bias = np.maximum(q, 0.0) - mean_mu
+    return np.interp(dev, cs, bias) if cs.size > 1 else np.full(T, bias[0])
+
+
+def _level_groups(srt: np.ndarray) -> tuple:
+    """Weights and mean levels of groups of the sorted levels ``srt``.
+
+    Equal counts, at most 96 groups in the lowest quarter (where the low quantile of
+    the mixture sits) and 32 above, where a pixel's law only shifts the mixture's
+    weight below the quantile.
+    """
+    n = srt.size
+    n_low = int(np.ceil(0.25 * n))
+    b_low = np.linspace(0, n_low, min(n_low, 96) + 1)
+    b_high = np.linspace(n_low, n, max(min(n - n_low, 32), 1) + 1)[1:]
+    bounds = np.unique(np.concatenate([b_low, b_high]).round().astype(np.int64))
+    sizes = np.diff(bounds)
+    return sizes / n, np.add.reduceat(srt, bounds[:-1]) / sizes
+
+
+def _mixture_quantile(w, shape, shift, theta, p, lo, hi, *, n_iter: int = 100):
+    """Per column, ``x`` with ``sum_b w_b P(shift_b + theta Gamma(shape_b) <= x) = p``.
+
+    Regula falsi with the Illinois step inside the bracket ``[lo, hi]``; stops when the
+    mixture's CDF is within 1e-8 of ``p`` or the bracket within 1e-9 of its width.
+    """
+
+    def excess(x):
+        z = np.maximum(x[None, :] - shift, 0.0) / theta
+        return (w[:, None] * special.gammainc(shape, z)).sum(axis=0) - p
+
+    f_lo, f_hi = excess(lo), excess(hi)
+    width = np.maximum(hi - lo, 1e-300)
+    last = np.zeros(lo.shape, np.int8)
+    x = 0.5 * (lo + hi)
+    for _ in range(n_iter):
+        x = (lo * f_hi - hi * f_lo) / (f_hi - f_lo)
+        x = np.where(np.isfinite(x) & (x > lo) & (x < hi), x, 0.5 * (lo + hi))
+        fx = excess(x)
+        up = fx > 0
+        hi, lo = np.where(up, x, hi), np.where(up, lo, x)
+        # Illinois: the end that stays twice in a row has its value halved
+        f_lo = np.where(up, np.where(last == 1, 0.5 * f_lo, f_lo), fx)
+        f_hi = np.where(up, fx, np.where(last == -1, 0.5 * f_hi, f_hi))
+        last = np.where(up, 1, -1).astype(np.int8)
+        if np.all((np.abs(fx) <= 1e-8) | (hi - lo <= 1e-9 * width)):
+            break
+    return x
 
 
 def robust_level(

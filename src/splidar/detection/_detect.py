@@ -337,7 +337,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store):
     if o.get("tiled"):  # the table's pages, released
         _give_back()
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
-        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"])
+        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"], irf=o["irf"])
         surfaces = aligned.surfaces
     return surfaces, aligned, t_sel, n_kept
 

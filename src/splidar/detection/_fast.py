@@ -492,6 +492,11 @@ def saliency_wavelength(
     return sp
 
 
+#: Above this mean per bin, _poisson_background_kernel draws a bin's count directly;
+#: below, it walks the photon arrivals (one exponential draw per photon, none per bin).
+_ARRIVALS_MAX_RATE = 4.0
+
+
 @njit(cache=True, nogil=True)
 def _poisson_background_kernel(sp, dev, seed, out):
     # numba's own per-thread generator, seeded from the caller's Generator
@@ -502,9 +507,28 @@ def _poisson_background_kernel(sp, dev, seed, out):
         for j in range(C):
             for l in range(L):
                 s0 = sp[i, j, l]
+                # photon arrivals of a Poisson process in rescaled time (the cumulative
+                # mean): the counts of the bins, each the arrivals within its share of
+                # the cumulative mean, are independent Poisson of their means. The
+                # residual to the next arrival is exponential whatever came before, so
+                # a bin drawn directly (a high mean) is stepped over with it.
+                acc = 0.0
+                nxt = np.random.exponential()  # noqa: NPY002
                 for t in range(T):
-                    lam = s0 + dev[l, t]
-                    out[i, j, l, t] = np.random.poisson(lam) if lam > 0 else 0  # noqa: NPY002
+                    lam = np.float64(s0 + dev[l, t])
+                    if lam <= 0:
+                        out[i, j, l, t] = 0
+                    elif lam > _ARRIVALS_MAX_RATE:
+                        out[i, j, l, t] = np.random.poisson(lam)  # noqa: NPY002
+                        nxt += lam
+                        acc += lam
+                    else:
+                        acc += lam
+                        c = 0
+                        while nxt < acc:
+                            c += 1
+                            nxt += np.random.exponential()  # noqa: NPY002
+                        out[i, j, l, t] = c
 
 
 def poisson_background(spatial: np.ndarray, dev: np.ndarray, rng) -> np.ndarray:
@@ -512,6 +536,10 @@ def poisson_background(spatial: np.ndarray, dev: np.ndarray, rng) -> np.ndarray:
 
     ``bhat`` is never materialised. numba's own generator is seeded from ``rng`` (one
     integer), so the draw is reproducible given ``rng`` and independent of threads.
+    Low means (the usual background, well below a photon per bin) are drawn as the
+    arrivals of a Poisson process, one exponential draw per photon rather than one
+    Poisson draw per bin (about 6 x faster at 0.005 photons per bin); bins above
+    :data:`_ARRIVALS_MAX_RATE` photons get a direct Poisson draw.
 
     Parameters
     ----------

@@ -61,8 +61,10 @@ candidate too (a one-pixel hole of a net is enclosed by the strands).
 Depth alignment
 ---------------
 On a steep slope a low-count peak of the 3 x 3 box can fall on a neighbouring row's
-return; :func:`align_depths` moves a depth that the 4-neighbours and the own counts
-both place elsewhere.
+return; :func:`align_depths` re-decides a depth that the 4-neighbours place more than
+half the FWHM away with the 3 x 3 box sheared along their plane (each neighbour's clean
+histogram shifted by the plane's depth difference before pooling), unless the own
+counts favour the current depth by more than their noise.
 """
 
 from __future__ import annotations
@@ -926,93 +928,141 @@ def rescue_dark(
 
 
 @njit(cache=True, nogil=True)
-def _align_kernel(row, col, slot, depth, offset, own, R, C, K, fwhm, out):
-    """``out``: each surface's depth, moved where its neighbours and its own counts
-    agree on another (see :func:`align_depths`). Returns the number moved."""
+def _align_pairs(D, r, c, d, K, fwhm, kb, grad, has):
+    """The opposite pairs of 4-neighbours (north/south, west/east) that hold the return
+    of a surface at depth ``d`` of padded pixel ``(r, c)``: per pair, the slots ``kb``
+    of its two surfaces whose mean is nearest ``d`` (kept when within 2 FWHM), the half
+    difference of their depths ``grad`` (the plane's slope along the pair) and ``has``.
+    Returns the pairs' mean prediction, or NaN when none holds it or two disagree by
+    more than the FWHM."""
+    n_pred = 0
+    psum = 0.0
+    p_first = 0.0
+    for u in range(2):
+        dr = 1 if u == 0 else 0
+        dc = 1 - dr
+        best = np.inf
+        pb = 0.0
+        has[u] = False
+        for k1 in range(K):
+            x = D[r - dr, c - dc, k1]
+            if np.isnan(x):
+                continue
+            for k2 in range(K):
+                y = D[r + dr, c + dc, k2]
+                if np.isnan(y):
+                    continue
+                if abs(0.5 * (x + y) - d) < best:
+                    best = abs(0.5 * (x + y) - d)
+                    pb = 0.5 * (x + y)
+                    grad[u] = 0.5 * (y - x)
+                    kb[u, 0] = k1
+                    kb[u, 1] = k2
+        if best <= 2.0 * fwhm:  # the same return, at most 2 FWHM off
+            if n_pred and abs(pb - p_first) > fwhm:
+                return np.nan
+            if n_pred == 0:
+                p_first = pb
+            has[u] = True
+            n_pred += 1
+            psum += pb
+    return psum / n_pred if n_pred else np.nan
+
+
+@njit(cache=True, nogil=True)
+def _sheared_pool(i, r, c, own, offset, index, kb, grad, has, pool):
+    """``pool``: the own clean histogram of surface ``i`` plus its pairs' members', each
+    shifted along the plane (by its pair's slope, linear interpolation) so that a return
+    on the plane lands on the same bin for all (the 3 x 3 box sheared by the slope)."""
+    W = own.shape[1]
+    for t in range(W):
+        pool[t] = own[i, t]
+    for u in range(2):
+        if not has[u]:
+            continue
+        dr = 1 if u == 0 else 0
+        dc = 1 - dr
+        for side in range(2):
+            sgn = 2 * side - 1
+            j = index[r + sgn * dr, c + sgn * dc, kb[u, side]]
+            x0 = offset[i] + sgn * grad[u] - offset[j]
+            for t in range(W):
+                pool[t] += _interp_irf(own[j], x0 + t)
+
+
+@njit(cache=True, nogil=True)
+def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_own, out):
+    """``out``: each surface's depth, moved where its neighbours' plane and the sheared
+    pool agree on another (see :func:`align_depths`). Returns the number moved."""
     D = np.full((R + 2, C + 2, K), np.nan)
+    index = np.full((R + 2, C + 2, K), -1, np.int64)
     for i in range(row.size):
         D[row[i] + 1, col[i] + 1, slot[i]] = depth[i]
+        index[row[i] + 1, col[i] + 1, slot[i]] = i
     W = own.shape[1]
+    kb = np.zeros((2, 2), np.int64)
+    grad = np.zeros(2)
+    has = np.zeros(2, np.bool_)
+    pool = np.zeros(W)
     moved = 0
     for i in range(row.size):
         out[i] = depth[i]
-        r = row[i] + 1
-        c = col[i] + 1
         d = depth[i]
-        n_pred = 0
-        psum = 0.0
-        p_first = 0.0
-        agree = True
-        for u in range(2):
-            dr = 1 if u == 0 else 0
-            dc = 0 if u == 0 else 1
-            # the pair's surfaces (one each side) whose mean is nearest this depth
-            best = np.inf
-            pb = 0.0
-            for k1 in range(K):
-                x = D[r - dr, c - dc, k1]
-                if np.isnan(x):
-                    continue
-                for k2 in range(K):
-                    y = D[r + dr, c + dc, k2]
-                    if np.isnan(y):
-                        continue
-                    p = 0.5 * (x + y)
-                    if abs(p - d) < best:
-                        best = abs(p - d)
-                        pb = p
-            if best <= 2.0 * fwhm:  # the same return, at most 2 FWHM off
-                if n_pred == 0:
-                    p_first = pb
-                elif abs(pb - p_first) > fwhm:
-                    agree = False
-                n_pred += 1
-                psum += pb
-        if n_pred == 0 or not agree:
+        p = _align_pairs(D, row[i] + 1, col[i] + 1, d, K, fwhm, kb, grad, has)
+        if np.isnan(p) or abs(p - d) <= 0.5 * fwhm:
             continue
-        p = psum / n_pred
-        if abs(p - d) <= fwhm:
-            continue
-        # the own clean histogram's peak within half the FWHM of the prediction, if the
-        # own counts favour it over the current depth
+        _sheared_pool(i, row[i] + 1, col[i] + 1, own, offset, index, kb, grad, has, pool)
+        # the pool's peak within half the FWHM of the prediction, if the pool favours it
+        # over the current depth and the own counts do not (significantly) reject it
         lo = max(int(np.floor(p - 0.5 * fwhm - offset[i])), 0)
         hi = min(int(np.ceil(p + 0.5 * fwhm - offset[i])), W - 1)
         if hi < lo:
             continue
         w = lo
         for t in range(lo + 1, hi + 1):
-            if own[i, t] > own[i, w]:
+            if pool[t] > pool[w]:
                 w = t
         wo = min(max(int(np.rint(d - offset[i])), 0), W - 1)
-        if own[i, w] <= 0.0 or own[i, w] <= own[i, wo]:
+        if pool[w] <= 0.0 or pool[w] <= pool[wo]:
+            continue
+        if own[i, wo] - own[i, w] > z_own * noise[i]:
             continue
         dw = 0.0
-        if 0 < w < W - 1 and own[i, w] >= own[i, w - 1] and own[i, w] >= own[i, w + 1]:
+        if 0 < w < W - 1 and pool[w] >= pool[w - 1] and pool[w] >= pool[w + 1]:
             # sub-bin: the vertex of the parabola through a local maximum (within
             # half a bin of it)
-            den = own[i, w - 1] - 2.0 * own[i, w] + own[i, w + 1]
+            den = pool[w - 1] - 2.0 * pool[w] + pool[w + 1]
             if den < 0.0:
-                dw = min(max(0.5 * (own[i, w - 1] - own[i, w + 1]) / den, -0.5), 0.5)
+                dw = min(max(0.5 * (pool[w - 1] - pool[w + 1]) / den, -0.5), 0.5)
         out[i] = offset[i] + w + dw
         moved += 1
     return moved
 
 
 def align_depths(
-    row, col, slot, depth, offset, own_hist, *, image_shape, n_slots: int, fwhm: float
-) -> tuple[np.ndarray, int]:
-    """Depths that the 4-neighbours and the pixel's own counts place elsewhere, moved.
+    row, col, slot, depth, offset, own_hist, *, image_shape, n_slots: int, fwhm: float,
+    noise=None, z_own: float = 1.0,
+) -> tuple[np.ndarray, int]:  # fmt: skip
+    """Depths that the 4-neighbours' plane and the sheared 3 x 3 pool place elsewhere, moved.
 
     On a steep slope the square boxes pool returns several bins apart (a slope of 5 bins
     per row puts the rows above and below 5 bins either side): the pooled response has a
     lobe per row, and at low counts its peak can fall on a neighbour's lobe, one row's
-    slope off the pixel's return. A surface is moved when both opposite pairs of its
-    4-neighbours that hold the same return (their mean within 2 FWHM of its depth; one
-    pair suffices, two must agree within the FWHM) place it more than the FWHM away, and
-    its own clean histogram (the finest scale of ``eq:background_final``) is higher at
-    its peak within half the FWHM of their prediction than at the current depth. The
-    new depth is that peak (sub-bin, parabola); predictions use the depths before any
-    move (the result does not depend on the order).
+    slope off the pixel's return. The opposite pairs of 4-neighbours that hold the same
+    return (their mean within 2 FWHM of the depth; one pair suffices, two must agree
+    within the FWHM) predict the depth (their mean) and the local plane's slope (half
+    their difference). When the prediction is more than half the FWHM away, the 3 x 3
+    box is sheared along that plane: the own clean histogram (the finest scale of
+    ``eq:background_final``) and the pairs' members', each shifted by the plane's depth
+    difference, are summed (a return on the plane lands on one bin in every pixel, as a
+    flat surface does in the square box). The surface moves to that pool's peak within
+    half the FWHM of the prediction (sub-bin, parabola) when the pool is higher there
+    than at the current depth, unless the own counts favour the current depth by more
+    than ``z_own`` standard deviations of the background's noise (the own pixel's depth
+    wins where its counts can tell it from the plane's: a bright pixel off the plane, a
+    curved surface at high counts; as in the scale selection's intersection of
+    confidence intervals). Predictions use the depths before any move (the result does not depend
+    on the order).
 
     Parameters
     ----------
@@ -1028,6 +1078,12 @@ def align_depths(
     n_slots : int
     fwhm : float
         IRF's full width at half maximum (bins).
+    noise : (S,) float, optional
+        Standard deviation of the difference of two bins of ``own_hist`` under the
+        background alone (``sqrt(2 sum_l b_l sum_t g_l(t)^2)``, ``b_l`` the background
+        per bin). Default: infinite (the own counts never veto a move).
+    z_own : float
+        How many of ``noise`` the own counts must favour the current depth by to keep it.
 
     Returns
     -------
@@ -1052,11 +1108,13 @@ def align_depths(
     out = np.empty_like(depth)
     if depth.size == 0:
         return out, 0
+    noise = np.full(depth.size, np.inf) if noise is None else np.asarray(noise, np.float64)
     R, C = image_shape
     n = _align_kernel(
         np.asarray(row, np.int64), np.asarray(col, np.int64), np.asarray(slot, np.int64),
         depth, np.asarray(offset, np.int64), np.ascontiguousarray(own_hist, np.float64),
-        int(R), int(C), int(n_slots), float(fwhm), out,
+        np.ascontiguousarray(noise, np.float64), int(R), int(C), int(n_slots), float(fwhm),
+        float(z_own), out,
     )  # fmt: skip
     logger.debug("depth alignment: %d surfaces moved", n)
     return out, int(n)
