@@ -169,19 +169,13 @@ def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
     assert main([*run, "--workers", "0"]) == 2
 
 
-def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles(monkeypatch):
+def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
     """Two worker processes; the first to finish a tile is killed (SIGKILL) as it does:
     the scheduler recomputes that tile elsewhere and the Detection is the same."""
     distributed = pytest.importorskip("distributed")
     import os
 
     from conftest import kill_first_worker
-
-    from splidar.detection import _tiled
-
-    # tiles of whole rows: a 2D tile's output can already be on the other worker (the
-    # tile to its right takes its running sums from it), and then nothing is recomputed
-    monkeypatch.setattr(_tiled, "TILE_COLS", 20)
 
     cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
     a = splidar.detect(cube, rng=1)

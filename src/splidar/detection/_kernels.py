@@ -530,18 +530,15 @@ def extract_surfaces(
     One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
     arrays, in the order they are computed; each candidate's outputs do not depend on
     it), every output written in place at the candidate's index; see
-    :func:`splidar.detection._4_map._extract` for the meaning of each. ``rows`` are
-    block rows (image row ``r0 + rows``), ``cols`` image columns. Box means at every
-    scale (``mode="reflect"`` at the image's edges) are read from the correlated block
-    ``c`` (``(er, ec, L, T)`` from image row ``e0`` and column ``ce0``), the background
-    ``bhat`` (``eq:background_3``) from the factored estimate ``sp`` (rows from ``r0``,
-    columns from ``c0``) and ``dev``, raw counts from ``y`` (as ``c``).
-    ``o_own_counts`` and ``o_own_background`` (S, L, W) receive the pixel's raw counts
-    and ``bhat`` over the window, zero outside the support. ``box`` (L, Qb, r, c, T),
-    when ``Qb > 0``, holds the box means of the block's pixels (from ``r0``, ``c0``) at
-    the scales ``q`` with ``bidx[q] >= 0`` (written by the saliency pass; scale 1 is
-    read from ``c``); otherwise (``Qb = 0``) the boxes are summed here, about each
-    candidate.
+    :func:`splidar.detection._4_map._extract` for the meaning of each. ``rows``: block
+    rows (image ``r0 + rows``); ``cols``: image columns. Box means (``mode="reflect"``
+    at the image's edges) come from the correlated block ``c`` (``(er, ec, L, T)``
+    from image pixel ``(e0, ce0)``), ``bhat`` (``eq:background_3``) from ``sp`` (from
+    ``(r0, c0)``) and ``dev``, raw counts from ``y`` (as ``c``); ``o_own_counts`` and
+    ``o_own_background`` (S, L, W) get the pixel's counts and ``bhat`` over the window
+    (zero outside the support). ``box`` (L, Qb, r, c, T), when ``Qb > 0``: box means of
+    the scales with ``bidx[q] >= 0`` from ``(r0, c0)`` (saliency pass; scale 1 is
+    ``c``); otherwise (``Qb = 0``) the boxes are summed here, about each candidate.
     """
     Q = scales.size
     L = c.shape[2]

@@ -12,18 +12,25 @@ chunks and do the work; only small results travel back).
    2000 pixels' worth in all. The null model (stage 3) reads a bounded number of
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
    and is simulated in the calling process, seeded as in memory.
-2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on strips of
-   ``block_rows`` image rows, each with a halo of ``h = max k // 2`` rows on both sides
-   (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
-   ``boundary="none"``: the image edge is handled as in memory). A tile returns its
-   candidates (a few numbers per surface) and its rows of saliency, mask and
-   background level, or writes them to the Zarr ``store`` itself.
+2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
+   columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
+   sides (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
+   ``boundary="none"``: the image edge is handled as in memory). By default the tiles
+   are square, with as many pixels as the rows of whole image rows that fit (64 MB of
+   work buffers, or :data:`TILE_SHARE` of a worker's memory): the halo is then a small
+   share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
+   100 x 100 tile 1.2x). A tile returns its candidates (a few numbers per surface) and
+   its pixels' saliency, mask and background level, or writes them to the Zarr
+   ``store`` itself.
 
-The tiles hold whole rows (all columns): the kernels of stage 4 know a block by its
-first row. The clean-up passes (stage 5) then run on the gathered candidate table, as
-in memory: what they look at across pixels is listed in ``docs/distributed.md``.
+The box filters' column sums are float64 running sums along each image row, whose
+rounding depends on where a sum starts: a tile takes them, at the column before its
+first, from the tile on its left (a small ``(L, rows, Q, T)`` array; the tiles of a
+band of rows run left to right, the bands in parallel). The clean-up passes (stage 5)
+then run on the gathered candidate table, as in memory: what they look at across
+pixels is listed in ``docs/distributed.md``.
 
-Every tile computes its rows exactly as a block of the in-memory pass does, so the
+Every tile computes its pixels exactly as a block of the in-memory pass does, so the
 Detection is the same, bit for bit, whatever the tiles, workers or scheduler.
 """
 
@@ -307,15 +314,15 @@ def _carry(out):
     return out[2]
 
 
-def _tile_shape(rows: int, shape, h: int, hc: int, square: bool) -> tuple[int, int]:
-    """Tile ``(rows, cols)``: :data:`TILE_COLS` columns when set; square tiles of
-    ``rows`` when ``square`` (the caller gave the rows); otherwise square tiles of as
-    many pixels as ``rows`` whole image rows (the same memory, a smaller halo)."""
+def _tile_shape(rows: int, shape, h: int, hc: int, given: bool) -> tuple[int, int]:
+    """Tile ``(rows, cols)``: :data:`TILE_COLS` columns when set; whole rows when the
+    caller ``given`` the rows per tile; otherwise square tiles of as many pixels as
+    ``rows`` whole image rows (the same memory, a smaller halo)."""
     R, C = shape[:2]
     if TILE_COLS is not None:
         cols = TILE_COLS
-    elif square:
-        cols = rows
+    elif given:
+        cols = C
     else:
         cols = int(np.sqrt(rows * C))
         rows = (rows * C) // max(min(cols, C), 1)
@@ -340,12 +347,13 @@ def map_candidates_tiled(
     filters, null, options
         As for the in-memory pass.
     block_rows : int or None
-        Rows per tile (None: about 64 MB of work buffers per tile, as in memory, and on
-        a ``dask.distributed`` cluster no more than fits :data:`TILE_SHARE` of the
-        workers' memory limit, :func:`tile_bytes`); at least the halo ``max k // 2``.
+        Rows per tile, of whole rows (None: square tiles of the pixels of the rows that
+        make about 64 MB of work buffers, as in memory, and on a ``dask.distributed``
+        cluster no more than fits :data:`TILE_SHARE` of the workers' memory limit,
+        :func:`tile_bytes`); at least the halo ``max k // 2``.
     store : path, optional
         A new directory: the tiles write saliency, mask (and a per-voxel threshold)
-        there as Zarr arrays, one chunk of rows per tile; otherwise they come back to
+        there as Zarr arrays, one chunk per tile; otherwise they come back to
         the calling process as NumPy arrays.
 
     Returns
