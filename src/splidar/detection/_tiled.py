@@ -192,6 +192,9 @@ def _rows_for(limit: int, shape, itemsize: int, halo: int, n_box: int, most: int
     return max(min(rows, most), halo, 1)
 
 
+#: Rows per chunk of a ``store`` written by square tiles (a divisor of their rows).
+_CHUNK_ROWS = 16
+
 #: Columns per tile (None: square tiles, see :func:`_tile_shape`); any width gives the
 #: same Detection, bit for bit (the tests set it).
 TILE_COLS = None
@@ -377,6 +380,12 @@ def map_candidates_tiled(
         item = np.dtype(counts.dtype).itemsize
         block_rows = _rows_for(limit, counts.shape, item, h, n_box, block_rows)
     block_rows, block_cols = _tile_shape(block_rows, counts.shape, h, hc, given is not None)
+    # a store's chunks: the tile's columns and 16 of its rows (a multiple of 16 unless
+    # given), so that the slope pass's bands of rows do not decompress a tall chunk once
+    # per band; every chunk still belongs to one tile (no two tasks write one chunk)
+    if given is None and block_rows >= 2 * _CHUNK_ROWS:
+        block_rows -= block_rows % _CHUNK_ROWS
+    chunk_rows = _CHUNK_ROWS if block_rows % _CHUNK_ROWS == 0 else block_rows
     table = null.table(per_voxel=store is not None)
     rows, cols = tile_bounds(R, block_rows, h), tile_bounds(C, block_cols, hc)
     ext = [(max(0, a - h), min(R, b + h)) for a, b in rows]
@@ -393,7 +402,7 @@ def map_candidates_tiled(
         x = da.overlap.overlap(x, depth=depth, boundary="none")
     blocks = x.to_delayed()
     if store is not None:
-        out = _open_store(store, (R, C, T), block_rows, table[2], block_cols=block_cols)
+        out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
         store_path = str(store)
     else:
         out, store_path = None, None
