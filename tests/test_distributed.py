@@ -99,6 +99,19 @@ def test_detect_dask_store_written_by_the_tiles(tmp_path):
     _assert_same_detection(a, b)
 
 
+def test_detect_dask_store_written_by_2d_tiles(tmp_path, monkeypatch):
+    # tiles of 6 x 7 pixels (the last ones merged): each writes its own chunks
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection import _tiled
+
+    cube, lazy = _cubes(*_varying_cube(shape=(20, 16), n_bins=100, seed=3), (5, 16, 1, 100))
+    a = splidar.detect(cube, rng=0)
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)
+    b = splidar.detect(lazy, rng=0, block_rows=6, store=tmp_path / "s")
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[:2] == (6, 7)
+    _assert_same_detection(a, b)
+
+
 @pytest.fixture(scope="module")
 def local_client():
     distributed = pytest.importorskip("distributed")
