@@ -18,6 +18,10 @@ row/column strides, so every inner loop runs over contiguous 1-d slices and vect
 quickselect on a scratch buffer and its clipped sums vectorise. Each change keeps the
 arithmetic of every element, so the output is the same as before bit for bit (the
 clipped float64 sums are reassociated, which moves them by float64 rounding only).
+The kernel filters strips of columns, each strip's rows in turn (the input rows a
+strip's boxes read stay in cache), and a block may hold part of the image's columns
+with a halo (Dask tiles): the column pass's float64 running sums are carried from strip
+to strip and from tile to tile, so every value is the one of a pass over the whole row.
 """
 
 from __future__ import annotations
