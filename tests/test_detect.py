@@ -444,6 +444,25 @@ def test_detect_same_result_whatever_blocks_and_threads():
         assert other.reduction == ref.reduction
 
 
+@pytest.mark.parametrize("strip", [1, 3, 7])
+def test_detect_same_result_whatever_column_strips(monkeypatch, strip):
+    # the saliency kernel filters strips of columns (each strip's rows in turn); the box
+    # filters' running column sums carry over between strips: the same bits as one pass
+    from splidar.detection import _2_saliency
+
+    lam, _ = _tilted(shape=(16, 20), T=90)
+    cube = _cube(lam, rng=4)
+    ref = detect(cube, rng=2, n_jobs=1)
+    monkeypatch.setattr(_2_saliency, "STRIP_COLS", strip)
+    other = detect(cube, rng=2, n_jobs=2, block_rows=5)
+    np.testing.assert_array_equal(other.saliency, ref.saliency)
+    np.testing.assert_array_equal(other.mask, ref.mask)
+    np.testing.assert_array_equal(other.background.spatial, ref.background.spatial)
+    for k, v in vars(ref.surfaces).items():
+        if isinstance(v, np.ndarray):
+            np.testing.assert_array_equal(getattr(other.surfaces, k), v, err_msg=k)
+
+
 # ----------------------------------------------------------------------------------------
 # bad inputs
 # ----------------------------------------------------------------------------------------

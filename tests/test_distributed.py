@@ -99,6 +99,21 @@ def test_detect_dask_store_written_by_the_tiles(tmp_path):
     _assert_same_detection(a, b)
 
 
+def test_detect_dask_store_written_by_2d_tiles(tmp_path, monkeypatch):
+    # tiles of 6 x 7 pixels (the last ones merged): each writes its own chunks
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection import _tiled
+
+    cube, lazy = _cubes(*_varying_cube(shape=(20, 16), n_bins=100, seed=3), (5, 16, 1, 100))
+    a = splidar.detect(cube, rng=0)
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)
+    b = splidar.detect(lazy, rng=0, block_rows=6, store=tmp_path / "s")
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[:2] == (6, 7)
+    _assert_same_detection(a, b)
+    # each tile stored its candidates' histograms under its own key (row and column)
+    np.testing.assert_array_equal(np.asarray(b.surfaces.histograms), a.surfaces.histograms)
+
+
 @pytest.fixture(scope="module")
 def local_client():
     distributed = pytest.importorskip("distributed")
@@ -270,7 +285,7 @@ def test_tile_rows_fit_the_workers_memory_share(caplog):
 
 def test_detect_on_cluster_sizes_tiles_to_the_memory_limit():
     distributed = pytest.importorskip("distributed")
-    from splidar.detection._tiled import _rows_for
+    from splidar.detection._tiled import _rows_for, _tile_shape
 
     cube, lazy = _cubes(*_varying_cube(shape=(30, 22), n_bins=120, seed=5), (10, 22, 1, 120))
     a = splidar.detect(cube, rng=1)
@@ -288,8 +303,10 @@ def test_detect_on_cluster_sizes_tiles_to_the_memory_limit():
         b = splidar.detect(lazy, rng=1)
     n_box = (0, 3)  # box means kept for extraction or not (map_plan's choice)
     fits = {_rows_for(4 * 10**6, lazy.shape, lazy.counts.dtype.itemsize, 5, q, 30) for q in n_box}
+    # square tiles of the pixels of that many whole rows (the same memory, less halo)
+    square = {_tile_shape(r, lazy.shape, 5, 6, False)[0] for r in fits}
     # without a limit the tile would be the in-memory block (the whole image here)
-    assert a.options["block_rows"] == 30 and b.options["block_rows"] in fits
+    assert a.options["block_rows"] == 30 and b.options["block_rows"] in square
     assert b.options["block_rows"] < 30
     _assert_same_detection(a, b)
 
@@ -308,3 +325,17 @@ def test_tiled_window_means_sampled_columns_equal_loop():
         got = tiled_window_means(da.from_array(y, chunks=(16, 128, 2, 40)), rows, kr, cols, kc)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("tile_cols", [6, 7, 13])
+def test_detect_dask_2d_tiles_of_any_width_match_in_memory(monkeypatch, tile_cols):
+    # tiles of 8 rows x tile_cols columns (halo 5 rows, 6 columns): the box filters'
+    # running column sums pass from tile to tile, so every width gives the same bits
+    from splidar.detection import _tiled
+
+    cube, lazy = _cubes(*_varying_cube(shape=(24, 30), n_bins=100, seed=3), (8, 10, 1, 100))
+    a = splidar.detect(cube, rng=3)
+    monkeypatch.setattr(_tiled, "TILE_COLS", tile_cols)
+    with dask.config.set(scheduler="threads", num_workers=2):
+        b = splidar.detect(lazy, rng=3, block_rows=8)
+    _assert_same_detection(a, b)

@@ -18,7 +18,13 @@ from ._background import CLIP
 from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
 
-__all__ = ["SaliencyFilters", "block_saliency", "saliency_filters"]
+__all__ = ["STRIP_COLS", "SaliencyFilters", "block_saliency", "saliency_filters"]
+
+#: Columns the saliency kernel filters together, each strip's rows in turn (the rows a
+#: strip's boxes read stay in cache): CPU per voxel and wavelength on a 40 x 200 x 1500
+#: block, 9.3-10.3 ns at full width, 6.9-7.4 ns at strips of 24-64. The result does not
+#: depend on it (the column sums carry over from strip to strip).
+STRIP_COLS = 32
 
 
 @dataclass(frozen=True)
@@ -53,8 +59,9 @@ def saliency_filters(
 
 
 def block_saliency(
-    y, ctx: SaliencyFilters, spatial=None, keep=None, c=None, sal_out=None, work=None, box=None
-):
+    y, ctx: SaliencyFilters, spatial=None, keep=None, c=None, sal_out=None, work=None, box=None,
+    cols=None,
+):  # fmt: skip
     """Correlated cube, saliency and signed response of a block of pixels.
 
     Parameters
@@ -73,6 +80,10 @@ def block_saliency(
         Where to write the saliency (overwritten); a new array when None.
     box : (L, Qb, r_keep, c, T) float32, optional
         Receives the box means of every scale above 1 pixel (for surface extraction).
+    cols : (slice, int, ndarray or None), optional
+        ``(keep_cols, strip, carry)`` of :func:`~splidar.detection._fast.saliency_wavelength`
+        (``carry`` (L, r_keep, Q, T) float64); the outputs then have the kept columns
+        only. Default: every column, in strips of :data:`STRIP_COLS`.
 
     Returns
     -------
@@ -87,13 +98,15 @@ def block_saliency(
     keep = slice(None) if keep is None else keep
     r_all, cc, L, T = c.shape
     r = len(range(*keep.indices(r_all)))
+    keep_cols, strip, carry = (slice(None), STRIP_COLS, None) if cols is None else cols
+    cc = len(range(*keep_cols.indices(cc)))
     # the first wavelength writes sal, d and level, the others add to them
     sal = np.empty((r, cc, T), np.float32) if sal_out is None else sal_out
     if work is None:
         d = np.empty((r, cc, T), np.float32)
         level = np.empty((r, cc, T), np.float32)
     else:  # reused buffers of a run of blocks (no fresh pages per block)
-        d, level = work["d"][:r], work["level"][:r]
+        d, level = (work[k].reshape(-1)[: r * cc * T].reshape(r, cc, T) for k in ("d", "level"))
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,
@@ -114,6 +127,9 @@ def block_saliency(
             n_threads=ctx.workers,
             box=None if box is None else box[l],
             overwrite=l == 0,
+            keep_cols=keep_cols,
+            strip=strip,
+            carry=None if carry is None else carry[l],
         )
         if spatial is None:
             sp_out[:, :, l] = sp_l

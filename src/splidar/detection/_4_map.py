@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import SplidarError, describe
-from ._2_saliency import SaliencyFilters, block_saliency
+from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration
 from ._kernels import extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
@@ -133,7 +133,9 @@ def _local_scale(scales: np.ndarray) -> int:
     return int(above[0]) if above.size else 0
 
 
-def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts):
+def _extract(
+    y, c_ext, box, e0, r0, ce0, c0, rows, cols, start, stop, peak, mass, sp_blk, ctx, opts
+):
     """Per-candidate clean histograms at every scale, scale selection, depth, presence.
 
     Runs the numba kernel :func:`~splidar.detection._kernels.extract_surfaces` over the
@@ -147,6 +149,8 @@ def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk,
     a sub-bin depth (parabola through the selected scale's response, or the finest
     scale's when significant and ``refine``); own-pixel counts, background and the
     presence statistics (own-pixel log-likelihood ratio, local-scale z, predicted z).
+    ``rows`` and ``cols`` are block rows and image columns; ``y`` and ``c_ext`` start at
+    image row ``e0`` and column ``ce0``, ``sp_blk`` and ``box`` at ``r0`` and ``c0``.
     """
     R, C = opts["image_shape"]
     L, T = ctx.dev.shape
@@ -186,6 +190,8 @@ def _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp_blk,
         bidx,
         int(e0),
         int(r0),
+        int(ce0),
+        int(c0),
         np.ascontiguousarray(rows, np.int64),
         np.ascontiguousarray(cols, np.int64),
         np.ascontiguousarray(start, np.int64),
@@ -271,51 +277,65 @@ class _BlockOut:
     kept: np.ndarray = None
 
 
-def _block(y, c_ext, e0, r0, r1, ctx: SaliencyFilters, table, opts, out, work=None) -> _BlockOut:
-    """Saliency, map and surfaces of image rows ``[r0, r1)``.
+def _buffer(work, key: str, shape, dtype) -> np.ndarray:
+    """A ``shape`` view of the reused work buffer ``work[key]`` (a new array without)."""
+    if work is None:
+        return np.empty(shape, dtype)
+    return work[key].reshape(-1)[: int(np.prod(shape))].reshape(shape)
+
+
+def _block(
+    y, c_ext, e0, r0, r1, ctx: SaliencyFilters, table, opts, out, work=None, cols=None
+) -> _BlockOut:
+    """Saliency, map and surfaces of image rows ``[r0, r1)`` (and columns ``[c0, c1)``).
 
     ``y`` and ``c_ext`` hold the raw and correlated rows ``[e0, e0 + len(y))`` (the
-    block with its halo); ``out`` the preallocated image-size outputs written here.
+    block with its halo); ``out`` the preallocated image-size outputs written here
+    (``out[k][r0:r1, c0:c1] = x``). ``cols = (ce0, c0, c1, carry)``: the block holds
+    image columns ``[ce0, ce0 + y.shape[1])`` and its own are ``[c0, c1)``; ``carry``
+    (L, r1 - r0, Q, T) float64, the box filters' running column sums (read at column
+    ``c0 - 1`` when ``c0 > 0``, written at ``c1 - 1``). Default: every column.
     """
     i0, i1 = r0 - e0, r1 - e0
-    in_ram = isinstance(out["saliency"], np.ndarray)
+    ce0, c0, c1, carry = (0, 0, y.shape[1], None) if cols is None else cols
+    j0, j1 = c0 - ce0, c1 - ce0
+    in_ram = isinstance(out["saliency"], np.ndarray) and cols is None
     # in memory the block writes straight into the outputs; with a store it writes
     # into buffers copied to the (chunk-aligned) store at the end
     sal_out = out["saliency"][r0:r1] if in_ram else None
     L, T = ctx.dev.shape
+    r, C = i1 - i0, j1 - j0
     if opts["store_boxes"]:
         Qb = int((ctx.scales > 1).sum())
-        n_box = L * Qb * (i1 - i0) * y.shape[1] * T
-        box = np.empty(n_box, np.float32) if work is None else work["box"][:n_box]
-        box = box.reshape(L, Qb, i1 - i0, y.shape[1], T)
+        box = _buffer(work, "box", (L, Qb, r, C, T), np.float32)
     else:
         box = None
+    k_cols = None if cols is None else (slice(j0, j1), STRIP_COLS, carry)
     _, sal, d, sp, level = block_saliency(
-        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box
+        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box, cols=k_cols
     )
     xs, ys, store_thr = table
-    r, C, T = sal.shape
-    if work is None:
-        cand = np.empty((r, C, T), bool)
-        ev_vox = np.empty((r, C, T), np.float32)
-    else:
-        cand, ev_vox = work["cand"][:r], work["ev"][:r]
+    cand = _buffer(work, "cand", (r, C, T), bool)
+    ev_vox = _buffer(work, "ev", (r, C, T), np.float32)
     # a per-voxel threshold is written out only to a store (in memory it is kept as
     # the background factors: ThresholdField)
     thr = np.empty((r, C, T) if store_thr else (1, 1, 1), np.float32)
     mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
     # threshold, M, candidate voxels, evidence and photon counts in one pass
-    n_ph, kept = threshold_pass(sal, d, level, xs, ys, y, i0, thr, store_thr, mask, cand, ev_vox)
+    n_ph, kept = threshold_pass(
+        sal, d, level, xs, ys, y, i0, j0, thr, store_thr, mask, cand, ev_vox
+    )
     del level
     n_vox = int(np.count_nonzero(mask))
     if not in_ram:
-        out["saliency"][r0:r1] = sal
-        out["mask"][r0:r1] = mask
+        out["saliency"][r0:r1, c0:c1] = sal
+        out["mask"][r0:r1, c0:c1] = mask
         if store_thr:
-            out["threshold"][r0:r1] = thr
-    out["spatial"][r0:r1] = sp
+            out["threshold"][r0:r1, c0:c1] = thr
+    out["spatial"][r0:r1, c0:c1] = sp
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
+    # block rows and own columns (from r0, c0)
     rows, cols, start, stop, peak, mass, ev = find_segments(
         cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"]
     )
@@ -327,7 +347,9 @@ def _block(y, c_ext, e0, r0, r1, ctx: SaliencyFilters, table, opts, out, work=No
     rows, cols, start, stop, peak, mass, ev = (
         a[pre] for a in (rows, cols, start, stop, peak, mass, ev)
     )
-    surf, keep = _extract(y, c_ext, box, e0, r0, rows, cols, start, stop, peak, mass, sp, ctx, opts)
+    surf, keep = _extract(
+        y, c_ext, box, e0, r0, ce0, c0, rows, cols + c0, start, stop, peak, mass, sp, ctx, opts
+    )
     del box
     surf["evidence"] = ev
     if opts["presence"] in ("auto", "adaptive") and keep.any():
@@ -420,8 +442,9 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     )
 
 
-def _open_store(store, shape, block_rows: int, with_threshold: bool) -> dict:
-    """Chunked Zarr arrays for saliency, mask (and threshold) in a new directory."""
+def _open_store(store, shape, block_rows: int, with_threshold: bool, block_cols=None) -> dict:
+    """Chunked Zarr arrays for saliency, mask (and threshold) in a new directory, in
+    chunks of ``block_rows`` rows and ``block_cols`` columns (default all)."""
     import os as _os
     from pathlib import Path
 
@@ -447,7 +470,7 @@ def _open_store(store, shape, block_rows: int, with_threshold: bool) -> dict:
 
     g = zarr.open_group(str(path), mode="w")
     R, C, T = shape
-    ch = (min(block_rows, R), C, T)
+    ch = (min(block_rows, R), C if block_cols is None else min(block_cols, C), T)
     # the saliency's float noise does not compress (zstd: 1.1 x, at a fifth of the disk's
     # write speed); the threshold, a smooth field, 2.4 x with lz4 at disk speed; the
     # sparse mask ~150 x with Zarr's default zstd
@@ -513,6 +536,12 @@ def _table(outs, image_shape) -> CandidateTable:
         keep = surf.pop("presence_ok").astype(bool)
     else:
         keep = np.ones(surf["row"].size, bool)
+    # raster order (row, column, then depth), whatever the blocks or tiles: blocks of
+    # whole rows give it as they are; 2D tiles of a band need their candidates merged
+    order = np.lexsort((surf["start"], surf["col"], surf["row"]))
+    if np.any(order[1:] < order[:-1]):
+        surf = {k: v[order] for k, v in surf.items()}
+        keep, hist_block, hist_row = keep[order], hist_block[order], hist_row[order]
     origin = np.full(keep.size, stage_code("map"), np.int8)
     return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
 

@@ -203,7 +203,7 @@ def detect(
         ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
-        per tile (Dask task).
+        per tile (Dask task) of whole rows (default: square tiles of that many pixels).
     n_jobs : int, optional
         Threads (default: CPU count, at most 4). A Dask cube's tiles run on the active
         Dask scheduler instead (threads, or a ``dask.distributed.Client`` when one is

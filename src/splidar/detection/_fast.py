@@ -18,6 +18,10 @@ row/column strides, so every inner loop runs over contiguous 1-d slices and vect
 quickselect on a scratch buffer and its clipped sums vectorise. Each change keeps the
 arithmetic of every element, so the output is the same as before bit for bit (the
 clipped float64 sums are reassociated, which moves them by float64 rounding only).
+The kernel filters strips of columns, each strip's rows in turn (the input rows a
+strip's boxes read stay in cache), and a block may hold part of the image's columns
+with a halo (Dask tiles): the column pass's float64 running sums are carried from strip
+to strip and from tile to tile, so every value is the one of a pass over the whole row.
 """
 
 from __future__ import annotations
@@ -155,16 +159,30 @@ def _level_pixel(x, step, var_factor, quantum, clip, n_iter, scratch):
 
 @njit(cache=True, nogil=True)
 def _filter_row(
-    cf, base, R, C, T, sr, sc, i, scales, weights, dev, estimate, V, acc, m, coarse, box, bidx, o
-):
+    cf, base, R, C, T, sr, sc, i, s0, s1, scales, weights, dev, estimate, V, acc, m, coarse,
+    box, bidx, o, oc, carry, have_carry,
+):  # fmt: skip
     """``m = sum_q lambda_q Box_q(c)`` and the coarsest scale (minus ``dev`` when
-    ``estimate``) of block row ``i``; element ``(i, j, t)`` of ``c`` is
-    ``cf[base + i * sr + j * sc + t]``. ``V`` (Q, C, tile) and ``acc`` (tile,) are work
-    buffers; ``m`` and ``coarse`` (C, T) are written. When ``bidx[q] >= 0`` the box
-    mean of scale ``q`` is also written to ``box[bidx[q], o]`` (C, T).
+    ``estimate``) of block row ``i``, block columns ``[s0, s1)``; element ``(i, j, t)``
+    of ``c`` is ``cf[base + i * sr + j * sc + t]``. ``V`` (Q, C, tile) and ``acc``
+    (tile,) are work buffers; ``m`` and ``coarse`` (C, T) are written at columns
+    ``[s0, s1)``. When ``bidx[q] >= 0`` the box mean of scale ``q`` is also written to
+    ``box[bidx[q], o, j - oc]`` (T,).
+
+    The column pass keeps running float64 sums along the image row: ``carry`` (Q, T)
+    holds them at column ``s0 - 1`` on entry when ``have_carry`` (a strip or tile to
+    the left computed them; columns from ``s0 - h - 1`` must be in the block) and at
+    column ``s1 - 1`` on return. Without a carry ``s0`` is the image's first column. So
+    every value is the one a pass over the whole row gives, bit for bit, whatever the
+    strips or tiles.
     """
     Q = scales.size
     tile = V.shape[2]
+    hmax = scales[Q - 1] // 2
+    # columns the row pass fills: the strip and the halo its running sums read
+    # (reflected indices stay inside: a block edge that is not the image's has a halo)
+    ja = max(0, s0 - hmax - 1)
+    jb = min(C, s1 + hmax)
     for t0 in range(0, T, tile):
         tn = min(tile, T - t0)
         dv = dev[t0 : t0 + tn]
@@ -172,7 +190,7 @@ def _filter_row(
         for q in range(Q):
             h = scales[q] // 2
             if q == 0:
-                for j in range(C):
+                for j in range(ja, jb):
                     vr = V[0, j, :tn]
                     off = base + i * sr + j * sc + t0
                     cr = cf[off : off + tn]
@@ -180,7 +198,7 @@ def _filter_row(
                         vr[t] = cr[t]
                 hp = 0
             else:
-                for j in range(C):
+                for j in range(ja, jb):
                     vr = V[q, j, :tn]
                     vp = V[q - 1, j, :tn]
                     for t in range(tn):
@@ -189,7 +207,7 @@ def _filter_row(
             for di in range(hp + 1, h + 1):
                 ia = _refl(i - di, R)
                 ib = _refl(i + di, R)
-                for j in range(C):
+                for j in range(ja, jb):
                     vr = V[q, j, :tn]
                     oa = base + ia * sr + j * sc + t0
                     ob = base + ib * sr + j * sc + t0
@@ -206,7 +224,7 @@ def _filter_row(
             first = q == 0
             last = q == Q - 1
             if k == 1:
-                for j in range(C):
+                for j in range(s0, s1):
                     vr = V[q, j, :tn]
                     mr = m[j, t0 : t0 + tn]
                     if first:
@@ -226,16 +244,22 @@ def _filter_row(
                 continue
             inv32 = np.float32(1.0 / k)
             ac = acc[:tn]
-            for t in range(tn):
-                ac[t] = 0.0
-            for u in range(-h, h + 1):
-                vr = V[q, _refl(u, C), :tn]
-                for t in range(tn):
-                    ac[t] += np.float32(vr[t] * inv32)
             inv = 1.0 / k
             bq = bidx[q]
-            for j in range(C):
-                if j > 0:
+            cq = carry[q, t0 : t0 + tn]
+            for j in range(s0, s1):
+                if j == s0:
+                    if have_carry:
+                        for t in range(tn):
+                            ac[t] = cq[t]
+                    else:
+                        for t in range(tn):
+                            ac[t] = 0.0
+                        for u in range(-h, h + 1):
+                            vr = V[q, _refl(u, C), :tn]
+                            for t in range(tn):
+                                ac[t] += np.float32(vr[t] * inv32)
+                if j > s0 or have_carry:
                     va = V[q, _refl(j + h, C), :tn]
                     vb = V[q, _refl(j - h - 1, C), :tn]
                     for t in range(tn):
@@ -243,7 +267,7 @@ def _filter_row(
                             np.float32(vb[t] * inv32)
                         )
                 if bq >= 0:
-                    br = box[bq, o, j, t0 : t0 + tn]
+                    br = box[bq, o, j - oc, t0 : t0 + tn]
                     for t in range(tn):
                         br[t] = np.float32(ac[t] * inv)
                 mr = m[j, t0 : t0 + tn]
@@ -261,37 +285,24 @@ def _filter_row(
                     else:
                         for t in range(tn):
                             cr[t] = np.float32(ac[t] * inv)
+            for t in range(tn):
+                cq[t] = ac[t]
 
 
 @njit(cache=True, nogil=True)
 def _rows_kernel(
-    cf,
-    R,
-    C,
-    T,
-    sr,
-    sc,
-    i_start,
-    i_stop,
-    keep0,
-    scales,
-    weights,
-    sp,
-    estimate,
-    dev,
-    var_factor,
-    quantum,
-    clip,
-    n_iter,
-    step,
-    sal,
-    d,
-    level,
-    box,
-    bidx,
-    overwrite,
-):
-    """Output rows ``[i_start, i_stop)`` (block coordinates) of one wavelength.
+    cf, R, C, T, sr, sc, i_start, i_stop, keep0, jk0, jk1, strip, carry_in, carry_out, scales,
+    weights, sp, estimate, dev, var_factor, quantum, clip, n_iter, step, sal, d, level, box,
+    bidx, overwrite,
+):  # fmt: skip
+    """Output rows ``[i_start, i_stop)`` and columns ``[jk0, jk1)`` (block coordinates)
+    of one wavelength, in strips of ``strip`` columns (each strip's rows one after the
+    other, so the input rows its boxes read stay in cache); outputs are indexed from
+    row ``keep0`` and column ``jk0``.
+
+    ``carry_in`` (r, Q, T) float64 holds the column pass's running sums at column
+    ``jk0 - 1`` of each output row when ``jk0 > 0`` (a tile to the left computed them);
+    ``carry_out`` (same shape, or empty) receives them at column ``jk1 - 1``.
 
     ``cf`` is the correlated block as a flat contiguous float32 buffer: element
     ``(i, j, t)`` at ``i * sr + j * sc + t``. Contiguous 1-d slices of it (rather than
@@ -304,56 +315,52 @@ def _rows_kernel(
     m = np.empty((C, T), np.float32)
     coarse = np.empty((C, T), np.float32)  # coarsest scale minus dev (when estimating)
     scratch = np.empty(T, np.float32)
-    for i in range(i_start, i_stop):
-        o = i - keep0
-        _filter_row(
-            cf,
-            0,
-            R,
-            C,
-            T,
-            sr,
-            sc,
-            i,
-            scales,
-            weights,
-            dev,
-            estimate,
-            V,
-            acc,
-            m,
-            coarse,
-            box,
-            bidx,
-            o,
-        )
-        # background level, bhat and saliency of each pixel of the row
-        for j in range(C):
-            if estimate:
-                sp[o, j] = _level_pixel(coarse[j], step, var_factor, quantum, clip, n_iter, scratch)
-            s0 = sp[o, j]
-            dr = d[o, j]
-            sr_ = sal[o, j]
-            lr = level[o, j]
-            mr = m[j]
-            if overwrite:  # the first wavelength: no zeroing pass before
-                for t in range(T):
-                    bh = s0 + dev[t]
-                    if bh < 0:
-                        bh = np.float32(0.0)  # eq:background_3
-                    lr[t] = bh
-                    x = mr[t] - bh
-                    dr[t] = x
-                    sr_[t] = abs(x)  # eq:4.s1
-            else:
-                for t in range(T):
-                    bh = s0 + dev[t]
-                    if bh < 0:
-                        bh = np.float32(0.0)  # eq:background_3
-                    lr[t] += bh
-                    x = mr[t] - bh
-                    dr[t] += x
-                    sr_[t] += abs(x)  # eq:4.s1
+    # running column sums of each output row between strips
+    carry = np.empty((i_stop - i_start, Q, T), np.float64)
+    if jk0 > 0:
+        for i in range(i_start, i_stop):
+            carry[i - i_start] = carry_in[i - keep0]
+    for s0 in range(jk0, jk1, strip):
+        s1 = min(jk1, s0 + strip)
+        for i in range(i_start, i_stop):
+            o = i - keep0
+            _filter_row(
+                cf, 0, R, C, T, sr, sc, i, s0, s1, scales, weights, dev, estimate, V, acc, m,
+                coarse, box, bidx, o, jk0, carry[i - i_start], s0 > 0,
+            )  # fmt: skip
+            # background level, bhat and saliency of each pixel of the strip's row
+            for j in range(s0, s1):
+                jo = j - jk0
+                if estimate:
+                    sp[o, jo] = _level_pixel(
+                        coarse[j], step, var_factor, quantum, clip, n_iter, scratch
+                    )
+                s0_ = sp[o, jo]
+                dr = d[o, jo]
+                sr_ = sal[o, jo]
+                lr = level[o, jo]
+                mr = m[j]
+                if overwrite:  # the first wavelength: no zeroing pass before
+                    for t in range(T):
+                        bh = s0_ + dev[t]
+                        if bh < 0:
+                            bh = np.float32(0.0)  # eq:background_3
+                        lr[t] = bh
+                        x = mr[t] - bh
+                        dr[t] = x
+                        sr_[t] = abs(x)  # eq:4.s1
+                else:
+                    for t in range(T):
+                        bh = s0_ + dev[t]
+                        if bh < 0:
+                            bh = np.float32(0.0)  # eq:background_3
+                        lr[t] += bh
+                        x = mr[t] - bh
+                        dr[t] += x
+                        sr_[t] += abs(x)  # eq:4.s1
+    if carry_out.shape[0] > 0:
+        for i in range(i_start, i_stop):
+            carry_out[i - keep0] = carry[i - i_start]
 
 
 def _flat_rows(c: np.ndarray):
@@ -392,6 +399,9 @@ def saliency_wavelength(
     n_threads: int = 1,
     box: np.ndarray | None = None,
     overwrite: bool = False,
+    keep_cols: slice | None = None,
+    strip: int | None = None,
+    carry: np.ndarray | None = None,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -424,6 +434,20 @@ def saliency_wavelength(
     overwrite : bool
         Write ``sal``, ``d`` and ``level`` instead of adding to them (the first
         wavelength; saves zeroing them first).
+    keep_cols : slice, optional
+        Block columns to output (step 1; default all): the others are halo. ``C`` of
+        the outputs above is then the number of kept columns. A block edge that is not
+        the image's needs a halo of ``max(scales) // 2`` rows and that plus one columns
+        (the box filters reflect at the block's edges).
+    strip : int, optional
+        Columns filtered together (default all): each strip's rows in turn, so that
+        the input rows its boxes read stay in cache. The result does not depend on it.
+    carry : ndarray (r, Q, T) float64, optional
+        The column pass's running sums (one per output row, scale and bin) along the
+        image row: read at the column before the first kept one when that is not block
+        column 0 (a block to the left wrote them; required then), overwritten with
+        those at the last kept column. Passing them on makes every value the one a pass
+        over the whole row gives, bit for bit.
 
     Returns
     -------
@@ -443,15 +467,25 @@ def saliency_wavelength(
     i0, i1, st = keep.indices(R)
     if st != 1:
         raise ValueError("keep must be a contiguous slice")
+    j0, j1, st = (slice(None) if keep_cols is None else keep_cols).indices(C)
+    if st != 1:
+        raise ValueError("keep_cols must be a contiguous slice")
+    strip = max(j1 - j0, 1) if strip is None else max(int(strip), 1)
+    Q = np.size(scales)
+    if carry is not None and (carry.shape != (i1 - i0, Q, T) or carry.dtype != np.float64):
+        raise ValueError("carry must be float64 (kept rows, scales, T)")
+    if j0 > 0 and carry is None:
+        raise ValueError("keep_cols starting past column 0 needs the carry of the columns before")
+    nc = j1 - j0
     estimate = spatial is None
-    sp = np.empty((i1 - i0, C), np.float32) if estimate else spatial
+    sp = np.empty((i1 - i0, nc), np.float32) if estimate else spatial
     sc_arr = np.ascontiguousarray(scales, dtype=np.int64)
     bidx = np.full(sc_arr.size, -1, np.int64)
     if box is None:
         box = np.empty((1, 1, 1, 1), np.float32)
     else:
         bidx[sc_arr > 1] = np.arange(int((sc_arr > 1).sum()))
-        if box.shape != (int((sc_arr > 1).sum()), i1 - i0, C, T) or box.dtype != np.float32:
+        if box.shape != (int((sc_arr > 1).sum()), i1 - i0, nc, T) or box.dtype != np.float32:
             raise ValueError("box must be float32 (scales > 1, kept rows, C, T)")
     step = max(1, min(4, T // 64))
     args = (
@@ -473,19 +507,21 @@ def saliency_wavelength(
         bool(overwrite),
     )
     n = i1 - i0
-    if n <= 0 or C == 0 or T == 0:
+    if n <= 0 or nc <= 0 or T == 0:
         return sp
     n_threads = max(1, min(int(n_threads), n))
     cf, sr, sc = _flat_rows(c)
     head = (cf, R, C, T, sr, sc)
+    none = np.empty((0, Q, T), np.float64)
+    cols = (j0, j1, strip, none if carry is None else carry, none if carry is None else carry)
     if n_threads == 1:
-        _rows_kernel(*head, i0, i1, i0, *args)
+        _rows_kernel(*head, i0, i1, i0, *cols, *args)
     else:
         cuts = np.linspace(i0, i1, n_threads + 1).round().astype(int)
         with ThreadPoolExecutor(n_threads) as ex:
             list(
                 ex.map(
-                    lambda ab: _rows_kernel(*head, ab[0], ab[1], i0, *args),
+                    lambda ab: _rows_kernel(*head, ab[0], ab[1], i0, *cols, *args),
                     zip(cuts[:-1], cuts[1:], strict=True),
                 )
             )

@@ -230,10 +230,11 @@ def _llr_one(raw, bh, inside, dw, s, irf, peak, L, W):
 
 
 @njit(cache=True, nogil=True)
-def _window_centre(c, sp, dev, gsq, row_blk, irow, jcol, e0, start, stop, centre, refine_z, wh):
+def _window_centre(c, sp, dev, gsq, row_blk, irow, jc, jo, e0, start, stop, centre, refine_z, wh):
     """A run longer than the window (a steep slope smears the coarse scales): the own
     pixel's matched-filter peak in the run when it is significant against the max of
-    that many background bins, else ``centre``."""
+    that many background bins, else ``centre``. ``jc`` and ``jo``: the pixel's column in
+    ``c`` and in ``sp``."""
     L = c.shape[2]
     n_run = stop - start
     z_need = np.sqrt(refine_z * refine_z + 2.0 * np.log(n_run))
@@ -244,10 +245,10 @@ def _window_centre(c, sp, dev, gsq, row_blk, irow, jcol, e0, start, stop, centre
         num = 0.0
         var = 0.0
         for l in range(L):
-            b = sp[row_blk, jcol, l] + dev[l, t]
+            b = sp[row_blk, jo, l] + dev[l, t]
             if b < 0:
                 b = np.float32(0.0)
-            num += c[yr0, jcol, l, t] - b
+            num += c[yr0, jc, l, t] - b
             var += max(b, np.float32(1e-6)) * gsq[l]
         z = num / np.sqrt(var)
         if z > best_z:
@@ -259,15 +260,16 @@ def _window_centre(c, sp, dev, gsq, row_blk, irow, jcol, e0, start, stop, centre
 
 
 @njit(cache=True, nogil=True)
-def _box_sums(acc, c, qring, irow, jcol, e0, hmax, n_rows_img, n_cols_img, off):
+def _box_sums(acc, c, qring, irow, jcol, e0, ce0, hmax, n_rows_img, n_cols_img, off):
     """Box sums of every scale in one sweep of the largest box: each pixel adds to the
-    smallest box holding it (a ring), rings summed outwards. ``acc`` (Q, L, W)."""
+    smallest box holding it (a ring), rings summed outwards. ``acc`` (Q, L, W); image
+    pixel ``(i, j)`` is ``c[i - e0, j - ce0]``."""
     Q, L, W = acc.shape
     acc[:] = 0.0
     for di in range(-hmax, hmax + 1):
         ri = _reflect(irow + di, n_rows_img) - e0
         for dj in range(-hmax, hmax + 1):
-            cj = _reflect(jcol + dj, n_cols_img)
+            cj = _reflect(jcol + dj, n_cols_img) - ce0
             q = qring[max(abs(di), abs(dj))]
             for l in range(L):
                 cr = c[ri, cj, l]
@@ -281,11 +283,12 @@ def _box_sums(acc, c, qring, irow, jcol, e0, hmax, n_rows_img, n_cols_img, off):
 
 @njit(cache=True, nogil=True)
 def _clean_responses(
-    s, c, box, bidx, scales, acc, use_box, irow, row_blk, jcol, e0, off, inside, bh,
+    s, c, box, bidx, scales, acc, use_box, irow, row_blk, jc, jo, e0, off, inside, bh,
     resp, hv_buf, per_scale, o_hist, o_signal,
 ):  # fmt: skip
     """Per scale: the response minus ``bhat`` (``resp``), the clean histogram
-    (``eq:background_final``) and its sum, and the clean response summed over L."""
+    (``eq:background_final``) and its sum, and the clean response summed over L. ``jc``
+    and ``jo``: the pixel's column in ``c`` and in ``box``."""
     Q, L, W = resp.shape
     for q in range(Q):
         bq = bidx[q]
@@ -297,11 +300,11 @@ def _clean_responses(
                 for w in range(W):
                     hv_buf[w] = np.float32(acc[q, l, w] * inv)
             elif bq < 0:  # scale 1: the correlated block itself
-                cr = c[irow - e0, jcol, l]
+                cr = c[irow - e0, jc, l]
                 for w in range(W):
                     hv_buf[w] = cr[off + w]
             else:  # box means computed once per voxel by the saliency pass
-                cr = box[l, bq, row_blk, jcol]
+                cr = box[l, bq, row_blk, jo]
                 for w in range(W):
                     hv_buf[w] = cr[off + w]
             ssum = 0.0
@@ -481,6 +484,8 @@ def extract_surfaces(
     bidx,
     e0,
     r0,
+    ce0,
+    c0,
     rows,
     cols,
     start,
@@ -525,16 +530,15 @@ def extract_surfaces(
     One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
     arrays, in the order they are computed; each candidate's outputs do not depend on
     it), every output written in place at the candidate's index; see
-    :func:`splidar.detection._4_map._extract` for the meaning of each. Box means at
-    every scale (``mode="reflect"``) are read from the correlated block ``c`` (``(er, C,
-    L, T)`` from image row ``e0``), the background ``bhat`` (``eq:background_3``) from
-    the factored estimate ``sp`` (rows from ``r0``) and ``dev``, raw counts from ``y``
-    (rows from ``e0``). ``o_own_counts`` and ``o_own_background`` (S, L, W) receive the
-    pixel's raw counts and ``bhat`` over the window, zero outside the support. ``box``
-    (L, Qb, r, C, T), when ``Qb > 0``, holds the box means of the block's rows (from
-    ``r0``) at the scales ``q`` with ``bidx[q] >= 0`` (written by the saliency pass;
-    scale 1 is read from ``c``); otherwise (``Qb = 0``) the boxes are summed here, about
-    each candidate.
+    :func:`splidar.detection._4_map._extract` for the meaning of each. ``rows``: block
+    rows (image ``r0 + rows``); ``cols``: image columns. Box means (``mode="reflect"``
+    at the image's edges) come from the correlated block ``c`` (``(er, ec, L, T)``
+    from image pixel ``(e0, ce0)``), ``bhat`` (``eq:background_3``) from ``sp`` (from
+    ``(r0, c0)``) and ``dev``, raw counts from ``y`` (as ``c``); ``o_own_counts`` and
+    ``o_own_background`` (S, L, W) get the pixel's counts and ``bhat`` over the window
+    (zero outside the support). ``box`` (L, Qb, r, c, T), when ``Qb > 0``: box means of
+    the scales with ``bidx[q] >= 0`` from ``(r0, c0)`` (saliency pass; scale 1 is
+    ``c``); otherwise (``Qb = 0``) the boxes are summed here, about each candidate.
     """
     Q = scales.size
     L = c.shape[2]
@@ -565,10 +569,12 @@ def extract_surfaces(
         s = order[ii]
         irow = rows[s] + r0
         jcol = cols[s]
+        jc = jcol - ce0  # column in c and y
+        jo = jcol - c0  # column in sp and box
         centre = peak_bin[s]
         if refine and stop[s] - start[s] > W:
             centre = _window_centre(
-                c, sp, dev, gsq, rows[s], irow, jcol, e0, start[s], stop[s], centre, refine_z, wh
+                c, sp, dev, gsq, rows[s], irow, jc, jo, e0, start[s], stop[s], centre, refine_z, wh
             )
         off = min(max(centre - wh, 0), max(T - W, 0))
         lo = max(start[s], off)
@@ -576,16 +582,16 @@ def extract_surfaces(
         for w in range(W):
             inside[w] = (off + w >= lo) and (off + w < hi)
         for l in range(L):
-            spl = sp[rows[s], jcol, l]
+            spl = sp[rows[s], jo, l]
             for w in range(W):
                 b = spl + dev[l, off + w]
                 if b < 0:
                     b = np.float32(0.0)  # eq:background_3
                 bh[l, w] = b
         if not use_box:
-            _box_sums(acc, c, qring, irow, jcol, e0, hmax, n_rows_img, n_cols_img, off)
+            _box_sums(acc, c, qring, irow, jcol, e0, ce0, hmax, n_rows_img, n_cols_img, off)
         _clean_responses(
-            s, c, box, bidx, scales, acc, use_box, irow, rows[s], jcol, e0, off, inside, bh,
+            s, c, box, bidx, scales, acc, use_box, irow, rows[s], jc, jo, e0, off, inside, bh,
             resp, hv_buf, per_scale, o_hist, o_signal,
         )  # fmt: skip
         qbar = _select_scale(per_scale, tot, d_q)
@@ -609,7 +615,7 @@ def extract_surfaces(
         o_qbar[s] = qbar
         o_offset[s] = off
         _own_pixel(
-            s, y, irow - e0, jcol, off, inside, bh, raw, o_own_counts, o_own_background,
+            s, y, irow - e0, jc, off, inside, bh, raw, o_own_counts, o_own_background,
             o_counts, o_background,
         )  # fmt: skip
         dw = depth - off
@@ -670,7 +676,7 @@ def _interp_at(x, xs, ys, G, lo):
 
 
 @njit(cache=True, nogil=True)
-def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, cand, ev):
+def threshold_pass(sal, d, level, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
 
     Parameters
@@ -679,8 +685,9 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
         Saliency (``eq:4.s1``), signed response and background level of the block.
     xs, ys : (G,) float64
         Threshold table: ``threshold = interp(level, xs, ys)`` (``G = 1``: constant).
-    y : (er, C, L, T) integer
-        Raw counts of the block with its halo; output row ``i`` is ``y[y_row0 + i]``.
+    y : (er, ec, L, T) integer
+        Raw counts of the block with its halo; output pixel ``(i, j)`` is
+        ``y[y_row0 + i, y_col0 + j]``.
     thr_out : (r, C, T) float32
         Threshold per voxel, written when ``store_thr``.
     mask, cand : (r, C, T) bool
@@ -716,7 +723,7 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, thr_out, store_thr, mask, c
                 ev[i, j, t] = e if e > 0 else np.float32(0.0)
             mr = mask[i, j]
             for l in range(L):
-                yr = y[y_row0 + i, j, l]
+                yr = y[y_row0 + i, y_col0 + j, l]
                 for t in range(T):  # integer sums, branch-free (vectorised)
                     v = np.int64(yr[t])
                     n_ph += v

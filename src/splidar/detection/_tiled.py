@@ -12,18 +12,25 @@ chunks and do the work; only small results travel back).
    2000 pixels' worth in all. The null model (stage 3) reads a bounded number of
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
    and is simulated in the calling process, seeded as in memory.
-2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on strips of
-   ``block_rows`` image rows, each with a halo of ``h = max k // 2`` rows on both sides
-   (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
-   ``boundary="none"``: the image edge is handled as in memory). A tile returns its
-   candidates (a few numbers per surface) and its rows of saliency, mask and
-   background level, or writes them to the Zarr ``store`` itself.
+2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
+   columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
+   sides (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
+   ``boundary="none"``: the image edge is handled as in memory). By default the tiles
+   are square, with as many pixels as the rows of whole image rows that fit (64 MB of
+   work buffers, or :data:`TILE_SHARE` of a worker's memory): the halo is then a small
+   share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
+   100 x 100 tile 1.2x). A tile returns its candidates (a few numbers per surface) and
+   its pixels' saliency, mask and background level, or writes them to the Zarr
+   ``store`` itself.
 
-The tiles hold whole rows (all columns): the kernels of stage 4 know a block by its
-first row. The clean-up passes (stage 5) then run on the gathered candidate table, as
-in memory: what they look at across pixels is listed in ``docs/distributed.md``.
+The box filters' column sums are float64 running sums along each image row, whose
+rounding depends on where a sum starts: a tile takes them, at the column before its
+first, from the tile on its left (a small ``(L, rows, Q, T)`` array; the tiles of a
+band of rows run left to right, the bands in parallel). The clean-up passes (stage 5)
+then run on the gathered candidate table, as in memory: what they look at across
+pixels is listed in ``docs/distributed.md``.
 
-Every tile computes its rows exactly as a block of the in-memory pass does, so the
+Every tile computes its pixels exactly as a block of the in-memory pass does, so the
 Detection is the same, bit for bit, whatever the tiles, workers or scheduler.
 """
 
@@ -185,32 +192,39 @@ def _rows_for(limit: int, shape, itemsize: int, halo: int, n_box: int, most: int
     return max(min(rows, most), halo, 1)
 
 
+#: Rows per chunk of a ``store`` written by square tiles (a divisor of their rows).
+_CHUNK_ROWS = 16
+
+#: Columns per tile (None: square tiles, see :func:`_tile_shape`); any width gives the
+#: same Detection, bit for bit (the tests set it).
+TILE_COLS = None
+
 #: Work buffers of the tiles, per thread (a worker process runs tile after tile: the
 #: pages are touched once, not once per tile); released when a map pass ends.
 _WORK: dict = {}
 _WORK_LOCK = threading.Lock()
 
 
-def _work(rows: int, n_ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
-    """This thread's ``(work, corr)`` buffers for tiles of up to ``rows`` own rows and
-    ``n_ext`` rows with their halo (grown when a larger tile comes)."""
-    _, C, L, T = shape
+def _work(own: int, ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
+    """This thread's ``(work, corr)`` flat buffers for tiles of up to ``own`` pixels and
+    ``ext`` pixels with their halo (grown when a larger tile comes)."""
+    _, _, L, T = shape
     key = threading.get_ident()
     with _WORK_LOCK:
         have = _WORK.get(key)
-    if have is not None and have[0] >= (rows, n_ext) and have[1] == (C, L, T, n_box):
+    if have is not None and have[0] >= (own, ext) and have[1] == (L, T, n_box):
         return have[2], have[3]
     work = dict(
-        d=np.empty((rows, C, T), np.float32),
-        level=np.empty((rows, C, T), np.float32),
-        cand=np.empty((rows, C, T), bool),
-        ev=np.empty((rows, C, T), np.float32),
+        d=np.empty(own * T, np.float32),
+        level=np.empty(own * T, np.float32),
+        cand=np.empty(own * T, bool),
+        ev=np.empty(own * T, np.float32),
     )
     if n_box:
-        work["box"] = np.empty(L * n_box * rows * C * T, np.float32)
-    corr = np.empty((n_ext, C, L, T), np.float32)
+        work["box"] = np.empty(L * n_box * own * T, np.float32)
+    corr = np.empty(ext * L * T, np.float32)
     with _WORK_LOCK:
-        _WORK[key] = ((rows, n_ext), (C, L, T, n_box), work, corr)
+        _WORK[key] = ((own, ext), (L, T, n_box), work, corr)
     return work, corr
 
 
@@ -245,53 +259,85 @@ def compute_each(tasks: list, take) -> None:
     futures.clear()
 
 
-class _Rows:
-    """A tile's own array addressed by image rows (``a[r0:r1] = x`` writes its rows)."""
+class _Tile:
+    """A tile's own array addressed by image pixels (``a[r0:r1, c0:c1] = x`` writes them)."""
 
-    def __init__(self, array: np.ndarray, first_row: int):
-        self.array, self.first_row = array, first_row
+    def __init__(self, array: np.ndarray, first_row: int, first_col: int):
+        self.array, self.first = array, (first_row, first_col)
 
-    def __setitem__(self, rows: slice, value) -> None:
-        self.array[rows.start - self.first_row : rows.stop - self.first_row] = value
+    def __setitem__(self, key: tuple, value) -> None:
+        rows, cols = key
+        r, c = self.first
+        self.array[rows.start - r : rows.stop - r, cols.start - c : cols.stop - c] = value
 
 
-def _map_tile(y, e0: int, r0: int, r1: int, ctx, table, opts, store_path, most: tuple):
-    """Stage 4 on image rows ``[r0, r1)``; ``y`` holds rows ``[e0, e0 + len(y))``.
+def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: bool):
+    """Stage 4 on image rows ``[r0, r1)`` and columns ``[c0, c1)``; ``y`` holds the
+    pixels from ``(e0, ce0)`` (the tile with its halo). ``tile = (e0, r0, r1, ce0, c0,
+    c1)``.
 
-    ``most`` = ``(own rows, rows with halo)`` of the largest tile: the size of this
-    thread's reused work buffers.
+    ``most`` = ``(own pixels, pixels with halo)`` of the largest tile: the size of this
+    thread's reused work buffers. ``carry``: the box filters' running column sums at
+    column ``c0 - 1`` (from the tile to the left; None at the image's first column).
+    Returns ``(result, own arrays, carry at column c1 - 1)`` (None when ``last``).
     """
+    e0, r0, r1, ce0, c0, c1 = tile
     y = np.ascontiguousarray(y)
-    C, L, T = y.shape[1:]
+    er, ec, L, T = y.shape
     n_box = int((ctx.scales > 1).sum()) if opts["store_boxes"] else 0
-    work, corr = _work(most[0], most[1], (0, C, L, T), n_box)
-    c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.shape[0]])
-    own = dict(spatial=np.empty((r1 - r0, C, L), np.float32))
+    work, corr = _work(most[0], most[1], y.shape, n_box)
+    c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.size].reshape(y.shape))
+    r, c = r1 - r0, c1 - c0
+    own = dict(spatial=np.empty((r, c, L), np.float32))
     if store_path is None:
-        own["saliency"] = np.empty((r1 - r0, C, T), np.float32)
-        own["mask"] = np.empty((r1 - r0, C, T), bool)
-        out = {k: _Rows(v, r0) for k, v in own.items()}
+        own["saliency"] = np.empty((r, c, T), np.float32)
+        own["mask"] = np.empty((r, c, T), bool)
+        out = {k: _Tile(v, r0, c0) for k, v in own.items()}
         out["threshold"] = None
     else:
         import zarr
 
         g = zarr.open_group(store_path, mode="r+")
-        out = dict(saliency=g["saliency"], mask=g["mask"], spatial=_Rows(own["spatial"], r0))
+        out = dict(saliency=g["saliency"], mask=g["mask"], spatial=_Tile(own["spatial"], r0, c0))
         out["threshold"] = g["threshold"] if "threshold" in g else None
-    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work)
+    # the running sums are read and rewritten in place: a copy of the neighbour's
+    shape = (L, r, ctx.scales.size, T)
+    carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
+    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work, cols=(ce0, c0, c1, carry))
     if res.histograms is not None and res.kept.size < len(res.histograms):
         # only the histograms of the candidates in the table travel back (in memory the
         # block's whole array is kept and indexed by ``kept``: the same values)
         res.histograms = np.ascontiguousarray(res.histograms[res.kept])
         res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
-    _compact_result(res, store_path, r0, opts["image_shape"], T)
-    return res, own
+    _compact_result(res, store_path, (r0, c0), opts["image_shape"], T)
+    return res, own, None if last else carry
 
 
-def _compact_result(res, store_path, r0: int, image_shape, n_bins: int) -> None:
+def _carry(out):
+    """A tile's running column sums, for the tile on its right."""
+    return out[2]
+
+
+def _tile_shape(rows: int, shape, h: int, hc: int, given: bool) -> tuple[int, int]:
+    """Tile ``(rows, cols)``: :data:`TILE_COLS` columns when set; whole rows when the
+    caller ``given`` the rows per tile; otherwise square tiles of as many pixels as
+    ``rows`` whole image rows (the same memory, a smaller halo)."""
+    R, C = shape[:2]
+    if TILE_COLS is not None:
+        cols = TILE_COLS
+    elif given:
+        cols = C
+    else:
+        cols = int(np.sqrt(rows * C))
+        rows = (rows * C) // max(min(cols, C), 1)
+    return min(max(rows, h, 1), R), min(max(cols, hc, 1), C)
+
+
+def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) -> None:
     """What a tile sends back, made small for the calling process (which gathers every
     tile's): the candidates' integer columns in compact types (same values), and with a
-    store, the histograms written there (``candidate_histograms/<first row>``; the
+    store, the histograms written there (``candidate_histograms/<first row>_<first
+    column>``, from ``origin``; the
     calling process reads the selected surfaces' rows only) and replaced by the Zarr
     array's handle."""
     from ._table import compact_columns, store_histograms
@@ -301,7 +347,9 @@ def _compact_result(res, store_path, r0: int, image_shape, n_bins: int) -> None:
         import zarr
 
         g = zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+")
-        res.histograms = store_histograms(g, str(r0), res.histograms.shape, data=res.histograms)
+        res.histograms = store_histograms(
+            g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=res.histograms
+        )
 
 
 def map_candidates_tiled(
@@ -322,12 +370,13 @@ def map_candidates_tiled(
     filters, null, options
         As for the in-memory pass.
     block_rows : int or None
-        Rows per tile (None: about 64 MB of work buffers per tile, as in memory, and on
-        a ``dask.distributed`` cluster no more than fits :data:`TILE_SHARE` of the
-        workers' memory limit, :func:`tile_bytes`); at least the halo ``max k // 2``.
+        Rows per tile, of whole rows (None: square tiles of the pixels of the rows that
+        make about 64 MB of work buffers, as in memory, and on a ``dask.distributed``
+        cluster no more than fits :data:`TILE_SHARE` of the workers' memory limit,
+        :func:`tile_bytes`); at least the halo ``max k // 2``.
     store : path, optional
         A new directory: the tiles write saliency, mask (and a per-voxel threshold)
-        there as Zarr arrays, one chunk of rows per tile; otherwise they come back to
+        there as Zarr arrays, one chunk per tile; otherwise they come back to
         the calling process as NumPy arrays.
 
     Returns
@@ -340,6 +389,9 @@ def map_candidates_tiled(
 
     R, C, L, T = counts.shape
     h = int(filters.scales.max()) // 2
+    # columns: one more halo column, where the running column sums carried in from the
+    # tile to the left start (h = 0: a single 1-pixel scale, no sums)
+    hc = h + 1 if h else 0
     given = block_rows
     opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
     n_box = int((filters.scales > 1).sum()) if opts["store_boxes"] else 0
@@ -347,19 +399,30 @@ def map_candidates_tiled(
     if limit is not None:
         item = np.dtype(counts.dtype).itemsize
         block_rows = _rows_for(limit, counts.shape, item, h, n_box, block_rows)
-    block_rows = min(max(block_rows, h, 1), R)
+    block_rows, block_cols = _tile_shape(block_rows, counts.shape, h, hc, given is not None)
+    # a store's chunks: the tile's columns and 16 of its rows (a multiple of 16 unless
+    # given), so that the slope pass's bands of rows do not decompress a tall chunk once
+    # per band; every chunk still belongs to one tile (no two tasks write one chunk)
+    if given is None and block_rows >= 2 * _CHUNK_ROWS:
+        block_rows -= block_rows % _CHUNK_ROWS
+    chunk_rows = _CHUNK_ROWS if block_rows % _CHUNK_ROWS == 0 else block_rows
     table = null.table(per_voxel=store is not None)
-    tiles = tile_bounds(R, block_rows, h)
+    rows, cols = tile_bounds(R, block_rows, h), tile_bounds(C, block_cols, hc)
+    ext = [(max(0, a - h), min(R, b + h)) for a, b in rows]
+    ext_c = [(max(0, a - hc), min(C, b + hc)) for a, b in cols]
     most = (
-        max(b - a for a, b in tiles),
-        max(min(R, b + h) - max(0, a - h) for a, b in tiles),
+        max(b - a for a, b in rows) * max(b - a for a, b in cols),
+        max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
-    x = counts.rechunk({0: tuple(b - a for a, b in tiles), 1: -1, 2: -1, 3: -1})
-    if len(tiles) > 1 and h > 0:
-        x = da.overlap.overlap(x, depth={0: h, 1: 0, 2: 0, 3: 0}, boundary="none")
-    blocks = x.to_delayed().ravel()
+    x = counts.rechunk(
+        {0: tuple(b - a for a, b in rows), 1: tuple(b - a for a, b in cols), 2: -1, 3: -1}
+    )
+    depth = {0: h if len(rows) > 1 else 0, 1: hc if len(cols) > 1 else 0, 2: 0, 3: 0}
+    if depth[0] or depth[1]:
+        x = da.overlap.overlap(x, depth=depth, boundary="none")
+    blocks = x.to_delayed()
     if store is not None:
-        out = _open_store(store, (R, C, T), block_rows, table[2])
+        out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
         store_path = str(store)
         import zarr
 
@@ -370,24 +433,28 @@ def map_candidates_tiled(
     # the set-up every tile shares travels once (one key), not once per task
     ctx = dask.delayed(dataclasses.replace(filters, workers=1), pure=True)
     shared = dask.delayed((table, opts), pure=True)
-    # keys named for the dashboard: "splidar-map-tile"
-    name = "splidar-map-tile-" + dask.base.tokenize(x.name, tiles, ctx.key, shared.key, store_path)
-    tasks = [
-        dask.delayed(_map_tile, pure=True)(
-            blk,
-            max(0, r0 - h),
-            r0,
-            r1,
-            ctx,
-            shared[0],
-            shared[1],
-            store_path,
-            most,
-            dask_key_name=(name, i),
-        )  # fmt: skip
-        for i, (blk, (r0, r1)) in enumerate(zip(blocks, tiles, strict=True))
-    ]
-    logger.info("detect: map pass on %d tile(s) of %d rows (halo %d)", len(tiles), block_rows, h)
+    # keys named for the dashboard: "splidar-map-tile" computes a tile,
+    # "splidar-map-carry" passes its running sums to the tile on its right
+    token = dask.base.tokenize(x.name, rows, cols, ctx.key, shared.key, store_path)
+    name = "splidar-map-tile-" + token
+    tasks, where = [], []
+    for i, ((r0, r1), (e0, _)) in enumerate(zip(rows, ext, strict=True)):
+        carry = None  # the tiles of a band of rows run left to right, passing the sums
+        for j, ((c0, c1), (ce0, _)) in enumerate(zip(cols, ext_c, strict=True)):
+            tile = (e0, r0, r1, ce0, c0, c1)
+            done = dask.delayed(_map_tile, pure=True)(
+                blocks[i, j, 0, 0], tile, ctx, shared[0], shared[1], store_path, most, carry,
+                j == len(cols) - 1, dask_key_name=(name, i, j),
+            )  # fmt: skip
+            carry = dask.delayed(_carry, pure=True)(
+                done, dask_key_name=("splidar-map-carry-" + token, i, j)
+            )
+            tasks.append(done)
+            where.append((r0, r1, c0, c1))
+    logger.info(
+        "detect: map pass on %d tile(s) of %d x %d pixels (halo %d rows, %d columns)",
+        len(tasks), block_rows, block_cols, h, hc,
+    )  # fmt: skip
     if out is None:
         out = dict(
             saliency=np.empty((R, C, T), np.float32),
@@ -395,13 +462,13 @@ def map_candidates_tiled(
             threshold=None,
         )
     out["spatial"] = np.empty((R, C, L), np.float32)
-    outs = [None] * len(tiles)
+    outs = [None] * len(tasks)
 
     def take(i, result):
-        res, own = result
-        r0, r1 = tiles[i]
+        res, own, _ = result
+        r0, r1, c0, c1 = where[i]
         for k, v in own.items():
-            out[k][r0:r1] = v
+            out[k][r0:r1, c0:c1] = v
         outs[i] = res
 
     try:
