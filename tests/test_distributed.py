@@ -339,3 +339,28 @@ def test_detect_dask_2d_tiles_of_any_width_match_in_memory(monkeypatch, tile_col
     with dask.config.set(scheduler="threads", num_workers=2):
         b = splidar.detect(lazy, rng=3, block_rows=8)
     _assert_same_detection(a, b)
+
+
+def test_read_rows_reads_stored_chunks_in_the_calling_process(tmp_path):
+    # a cube that only reads stored chunks is read here (synchronous scheduler), not by
+    # the active scheduler (a cluster); any other graph goes to the active scheduler
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._slopes import _read_rows
+
+    x = np.arange(20 * 3 * 1 * 5, dtype=np.uint8).reshape(20, 3, 1, 5)
+    z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=x.shape, chunks=(4, 3, 1, 5))
+    z[:] = x
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("computed by the active scheduler")
+
+    stored = (da.from_zarr(z), da.from_array(x, chunks=(4, 3, 1, 5)), da.from_zarr(z)[:, :, 0])
+    with dask.config.set(scheduler=refuse):
+        for lazy in stored:
+            got = _read_rows(lazy, 3, 11)
+            assert isinstance(got, np.ndarray)
+            np.testing.assert_array_equal(got, x[3:11].reshape(got.shape))
+        computed = da.from_zarr(z).astype(np.int16) + 1
+        with pytest.raises(RuntimeError, match="active scheduler"):
+            _read_rows(computed, 3, 11)
+    np.testing.assert_array_equal(_read_rows(computed, 3, 11), x[3:11].astype(np.int16) + 1)

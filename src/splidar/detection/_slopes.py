@@ -889,7 +889,28 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
         if sel.size == 0:
             continue
         y0, y1 = max(0, a - halo), min(R, a + band + halo)
-        yield sel, np.ascontiguousarray(np.asarray(counts[y0:y1])), y0
+        yield sel, np.ascontiguousarray(_read_rows(counts, y0, y1)), y0
+
+
+#: Name prefixes of the Dask graph layers that only read stored chunks and slice them
+#: (``dask.array.from_zarr`` / ``from_array`` and indexing).
+_READ_LAYERS = ("original-", "from-zarr-", "array-", "getitem-")
+
+
+def _read_rows(counts, y0: int, y1: int) -> np.ndarray:
+    """Rows ``[y0, y1)`` of an array in memory in the calling process.
+
+    A Dask array whose graph only reads stored chunks (``splidar.load`` of a Zarr cube)
+    is read by this process directly (Dask's synchronous scheduler), not through the
+    cluster: a worker's read, serialised and sent over, took 5 x longer (0.11 s against
+    0.02 s for 32 rows of 1024 x 1000 uint8 counts; the slopes pass reads the cube up
+    to five times). Any other graph is computed by the active scheduler.
+    """
+    part = counts[y0:y1]
+    layers = getattr(getattr(part, "dask", None), "layers", None)
+    if layers is not None and all(str(k).startswith(_READ_LAYERS) for k in layers):
+        return np.asarray(part.compute(scheduler="sync"))
+    return np.asarray(part)
 
 
 def support_sums(saliency, threshold, rows, cols, start, stop) -> tuple[np.ndarray, np.ndarray]:
