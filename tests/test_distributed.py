@@ -364,3 +364,25 @@ def test_read_rows_reads_stored_chunks_in_the_calling_process(tmp_path):
         with pytest.raises(RuntimeError, match="active scheduler"):
             _read_rows(computed, 3, 11)
     np.testing.assert_array_equal(_read_rows(computed, 3, 11), x[3:11].astype(np.int16) + 1)
+
+
+def test_read_rows_falls_back_to_the_scheduler_when_files_are_unreachable_here():
+    # a stored array whose files this process cannot open (OSError) is read through the
+    # active scheduler, whose workers may see them
+    import threading
+
+    from splidar.detection._slopes import _read_rows
+
+    x = np.arange(20 * 3 * 1 * 5, dtype=np.uint8).reshape(20, 3, 1, 5)
+
+    class WorkersOnly:
+        shape, dtype, ndim = x.shape, x.dtype, x.ndim
+
+        def __getitem__(self, key):
+            if threading.current_thread() is threading.main_thread():
+                raise OSError("no such file here")
+            return x[key]
+
+    lazy = da.from_array(WorkersOnly(), chunks=(4, 3, 1, 5), meta=np.empty((0,) * 4, x.dtype))
+    with dask.config.set(scheduler="threads"):
+        np.testing.assert_array_equal(_read_rows(lazy, 3, 11), x[3:11])
