@@ -124,6 +124,21 @@ class StoredHistograms:
 
     ``h[key]`` reads the selection (integers, slices, integer arrays on the first axis)
     as a NumPy array; ``np.asarray(h)`` reads them all.
+
+    Parameters
+    ----------
+    array : zarr.Array
+        ``(S, Q, L, W)`` float32 array of the clean histograms: S surfaces, Q scales, L
+        wavelengths, W bins of the surface's window (photon counts, background removed).
+
+    Examples
+    --------
+    >>> import numpy as np, zarr
+    >>> z = zarr.zeros((3, 1, 2, 5), dtype="f4")
+    >>> z[1] = 1.0
+    >>> h = StoredHistograms(z)
+    >>> h.shape, float(h[1].sum()), str(np.asarray(h).dtype)
+    ((3, 1, 2, 5), 10.0, 'float32')
     """
 
     __slots__ = ("array",)
