@@ -18,9 +18,20 @@ Two measurements, each on several seeds:
   (``two_layer_scene``: 1-pixel strands every 5 pixels, transmission 0.6), where
   every pixel lies within 2 pixels of a strand's edge.
 
+With ``--detail`` each single-surface false surface is also put in a finer kind, with
+its coordinates (row, col, depth, the pixel's true depth, stage): ``spread 1 px`` /
+``spread 2-5 px`` (an extra surface with a true surface at its depth, within tau, that
+many pixels away, Chebyshev distance), ``background`` (none within 5 pixels),
+``window edge`` (a background one within the FWHM of the first or last bin), ``wrong
+depth near`` (within 2 tau of the pixel's missed true depth) / ``wrong depth far``. With
+``--null`` the same detection runs on a background-only cube drawn from each cell's
+background (the scene's signal removed): the false surfaces ``surface_pfa`` allows
+by design on 7,680 pixels at that background.
+
 Usage::
 
     python benchmarks/bench_false_surfaces.py --seeds 0 1 2 [--json out.json]
+    python benchmarks/bench_false_surfaces.py --seeds 0 --only single --detail --null
     PYTHONPATH=/path/to/old/src python benchmarks/bench_false_surfaces.py ...   # compare
 
 Nothing is downloaded; everything is simulated.
@@ -36,7 +47,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from splidar import Cube
 from splidar.detection import STAGES, detect
+from splidar.detection._filters import irf_fwhm
 from splidar.metrics import PointSet, evaluate, match_points
 from splidar.scenes import Scene, single_surface_scene, two_layer_scene
 
@@ -110,7 +123,41 @@ def false_causes(pts, truth, tau=TAU):
     return false, cause
 
 
-def run_single(scene, bg, ppp, sbr, rng) -> dict:
+def false_kinds(pts, truth, false, cause, n_bins, fwhm, tau=TAU) -> list:
+    """The finer kind of each false surface (see the module docstring), with its row,
+    column, depth and the nearest true depth of its pixel (NaN without one)."""
+    R, C = truth.image_shape
+    out = []
+    for i, c in zip(false, cause, strict=True):
+        r, k, d = int(pts.row[i]), int(pts.col[i]), float(pts.depth_bin[i])
+        here = (truth.row == r) & (truth.col == k)
+        own = truth.depth_bin[here]
+        own_d = float(own[np.argmin(np.abs(own - d))]) if own.size else float("nan")
+        if c == "wrong depth":
+            kind = "wrong depth near" if abs(d - own_d) <= 2 * tau else "wrong depth far"
+        else:
+            cheb = np.maximum(np.abs(truth.row - r), np.abs(truth.col - k))
+            near = (cheb > 0) & (cheb <= 5) & (np.abs(truth.depth_bin - d) <= tau)
+            dist = int(cheb[near].min()) if near.any() else 99
+            if dist == 1:
+                kind = "spread 1 px"
+            elif dist <= 5:
+                kind = "spread 2-5 px"
+            elif d <= fwhm or d >= n_bins - 1 - fwhm:
+                kind = "window edge"
+            else:
+                kind = "background"
+        out.append((kind, r, k, round(d, 1), round(own_d, 1)))
+    return out
+
+
+KINDS = (
+    "spread 1 px", "spread 2-5 px", "background", "window edge", "wrong depth near",
+    "wrong depth far",
+)  # fmt: skip
+
+
+def run_single(scene, bg, ppp, sbr, rng, null=False) -> dict:
     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=rng)
     t0 = time.perf_counter()
     det = detect(sim.cube, rng=0)
@@ -122,12 +169,22 @@ def run_single(scene, bg, ppp, sbr, rng) -> dict:
     by = {}
     for s, c in zip(stage, cause, strict=True):
         by[f"{s}/{c}"] = by.get(f"{s}/{c}", 0) + 1
-    return dict(
+    fwhm = irf_fwhm(np.asarray(det.irf, np.float64).reshape(det.cube_shape[2], -1))
+    kinds = false_kinds(pts, truth, false, cause, N_BINS, fwhm)
+    kinds = [(*k, str(st)) for k, st in zip(kinds, stage, strict=True)]
+    out = dict(
         scene="single", bg=bg, ppp=ppp, sbr=sbr, n_true=len(truth), f_true=float(m.f_true),
         n_false=int(false.size), dae=float(m.dae),
         by_cause={k: int(np.sum(cause == k)) for k in CAUSES},
         by_stage_cause=dict(sorted(by.items())), seconds=round(sec, 2),
+        by_kind={k: sum(1 for x in kinds if x[0] == k) for k in KINDS}, false_surfaces=kinds,
     )  # fmt: skip
+    if null:
+        # the same background, no signal: what surface_pfa allows by design
+        lam = sim.background_spatial[..., None] * sim.background_temporal[None, None]
+        y = rng.poisson(lam).astype(np.uint16)
+        out["null_false"] = len(detect(Cube(y, irf=sim.cube.irf), rng=0).points)
+    return out
 
 
 def net_scene(shape=SHAPE, n_bins=N_BINS) -> tuple[Scene, np.ndarray]:
@@ -171,11 +228,27 @@ def print_layer(r: dict) -> None:
     )
 
 
+def print_kinds(r: dict, detail: bool) -> None:
+    """The false surfaces by kind (and the background-only figure when measured)."""
+    null = f"; background alone: {r['null_false']} false" if "null_false" in r else ""
+    print(f"     by kind: {r['by_kind']}{null}", flush=True)
+    if detail:
+        for kind in KINDS:
+            pts = [x for x in r["false_surfaces"] if x[0] == kind]
+            if pts:
+                txt = ", ".join(f"({a},{b}) d {c} true {t} {st}" for _, a, b, c, t, st in pts)
+                print(f"       {kind}: {txt}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--only", choices=("single", "layer"), help="run one of the two")
     ap.add_argument("--json", help="also write the rows to this JSON file")
+    ap.add_argument("--detail", action="store_true", help="list every false surface by kind")
+    ap.add_argument(
+        "--null", action="store_true", help="also detect on each cell's background alone"
+    )
     args = ap.parse_args(argv)
     rows = []
     if args.only != "layer":
@@ -183,19 +256,26 @@ def main(argv=None) -> int:
         print("seed bg        PPP  SBR  F_true  false  DAE    by cause; by stage/cause")
         for seed in args.seeds:
             for i, cell in enumerate(SINGLE):
-                r = dict(seed=seed, **run_single(scene, *cell, np.random.default_rng([seed, i])))
+                rng = np.random.default_rng([seed, i])
+                r = dict(seed=seed, **run_single(scene, *cell, rng, null=args.null))
                 rows.append(r)
                 print(
                     f"{seed:4d} {r['bg']:9s} {r['ppp']:3g} {r['sbr']:4g} {r['f_true']:.4f} "
                     f"{r['n_false']:5d}  {r['dae']:.3f}  {r['by_cause']}; {r['by_stage_cause']}",
                     flush=True,
                 )
+                print_kinds(r, args.detail)
         for bg in ("uniform", "decaying"):
             sel = [r for r in rows if r["scene"] == "single" and r["bg"] == bg]
             f = np.mean([r["f_true"] for r in sel])
             n = np.mean([r["n_false"] for r in sel])
             ok = "PASS" if f >= 0.975 and n <= 50 else "FAIL"
             print(f"mean {bg}: F_true {f:.4f}, false {n:.1f} / 7680 px  [{ok}: >= 0.975, <= 50]")
+            kinds = {k: np.mean([r["by_kind"][k] for r in sel]) for k in KINDS}
+            print("  by kind: " + ", ".join(f"{k} {v:.1f}" for k, v in kinds.items()))
+            if args.null:
+                nul = np.mean([r["null_false"] for r in sel])
+                print(f"  background alone (no signal): {nul:.1f} false / 7680 px")
     if args.only != "single":
         layers = (sheet_scene(), net_scene())
         print(LAYER_HEAD + "  causes; stages")
