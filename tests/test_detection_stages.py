@@ -341,3 +341,47 @@ def test_rescue_dark_ignores_pools_whose_members_peak_at_their_own_depths():
     cnt[:, 0, 6] = 1
     surf.update(own_counts=cnt, depth_bin=np.full(n, 6.0))
     assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == n
+
+
+def test_rank_score_ranks_by_the_local_scale_only_where_it_shows_every_candidate():
+    from splidar.detection._4_map import _rank_score
+
+    # pixel (0, 0): the spread of a bright neighbouring region (large evidence, a weak
+    # local box) and the pixel's own surface (smaller evidence, a strong local box);
+    # pixel (0, 1): the same evidences at low counts, where the local box shows only one
+    # candidate significantly: the evidence ranks them
+    ev = np.array([20.0, 8.0, 20.0, 8.0])
+    signal = np.zeros((4, 4, 1))
+    signal[:, 1, 0] = [1.2, 4.0, 0.05, 0.5]  # the local (3 x 3) scale's clean signal
+    surf = dict(
+        row=np.zeros(4, int), col=np.array([0, 0, 1, 1]), signal=signal,
+        background=np.array([[0.4], [0.4], [0.01], [0.01]]),
+    )  # fmt: skip
+    opts = dict(image_shape=(1, 2), presence_z=3.0)
+    score = _rank_score(surf, ev, np.ones(4, bool), opts, SCALES)
+    assert score[1] > score[0]  # the own surface comes first
+    assert score[2] == ev[2] and score[3] == ev[3]  # low counts: the evidence
+
+
+def test_detect_keeps_the_own_surface_first_beside_a_depth_step():
+    # the single-surface scene's ramp beside a box 60 bins behind it (column 67): the
+    # box's return spreads into the ramp's edge pixels with more evidence than the
+    # ramp's own (the coarse boxes are filled by the bright box); ranked by evidence the
+    # spread took the lenient presence test and stayed beside the ramp in 9 of the 9
+    # rows 70-78 (main before this change), with the ramp found in 6
+    from splidar.scenes import single_surface_scene
+
+    sim = single_surface_scene((96, 80), n_bins=200).simulate(
+        ppp=4, sbr=0.25, background="decaying", rng=np.random.default_rng([0, 1])
+    )
+    pts = detect(sim.cube, rng=0).points
+    t = sim.truth
+    rows = np.arange(70, 79)
+    at = (pts.col == 67) & np.isin(pts.row, rows)
+    spread = int(np.sum(at & (np.abs(pts.depth_bin - 140.0) <= 3.0)))
+    own = 0
+    for r in rows:
+        d = t.depth_bin[(t.row == r) & (t.col == 67)][0]
+        own += bool(np.any(at & (pts.row == r) & (np.abs(pts.depth_bin - d) <= 3.0)))
+    assert spread <= 3, spread
+    assert own >= 6, own
