@@ -180,9 +180,7 @@ def detect(
         Expected false surfaces per background-only pixel, in (0, 1): a candidate is
         kept when its evidence (``sum max(S / threshold - 1, 0)`` over its support)
         beats all but this fraction of the null's candidates; also the level of the
-        isolated, dark-region and slope tests. A pixel's further candidates face the
-        same threshold and a stricter own-pixel test, so background ones beside a
-        surface are at most ``surface_pfa`` per pixel as well (``docs/detection.md``).
+        isolated, dark-region and slope tests (beside a surface, too: docs/detection.md).
     max_surfaces : int
         ``K_s``, the most surfaces kept per pixel (>= 1).
     null : {"empirical", "gamma"}
@@ -194,12 +192,11 @@ def detect(
         Own-pixel test of the candidates (coarse boxes spread returns beside thin
         structures and across depth edges). ``"auto"``: the local scale responds at the
         depth (z >= ``PRESENCE_Z``) and the own counts do not reject the return
-        (log-ratio >= ``-PRESENCE_LLR``); a pixel's further candidates (all but the one
-        its local scale shows best, where it shows them all, else the one of largest
-        evidence) need its counts to favour them. ``"adaptive"``: the z required drops
-        where a dim neighbourhood could not reach it. ``"pixel"``: own log-ratio >= 0
-        (strict). ``"none"``: no test. The clean-up passes run with ``"auto"`` and
-        ``"adaptive"`` only.
+        (log-ratio >= ``-PRESENCE_LLR``); a pixel's further candidates (all but its
+        first: docs/detection.md) need its counts to favour them. ``"adaptive"``: the z
+        required drops where a dim neighbourhood could not reach it. ``"pixel"``: own
+        log-ratio >= 0 (strict). ``"none"``: no test. The clean-up passes run with
+        ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
         ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
