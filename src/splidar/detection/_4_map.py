@@ -356,48 +356,13 @@ def _block(
         # a pixel's strongest candidate is supported by the scene's continuity; any
         # further one is an extra claim on the pixel and needs its own counts to favour
         # it (log-likelihood ratio >= presence_secondary): coarse scales plant such
-        # extras beside thin structures and across depth edges. Strongest: by the local
-        # scale where it shows every candidate of the pixel, else by the evidence
-        score = _rank_score(surf, ev, keep, opts, ctx.scales)
-        rank = _rank_in_pixel(surf["row"], surf["col"], score, keep)
+        # extras beside thin structures and across depth edges
+        rank = _rank_in_pixel(surf["row"], surf["col"], ev, keep)
         extra_ok = surf["presence_llr"] >= opts["secondary_llr"]
         if opts["presence"] == "adaptive":
             extra_ok &= surf["presence_z"] >= opts["presence_z"]
         keep &= (rank == 0) | extra_ok
     return _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand)
-
-
-def _rank_score(surf: dict, ev: np.ndarray, keep: np.ndarray, opts: dict, scales) -> np.ndarray:
-    """What ranks a pixel's candidates for the presence test (the first gets the lenient
-    test, the others must be favoured by the own counts): the local scale's Poisson
-    significance in pixels where that scale shows every kept candidate (z >= presence_z),
-    the evidence elsewhere.
-
-    The evidence sums every scale, and at a depth edge the coarse boxes are filled by the
-    neighbouring region: the spread of a bright neighbour's return then outranks the
-    pixel's own surface, which must pass the stricter test (and the spread keeps the
-    lenient one). The local scale (the finest above 1 pixel) is the pooled view nearest
-    the pixel; where it does not show each candidate significantly (low counts: a
-    background photon or two), it cannot tell them apart and the evidence, calibrated on
-    the null, ranks them. Significance: ``P(N >= n | B)`` of the local box's counts
-    ``n = k^2 (ybar_loc + b)`` (``ybar_loc``: the local scale's clean signal per pixel,
-    ``b``: the pixel's background over the support) against ``B = k^2 b``, as a z.
-    """
-    from scipy import special
-
-    q = _local_scale(scales)
-    n = float(scales[q]) ** 2
-    bk = n * np.maximum(surf["background"].sum(axis=1), 1e-12)
-    nk = bk + n * np.maximum(surf["signal"][:, q, :].sum(axis=1), 0.0)
-    # P(N >= nk | bk) = P(Gamma(nk) <= bk), continuous in nk; z from the upper tail
-    p = special.gammainc(np.maximum(nk, 1e-12), bk)
-    z = -special.ndtri(np.clip(p, 1e-300, 1.0))
-    C = opts["image_shape"][1]
-    pix = surf["row"] * C + surf["col"]
-    u, inv = np.unique(pix, return_inverse=True)
-    zmin = np.full(u.size, np.inf)
-    np.minimum.at(zmin, inv[keep], z[keep])
-    return np.where(zmin[inv] >= opts["presence_z"], z, ev)
 
 
 def _run_rows(counts, a, b, ctx: SaliencyFilters, table, opts, out, block_rows: int) -> list:

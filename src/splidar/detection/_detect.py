@@ -192,11 +192,10 @@ def detect(
         Own-pixel test of the candidates (coarse boxes spread returns beside thin
         structures and across depth edges). ``"auto"``: the local scale responds at the
         depth (z >= ``PRESENCE_Z``) and the own counts do not reject the return
-        (log-ratio >= ``-PRESENCE_LLR``); a pixel's further candidates (all but its
-        first: docs/detection.md) need its counts to favour them. ``"adaptive"``: the z
-        required drops where a dim neighbourhood could not reach it. ``"pixel"``: own
-        log-ratio >= 0 (strict). ``"none"``: no test. The clean-up passes run with
-        ``"auto"`` and ``"adaptive"`` only.
+        (log-ratio >= ``-PRESENCE_LLR``); a pixel's further candidates need its counts
+        to favour them. ``"adaptive"``: the z required drops where a dim neighbourhood
+        could not reach it. ``"pixel"``: own log-ratio >= 0 (strict). ``"none"``: no
+        test. The clean-up passes run with ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
         ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
