@@ -99,12 +99,13 @@ def build_graph(
     keeps a pair only when ``|d_s - d_s'| <= gate`` bins.
 
     ``bridge=True`` (the label field's graph, issue 14) also links two surfaces two pixels
-    apart along a row or a column, within the gate, when no surface of the pixel between
-    them is linked to both: a strand whose detection is missed in one pixel stays one
-    chain instead of two pieces, each pooled on its own. Where the middle pixel holds a
-    surface at their depth (inside a region, a strand at the depth of its surroundings)
-    nothing is added. The colours (``parity``) are then ``(row + col) % 4``, so that no
-    two linked surfaces share one.
+    apart along a row or a column, within the gate, when each has at most one link and no
+    surface of the pixel between them is linked to both: the two ends of a strand whose
+    detection is missed in one pixel, which then stays one chain instead of two pieces,
+    each pooled on its own. Inside a region (surfaces of 2-4 links, a hole is walked
+    round) and where the middle pixel holds a surface at their depth nothing is added
+    (bridging every gap measured -0.004 at PPP 1: docs/classification.md). The colours
+    (``parity``) are then ``(row + col) % 4``, so that no two linked surfaces share one.
     """
     S = int(row.size)
     rows, cols = image_shape

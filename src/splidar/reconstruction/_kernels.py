@@ -91,8 +91,9 @@ def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
 @njit(cache=True)
 def bridge_csr(row, col, slot, depth, rows, cols, n_slots, gate, indptr, indices):
     """The CSR links of ``graph_csr`` plus a link between surfaces two pixels apart along a
-    row or a column, within ``gate``, when no surface of the pixel between them is linked
-    to both (a missed detection; see :func:`splidar.reconstruction.build_graph`).
+    row or a column, within ``gate``, when each has at most one link and no surface of the
+    pixel between them is linked to both (the two ends of a strand broken by a missed
+    detection; see :func:`splidar.reconstruction.build_graph`).
 
     Returns ``(indptr (S + 1,), indices (E',))``, each row's neighbours in ascending order.
     """
@@ -122,9 +123,13 @@ def bridge_csr(row, col, slot, depth, rows, cols, n_slots, gate, indptr, indices
                     continue
                 mr = row[s] + dr[d] // 2
                 mc = col[s] + dc[d] // 2
+                if indptr[s + 1] - indptr[s] > 1:
+                    continue
                 for k in range(n_slots):
                     t = idx[rr, cc, k]
                     if t < 0 or abs(depth[s] - depth[t]) > gate:
+                        continue
+                    if indptr[t + 1] - indptr[t] > 1:
                         continue
                     path = False  # a middle surface linked to both s and t
                     for km in range(n_slots):
