@@ -298,3 +298,45 @@ def test_reliability_diagram_reports_ece():
     ax = plot_label_confidence(reconstruct(det, rng=0))
     assert "confidence" in ax.get_title()
     matplotlib.pyplot.close("all")
+
+
+def test_build_graph_bridge_links_across_a_missed_detection_only():
+    # a vertical strand (column 3, depth 0) in front of a wall (depth 20) with its
+    # detection missed at row 4: the strand's rows 3 and 5 are bridged, nothing else is
+    rows, cols = 9, 7
+    r, c = (a.ravel() for a in np.mgrid[0:rows, 0:cols])
+    wall = dict(row=r, col=c, slot=np.zeros(r.size, np.int64), depth=np.full(r.size, 20.0))
+    sr = np.array([i for i in range(rows) if i != 4])
+    row = np.concatenate([wall["row"], sr])
+    col = np.concatenate([wall["col"], np.full(sr.size, 3)])
+    slot = np.concatenate([wall["slot"], np.ones(sr.size, np.int64)])
+    depth = np.concatenate([wall["depth"], np.zeros(sr.size)])
+    plain = build_graph(row, col, slot, depth, (rows, cols), 2, gate=3.0)
+    g = build_graph(row, col, slot, depth, (rows, cols), 2, gate=3.0, bridge=True)
+    n_wall = r.size
+
+    def pairs(graph):
+        src = np.repeat(np.arange(row.size), np.diff(graph.indptr))
+        return {(int(a), int(b)) for a, b in zip(src, graph.indices, strict=True) if a < b}
+
+    new = pairs(g) - pairs(plain)
+    above, below = n_wall + 3, n_wall + 4  # the strand's surfaces at rows 3 and 5
+    assert new == {(above, below)}
+    assert pairs(plain) <= pairs(g)
+    src = np.repeat(np.arange(row.size), np.diff(g.indptr))
+    assert np.all(g.parity[src] != g.parity[g.indices])  # linked surfaces never share a colour
+
+
+def test_potts_marginals_rao_blackwell_is_exact_for_an_unlinked_surface():
+    # a surface with no links: its marginal is its likelihood's posterior, exactly with
+    # the averaged conditionals, within the Monte Carlo error of 24 draws with labels
+    ll = np.log(np.array([[0.6, 0.3, 0.1]] * 50))
+    g = build_graph(np.arange(50) * 2, np.zeros(50, np.int64), np.zeros(50, np.int64),
+                    np.zeros(50), (100, 1), 1, gate=1.0)  # fmt: skip
+    assert g.indices.size == 0
+    kw = dict(gamma=1.5, n_burn=4, n_keep=8, n_chains=3, seed=1)
+    rb = _classify.potts_marginals(ll, g, **kw)
+    freq = _classify.potts_marginals(ll, g, rao_blackwell=False, **kw)
+    expect = (24 * np.array([0.6, 0.3, 0.1]) + 0.5 / 3) / 24.5
+    np.testing.assert_allclose(rb, np.broadcast_to(expect, rb.shape), atol=1e-12)
+    assert np.abs(freq - expect).max() > 0.05

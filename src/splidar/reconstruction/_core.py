@@ -1073,6 +1073,22 @@ def _hyperparameters(su, opt, prior, pi, bias2, graph) -> dict:
 
 
 @_one_at_a_time
+def _labels(su: _Setup, surf, gamma, rng):
+    """(labels, marginals, class proportions) of the surfaces (``classify_surfaces``
+    on the label field's graph, which bridges one-pixel gaps in the detections)."""
+    S, K = len(surf), su.sig.shape[0]
+    if K == 1:
+        return np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1)
+    cgraph = build_graph(
+        surf.row, surf.col, surf.slot, surf.depth_bin, surf.image_shape, int(surf.n_slots),
+        links=su.links, gate=su.gate, bridge=True,
+    )  # fmt: skip
+    cls = classify_surfaces(
+        su.y, su.b, su.eta, su.sig, cgraph, gamma=gamma, seed=int(rng.integers(2**31))
+    )
+    return cls.label, cls.marginals, cls.proportions
+
+
 def reconstruct(
     detection: Detection,
     *,
@@ -1191,14 +1207,8 @@ def reconstruct(
         links=su.links, gate=su.gate,
     )  # fmt: skip
     t_graph = time.perf_counter()
-    S, K = len(surf), su.sig.shape[0]
-    if K > 1:
-        cls = classify_surfaces(
-            su.y, su.b, su.eta, su.sig, graph, gamma=opt["gamma"], seed=int(rng.integers(2**31))
-        )
-        u, marg, pi = cls.label, cls.marginals, cls.proportions
-    else:
-        u, marg, pi = np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1)
+    S = len(surf)
+    u, marg, pi = _labels(su, surf, opt["gamma"], rng)
     conf = marg.max(axis=1) if S else np.ones(0)
     t_cls = time.perf_counter()
     state, prior, history = _sweeps(

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._kernels import graph_csr
+from ._kernels import bridge_csr, graph_csr
 
 __all__ = ["SurfaceGraph", "build_graph", "irf_fwhm"]
 
@@ -21,7 +21,9 @@ class SurfaceGraph:
     indices : ndarray (E,), int64
         Neighbours of surface s are ``indices[indptr[s]:indptr[s + 1]]``.
     parity : ndarray (S,), int64
-        ``(row + col) % 2``: the red-black colour of the surface's pixel.
+        Colour of the surface's pixel, such that linked surfaces differ in colour:
+        ``(row + col) % 2`` (red-black), or ``(row + col) % 4`` for a graph with links
+        across one pixel (``build_graph(bridge=True)``).
     links : str
         ``"depth"`` or ``"all"``.
     gate : float
@@ -89,15 +91,25 @@ def build_graph(
     *,
     links: str = "depth",
     gate: float = np.inf,
+    bridge: bool = False,
 ) -> SurfaceGraph:
     """Link every surface to the surfaces of its 4 neighbour pixels (numba, one pass).
 
     ``links="all"`` keeps every pair (the paper's 4 K_s neighbours); ``links="depth"``
     keeps a pair only when ``|d_s - d_s'| <= gate`` bins.
+
+    ``bridge=True`` (the label field's graph, issue 14) also links two surfaces two pixels
+    apart along a row or a column, within the gate, when each has at most one link and no
+    surface of the pixel between them is linked to both: the two ends of a strand whose
+    detection is missed in one pixel, which then stays one chain instead of two pieces,
+    each pooled on its own. Inside a region (surfaces of 2-4 links, a hole is walked
+    round) and where the middle pixel holds a surface at their depth nothing is added
+    (bridging every gap measured -0.004 at PPP 1: docs/classification.md). The colours
+    (``parity``) are then ``(row + col) % 4``, so that no two linked surfaces share one.
     """
     S = int(row.size)
     rows, cols = image_shape
-    parity = ((row + col) % 2).astype(np.int64)
+    parity = ((row + col) % (4 if bridge else 2)).astype(np.int64)
     if S == 0:
         return SurfaceGraph(np.zeros(1, np.int64), np.zeros(0, np.int64), parity, links, gate)
     n_slots = max(int(n_slots), int(slot.max()) + 1)
@@ -107,4 +119,10 @@ def build_graph(
         np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
         int(rows), int(cols), n_slots, g,
     )  # fmt: skip
+    if bridge:
+        indptr, indices = bridge_csr(
+            np.ascontiguousarray(row, np.int64), np.ascontiguousarray(col, np.int64),
+            np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
+            int(rows), int(cols), n_slots, g, indptr, indices,
+        )  # fmt: skip
     return SurfaceGraph(indptr, indices, parity, links, float(gate))

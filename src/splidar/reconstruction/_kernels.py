@@ -88,6 +88,69 @@ def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
     return indptr, indices
 
 
+@njit(cache=True)
+def bridge_csr(row, col, slot, depth, rows, cols, n_slots, gate, indptr, indices):
+    """The CSR links of ``graph_csr`` plus a link between surfaces two pixels apart along a
+    row or a column, within ``gate``, when each has at most one link and no surface of the
+    pixel between them is linked to both (the two ends of a strand broken by a missed
+    detection; see :func:`splidar.reconstruction.build_graph`).
+
+    Returns ``(indptr (S + 1,), indices (E',))``, each row's neighbours in ascending order.
+    """
+    S = row.shape[0]
+    idx = np.full((rows, cols, n_slots), -1, np.int64)
+    for s in range(S):
+        idx[row[s], col[s], slot[s]] = s
+    dr = (-2, 0, 0, 2)
+    dc = (0, -2, 2, 0)
+    extra = np.zeros(S, np.int64)
+    for p in range(2):  # count, then fill
+        if p == 1:
+            out_ptr = np.zeros(S + 1, np.int64)
+            for s in range(S):
+                out_ptr[s + 1] = out_ptr[s] + (indptr[s + 1] - indptr[s]) + extra[s]
+            out = np.empty(out_ptr[S], np.int64)
+        for s in range(S):
+            if p == 1:
+                j = out_ptr[s]
+                for e in range(indptr[s], indptr[s + 1]):
+                    out[j] = indices[e]
+                    j += 1
+            for d in range(4):
+                rr = row[s] + dr[d]
+                cc = col[s] + dc[d]
+                if rr < 0 or rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                mr = row[s] + dr[d] // 2
+                mc = col[s] + dc[d] // 2
+                if indptr[s + 1] - indptr[s] > 1:
+                    continue
+                for k in range(n_slots):
+                    t = idx[rr, cc, k]
+                    if t < 0 or abs(depth[s] - depth[t]) > gate:
+                        continue
+                    if indptr[t + 1] - indptr[t] > 1:
+                        continue
+                    path = False  # a middle surface linked to both s and t
+                    for km in range(n_slots):
+                        m = idx[mr, mc, km]
+                        if m >= 0 and abs(depth[s] - depth[m]) <= gate:
+                            if abs(depth[t] - depth[m]) <= gate:
+                                path = True
+                    if path:
+                        continue
+                    if p == 0:
+                        extra[s] += 1
+                    else:
+                        i = j  # insertion in ascending order
+                        while i > out_ptr[s] and out[i - 1] > t:
+                            out[i] = out[i - 1]
+                            i -= 1
+                        out[i] = t
+                        j += 1
+    return out_ptr, out
+
+
 @njit(cache=True, parallel=_PARALLEL)
 def irf_fraction(cum, peak, depth, start, stop, out):
     """``out[s, l] = cum_l(stop - d + p_l) - cum_l(start - d + p_l)``, clipped to [0, 1].

@@ -165,15 +165,17 @@ def _strip_setup(st: _Strip, shared):
     return dataclasses.replace(shared["setup"], y=st.y, b=st.b, eta=st.eta, intensity_raw=st.y)
 
 
-def _strip_graph(st: _Strip, su, shared):
-    """The strip's surface graph (red-black colours of the whole image)."""
+def _strip_graph(st: _Strip, su, shared, bridge: bool = False):
+    """The strip's surface graph (colours of the whole image; ``bridge``: the label
+    field's graph, see :func:`~splidar.reconstruction.build_graph`)."""
     e0 = int(st.row.min()) if st.row.size else 0
     n_rows = int(st.row.max()) - e0 + 1 if st.row.size else 1
     graph = build_graph(
         st.row - e0, st.col, st.slot, st.depth, (n_rows, shared["n_cols"]), shared["n_slots"],
-        links=su.links, gate=su.gate,
+        links=su.links, gate=su.gate, bridge=bridge,
     )  # fmt: skip
-    return dataclasses.replace(graph, parity=((st.row + st.col) % 2).astype(np.int64))
+    n_colours = 4 if bridge else 2
+    return dataclasses.replace(graph, parity=((st.row + st.col) % n_colours).astype(np.int64))
 
 
 def _phase_one_state(su, graph, u, shared):
@@ -207,7 +209,7 @@ def _labels_tile(st: _Strip, shared):
         sub = _Strip(st.r0, st.r1, *(getattr(st, f)[near] for f in _Strip.FIELDS))
         sub_su = _strip_setup(sub, shared)
         cls = classify_surfaces(
-            sub.y, sub.b, sub.eta, su.sig, _strip_graph(sub, sub_su, shared),
+            sub.y, sub.b, sub.eta, su.sig, _strip_graph(sub, sub_su, shared, bridge=True),
             gamma=shared["gamma"], seed=_seed(shared["base"], st.r0, 0),
             proportions=shared["pi"], loglik=sub.ll,
         )  # fmt: skip
