@@ -20,7 +20,7 @@ import numpy as np
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration
-from ._kernels import extract_surfaces, find_segments, threshold_pass
+from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
@@ -49,8 +49,9 @@ REFINE = True
 #: z the own pixel's matched-filter peak needs to take part in the depth refinement
 #: (ICI) and to centre a long run's window: a 3-sigma peak, rarely noise in one window.
 REFINE_Z = 3.0
-#: Bins per depth band of the order in which candidates are extracted (speed only).
-_ORDER_BAND = 16
+#: Bins per depth band of the order in which candidates are extracted (speed only; the
+#: extraction kernel caches column sums per band and row).
+_ORDER_BAND = ORDER_BAND
 #: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
