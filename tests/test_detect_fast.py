@@ -391,6 +391,16 @@ def test_correlator_long_irf_uses_fft():
     )
 
 
+def _level_reference(sp, dev):
+    """``sum_l max(sp_l + dev_l, 0)`` in float32, wavelengths in order: (r, C, T)."""
+    lv = None
+    for l in range(sp.shape[2]):
+        bh = sp[:, :, l, None] + dev[l]
+        bh = np.where(bh < 0, np.float32(0.0), bh).astype(np.float32)
+        lv = bh if lv is None else (lv + bh).astype(np.float32)
+    return lv
+
+
 def test_threshold_pass_walk_equals_bisection():
     # the table interval found by stepping from the previous bin gives the same
     # threshold as the bisection, also for levels on the table's points and beyond it
@@ -400,21 +410,60 @@ def test_threshold_pass_walk_equals_bisection():
     r, C, T, L = 3, 5, 300, 2
     xs = np.sort(rng.uniform(0, 10, 12))
     ys = rng.uniform(1, 5, 12)
-    level = rng.uniform(-1, 11, (r, C, T)).astype(np.float32)
-    level[0, 0] = np.float32(xs[3])
-    level[0, 1] = np.linspace(-1, 11, T, dtype=np.float32)  # slow drift, both ends
+    # levels sum_l max(sp + dev, 0): a slow drift over the whole table and beyond it
+    dev = np.stack([np.linspace(-2, 10, T), rng.normal(0, 0.3, T)]).astype(np.float32)
+    sp = rng.uniform(-1, 1.5, (r, C, L)).astype(np.float32)
+    dev[:, 7] = 0.0
+    sp[0, 0] = (np.float32(xs[3]), 0.0)  # bin 7 of pixel (0, 0) on a table point
+    level = _level_reference(sp, dev)
+    assert level[0, 0, 7] == np.float32(xs[3]) and level.min() < xs[0] and level.max() > xs[-1]
     sal = rng.uniform(0, 6, (r, C, T)).astype(np.float32)
     d = rng.normal(size=(r, C, T)).astype(np.float32)
     y = rng.poisson(1.0, (r + 2, C, L, T)).astype(np.uint16)
     thr = np.empty((r, C, T), np.float32)
     mask = np.empty((r, C, T), bool)
     cand, ev = np.empty_like(mask), np.empty((r, C, T), np.float32)
-    n_ph, n_kept = threshold_pass(sal, d, level, xs, ys, y, 1, 0, thr, True, mask, cand, ev)
+    n_ph, n_kept = threshold_pass(sal, d, sp, dev, xs, ys, y, 1, 0, thr, True, mask, cand, ev)
     ref = np.vectorize(lambda v: np.float32(_interp_table(np.float64(v), xs, ys)))(level)
     np.testing.assert_array_equal(thr, ref.astype(np.float32))
     np.testing.assert_array_equal(mask, sal > ref)
+    np.testing.assert_array_equal(cand, (sal > ref) & (d > 0))
+    np.testing.assert_array_equal(ev, np.maximum(sal / ref - np.float32(1), 0).astype(np.float32))
     assert n_ph == int(y[1:4].astype(np.int64).sum())
     assert n_kept == int((y[1:4].astype(np.int64) * mask[:, :, None, :]).sum())
+
+
+def test_threshold_pass_level_is_the_saliency_kernels_level():
+    # the threshold pass recomputes sum_l bhat from the levels and dev: the same bits
+    # as the saliency kernel's accumulated level (which the map pass no longer stores)
+    from splidar.detection._kernels import threshold_pass
+
+    rng = np.random.default_rng(8)
+    R, C, T, L = 6, 9, 80, 3
+    scales, weights = np.array([1, 3]), np.array([0.4, 0.6])
+    dev = rng.normal(0, 0.5, (L, T)).astype(np.float32)
+    acc = [np.zeros((R, C, T), np.float32) for _ in range(3)]
+    acc_nolevel = [np.zeros((R, C, T), np.float32) for _ in range(2)]
+    sp = np.empty((R, C, L), np.float32)
+    for l in range(L):
+        c = rng.gamma(2.0, 0.5, (R, C, T)).astype(np.float32)
+        args = (c, slice(0, R), scales, weights, dev[l])
+        sp[:, :, l] = saliency_wavelength(*args, *acc, var_factor=0.2, overwrite=l == 0)
+        saliency_wavelength(*args, *acc_nolevel, None, var_factor=0.2, overwrite=l == 0)
+    sal, d, level = acc
+    np.testing.assert_array_equal(acc_nolevel[0], sal)
+    np.testing.assert_array_equal(acc_nolevel[1], d)
+    np.testing.assert_array_equal(_level_reference(sp, dev), level)
+    from splidar.detection._kernels import _interp_table
+
+    xs, ys = np.sort(rng.uniform(level.min(), level.max(), 7)), rng.uniform(1, 3, 7)
+    y = np.zeros((R, C, L, T), np.uint16)
+    thr, mask = np.empty((R, C, T), np.float32), np.empty((R, C, T), bool)
+    cand, ev = np.empty_like(mask), np.empty((R, C, T), np.float32)
+    threshold_pass(sal, d, sp, dev, xs, ys, y, 0, 0, thr, True, mask, cand, ev)
+    ref = np.vectorize(lambda v: np.float32(_interp_table(np.float64(v), xs, ys)))(level)
+    np.testing.assert_array_equal(thr, ref)
+    np.testing.assert_array_equal(mask, sal > ref)
 
 
 def test_extraction_order_does_not_change_detection(monkeypatch):

@@ -754,13 +754,37 @@ def _interp_at(x, xs, ys, G, lo):
 
 
 @njit(cache=True, nogil=True)
-def threshold_pass(sal, d, level, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
+def _pixel_level(spx, dev, lv):
+    """``sum_l bhat`` (``eq:background_3``) of one pixel into ``lv`` (T,) float32,
+    wavelengths in order, each ``bhat`` clipped at 0: the saliency kernel's
+    accumulation, bit for bit."""
+    T = lv.size
+    for l in range(spx.size):
+        s = spx[l]
+        dl = dev[l]
+        if l == 0:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] = bh if not bh < 0 else np.float32(0.0)
+        else:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] += bh if not bh < 0 else np.float32(0.0)
+
+
+@njit(cache=True, nogil=True)
+def threshold_pass(sal, d, sp, dev, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
 
     Parameters
     ----------
-    sal, d, level : (r, C, T) float32
-        Saliency (``eq:4.s1``), signed response and background level of the block.
+    sal, d : (r, C, T) float32
+        Saliency (``eq:4.s1``) and signed response of the block.
+    sp : (r, C, L) float32
+        Background level ``b_{n,l}`` of its pixels (``eq:background_2``).
+    dev : (L, T) float32
+        ``bbar_t - mean_t bbar``: the background level ``sum_l bhat`` of a voxel is
+        :func:`_pixel_level` (the saliency kernel's sum, in the same order: same bits).
     xs, ys : (G,) float64
         Threshold table: ``threshold = interp(level, xs, ys)`` (``G = 1``: constant).
     y : (er, ec, L, T) integer
@@ -784,11 +808,13 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, y_col0, thr_out, store_thr,
     n_ph = 0
     n_kept = 0
     G = xs.size
+    lv = np.empty(T, np.float32)
     for i in range(r):
         for j in range(C):
+            _pixel_level(sp[i, j], dev, lv)
             lo = 0  # the table interval of the previous bin: the level varies slowly in t
             for t in range(T):
-                x = np.float64(level[i, j, t])
+                x = np.float64(lv[t])
                 lo = _walk(x, xs, G, lo)
                 th = np.float32(_interp_at(x, xs, ys, G, lo))
                 if store_thr:
