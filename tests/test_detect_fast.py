@@ -391,6 +391,16 @@ def test_correlator_long_irf_uses_fft():
     )
 
 
+def _level_reference(sp, dev):
+    """``sum_l max(sp_l + dev_l, 0)`` in float32, wavelengths in order: (r, C, T)."""
+    lv = None
+    for l in range(sp.shape[2]):
+        bh = sp[:, :, l, None] + dev[l]
+        bh = np.where(bh < 0, np.float32(0.0), bh).astype(np.float32)
+        lv = bh if lv is None else (lv + bh).astype(np.float32)
+    return lv
+
+
 def test_threshold_pass_walk_equals_bisection():
     # the table interval found by stepping from the previous bin gives the same
     # threshold as the bisection, also for levels on the table's points and beyond it
@@ -400,21 +410,60 @@ def test_threshold_pass_walk_equals_bisection():
     r, C, T, L = 3, 5, 300, 2
     xs = np.sort(rng.uniform(0, 10, 12))
     ys = rng.uniform(1, 5, 12)
-    level = rng.uniform(-1, 11, (r, C, T)).astype(np.float32)
-    level[0, 0] = np.float32(xs[3])
-    level[0, 1] = np.linspace(-1, 11, T, dtype=np.float32)  # slow drift, both ends
+    # levels sum_l max(sp + dev, 0): a slow drift over the whole table and beyond it
+    dev = np.stack([np.linspace(-2, 10, T), rng.normal(0, 0.3, T)]).astype(np.float32)
+    sp = rng.uniform(-1, 1.5, (r, C, L)).astype(np.float32)
+    dev[:, 7] = 0.0
+    sp[0, 0] = (np.float32(xs[3]), 0.0)  # bin 7 of pixel (0, 0) on a table point
+    level = _level_reference(sp, dev)
+    assert level[0, 0, 7] == np.float32(xs[3]) and level.min() < xs[0] and level.max() > xs[-1]
     sal = rng.uniform(0, 6, (r, C, T)).astype(np.float32)
     d = rng.normal(size=(r, C, T)).astype(np.float32)
     y = rng.poisson(1.0, (r + 2, C, L, T)).astype(np.uint16)
     thr = np.empty((r, C, T), np.float32)
     mask = np.empty((r, C, T), bool)
     cand, ev = np.empty_like(mask), np.empty((r, C, T), np.float32)
-    n_ph, n_kept = threshold_pass(sal, d, level, xs, ys, y, 1, 0, thr, True, mask, cand, ev)
+    n_ph, n_kept = threshold_pass(sal, d, sp, dev, xs, ys, y, 1, 0, thr, True, mask, cand, ev)
     ref = np.vectorize(lambda v: np.float32(_interp_table(np.float64(v), xs, ys)))(level)
     np.testing.assert_array_equal(thr, ref.astype(np.float32))
     np.testing.assert_array_equal(mask, sal > ref)
+    np.testing.assert_array_equal(cand, (sal > ref) & (d > 0))
+    np.testing.assert_array_equal(ev, np.maximum(sal / ref - np.float32(1), 0).astype(np.float32))
     assert n_ph == int(y[1:4].astype(np.int64).sum())
     assert n_kept == int((y[1:4].astype(np.int64) * mask[:, :, None, :]).sum())
+
+
+def test_threshold_pass_level_is_the_saliency_kernels_level():
+    # the threshold pass recomputes sum_l bhat from the levels and dev: the same bits
+    # as the saliency kernel's accumulated level (which the map pass no longer stores)
+    from splidar.detection._kernels import threshold_pass
+
+    rng = np.random.default_rng(8)
+    R, C, T, L = 6, 9, 80, 3
+    scales, weights = np.array([1, 3]), np.array([0.4, 0.6])
+    dev = rng.normal(0, 0.5, (L, T)).astype(np.float32)
+    acc = [np.zeros((R, C, T), np.float32) for _ in range(3)]
+    acc_nolevel = [np.zeros((R, C, T), np.float32) for _ in range(2)]
+    sp = np.empty((R, C, L), np.float32)
+    for l in range(L):
+        c = rng.gamma(2.0, 0.5, (R, C, T)).astype(np.float32)
+        args = (c, slice(0, R), scales, weights, dev[l])
+        sp[:, :, l] = saliency_wavelength(*args, *acc, var_factor=0.2, overwrite=l == 0)
+        saliency_wavelength(*args, *acc_nolevel, None, var_factor=0.2, overwrite=l == 0)
+    sal, d, level = acc
+    np.testing.assert_array_equal(acc_nolevel[0], sal)
+    np.testing.assert_array_equal(acc_nolevel[1], d)
+    np.testing.assert_array_equal(_level_reference(sp, dev), level)
+    from splidar.detection._kernels import _interp_table
+
+    xs, ys = np.sort(rng.uniform(level.min(), level.max(), 7)), rng.uniform(1, 3, 7)
+    y = np.zeros((R, C, L, T), np.uint16)
+    thr, mask = np.empty((R, C, T), np.float32), np.empty((R, C, T), bool)
+    cand, ev = np.empty_like(mask), np.empty((R, C, T), np.float32)
+    threshold_pass(sal, d, sp, dev, xs, ys, y, 0, 0, thr, True, mask, cand, ev)
+    ref = np.vectorize(lambda v: np.float32(_interp_table(np.float64(v), xs, ys)))(level)
+    np.testing.assert_array_equal(thr, ref)
+    np.testing.assert_array_equal(mask, sal > ref)
 
 
 def test_extraction_order_does_not_change_detection(monkeypatch):
@@ -459,3 +508,91 @@ def test_saliency_wavelength_column_blocks_and_strips_give_the_same_bits(strip):
     np.testing.assert_array_equal(sp2, sp)
     for g, f in zip(got, full, strict=True):
         np.testing.assert_array_equal(g, f)
+
+
+def _box_sums_reference(c, scales, irow, jcol, e0, ce0, off, W, n_rows, n_cols):
+    """Box sums about one pixel with NumPy: (Q, L, W) float64, scipy's reflect rule."""
+    out = []
+    for k in scales:
+        h = int(k) // 2
+        ri = np.array([_refl_np(irow + d, n_rows) for d in range(-h, h + 1)]) - e0
+        cj = np.array([_refl_np(jcol + d, n_cols) for d in range(-h, h + 1)]) - ce0
+        blk = c[np.ix_(ri, cj)][..., off : off + W].astype(np.float64)
+        out.append(blk.sum(axis=(0, 1)))
+    return np.stack(out)
+
+
+def _refl_np(i, n):
+    m = i % (2 * n)
+    return 2 * n - 1 - m if m >= n else m
+
+
+def _box_sums_call(c, scales, irow, jcol, e0, ce0, off, W, n_rows, n_cols, cache=None):
+    """``_box_sums`` with a cold cache, or ``cache = (colbuf, stamp, state, hint)``."""
+    from splidar.detection._kernels import _box_sums
+
+    Q, L = scales.size, c.shape[2]
+    colbuf, stamp, state, hint = cache or (
+        np.empty((Q, c.shape[1], L, W)),
+        np.zeros((c.shape[1], W), np.int64),
+        np.array([0, -1, 0]),
+        off,
+    )
+    acc = np.empty((Q, L, W))
+    _box_sums(acc, colbuf, stamp, state, c, scales, irow, jcol, e0, ce0, hint, off, n_rows, n_cols)
+    return acc
+
+
+@pytest.mark.parametrize("scales", [(1, 3, 7, 11), (3, 5), (1,)])
+def test_box_sums_match_numpy_boxes_at_edges_and_inside(scales):
+    # integer-valued float32: every float64 sum is exact, so any order gives the same bits
+    rng = np.random.default_rng(11)
+    scales = np.array(scales, np.int64)
+    n_rows, n_cols, L, T = 14, 12, 2, 40
+    c = rng.poisson(3.0, (n_rows, n_cols, L, T)).astype(np.float32)
+    W = 9
+    for irow, jcol, off in [(0, 0, 0), (13, 11, 31), (6, 5, 12), (2, 10, 3), (12, 1, 20)]:
+        got = _box_sums_call(c, scales, irow, jcol, 0, 0, off, W, n_rows, n_cols)
+        ref = _box_sums_reference(c, scales, irow, jcol, 0, 0, off, W, n_rows, n_cols)
+        np.testing.assert_array_equal(got, ref)
+    # a block holding image rows [3, 14) and columns [2, 12): indices shift, sums do not
+    got = _box_sums_call(c[3:, 2:], scales, 8, 7, 3, 2, 10, W, n_rows, n_cols)
+    np.testing.assert_array_equal(got, _box_sums_reference(c, scales, 8, 7, 0, 0, 10, W, 14, 12))
+
+
+def test_box_sums_cached_column_sums_give_the_same_bits():
+    # float noise over 6 decades: float64 sums are inexact, so the same bits from a warm
+    # cache (shifted windows, neighbouring pixels of one row) as from a cold one show that
+    # each column sum is computed in one fixed order; the values are NumPy's to rounding
+    rng = np.random.default_rng(5)
+    scales = np.array([1, 3, 7, 11], np.int64)
+    n_rows, n_cols, L, T, W, n_span = 16, 30, 3, 64, 13, 29
+    c = rng.random((n_rows, n_cols, L, T)) * 10.0 ** rng.uniform(-6, 0, (n_rows, n_cols, L, T))
+    c = c.astype(np.float32)
+    Q = scales.size
+    colbuf = np.empty((Q, n_cols, L, n_span))
+    stamp = np.zeros((n_cols, n_span), np.int64)
+    state = np.array([0, -1, 0])
+    for jcol, off in [(4, 20), (5, 24), (9, 36), (6, 22), (29, 30), (0, 27), (3, 50), (2, 21)]:
+        warm = _box_sums_call(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols,
+                              cache=(colbuf, stamp, state, 20))  # fmt: skip
+        cold = _box_sums_call(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
+        np.testing.assert_array_equal(warm, cold)
+        ref = _box_sums_reference(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
+        np.testing.assert_allclose(warm, ref, rtol=1e-12, atol=0)
+
+
+def test_extraction_without_stored_boxes_does_not_depend_on_order(monkeypatch):
+    # the per-candidate box sums (large T) cache column sums per depth band and row; the
+    # raster order (no band) must give every output bit for bit
+    from splidar.detection import _4_map, detect
+    from splidar.scenes import two_layer_scene
+
+    monkeypatch.setattr(_4_map, "_store_boxes", lambda *a: False)
+    sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=10, sbr=1.0, rng=5)
+    ref = detect(sim.cube, rng=0, n_jobs=1)
+    monkeypatch.setattr(_4_map, "_ORDER_BAND", 1 << 40)
+    other = detect(sim.cube, rng=0, n_jobs=1)
+    assert len(ref.surfaces) > 300
+    for name in ("depth_bin", "histograms", "evidence", "presence_llr", "signal"):
+        np.testing.assert_array_equal(getattr(other.surfaces, name), getattr(ref.surfaces, name))

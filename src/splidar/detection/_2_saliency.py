@@ -60,7 +60,7 @@ def saliency_filters(
 
 def block_saliency(
     y, ctx: SaliencyFilters, spatial=None, keep=None, c=None, sal_out=None, work=None, box=None,
-    cols=None,
+    cols=None, with_level=True,
 ):  # fmt: skip
     """Correlated cube, saliency and signed response of a block of pixels.
 
@@ -84,6 +84,9 @@ def block_saliency(
         ``(keep_cols, strip, carry)`` of :func:`~splidar.detection._fast.saliency_wavelength`
         (``carry`` (L, r_keep, Q, T) float64); the outputs then have the kept columns
         only. Default: every column, in strips of :data:`STRIP_COLS`.
+    with_level : bool
+        Return ``level``; False: None (not accumulated; ``sum_l bhat`` follows from
+        ``spatial`` and ``ctx.dev``, as the threshold pass computes it).
 
     Returns
     -------
@@ -91,7 +94,7 @@ def block_saliency(
     sal : (r, c, T) float32    ``eq:4.s1``
     d : (r, c, T) float32      ``sum_l sum_q lambda_q Box_q(c) - bhat`` (signed)
     spatial : (r, c, L) float32
-    level : (r, c, T) float32  ``sum_l bhat``
+    level : (r, c, T) float32  ``sum_l bhat`` (None unless ``with_level``)
     """
     if c is None:
         c = ctx.corr(y, workers=ctx.workers)
@@ -104,9 +107,12 @@ def block_saliency(
     sal = np.empty((r, cc, T), np.float32) if sal_out is None else sal_out
     if work is None:
         d = np.empty((r, cc, T), np.float32)
-        level = np.empty((r, cc, T), np.float32)
+        level = np.empty((r, cc, T), np.float32) if with_level else None
     else:  # reused buffers of a run of blocks (no fresh pages per block)
-        d, level = (work[k].reshape(-1)[: r * cc * T].reshape(r, cc, T) for k in ("d", "level"))
+        d = work["d"].reshape(-1)[: r * cc * T].reshape(r, cc, T)
+        level = None
+        if with_level:
+            level = work["level"].reshape(-1)[: r * cc * T].reshape(r, cc, T)
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,

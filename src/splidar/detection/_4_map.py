@@ -20,7 +20,7 @@ import numpy as np
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration
-from ._kernels import extract_surfaces, find_segments, threshold_pass
+from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
@@ -49,8 +49,9 @@ REFINE = True
 #: z the own pixel's matched-filter peak needs to take part in the depth refinement
 #: (ICI) and to centre a long run's window: a 3-sigma peak, rarely noise in one window.
 REFINE_Z = 3.0
-#: Bins per depth band of the order in which candidates are extracted (speed only).
-_ORDER_BAND = 16
+#: Bins per depth band of the order in which candidates are extracted (speed only; the
+#: extraction kernel caches column sums per band and row).
+_ORDER_BAND = ORDER_BAND
 #: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
@@ -311,9 +312,11 @@ def _block(
     else:
         box = None
     k_cols = None if cols is None else (slice(j0, j1), STRIP_COLS, carry)
-    _, sal, d, sp, level = block_saliency(
-        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box, cols=k_cols
-    )
+    # sum_l bhat is recomputed by the threshold pass from sp and dev (not stored)
+    _, sal, d, sp, _ = block_saliency(
+        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box, cols=k_cols,
+        with_level=False,
+    )  # fmt: skip
     xs, ys, store_thr = table
     cand = _buffer(work, "cand", (r, C, T), bool)
     ev_vox = _buffer(work, "ev", (r, C, T), np.float32)
@@ -323,9 +326,21 @@ def _block(
     mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
     # threshold, M, candidate voxels, evidence and photon counts in one pass
     n_ph, kept = threshold_pass(
-        sal, d, level, xs, ys, y, i0, j0, thr, store_thr, mask, cand, ev_vox
+        sal,
+        d,
+        sp,
+        np.ascontiguousarray(ctx.dev, np.float32),
+        xs,
+        ys,
+        y,
+        i0,
+        j0,
+        thr,
+        store_thr,
+        mask,
+        cand,
+        ev_vox,
     )
-    del level
     n_vox = int(np.count_nonzero(mask))
     if not in_ram:
         out["saliency"][r0:r1, c0:c1] = sal
@@ -381,7 +396,6 @@ def _run_rows(counts, a, b, ctx: SaliencyFilters, table, opts, out, block_rows: 
     nb = min(block_rows, R)
     work = dict(
         d=np.empty((nb, shape[1], shape[3]), np.float32),
-        level=np.empty((nb, shape[1], shape[3]), np.float32),
         cand=np.empty((nb, shape[1], shape[3]), bool),
         ev=np.empty((nb, shape[1], shape[3]), np.float32),
     )

@@ -290,6 +290,43 @@ def _filter_row(
 
 
 @njit(cache=True, nogil=True)
+def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
+    """One pixel's ``bhat`` (``eq:background_3``), signed response and saliency
+    (``eq:4.s1``) from its level ``s0_`` and filtered series ``mr`` (T,): written
+    (``overwrite``, the first wavelength) or added to ``sr_`` and ``dr`` (T,), and to
+    ``level[o, jo]`` unless ``level`` is empty (then the caller recomputes ``sum_l
+    bhat`` where it needs it, from the levels and ``dev``)."""
+    T = mr.size
+    with_level = level.shape[0] > 0
+    if overwrite:  # the first wavelength: no zeroing pass before
+        for t in range(T):
+            bh = s0_ + dev[t]
+            if bh < 0:
+                bh = np.float32(0.0)  # eq:background_3
+            x = mr[t] - bh
+            dr[t] = x
+            sr_[t] = abs(x)  # eq:4.s1
+        if with_level:
+            lr = level[o, jo]
+            for t in range(T):
+                bh = s0_ + dev[t]
+                lr[t] = bh if not bh < 0 else np.float32(0.0)
+    else:
+        for t in range(T):
+            bh = s0_ + dev[t]
+            if bh < 0:
+                bh = np.float32(0.0)  # eq:background_3
+            x = mr[t] - bh
+            dr[t] += x
+            sr_[t] += abs(x)  # eq:4.s1
+        if with_level:
+            lr = level[o, jo]
+            for t in range(T):
+                bh = s0_ + dev[t]
+                lr[t] += bh if not bh < 0 else np.float32(0.0)
+
+
+@njit(cache=True, nogil=True)
 def _rows_kernel(
     cf, R, C, T, sr, sc, i_start, i_stop, keep0, jk0, jk1, strip, carry_in, carry_out, scales,
     weights, sp, estimate, dev, var_factor, quantum, clip, n_iter, step, sal, d, level, box,
@@ -335,29 +372,7 @@ def _rows_kernel(
                     sp[o, jo] = _level_pixel(
                         coarse[j], step, var_factor, quantum, clip, n_iter, scratch
                     )
-                s0_ = sp[o, jo]
-                dr = d[o, jo]
-                sr_ = sal[o, jo]
-                lr = level[o, jo]
-                mr = m[j]
-                if overwrite:  # the first wavelength: no zeroing pass before
-                    for t in range(T):
-                        bh = s0_ + dev[t]
-                        if bh < 0:
-                            bh = np.float32(0.0)  # eq:background_3
-                        lr[t] = bh
-                        x = mr[t] - bh
-                        dr[t] = x
-                        sr_[t] = abs(x)  # eq:4.s1
-                else:
-                    for t in range(T):
-                        bh = s0_ + dev[t]
-                        if bh < 0:
-                            bh = np.float32(0.0)  # eq:background_3
-                        lr[t] += bh
-                        x = mr[t] - bh
-                        dr[t] += x
-                        sr_[t] += abs(x)  # eq:4.s1
+                _bhat_saliency(sp[o, jo], dev, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite)
     if carry_out.shape[0] > 0:
         for i in range(i_start, i_stop):
             carry_out[i - keep0] = carry[i - i_start]
@@ -389,7 +404,7 @@ def saliency_wavelength(
     dev: np.ndarray,
     sal: np.ndarray,
     d: np.ndarray,
-    level: np.ndarray,
+    level: np.ndarray | None,
     *,
     spatial: np.ndarray | None = None,
     var_factor: float = 1.0,
@@ -418,7 +433,9 @@ def saliency_wavelength(
         ``bbar_t - mean_t bbar``.
     sal, d, level : ndarray (r, C, T) float32
         Accumulators (``r`` = rows of ``keep``), updated in place: ``|x|``, ``x`` and
-        ``bhat`` with ``x = sum_q lambda_q Box_q(c) - bhat``.
+        ``bhat`` with ``x = sum_q lambda_q Box_q(c) - bhat``. ``level=None``: ``bhat``
+        is not accumulated (a caller that needs ``sum_l bhat`` recomputes it from the
+        levels and ``dev``, in the same order, as the threshold pass does).
     spatial : ndarray (r, C) float32, optional
         Background level; estimated (robust clipped mean over t of the coarsest scale,
         as :func:`~splidar.detection._background.robust_level`) when None.
@@ -488,6 +505,8 @@ def saliency_wavelength(
         if box.shape != (int((sc_arr > 1).sum()), i1 - i0, nc, T) or box.dtype != np.float32:
             raise ValueError("box must be float32 (scales > 1, kept rows, C, T)")
     step = max(1, min(4, T // 64))
+    if level is None:
+        level = np.empty((0, 0, 0), np.float32)
     args = (
         sc_arr,
         np.ascontiguousarray(weights, dtype=np.float64),

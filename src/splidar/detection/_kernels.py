@@ -8,6 +8,7 @@ from numba import njit
 from ._fast import _refl as _reflect  # one reflect rule for every kernel
 
 __all__ = [
+    "ORDER_BAND",
     "extract_surfaces",
     "find_segments",
     "rank_in_pixel_sorted",
@@ -223,8 +224,9 @@ def _llr_one(raw, bh, inside, dw, s, irf, peak, L, W):
                 continue
             gv = _interp_irf(irf[l], w - dw + peak[l])
             gsum += gv
-            b = max(np.float64(bh[l, w]), 1e-9)
-            out += raw[l, w] * np.log1p(sl * gv / b)
+            if raw[l, w] != 0.0:  # 0 * log1p(x >= 0) adds +0.0: skipped, same bits
+                b = max(np.float64(bh[l, w]), 1e-9)
+                out += raw[l, w] * np.log1p(sl * gv / b)
         out -= sl * gsum
     return out
 
@@ -259,26 +261,108 @@ def _window_centre(c, sp, dev, gsq, row_blk, irow, jc, jo, e0, start, stop, cent
     return centre
 
 
+#: Bins per depth band of the order in which candidates are extracted: consecutive
+#: candidates of a band and an image row share the column sums of :func:`_box_sums`
+#: (speed only; every sum is the same whatever the order).
+ORDER_BAND = 16
+
+
 @njit(cache=True, nogil=True)
-def _box_sums(acc, c, qring, irow, jcol, e0, ce0, hmax, n_rows_img, n_cols_img, off):
-    """Box sums of every scale in one sweep of the largest box: each pixel adds to the
-    smallest box holding it (a ring), rings summed outwards. ``acc`` (Q, L, W); image
-    pixel ``(i, j)`` is ``c[i - e0, j - ce0]``."""
+def _column_sums(colbuf, stamp, gen, c, scales, irow, cj, t0, t1, ts, e0, n_rows_img):
+    """Column sums of block column ``cj`` about image row ``irow`` for ``t`` in ``[t0,
+    t1)``: ``colbuf[q, cj, l, t - ts]`` sums rows ``irow - h_q .. irow + h_q``
+    (``h_q = scales[q] // 2``, reflected at the image's edges) in float64, centre row
+    first, then rows ``-d`` and ``+d`` for ``d = 1, 2, ...``; scale ``q`` continues the
+    sum of ``q - 1``. Only the span of bins not yet stamped ``gen`` is (re)computed;
+    every value is the same whenever it is computed."""
+    Q = scales.size
+    L = c.shape[2]
+    a = t0
+    while a < t1 and stamp[cj, a - ts] == gen:
+        a += 1
+    b = t1
+    while b > a and stamp[cj, b - 1 - ts] == gen:
+        b -= 1
+    if a >= b:
+        return
+    for k in range(a - ts, b - ts):
+        stamp[cj, k] = gen
+    r_c = irow - e0
+    for l in range(L):
+        cr = c[r_c, cj, l]
+        out = colbuf[0, cj, l]
+        for t in range(a, b):
+            out[t - ts] = cr[t]
+        d = 1
+        for q in range(Q):
+            out = colbuf[q, cj, l]
+            if q > 0:
+                prev = colbuf[q - 1, cj, l]
+                for t in range(a, b):
+                    out[t - ts] = prev[t - ts]
+            h = scales[q] // 2
+            while d <= h:
+                cm = c[_reflect(irow - d, n_rows_img) - e0, cj, l]
+                cp = c[_reflect(irow + d, n_rows_img) - e0, cj, l]
+                for t in range(a, b):
+                    v = out[t - ts] + cm[t]
+                    out[t - ts] = v + cp[t]
+                d += 1
+
+
+@njit(cache=True, nogil=True)
+def _window_background(bh, sp, dev, row_blk, jo, off):
+    """``bhat`` (``eq:background_3``, clipped at 0) of one pixel over the window:
+    ``bh`` (L, W) float32."""
+    L, W = bh.shape
+    for l in range(L):
+        spl = sp[row_blk, jo, l]
+        for w in range(W):
+            b = spl + dev[l, off + w]
+            if b < 0:
+                b = np.float32(0.0)
+            bh[l, w] = b
+
+
+@njit(cache=True, nogil=True)
+def _box_sums(acc, colbuf, stamp, state, c, scales, irow, jcol, e0, ce0, hint, off, n_rows_img,
+              n_cols_img):  # fmt: skip
+    """Box sums of every scale about image pixel ``(irow, jcol)`` over the window ``[off,
+    off + W)``: ``acc[q, l, w]`` (Q, L, W) float64, the column sums of
+    :func:`_column_sums` added left to right, columns ``jcol - h_q .. jcol + h_q``
+    reflected at the image's edges. Image pixel ``(i, j)`` is ``c[i - e0, j - ce0]``.
+    The column sums of one image row over a span of ``n_span`` bins from ``ts`` are
+    cached in ``colbuf`` (Q, ec, L, n_span), valid where ``stamp`` (ec, n_span) equals
+    ``gen``; ``state = [gen, row, ts]``. Another row, or a window outside the span,
+    starts the cache afresh from bin ``hint`` (clipped; ``off`` when the window is not
+    inside). Each sum is the same whatever was cached.
+    """
+    T = c.shape[3]
+    n_span = stamp.shape[1]
     Q, L, W = acc.shape
-    acc[:] = 0.0
-    for di in range(-hmax, hmax + 1):
-        ri = _reflect(irow + di, n_rows_img) - e0
-        for dj in range(-hmax, hmax + 1):
-            cj = _reflect(jcol + dj, n_cols_img) - ce0
-            q = qring[max(abs(di), abs(dj))]
-            for l in range(L):
-                cr = c[ri, cj, l]
-                for w in range(W):
-                    acc[q, l, w] += cr[off + w]
-    for q in range(1, Q):
+    if irow != state[1] or off < state[2] or off + W > state[2] + n_span:
+        state[0] += 1
+        state[1] = irow
+        state[2] = min(max(hint, 0), T - n_span)
+        if off < state[2] or off + W > state[2] + n_span:
+            state[2] = min(off, T - n_span)
+    gen = state[0]
+    ts = state[2]
+    hmax = scales[Q - 1] // 2
+    for dj in range(-hmax, hmax + 1):
+        cj = _reflect(jcol + dj, n_cols_img) - ce0
+        _column_sums(colbuf, stamp, gen, c, scales, irow, cj, off, off + W, ts, e0, n_rows_img)
+    for q in range(Q):
+        h = scales[q] // 2
         for l in range(L):
             for w in range(W):
-                acc[q, l, w] += acc[q - 1, l, w]
+                acc[q, l, w] = 0.0
+        for dj in range(-h, h + 1):
+            cj = _reflect(jcol + dj, n_cols_img) - ce0
+            for l in range(L):
+                cb = colbuf[q, cj, l]
+                for w in range(W):
+                    acc[q, l, w] += cb[off - ts + w]
 
 
 @njit(cache=True, nogil=True)
@@ -556,15 +640,13 @@ def extract_surfaces(
     d_q = np.empty(Q, np.int64)
     s_tmp = np.empty(L, np.float64)
     use_box = box.shape[1] > 0
-    hmax = scales[Q - 1] // 2
     acc = np.zeros((Q, L, W), np.float64)
     hv_buf = np.empty(W, np.float32)
-    qring = np.empty(hmax + 1, np.int64)  # smallest scale whose box holds ring m
-    for m in range(hmax + 1):
-        q = 0
-        while scales[q] // 2 < m:
-            q += 1
-        qring[m] = q
+    # column sums of one image row over a depth band, shared by consecutive candidates
+    n_cb = c.shape[1] if not use_box else 0
+    colbuf = np.empty((Q, n_cb, L, min(T, W + ORDER_BAND)), np.float64)
+    stamp = np.zeros((n_cb, min(T, W + ORDER_BAND)), np.int64)
+    state = np.array([0, -1, 0], np.int64)
     for ii in range(i_begin, i_end):
         s = order[ii]
         irow = rows[s] + r0
@@ -581,15 +663,11 @@ def extract_surfaces(
         hi = min(stop[s], off + W)
         for w in range(W):
             inside[w] = (off + w >= lo) and (off + w < hi)
-        for l in range(L):
-            spl = sp[rows[s], jo, l]
-            for w in range(W):
-                b = spl + dev[l, off + w]
-                if b < 0:
-                    b = np.float32(0.0)  # eq:background_3
-                bh[l, w] = b
+        _window_background(bh, sp, dev, rows[s], jo, off)
         if not use_box:
-            _box_sums(acc, c, qring, irow, jcol, e0, ce0, hmax, n_rows_img, n_cols_img, off)
+            band0 = (peak_bin[s] // ORDER_BAND) * ORDER_BAND - wh
+            _box_sums(acc, colbuf, stamp, state, c, scales, irow, jcol, e0, ce0, band0, off,
+                      n_rows_img, n_cols_img)  # fmt: skip
         _clean_responses(
             s, c, box, bidx, scales, acc, use_box, irow, rows[s], jc, jo, e0, off, inside, bh,
             resp, hv_buf, per_scale, o_hist, o_signal,
@@ -676,13 +754,37 @@ def _interp_at(x, xs, ys, G, lo):
 
 
 @njit(cache=True, nogil=True)
-def threshold_pass(sal, d, level, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
+def _pixel_level(spx, dev, lv):
+    """``sum_l bhat`` (``eq:background_3``) of one pixel into ``lv`` (T,) float32,
+    wavelengths in order, each ``bhat`` clipped at 0: the saliency kernel's
+    accumulation, bit for bit."""
+    T = lv.size
+    for l in range(spx.size):
+        s = spx[l]
+        dl = dev[l]
+        if l == 0:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] = bh if not bh < 0 else np.float32(0.0)
+        else:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] += bh if not bh < 0 else np.float32(0.0)
+
+
+@njit(cache=True, nogil=True)
+def threshold_pass(sal, d, sp, dev, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
 
     Parameters
     ----------
-    sal, d, level : (r, C, T) float32
-        Saliency (``eq:4.s1``), signed response and background level of the block.
+    sal, d : (r, C, T) float32
+        Saliency (``eq:4.s1``) and signed response of the block.
+    sp : (r, C, L) float32
+        Background level ``b_{n,l}`` of its pixels (``eq:background_2``).
+    dev : (L, T) float32
+        ``bbar_t - mean_t bbar``: the background level ``sum_l bhat`` of a voxel is
+        :func:`_pixel_level` (the saliency kernel's sum, in the same order: same bits).
     xs, ys : (G,) float64
         Threshold table: ``threshold = interp(level, xs, ys)`` (``G = 1``: constant).
     y : (er, ec, L, T) integer
@@ -706,11 +808,13 @@ def threshold_pass(sal, d, level, xs, ys, y, y_row0, y_col0, thr_out, store_thr,
     n_ph = 0
     n_kept = 0
     G = xs.size
+    lv = np.empty(T, np.float32)
     for i in range(r):
         for j in range(C):
+            _pixel_level(sp[i, j], dev, lv)
             lo = 0  # the table interval of the previous bin: the level varies slowly in t
             for t in range(T):
-                x = np.float64(level[i, j, t])
+                x = np.float64(lv[t])
                 lo = _walk(x, xs, G, lo)
                 th = np.float32(_interp_at(x, xs, ys, G, lo))
                 if store_thr:
