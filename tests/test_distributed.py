@@ -114,6 +114,30 @@ def test_detect_dask_store_written_by_2d_tiles(tmp_path, monkeypatch):
     np.testing.assert_array_equal(np.asarray(b.surfaces.histograms), a.surfaces.histograms)
 
 
+def test_put_writes_a_zarr_array_chunk_by_chunk_as_one_write(tmp_path):
+    """``_put`` cuts a write at the chunk grid (offsets on and off it, partial edge
+    chunks): the stored values equal a plain write's, and a chunk equal to the fill
+    value is stored too (the map pass's arrays skip Zarr's comparison with it)."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._4_map import _put, writer
+
+    rng = np.random.default_rng(0)
+    g = zarr.open_group(str(tmp_path / "g"), mode="w")
+    spec = dict(shape=(23, 17, 5), chunks=(4, 6, 5), dtype="float32")
+    a, b = g.create_array("a", **spec), writer(g.create_array("b", **spec))
+    for r0, c0, r, c in ((0, 0, 8, 12), (5, 3, 9, 10), (19, 13, 4, 4), (8, 0, 4, 6)):
+        v = rng.random((r, c, 5), dtype=np.float32)
+        if r0 == 8:
+            v[:] = 0  # exactly one chunk, equal to the fill value
+        a[r0 : r0 + r, c0 : c0 + c] = v
+        _put(b, r0, c0, v)
+    np.testing.assert_array_equal(b[...], a[...])
+    assert b.nchunks_initialized == a.nchunks_initialized + 1
+    out = np.zeros((23, 17, 5), np.float32)  # not Zarr: one plain write
+    _put(out, 5, 3, np.ones((9, 10, 5), np.float32))
+    assert out.sum() == 9 * 10 * 5
+
+
 @pytest.fixture(scope="module")
 def local_client():
     distributed = pytest.importorskip("distributed")
@@ -136,6 +160,8 @@ def test_detect_on_local_cluster_matches_in_memory(local_client):
         lambda dask_scheduler: list(dask_scheduler.task_prefixes)
     )}  # fmt: skip
     assert {"splidar-map-tile", "splidar-window-means"} <= names
+    # the calling process fetches each tile's result without the running sums
+    assert "splidar-map-result" in names
 
 
 def test_detect_on_local_cluster_store_keeps_the_histograms_there(local_client, tmp_path):

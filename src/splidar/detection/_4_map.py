@@ -285,6 +285,29 @@ def _buffer(work, key: str, shape, dtype) -> np.ndarray:
     return work[key].reshape(-1)[: int(np.prod(shape))].reshape(shape)
 
 
+def _put(dst, r0: int, c0: int, value: np.ndarray) -> None:
+    """``dst[r0:, c0:] = value`` (``value`` an ``(r, c, ...)`` array); a Zarr array is
+    written one chunk at a time.
+
+    Zarr (3.x) takes a write that covers exactly one chunk as it is; a write over several
+    chunks makes each one a new fill-value array and copies its part in (two passes over
+    the memory more than the write itself: on the tiles of a stored map pass, about a
+    sixth of a worker's time). The pieces are whole chunks wherever ``value`` covers
+    them (rows and columns cut at the chunk grid), so the stored values are the same.
+    """
+    r1, c1 = r0 + value.shape[0], c0 + value.shape[1]
+    chunks = getattr(dst, "chunks", None) if type(dst).__module__.startswith("zarr") else None
+    if chunks is None:
+        dst[r0:r1, c0:c1] = value
+        return
+    cr, cc = int(chunks[0]), int(chunks[1])
+    for a in range(r0, r1, cr) if r0 % cr == 0 else [r0, *range(r0 - r0 % cr + cr, r1, cr)]:
+        a1 = min(r1, a - a % cr + cr)
+        for b in range(c0, c1, cc) if c0 % cc == 0 else [c0, *range(c0 - c0 % cc + cc, c1, cc)]:
+            b1 = min(c1, b - b % cc + cc)
+            dst[a:a1, b:b1] = value[a - r0 : a1 - r0, b - c0 : b1 - c0]
+
+
 def _block(
     y, c_ext, e0, r0, r1, ctx: SaliencyFilters, table, opts, out, work=None, cols=None
 ) -> _BlockOut:
@@ -343,10 +366,10 @@ def _block(
     )
     n_vox = int(np.count_nonzero(mask))
     if not in_ram:
-        out["saliency"][r0:r1, c0:c1] = sal
-        out["mask"][r0:r1, c0:c1] = mask
+        _put(out["saliency"], r0, c0, sal)
+        _put(out["mask"], r0, c0, mask)
         if store_thr:
-            out["threshold"][r0:r1, c0:c1] = thr
+            _put(out["threshold"], r0, c0, thr)
     out["spatial"][r0:r1, c0:c1] = sp
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
@@ -500,7 +523,14 @@ def _open_store(store, shape, block_rows: int, with_threshold: bool, block_cols=
         if with_threshold
         else None,
     )
-    return out
+    return {k: v if v is None else writer(v) for k, v in out.items()}
+
+
+def writer(z):
+    """The Zarr array ``z`` as the map pass writes it: every chunk stored, even one equal
+    to the fill value (Zarr otherwise compares each chunk with it before writing, a
+    third pass over the memory written: the values read back are the same)."""
+    return z.with_config({"write_empty_chunks": True})
 
 
 def _block_rows(block_rows, scales, width, store_boxes, shape) -> int:

@@ -44,7 +44,15 @@ import numpy as np
 
 from ._2_saliency import SaliencyFilters
 from ._3_null import NullCalibration
-from ._4_map import CandidateMap, MapOptions, _block, _open_store, assemble_map, map_plan
+from ._4_map import (
+    CandidateMap,
+    MapOptions,
+    _block,
+    _open_store,
+    assemble_map,
+    map_plan,
+    writer,
+)
 from ._fast import window_means
 
 __all__ = [
@@ -298,8 +306,12 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         import zarr
 
         g = zarr.open_group(store_path, mode="r+")
-        out = dict(saliency=g["saliency"], mask=g["mask"], spatial=_Tile(own["spatial"], r0, c0))
-        out["threshold"] = g["threshold"] if "threshold" in g else None
+        out = dict(
+            saliency=writer(g["saliency"]),
+            mask=writer(g["mask"]),
+            threshold=writer(g["threshold"]) if "threshold" in g else None,
+            spatial=_Tile(own["spatial"], r0, c0),
+        )
     # the running sums are read and rewritten in place: a copy of the neighbour's
     shape = (L, r, ctx.scales.size, T)
     carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
@@ -316,6 +328,12 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
 def _carry(out):
     """A tile's running column sums, for the tile on its right."""
     return out[2]
+
+
+def _result(out):
+    """What the calling process fetches of a tile: its result and own arrays, without
+    the running sums (which only the tile on its right needs, on a worker)."""
+    return out[:2]
 
 
 def _tile_shape(rows: int, shape, h: int, hc: int, given: bool) -> tuple[int, int]:
@@ -434,7 +452,8 @@ def map_candidates_tiled(
     ctx = dask.delayed(dataclasses.replace(filters, workers=1), pure=True)
     shared = dask.delayed((table, opts), pure=True)
     # keys named for the dashboard: "splidar-map-tile" computes a tile,
-    # "splidar-map-carry" passes its running sums to the tile on its right
+    # "splidar-map-carry" passes its running sums to the tile on its right,
+    # "splidar-map-result" is what the calling process fetches (not the sums)
     token = dask.base.tokenize(x.name, rows, cols, ctx.key, shared.key, store_path)
     name = "splidar-map-tile-" + token
     tasks, where = [], []
@@ -449,7 +468,11 @@ def map_candidates_tiled(
             carry = dask.delayed(_carry, pure=True)(
                 done, dask_key_name=("splidar-map-carry-" + token, i, j)
             )
-            tasks.append(done)
+            tasks.append(
+                dask.delayed(_result, pure=True)(
+                    done, dask_key_name=("splidar-map-result-" + token, i, j)
+                )
+            )
             where.append((r0, r1, c0, c1))
     logger.info(
         "detect: map pass on %d tile(s) of %d x %d pixels (halo %d rows, %d columns)",
@@ -465,7 +488,7 @@ def map_candidates_tiled(
     outs = [None] * len(tasks)
 
     def take(i, result):
-        res, own, _ = result
+        res, own = result
         r0, r1, c0, c1 = where[i]
         for k, v in own.items():
             out[k][r0:r1, c0:c1] = v
