@@ -110,9 +110,7 @@ def block_saliency(
         level = np.empty((r, cc, T), np.float32) if with_level else None
     else:  # reused buffers of a run of blocks (no fresh pages per block)
         d = work["d"].reshape(-1)[: r * cc * T].reshape(r, cc, T)
-        level = None
-        if with_level:
-            level = work["level"].reshape(-1)[: r * cc * T].reshape(r, cc, T)
+        level = np.empty((r, cc, T), np.float32) if with_level else None
     sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,

@@ -169,8 +169,9 @@ def worker_memory_limit() -> int | None:
 def tile_bytes(rows: int, shape, itemsize: int, halo: int, n_box: int) -> int:
     """Peak bytes of the buffers of one stage-4 tile of ``rows`` image rows.
 
-    Per image row of the tile, ``C T`` float32 each: saliency, signed response, level,
-    evidence, threshold and the copy a compressor makes on writing to a store, plus the
+    Per image row of the tile, ``C T`` float32 each: saliency, signed response,
+    evidence, threshold, the copy a compressor makes on writing to a store and one spare
+    (the level buffer the saliency kernel no longer keeps: a margin), plus the
     bool candidates and mask, plus ``n_box`` box means per wavelength (the scales above
     1 pixel when they are kept for extraction); per row with its halo (``rows + 2 halo``),
     ``C L T`` of counts twice (the halo exchange's copy) and of float32 correlated counts.
@@ -224,7 +225,6 @@ def _work(own: int, ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
         return have[2], have[3]
     work = dict(
         d=np.empty(own * T, np.float32),
-        level=np.empty(own * T, np.float32),
         cand=np.empty(own * T, bool),
         ev=np.empty(own * T, np.float32),
     )
