@@ -874,8 +874,9 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     they need (``y`` holds image rows from ``y0``, ``halo`` rows beyond the items').
 
     An in-memory cube is used whole, without a copy; a lazy (Dask / Zarr) one is read a
-    band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`:
-    the calling process holds one band), only where there are items.
+    band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`),
+    only where there are items, the next band on a thread while the caller works on
+    this one (the calling process holds two bands).
     """
     R = counts.shape[0]
     rows = np.asarray(rows, np.int64)
@@ -884,12 +885,25 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
         return
     row_bytes = np.dtype(counts.dtype).itemsize * int(np.prod(counts.shape[1:]))
     band = int(max(1, min(band, BAND_BYTES // max(row_bytes, 1))))
+    todo = []
     for a in range(0, R, band):
         sel = np.flatnonzero((rows >= a) & (rows < a + band))
-        if sel.size == 0:
-            continue
-        y0, y1 = max(0, a - halo), min(R, a + band + halo)
-        yield sel, np.ascontiguousarray(_read_rows(counts, y0, y1)), y0
+        if sel.size:
+            todo.append((sel, max(0, a - halo), min(R, a + band + halo)))
+    if not todo:
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    def read(i):
+        return np.ascontiguousarray(_read_rows(counts, todo[i][1], todo[i][2]))
+
+    with ThreadPoolExecutor(1) as ex:
+        ahead = ex.submit(read, 0)
+        for i, (sel, y0, _) in enumerate(todo):
+            y = ahead.result()
+            ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
+            yield sel, y, y0
+            del y
 
 
 #: Name prefixes of the Dask graph layers that only read stored chunks and slice them
