@@ -53,22 +53,46 @@ def _select(surf: dict, keep: np.ndarray, k_max: int):
     return idx, _position_in_pixel(row[idx], col[idx])
 
 
+#: Threads that read the selected histograms from the blocks' Zarr arrays (in a store;
+#: :func:`_gather`): each read waits on its files more than it computes.
+GATHER_THREADS = 4
+
+
 def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None) -> np.ndarray:
     """The selected candidates' histograms from the blocks' (and passes') arrays (NumPy
     or Zarr), into ``out`` (an array-like of shape ``(idx.size, Q, L, W)``, e.g. a Zarr
-    array: filled :data:`GATHER_CHUNK` surfaces at a time) or a new array."""
+    array: filled :data:`GATHER_CHUNK` surfaces at a time) or a new array. Zarr arrays
+    are read on :data:`GATHER_THREADS` threads, a block's array each (the same values)."""
     shape = (idx.size,) + tuple(histograms[0].shape[1:])
     if out is None:
         out = np.empty(shape, np.float32)
-    for a in range(0, idx.size, GATHER_CHUNK):
-        part = idx[a : a + GATHER_CHUNK]
-        hist = np.empty((part.size,) + shape[1:], np.float32)
-        hb, hr = table.hist_block[part], table.hist_row[part]
-        for b in np.unique(hb):
-            sel = np.flatnonzero(hb == b)
-            src = table.extra_histograms if b == -1 else histograms[b]
-            hist[sel] = src[hr[sel]]
-        out[a : a + part.size] = hist
+    stored = any(not isinstance(h, np.ndarray) for h in histograms)
+    pool = None
+    if stored and idx.size:
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(GATHER_THREADS)
+    try:
+        for a in range(0, idx.size, GATHER_CHUNK):
+            part = idx[a : a + GATHER_CHUNK]
+            hist = np.empty((part.size,) + shape[1:], np.float32)
+            hb, hr = table.hist_block[part], table.hist_row[part]
+
+            def read(b, hist=hist, hb=hb, hr=hr):
+                sel = np.flatnonzero(hb == b)
+                src = table.extra_histograms if b == -1 else histograms[b]
+                hist[sel] = src[hr[sel]]
+
+            blocks = np.unique(hb)
+            if pool is None:
+                for b in blocks:
+                    read(b)
+            else:  # every block's rows land in their own rows of ``hist``
+                list(pool.map(read, blocks))
+            out[a : a + part.size] = hist
+    finally:
+        if pool is not None:
+            pool.shutdown()
     return out
 
 

@@ -6,7 +6,6 @@ import dataclasses
 import functools
 import logging
 import os
-import shutil
 import time
 from pathlib import Path
 from types import MappingProxyType
@@ -43,7 +42,7 @@ from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._result import Background, Detection, StageRecord, StoredHistograms
-from ._table import skipped, store_histograms
+from ._table import remove_tree, skipped, store_histograms
 from ._tiled import is_dask, map_candidates_tiled, tiled_window_means
 
 __all__ = ["PASSES", "detect"]
@@ -332,7 +331,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store):
     done[-1] = dataclasses.replace(done[-1], table=None)
     if store is not None:
         surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
-        shutil.rmtree(Path(os.fspath(store)) / "candidate_histograms", ignore_errors=True)
+        remove_tree(Path(os.fspath(store)) / "candidate_histograms")
     t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     if o.get("tiled"):  # the table's pages, released
         _give_back()

@@ -874,8 +874,9 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     they need (``y`` holds image rows from ``y0``, ``halo`` rows beyond the items').
 
     An in-memory cube is used whole, without a copy; a lazy (Dask / Zarr) one is read a
-    band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`:
-    the calling process holds one band), only where there are items.
+    band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`),
+    only where there are items, the next band on a thread while the caller works on
+    this one (the calling process holds two bands).
     """
     R = counts.shape[0]
     rows = np.asarray(rows, np.int64)
@@ -884,12 +885,25 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
         return
     row_bytes = np.dtype(counts.dtype).itemsize * int(np.prod(counts.shape[1:]))
     band = int(max(1, min(band, BAND_BYTES // max(row_bytes, 1))))
+    todo = []
     for a in range(0, R, band):
         sel = np.flatnonzero((rows >= a) & (rows < a + band))
-        if sel.size == 0:
-            continue
-        y0, y1 = max(0, a - halo), min(R, a + band + halo)
-        yield sel, np.ascontiguousarray(_read_rows(counts, y0, y1)), y0
+        if sel.size:
+            todo.append((sel, max(0, a - halo), min(R, a + band + halo)))
+    if not todo:
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    def read(i):
+        return np.ascontiguousarray(_read_rows(counts, todo[i][1], todo[i][2]))
+
+    with ThreadPoolExecutor(1) as ex:
+        ahead = ex.submit(read, 0)
+        for i, (sel, y0, _) in enumerate(todo):
+            y = ahead.result()
+            ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
+            yield sel, y, y0
+            del y
 
 
 #: Name prefixes of the Dask graph layers that only read stored chunks and slice them
@@ -901,21 +915,42 @@ def _read_rows(counts, y0: int, y1: int) -> np.ndarray:
     """Rows ``[y0, y1)`` of an array in memory in the calling process.
 
     A Dask array whose graph only reads stored chunks (``splidar.load`` of a Zarr cube)
-    is read by this process directly (Dask's synchronous scheduler), not through the
-    cluster: a worker's read, serialised and sent over, took 5 x longer (0.11 s against
-    0.02 s for 32 rows of 1024 x 1000 uint8 counts; the slopes pass reads the cube up
-    to five times). Any other graph is computed by the active scheduler, and so is a
-    stored one whose files this process cannot open (a cluster's workers may see a path
-    the calling process does not).
+    is read by this process directly, not through the cluster: a worker's read,
+    serialised and sent over, took 5 x longer (0.11 s against 0.02 s for 32 rows of
+    1024 x 1000 uint8 counts; the slopes pass reads the cube up to five times). The
+    Zarr array of a ``dask.array.from_zarr`` graph is sliced itself (:func:`_zarr_of`:
+    a third of the CPU time of Dask's synchronous scheduler, which copies the chunks
+    into the band once more); another reading graph runs on that scheduler. Any other
+    graph is computed by the active scheduler, and so is a stored one whose files this
+    process cannot open (a cluster's workers may see a path the calling process does
+    not).
     """
     part = counts[y0:y1]
     layers = getattr(getattr(part, "dask", None), "layers", None)
     if layers is not None and all(str(k).startswith(_READ_LAYERS) for k in layers):
         try:
+            z = _zarr_of(counts)
+            if z is not None:
+                return np.asarray(z[y0:y1])
             return np.asarray(part.compute(scheduler="sync"))
         except OSError as exc:
             logger.debug("rows %d-%d read through the scheduler: %s", y0, y1, exc)
     return np.asarray(part)
+
+
+def _zarr_of(counts):
+    """The Zarr array a Dask array reads as it is (``dask.array.from_zarr``: one layer
+    holding the array, one reading its chunks; same shape and dtype), else None."""
+    layers = counts.dask.layers
+    if len(layers) != 2 or not str(counts.name).startswith("from-zarr-"):
+        return None
+    orig = [v for k, v in layers.items() if str(k).startswith("original-")]
+    if len(orig) != 1 or len(orig[0]) != 1:
+        return None
+    z = next(iter(orig[0].values()))
+    z = getattr(z, "value", z)  # a DataNode of Dask's task spec
+    ok = hasattr(z, "get_orthogonal_selection") and tuple(z.shape) == tuple(counts.shape)
+    return z if ok and np.dtype(z.dtype) == counts.dtype else None
 
 
 def support_sums(saliency, threshold, rows, cols, start, stop) -> tuple[np.ndarray, np.ndarray]:
@@ -923,9 +958,61 @@ def support_sums(saliency, threshold, rows, cols, start, stop) -> tuple[np.ndarr
 
     ``saliency`` (R, C, T) (array or Zarr); ``threshold`` a float, (1, 1, T) or
     (R, C, T). Evidence as in the main pass: ``sum max(S / threshold - 1, 0)``. Arrays
-    on disk are read a band of rows at a time (not once per surface).
+    in memory and Zarr arrays are read at the supports' voxels only (a Zarr array
+    decodes the chunks that hold them, once each); any other array a band of rows at a
+    time (not once per surface).
     """
     rows = np.asarray(rows, np.int64)
+    cols = np.asarray(cols, np.int64)
+    S = rows.size
+    lo = np.asarray(start, np.int64)
+    n = np.asarray(stop, np.int64) - lo
+    cut = np.concatenate([[0], np.cumsum(n)])
+    item = np.repeat(np.arange(S), n)  # the supports' voxels, surface by surface
+    t = lo[item] + np.arange(item.size) - cut[item]
+    sal = _voxels(saliency, rows[item], cols[item], t)
+    if sal is None:
+        return _support_sums_bands(saliency, threshold, rows, cols, start, stop)
+    if np.isscalar(threshold):
+        thr = np.full(item.size, float(threshold))
+    elif threshold.shape[0] == 1:
+        thr = np.asarray(threshold[0, 0], np.float64)[t]
+    elif hasattr(threshold, "pixels"):
+        # a threshold computed on access (ThresholdField), at these pixels only
+        thr = threshold.pixels(rows, cols)[item, t]
+    else:
+        thr = _voxels(threshold, rows[item], cols[item], t)
+        if thr is None:
+            return _support_sums_bands(saliency, threshold, rows, cols, start, stop)
+    mass, ev = np.zeros(S), np.zeros(S)
+    for s in range(S):  # each sum over its support alone, as the band loop does
+        v = np.asarray(sal[cut[s] : cut[s + 1]], np.float64)
+        w = np.asarray(thr[cut[s] : cut[s + 1]], np.float64)
+        mass[s] = v.sum()
+        ev[s] = np.maximum(v / np.maximum(w, 1e-12) - 1.0, 0.0).sum()
+    return mass, ev
+
+
+#: Voxels read from a Zarr array by one coordinate selection in :func:`_voxels`.
+_VOXELS_PER_READ = 1 << 20
+
+
+def _voxels(a, rows, cols, t) -> np.ndarray | None:
+    """``a[rows[i], cols[i], t[i]]`` of an ndarray or a Zarr array (coordinate selection:
+    only the chunks holding the voxels are read); None for any other kind of array."""
+    if isinstance(a, np.ndarray):
+        return a[rows, cols, t]
+    if not hasattr(a, "get_coordinate_selection"):
+        return None
+    out = np.empty(rows.size, a.dtype)
+    for i in range(0, rows.size, _VOXELS_PER_READ):
+        j = slice(i, i + _VOXELS_PER_READ)
+        out[j] = a.get_coordinate_selection((rows[j], cols[j], t[j]))
+    return out
+
+
+def _support_sums_bands(saliency, threshold, rows, cols, start, stop):
+    """:func:`support_sums` for an array read a band of rows at a time (e.g. Dask)."""
     S = rows.size
     mass = np.zeros(S)
     ev = np.zeros(S)

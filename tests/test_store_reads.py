@@ -1,0 +1,119 @@
+"""The calling process's reads of a detection's store and of a Zarr cube (clean-up passes):
+read at the voxels or rows needed, the same values as the band-by-band reads."""
+
+import numpy as np
+import pytest
+
+zarr = pytest.importorskip("zarr")
+da = pytest.importorskip("dask.array")
+
+from splidar.detection import ThresholdField  # noqa: E402
+from splidar.detection._6_select import _gather  # noqa: E402
+from splidar.detection._slopes import (  # noqa: E402
+    _read_rows,
+    _row_bands,
+    _support_sums_bands,
+    _zarr_of,
+    support_sums,
+)
+from splidar.detection._table import CandidateTable, remove_tree  # noqa: E402
+
+
+def _supports(rng, R, C, T, S):
+    rows, cols = rng.integers(0, R, S), rng.integers(0, C, S)
+    start = rng.integers(0, T - 9, S)
+    stop = start + rng.integers(0, 10, S)  # widths 0 to 9 bins (0: an empty support)
+    return rows, cols, start, stop
+
+
+def test_support_sums_zarr_equals_band_reads(tmp_path):
+    rng = np.random.default_rng(0)
+    R, C, T = 23, 17, 40
+    sal = rng.gamma(2.0, 1.0, (R, C, T)).astype(np.float32)
+    thr = rng.uniform(0.5, 3.0, (R, C, T)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    zs = g.create_array("saliency", shape=sal.shape, chunks=(4, 5, T), dtype="float32")
+    zt = g.create_array("threshold", shape=thr.shape, chunks=(4, 5, T), dtype="float32")
+    zs[...], zt[...] = sal, thr
+    rows, cols, start, stop = _supports(rng, R, C, T, 200)
+    field = ThresholdField(
+        rng.uniform(0.0, 1.0, (R, C, 1)).astype(np.float32),
+        rng.normal(0.0, 0.1, (1, T)).astype(np.float32),
+        np.array([0.0, 0.5, 1.5]),
+        np.array([1.0, 1.5, 2.5]),
+    )
+    # every kind of threshold, on the saliency in memory and stored: bit for bit the
+    # band-by-band sums (each support summed alone, in the same order)
+    for threshold in (zt, thr, 1.3, thr[:1, :1], field):
+        want = _support_sums_bands(sal, threshold, rows, cols, start, stop)
+        for saliency in (sal, zs):
+            got = support_sums(saliency, threshold, rows, cols, start, stop)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+    assert np.all(want[0][stop == start] == 0) and np.any(want[1] > 0)
+    # a Dask saliency is read band by band, with the same sums
+    got = support_sums(da.from_array(sal, chunks=(5, C, T)), zt, rows, cols, start, stop)
+    np.testing.assert_array_equal(got[0], want[0])
+
+
+def test_read_rows_slices_the_zarr_array_of_a_loaded_cube(tmp_path):
+    rng = np.random.default_rng(1)
+    y = rng.poisson(0.3, (30, 6, 1, 20)).astype(np.uint8)
+    z = zarr.open_group(str(tmp_path / "c.zarr"), mode="w").create_array(
+        "counts", shape=y.shape, chunks=(7, 6, 1, 20), dtype="uint8"
+    )
+    z[...] = y
+    lazy = da.from_zarr(z)
+    assert _zarr_of(lazy) is not None
+    # a graph that computes, or a view of the stored array, is not read from Zarr itself
+    for other in (lazy + 1, lazy[:, :, :, :10], lazy[::2], da.from_array(y, chunks=7)):
+        assert _zarr_of(other) is None
+    for y0, y1 in ((0, 30), (5, 19), (28, 30)):
+        np.testing.assert_array_equal(_read_rows(lazy, y0, y1), y[y0:y1])
+        np.testing.assert_array_equal(_read_rows(lazy + 1, y0, y1), y[y0:y1] + 1)
+    items = np.array([0, 3, 29, 12, 13])
+    got = {tuple(sel): (band.copy(), y0) for sel, band, y0 in _row_bands(lazy, items, 2, band=8)}
+    for sel, (band, y0) in got.items():
+        np.testing.assert_array_equal(band, y[y0 : y0 + band.shape[0]])
+        for r in items[list(sel)]:  # each item's rows and their halo of 2 are in its band
+            assert y0 <= max(r - 2, 0) and min(r + 3, 30) <= y0 + band.shape[0]
+    assert sorted(s for sel in got for s in sel) == list(range(items.size))
+
+
+def test_gather_stored_histograms_equals_in_memory(tmp_path):
+    rng = np.random.default_rng(2)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    blocks = [rng.normal(size=(n, 2, 1, 5)).astype(np.float32) for n in (7, 0, 11, 4)]
+    stored = []
+    for i, b in enumerate(blocks):
+        z = g.create_array(str(i), shape=b.shape, chunks=(3, 2, 1, 5), dtype="float32")
+        if len(b):
+            z[...] = b
+        stored.append(z)
+    extra = rng.normal(size=(3, 2, 1, 5)).astype(np.float32)
+    hb = np.array([0] * 7 + [2] * 11 + [3] * 4 + [-1] * 3)
+    hr = np.concatenate([np.arange(7), np.arange(11), np.arange(4), np.arange(3)])
+    table = CandidateTable(
+        columns={"row": np.arange(hb.size)}, keep=np.ones(hb.size, bool),
+        origin=np.zeros(hb.size, np.int8), hist_block=hb, hist_row=hr,
+        image_shape=(hb.size, 1), extra_histograms=extra,
+    )  # fmt: skip
+    idx = rng.permutation(hb.size)[:20]
+    want = _gather(table, idx, tuple(blocks))
+    for i, k in enumerate(idx):
+        src = extra if hb[k] == -1 else blocks[hb[k]]
+        np.testing.assert_array_equal(want[i], src[hr[k]])
+    np.testing.assert_array_equal(_gather(table, idx, tuple(stored)), want)
+
+
+def test_remove_tree_removes_nested_folders(tmp_path):
+    root = tmp_path / "store" / "candidate_histograms"
+    for i in range(12):
+        d = root / f"{i}_0" / "c" / "0" / "0"
+        d.mkdir(parents=True)
+        (d / "0").write_bytes(b"x" * 10)
+        (root / f"{i}_0" / "zarr.json").write_text("{}")
+    (root / "zarr.json").write_text("{}")
+    remove_tree(root)
+    assert not root.exists() and (tmp_path / "store").exists()
+    remove_tree(root)  # nothing to remove: no error
