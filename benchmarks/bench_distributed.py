@@ -203,10 +203,17 @@ def _same(a, b) -> bool:
     )
 
 
-def _timed(cube, **kw):
+def _timed(cube, process=False, **kw):
+    """``detect`` (or, ``process=True``, ``splidar.process``, its Detection carrying the
+    reconstruction's time) of ``cube``: ``(Detection, seconds)``."""
     t0 = time.perf_counter()
-    det = splidar.detect(cube, rng=0, **kw)
-    return det, time.perf_counter() - t0
+    if not process:
+        det = splidar.detect(cube, rng=0, **kw)
+        return det, time.perf_counter() - t0
+    rec = splidar.process(cube, rng=0, **kw)
+    t = time.perf_counter() - t0
+    timings = {**rec.detection.timings, "reconstruct": rec.timings["reconstruct"]}
+    return dataclasses.replace(rec.detection, timings=timings), t
 
 
 def _cluster_run(
@@ -236,14 +243,8 @@ def _cluster_run(
         pids["caller"] = os.getpid()
         print(f"cluster-{n}: calling process at {_rss_mb():.0f} MB before the run", flush=True)
         with _Sampler(pids) as s:
-            if process:  # detection and reconstruction (on strips for a Dask cube)
-                t0 = time.perf_counter()
-                rec = splidar.process(cube, rng=0, store=store, block_rows=block_rows)
-                t = time.perf_counter() - t0
-                timings = {**rec.detection.timings, "reconstruct": rec.timings["reconstruct"]}
-                det = dataclasses.replace(rec.detection, timings=timings)
-            else:
-                det, t = _timed(cube, store=store, block_rows=block_rows)
+            # process: detection and reconstruction (on strips for a Dask cube)
+            det, t = _timed(cube, process, store=store, block_rows=block_rows)
         restarted = sum(1 for w, p in client.run(os.getpid).items() if pids.get(w) != p) + max(
             0, n - len(client.scheduler_info()["workers"])
         )
@@ -294,7 +295,8 @@ def large(args) -> int:
             for kw in ({}, {"store": base / "det-memory.zarr"}):
                 shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
                 with _Sampler({"caller": os.getpid()}) as s:
-                    det, t = _timed(mem, n_jobs=n, **kw)
+                    # like for like: --process times splidar.process in memory too
+                    det, t = _timed(mem, args.process, n_jobs=n, **kw)
                 name = f"memory-{n}" + ("-store" if kw else "")
                 print(f"{name}: {t:.1f} s ({s.cpu:.1f} s CPU), stages " + _stages(det), flush=True)
                 rows.append((name, n, t, mem.counts.size, None, None, 0, s.cpu))
