@@ -466,12 +466,16 @@ def test_threshold_pass_level_is_the_saliency_kernels_level():
     np.testing.assert_array_equal(mask, sal > ref)
 
 
-def test_extraction_order_does_not_change_detection(monkeypatch):
+@pytest.mark.parametrize("stored_boxes", [True, False])
+def test_extraction_order_does_not_change_detection(monkeypatch, stored_boxes):
     # candidates are extracted by depth band, then pixel (cache); in raster order every
-    # output must be the same bit for bit
+    # output must be the same bit for bit, with the saliency pass's box means and with
+    # the per-candidate box sums (large T: column sums cached per depth band and row)
     from splidar.detection import _4_map, detect
     from splidar.scenes import two_layer_scene
 
+    if not stored_boxes:
+        monkeypatch.setattr(_4_map, "_store_boxes", lambda *a: False)
     sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=10, sbr=1.0, rng=5)
     ref = detect(sim.cube, rng=0, n_jobs=1)
     monkeypatch.setattr(_4_map, "_ORDER_BAND", 1 << 40)
@@ -580,19 +584,3 @@ def test_box_sums_cached_column_sums_give_the_same_bits():
         np.testing.assert_array_equal(warm, cold)
         ref = _box_sums_reference(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
         np.testing.assert_allclose(warm, ref, rtol=1e-12, atol=0)
-
-
-def test_extraction_without_stored_boxes_does_not_depend_on_order(monkeypatch):
-    # the per-candidate box sums (large T) cache column sums per depth band and row; the
-    # raster order (no band) must give every output bit for bit
-    from splidar.detection import _4_map, detect
-    from splidar.scenes import two_layer_scene
-
-    monkeypatch.setattr(_4_map, "_store_boxes", lambda *a: False)
-    sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=10, sbr=1.0, rng=5)
-    ref = detect(sim.cube, rng=0, n_jobs=1)
-    monkeypatch.setattr(_4_map, "_ORDER_BAND", 1 << 40)
-    other = detect(sim.cube, rng=0, n_jobs=1)
-    assert len(ref.surfaces) > 300
-    for name in ("depth_bin", "histograms", "evidence", "presence_llr", "signal"):
-        np.testing.assert_array_equal(getattr(other.surfaces, name), getattr(ref.surfaces, name))
