@@ -39,6 +39,15 @@ _PARALLEL = True
 
 
 @njit(cache=True)
+def _slot_index(row, col, slot, rows, cols, n_slots):
+    """``(rows, cols, n_slots)`` int64 grid of surface indices (-1 where no surface)."""
+    idx = np.full((rows, cols, n_slots), -1, np.int64)
+    for s in range(row.shape[0]):
+        idx[row[s], col[s], slot[s]] = s
+    return idx
+
+
+@njit(cache=True)
 def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
     """CSR links between surfaces of 4-neighbour pixels with ``|depth difference| <= gate``.
 
@@ -46,9 +55,7 @@ def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
     (see :func:`splidar.reconstruction.build_graph`).
     """
     S = row.shape[0]
-    idx = np.full((rows, cols, n_slots), -1, np.int64)
-    for s in range(S):
-        idx[row[s], col[s], slot[s]] = s
+    idx = _slot_index(row, col, slot, rows, cols, n_slots)
     dr = (-1, 0, 0, 1)
     dc = (0, -1, 1, 0)
     indptr = np.zeros(S + 1, np.int64)
@@ -98,9 +105,7 @@ def bridge_csr(row, col, slot, depth, rows, cols, n_slots, gate, indptr, indices
     Returns ``(indptr (S + 1,), indices (E',))``, each row's neighbours in ascending order.
     """
     S = row.shape[0]
-    idx = np.full((rows, cols, n_slots), -1, np.int64)
-    for s in range(S):
-        idx[row[s], col[s], slot[s]] = s
+    idx = _slot_index(row, col, slot, rows, cols, n_slots)
     dr = (-2, 0, 0, 2)
     dc = (0, -2, 2, 0)
     extra = np.zeros(S, np.int64)
