@@ -190,8 +190,10 @@ def test_classify_surfaces_confidence_is_calibrated_on_a_fine_texture():
     # a fine texture of 3 materials (smoothed noise, patches of a few pixels, ~25 % of
     # the links between two materials: Art-like) at 3 photons a surface. One chain of
     # 15 + 30 sweeps settles into one labelling of the patches and is over-confident
-    # (ECE 0.081 / 0.086 on seeds 10 / 11); the default 3 chains of 8 + 8 sweeps pool
-    # their labellings (0.040 / 0.051). The bound 0.065 sits between (4,096 surfaces).
+    # (ECE 0.081 / 0.086 on seeds 10 / 11; 0.070 now); the default chains pool their
+    # labellings (3 chains of 8 + 8 at spread strengths: 0.040 / 0.051 / 0.011 now;
+    # 2 chains of 12 + 12 since session 11: 0.051). The bound 0.065 sits between
+    # (4,096 surfaces).
     from scipy import ndimage
 
     rng = np.random.default_rng(10)

@@ -42,15 +42,19 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    (red then black pixels). A region of one material is thus relabelled as a whole on
    the evidence of all its photons (hundreds at PPP 1), which single-site updates (ICM,
    mean field) cannot do from a wrong start; the heat-bath sweep moves the surfaces on
-   region boundaries, which SW rarely cuts loose. Three independent chains, each of 8
-   sweeps discarded and 8 kept, are pooled (random numbers: a counter-based hash of
+   region boundaries, which SW rarely cuts loose. Two independent chains, each of 12
+   sweeps discarded and 12 kept, are pooled (random numbers: a counter-based hash of
    (seed, sweep, index), so the result does not depend on the number of threads). One
    chain of 15 + 30 sweeps (the first version) gave the same labels but over-confident
    marginals on finely textured scenes (Art: ECE 0.10-0.16): once settled, a chain
    rarely relabels a whole patch, so it reports one labelling of the patches as
-   certain; separate chains settle differently where the data leave it open. A
-   surface's label is its most probable marginal class and ``label_confidence`` that
-   marginal probability.
+   certain; separate chains settle differently where the data leave it open. Three
+   chains of 8 + 8 (sessions 7-10) had not converged at low counts: chains that start
+   from the per-surface labels (right for a fifth of Art's surfaces at PPP 4) need
+   about 12 sweeps to coarsen, and short chains ending in different labellings of
+   the same objects made the pooled marginals under-confident where the field fits
+   (session 11). A surface's label is its most probable marginal class and
+   ``label_confidence`` that marginal probability.
 
    Two refinements of the field (session 8, ``docs/classification.md``):
 
@@ -62,11 +66,16 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
      one-pixel strand pays for its two cross links before the link weakens. A strand
      whose own evidence is strong survives; weak evidence (low counts, the inside of a
      region) leaves the links at full strength, so pooling is unchanged.
-   * **Chains spread over the strength** (:func:`chain_gammas`): the chains run at
-     strengths evenly spread over ``[log(1 + sqrt(K)), 2 gamma - log(1 + sqrt(K))]``
-     (the ordering threshold of the K-state Potts model and as far above ``gamma``),
-     their marginals pooled with equal weights: the rule fixes the order of the
-     strength, not its value, and the confidence averages over that.
+   * **Chains spread over the strength** (:func:`chain_gammas`, ``spread=True``; the
+     default of sessions 8-10, off since session 11): the chains run at strengths
+     evenly spread over ``[log(1 + sqrt(K)), 2 gamma - log(1 + sqrt(K))]``, their
+     marginals pooled with equal weights. Those are the prior's weights on the
+     strength; the lowest chain sits at the critical point of the Potts model, where
+     the marginals stay spread however clear the regions, so where the field fits the
+     scene (``art_objects``, the multispectral scenes) the pooled confidence was too
+     low, and where it does not (Art's k-means classes) the spread hid an
+     over-confidence that chains at any single strength in the range show once they
+     have converged (``docs/classification.md``, "Calibration where the field fits").
 
    And two of session 10: the marginals average the conditional probabilities of the
    heat-bath draws (Rao-Blackwellised: the same expectation, a smaller Monte Carlo
@@ -573,7 +582,10 @@ def chain_gammas(gamma: float, n_classes: int, n_chains: int) -> np.ndarray:
     partition function). Measured (``docs/classification.md``): on Art, where the
     Potts field fits the label texture badly, ECE 0.06-0.09 -> 0.02-0.03 at the same
     accuracy; on the multispectral scenes, which it fits, the marginals become slightly
-    under-confident (ECE 0.01-0.02 -> 0.02-0.04). One chain: ``gamma``.
+    under-confident (ECE 0.01-0.02 -> 0.02-0.04), and on ``art_objects`` clearly so
+    (ECE 0.13 at PPP 4): the lowest strength is the critical point, where the marginals
+    stay spread. Not the default since session 11 (``classify_surfaces(spread=True)``).
+    One chain: ``gamma``.
 
     Parameters
     ----------
@@ -744,13 +756,13 @@ def classify_surfaces(
     gamma: float = GAMMA,
     alpha=np.inf,
     n_rounds: int = 1,
-    n_chains: int = 3,
-    n_burn: int = 8,
-    n_keep: int = 8,
+    n_chains: int = 2,
+    n_burn: int = 12,
+    n_keep: int = 12,
     seed: int = 0,
     proportions: np.ndarray | None = None,
     contrast: bool = True,
-    spread: bool = True,
+    spread: bool = False,
     loglik: np.ndarray | None = None,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
@@ -775,9 +787,14 @@ def classify_surfaces(
         Rounds of sampling; independent chains per round (seeds ``seed + round + 7919
         c``, all started from the previous round's labels, the first round from the
         argmax of the likelihood), whose kept sweeps are pooled; sweeps discarded and
-        kept per chain. 3 chains of 8 + 8 sweeps (48 in all, the cost of the former
-        single chain of 15 + 30): the same labels, marginals about half as
-        over-confident on Art (see the module docstring).
+        kept per chain. 2 chains of 12 + 12 sweeps (48 in all, the cost of the former
+        3 chains of 8 + 8 and of the first single chain of 15 + 30): chains that start
+        from the per-surface labels need about 12 sweeps to coarsen into regions at low
+        counts (with 8, short chains settling into different labellings of the same
+        objects made the pooled marginals under-confident: ``art_objects`` at PPP 4,
+        ECE 0.06 with 3 chains of 8 + 8 at ``gamma``), and two chains keep some of the
+        spread between modes at PPP 1 (one chain of 16 + 32: ECE 0.09-0.11 on single
+        PPP 1 cells).
     seed : int
     proportions : ndarray (K,), optional
         Class proportions to start from instead of the EM estimate on these surfaces (a
@@ -789,7 +806,15 @@ def classify_surfaces(
     spread : bool
         Spread the chains' interaction strengths evenly over ``[g_c, 2 gamma - g_c]``
         with ``g_c = log(1 + sqrt(K))`` the ordering threshold of the K-state Potts model
-        (:func:`chain_gammas`; default). ``False``: every chain at ``gamma``.
+        (:func:`chain_gammas`; the default of sessions 8-10, with 3 chains of 8 + 8).
+        ``False`` (default since session 11): every chain at ``gamma``. Equal weights
+        on the spread strengths are the prior's, not the posterior's: the lowest chain
+        sits at the critical point, where the field's marginals stay spread however
+        clear the regions (``art_objects``, PPP 4: confidence 0.61 against accuracy
+        0.70-0.77 in that chain alone), so where the field fits the scene the pooled
+        confidence was too low (ECE 0.13 / 0.07 / 0.04 at PPP 4 / 16 / 64), while the
+        marginal likelihood of the strength (thermodynamic integration) puts it near
+        1.3-1.5 there. ``docs/classification.md``, "Calibration where the field fits".
     loglik : ndarray (S, K), optional
         :func:`class_loglik` of these surfaces (with this ``alpha``) when already
         computed (a tiled reconstruction computes it once for the whole image).

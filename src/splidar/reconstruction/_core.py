@@ -1142,9 +1142,10 @@ def reconstruct(
     gamma : float
         Interaction strength of the label field, nats per link (>= 0; default 1.5, a
         rule independent of the scene: see :func:`splidar.reconstruction.link_gamma`).
-        The sampler's chains run at strengths spread about it
-        (:func:`splidar.reconstruction.chain_gammas`) and each link is weakened where
-        the photons show a boundary (:func:`splidar.reconstruction.link_contrast`).
+        The sampler's two chains run at it (since session 11; before, at strengths
+        spread about it, :func:`splidar.reconstruction.chain_gammas`) and each link is
+        weakened where the photons show a boundary
+        (:func:`splidar.reconstruction.link_contrast`).
     rho : float
         gamma-MRF coupling (> 0); larger smooths h more.
     alpha : float, array (K, L) or "auto"
