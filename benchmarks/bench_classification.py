@@ -31,6 +31,7 @@ Usage::
     python benchmarks/bench_classification.py                # about 5-8 minutes
     python benchmarks/bench_classification.py --quick        # PPP 1 and 10, no Art
     python benchmarks/bench_classification.py --figure rel.png --json rows.json
+    # --figure also writes rel_art.png (Art) and, with --art-objects, rel_art_objects.png
 """
 
 from __future__ import annotations
@@ -482,6 +483,7 @@ def main(argv=None) -> int:
             obj = art_object_scene(art)
             edge_o = colour_boundary(obj.truth, obj.shape)
             print("\nArt, one class per object (art_object_scene; not the paper's scene)")
+            obj_cal = []
             for ppp in PPP_ART:
                 r, cal = run_cell(
                     obj, ppp, "uniform", args.seed, tau_m=0.004, special=edge_o, special2=~edge_o
@@ -490,7 +492,17 @@ def main(argv=None) -> int:
                 print(_fmt(r), flush=True)
                 rows.append(r)
                 if cal is not None:
+                    obj_cal.append(cal)
                     print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
+            if obj_cal and args.figure is not None:
+                from splidar.plotting import reliability_diagram
+
+                c = np.concatenate([a for a, _ in obj_cal])
+                o = np.concatenate([b for _, b in obj_cal])
+                title = f"art_objects, PPP 4-64 (ECE {ece(c, o):.3f})"
+                path = args.figure.with_name(args.figure.stem + "_art_objects" + args.figure.suffix)
+                reliability_diagram(c, o, title=title).savefig(path, dpi=110)
+                print(f"reliability figure: {path}")
         if art_cal and args.figure is not None:
             from splidar.plotting import reliability_diagram
 
