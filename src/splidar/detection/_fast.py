@@ -382,6 +382,23 @@ def _rows_kernel(
             carry_out[i - keep0] = carry[i - i_start]
 
 
+def _kept_span(shape, keep: slice, keep_cols, Q: int, carry) -> tuple:
+    """``(i0, i1, j0, j1)``: the kept rows and columns of a block of ``shape`` (R, C, T);
+    raises ValueError on a strided slice or a ``carry`` of the wrong form."""
+    R, C, T = shape
+    i0, i1, st = keep.indices(R)
+    if st != 1:
+        raise ValueError("keep must be a contiguous slice")
+    j0, j1, st = (slice(None) if keep_cols is None else keep_cols).indices(C)
+    if st != 1:
+        raise ValueError("keep_cols must be a contiguous slice")
+    if carry is not None and (carry.shape != (i1 - i0, Q, T) or carry.dtype != np.float64):
+        raise ValueError("carry must be float64 (kept rows, scales, T)")
+    if j0 > 0 and carry is None:
+        raise ValueError("keep_cols starting past column 0 needs the carry of the columns before")
+    return i0, i1, j0, j1
+
+
 def _flat_rows(c: np.ndarray):
     """``c`` (R, C, T) float32 as a flat contiguous buffer and its row/column strides.
 
@@ -490,18 +507,9 @@ def saliency_wavelength(
     (True, True)
     """
     R, C, T = c.shape
-    i0, i1, st = keep.indices(R)
-    if st != 1:
-        raise ValueError("keep must be a contiguous slice")
-    j0, j1, st = (slice(None) if keep_cols is None else keep_cols).indices(C)
-    if st != 1:
-        raise ValueError("keep_cols must be a contiguous slice")
-    strip = max(j1 - j0, 1) if strip is None else max(int(strip), 1)
     Q = np.size(scales)
-    if carry is not None and (carry.shape != (i1 - i0, Q, T) or carry.dtype != np.float64):
-        raise ValueError("carry must be float64 (kept rows, scales, T)")
-    if j0 > 0 and carry is None:
-        raise ValueError("keep_cols starting past column 0 needs the carry of the columns before")
+    i0, i1, j0, j1 = _kept_span(c.shape, keep, keep_cols, Q, carry)
+    strip = max(j1 - j0, 1) if strip is None else max(int(strip), 1)
     nc = j1 - j0
     estimate = spatial is None
     sp = np.empty((i1 - i0, nc), np.float32) if estimate else spatial
