@@ -290,12 +290,14 @@ def _filter_row(
 
 
 @njit(cache=True, nogil=True)
-def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
+def _bhat_saliency(s0_, dev, edge, mr, sr_, dr, level, o, jo, overwrite):
     """One pixel's ``bhat`` (``eq:background_3``), signed response and saliency
     (``eq:4.s1``) from its level ``s0_`` and filtered series ``mr`` (T,): written
     (``overwrite``, the first wavelength) or added to ``sr_`` and ``dr`` (T,), and to
     ``level[o, jo]`` unless ``level`` is empty (then the caller recomputes ``sum_l
-    bhat`` where it needs it, from the levels and ``dev``)."""
+    bhat`` where it needs it, from the levels and ``dev``). ``edge`` (T,): the
+    response's deviation is multiplied by it (1 but in the bins the IRF reaches past the
+    window's edges, :func:`~splidar.detection._filters.edge_factors`)."""
     T = mr.size
     with_level = level.shape[0] > 0
     if overwrite:  # the first wavelength: no zeroing pass before
@@ -303,7 +305,7 @@ def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
             bh = s0_ + dev[t]
             if bh < 0:
                 bh = np.float32(0.0)  # eq:background_3
-            x = mr[t] - bh
+            x = (mr[t] - bh) * edge[t]
             dr[t] = x
             sr_[t] = abs(x)  # eq:4.s1
         if with_level:
@@ -316,7 +318,7 @@ def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
             bh = s0_ + dev[t]
             if bh < 0:
                 bh = np.float32(0.0)  # eq:background_3
-            x = mr[t] - bh
+            x = (mr[t] - bh) * edge[t]
             dr[t] += x
             sr_[t] += abs(x)  # eq:4.s1
         if with_level:
@@ -329,8 +331,8 @@ def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
 @njit(cache=True, nogil=True)
 def _rows_kernel(
     cf, R, C, T, sr, sc, i_start, i_stop, keep0, jk0, jk1, strip, carry_in, carry_out, scales,
-    weights, sp, estimate, dev, var_factor, quantum, clip, n_iter, step, sal, d, level, box,
-    bidx, overwrite,
+    weights, sp, estimate, dev, edge, var_factor, quantum, clip, n_iter, step, sal, d, level,
+    box, bidx, overwrite,
 ):  # fmt: skip
     """Output rows ``[i_start, i_stop)`` and columns ``[jk0, jk1)`` (block coordinates)
     of one wavelength, in strips of ``strip`` columns (each strip's rows one after the
@@ -372,10 +374,29 @@ def _rows_kernel(
                     sp[o, jo] = _level_pixel(
                         coarse[j], step, var_factor, quantum, clip, n_iter, scratch
                     )
-                _bhat_saliency(sp[o, jo], dev, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite)
+                _bhat_saliency(
+                    sp[o, jo], dev, edge, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite
+                )
     if carry_out.shape[0] > 0:
         for i in range(i_start, i_stop):
             carry_out[i - keep0] = carry[i - i_start]
+
+
+def _kept_span(shape, keep: slice, keep_cols, Q: int, carry) -> tuple:
+    """``(i0, i1, j0, j1)``: the kept rows and columns of a block of ``shape`` (R, C, T);
+    raises ValueError on a strided slice or a ``carry`` of the wrong form."""
+    R, C, T = shape
+    i0, i1, st = keep.indices(R)
+    if st != 1:
+        raise ValueError("keep must be a contiguous slice")
+    j0, j1, st = (slice(None) if keep_cols is None else keep_cols).indices(C)
+    if st != 1:
+        raise ValueError("keep_cols must be a contiguous slice")
+    if carry is not None and (carry.shape != (i1 - i0, Q, T) or carry.dtype != np.float64):
+        raise ValueError("carry must be float64 (kept rows, scales, T)")
+    if j0 > 0 and carry is None:
+        raise ValueError("keep_cols starting past column 0 needs the carry of the columns before")
+    return i0, i1, j0, j1
 
 
 def _flat_rows(c: np.ndarray):
@@ -417,6 +438,7 @@ def saliency_wavelength(
     keep_cols: slice | None = None,
     strip: int | None = None,
     carry: np.ndarray | None = None,
+    edge: np.ndarray | None = None,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -465,6 +487,10 @@ def saliency_wavelength(
         column 0 (a block to the left wrote them; required then), overwritten with
         those at the last kept column. Passing them on makes every value the one a pass
         over the whole row gives, bit for bit.
+    edge : ndarray (T,) float32, optional
+        Factor of ``x`` in each bin (default 1): the matched filter's background noise
+        made the same at the window's edges as inside
+        (:func:`~splidar.detection._filters.edge_factors`).
 
     Returns
     -------
@@ -481,18 +507,9 @@ def saliency_wavelength(
     (True, True)
     """
     R, C, T = c.shape
-    i0, i1, st = keep.indices(R)
-    if st != 1:
-        raise ValueError("keep must be a contiguous slice")
-    j0, j1, st = (slice(None) if keep_cols is None else keep_cols).indices(C)
-    if st != 1:
-        raise ValueError("keep_cols must be a contiguous slice")
-    strip = max(j1 - j0, 1) if strip is None else max(int(strip), 1)
     Q = np.size(scales)
-    if carry is not None and (carry.shape != (i1 - i0, Q, T) or carry.dtype != np.float64):
-        raise ValueError("carry must be float64 (kept rows, scales, T)")
-    if j0 > 0 and carry is None:
-        raise ValueError("keep_cols starting past column 0 needs the carry of the columns before")
+    i0, i1, j0, j1 = _kept_span(c.shape, keep, keep_cols, Q, carry)
+    strip = max(j1 - j0, 1) if strip is None else max(int(strip), 1)
     nc = j1 - j0
     estimate = spatial is None
     sp = np.empty((i1 - i0, nc), np.float32) if estimate else spatial
@@ -513,6 +530,7 @@ def saliency_wavelength(
         sp,
         estimate,
         np.ascontiguousarray(dev, dtype=np.float32),
+        np.ones(T, np.float32) if edge is None else np.ascontiguousarray(edge, dtype=np.float32),
         float(var_factor),
         float(quantum),
         float(clip),
