@@ -401,22 +401,26 @@ def _level_reference(sp, dev):
     return lv
 
 
-def test_threshold_pass_walk_equals_bisection():
-    # the table interval found by stepping from the previous bin gives the same
-    # threshold as the bisection, also for levels on the table's points and beyond it
+@pytest.mark.parametrize("G", [1, 2, 12])
+def test_threshold_pass_equals_bisection(G):
+    # the table interval found by counting the table points below a level gives the
+    # same threshold as the bisection, also for levels on the table's points and beyond it
     from splidar.detection._kernels import _interp_table, threshold_pass
 
     rng = np.random.default_rng(4)
     r, C, T, L = 3, 5, 300, 2
     xs = np.sort(rng.uniform(0, 10, 12))
     ys = rng.uniform(1, 5, 12)
+    if G < 12:
+        xs, ys = xs[[3, 8][:G]], ys[:G]
     # levels sum_l max(sp + dev, 0): a slow drift over the whole table and beyond it
     dev = np.stack([np.linspace(-2, 10, T), rng.normal(0, 0.3, T)]).astype(np.float32)
     sp = rng.uniform(-1, 1.5, (r, C, L)).astype(np.float32)
     dev[:, 7] = 0.0
-    sp[0, 0] = (np.float32(xs[3]), 0.0)  # bin 7 of pixel (0, 0) on a table point
+    sp[0, 0] = (np.float32(xs[G // 4]), 0.0)  # bin 7 of pixel (0, 0) on a table point
     level = _level_reference(sp, dev)
-    assert level[0, 0, 7] == np.float32(xs[3]) and level.min() < xs[0] and level.max() > xs[-1]
+    assert level[0, 0, 7] == np.float32(xs[G // 4])
+    assert level.min() < xs[0] and level.max() > xs[-1]
     sal = rng.uniform(0, 6, (r, C, T)).astype(np.float32)
     d = rng.normal(size=(r, C, T)).astype(np.float32)
     y = rng.poisson(1.0, (r + 2, C, L, T)).astype(np.uint16)
