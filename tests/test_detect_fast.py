@@ -9,6 +9,7 @@ from scipy import ndimage
 from splidar import gaussian_irf
 from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temporal_shape
 from splidar.detection._fast import (
+    _median_near,
     _median_scratch,
     poisson_background,
     saliency_wavelength,
@@ -213,6 +214,21 @@ def test_median_scratch_equals_numpy_median(n, ties):
     want = np.median(x)
     got = _median_scratch(x.copy(), n)
     assert got == np.float64(want)  # the order statistic: exact
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 75, 76, 375])
+@pytest.mark.parametrize("ties", [False, True])
+def test_median_near_equals_median_scratch_whatever_the_hint(n, ties):
+    # the band about the hint only speeds the selection up: the same value with a hint
+    # on the median, beside it, far off (no band holds it), NaN, or a band of width 0
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=n).astype(np.float32)
+    if ties:  # few distinct values, as in sparse coarse counts
+        x = np.round(x * 2).astype(np.float32) / 4
+    want = _median_scratch(x.copy(), n)
+    for hint, width in [(want, 0.1), (want, 0.0), (want + 0.05, 0.1), (want - 0.3, 0.2),
+                        (50.0, 1.0), (np.nan, 0.1), (want, np.inf)]:  # fmt: skip
+        assert _median_near(x.copy(), n, hint, width) == want, (hint, width)
 
 
 @pytest.mark.parametrize("dtype", [np.uint16, np.int64, np.float32])
