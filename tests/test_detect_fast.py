@@ -9,6 +9,7 @@ from scipy import ndimage
 from splidar import gaussian_irf
 from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temporal_shape
 from splidar.detection._fast import (
+    _median_near,
     _median_scratch,
     poisson_background,
     saliency_wavelength,
@@ -215,6 +216,21 @@ def test_median_scratch_equals_numpy_median(n, ties):
     assert got == np.float64(want)  # the order statistic: exact
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 75, 76, 375])
+@pytest.mark.parametrize("ties", [False, True])
+def test_median_near_equals_median_scratch_whatever_the_hint(n, ties):
+    # the band about the hint only speeds the selection up: the same value with a hint
+    # on the median, beside it, far off (no band holds it), NaN, or a band of width 0
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=n).astype(np.float32)
+    if ties:  # few distinct values, as in sparse coarse counts
+        x = np.round(x * 2).astype(np.float32) / 4
+    want = _median_scratch(x.copy(), n)
+    for hint, width in [(want, 0.1), (want, 0.0), (want + 0.05, 0.1), (want - 0.3, 0.2),
+                        (50.0, 1.0), (np.nan, 0.1), (want, np.inf)]:  # fmt: skip
+        assert _median_near(x.copy(), n, hint, width) == want, (hint, width)
+
+
 @pytest.mark.parametrize("dtype", [np.uint16, np.int64, np.float32])
 def test_window_means_exact(dtype):
     rng = np.random.default_rng(4)
@@ -401,22 +417,26 @@ def _level_reference(sp, dev):
     return lv
 
 
-def test_threshold_pass_walk_equals_bisection():
-    # the table interval found by stepping from the previous bin gives the same
-    # threshold as the bisection, also for levels on the table's points and beyond it
+@pytest.mark.parametrize("G", [1, 2, 12])
+def test_threshold_pass_equals_bisection(G):
+    # the table interval found by counting the table points below a level gives the
+    # same threshold as the bisection, also for levels on the table's points and beyond it
     from splidar.detection._kernels import _interp_table, threshold_pass
 
     rng = np.random.default_rng(4)
     r, C, T, L = 3, 5, 300, 2
     xs = np.sort(rng.uniform(0, 10, 12))
     ys = rng.uniform(1, 5, 12)
+    if G < 12:
+        xs, ys = xs[[3, 8][:G]], ys[:G]
     # levels sum_l max(sp + dev, 0): a slow drift over the whole table and beyond it
     dev = np.stack([np.linspace(-2, 10, T), rng.normal(0, 0.3, T)]).astype(np.float32)
     sp = rng.uniform(-1, 1.5, (r, C, L)).astype(np.float32)
     dev[:, 7] = 0.0
-    sp[0, 0] = (np.float32(xs[3]), 0.0)  # bin 7 of pixel (0, 0) on a table point
+    sp[0, 0] = (np.float32(xs[G // 4]), 0.0)  # bin 7 of pixel (0, 0) on a table point
     level = _level_reference(sp, dev)
-    assert level[0, 0, 7] == np.float32(xs[3]) and level.min() < xs[0] and level.max() > xs[-1]
+    assert level[0, 0, 7] == np.float32(xs[G // 4])
+    assert level.min() < xs[0] and level.max() > xs[-1]
     sal = rng.uniform(0, 6, (r, C, T)).astype(np.float32)
     d = rng.normal(size=(r, C, T)).astype(np.float32)
     y = rng.poisson(1.0, (r + 2, C, L, T)).astype(np.uint16)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from splidar import gaussian_irf
-from splidar.detection import STAGES, detect
+from splidar.detection import STAGES, _4_map, detect
 from splidar.detection._1_background import estimate_temporal_background
 from splidar.detection._2_saliency import block_saliency, saliency_filters
 from splidar.detection._3_null import calibrate_null
@@ -30,7 +30,7 @@ def _setup(counts, irf):
     return irf, bg, saliency_filters(corr, SCALES, WEIGHTS, bg.dev, irf)
 
 
-def _map(counts, irf, *, pfa=1e-3, rng=0):
+def _map(counts, irf, *, pfa=1e-3, rng=0, block_rows=None, n_jobs=1):
     irf, bg, filters = _setup(counts, irf)
     fw = irf_fwhm(irf)
     nul = calibrate_null(
@@ -43,7 +43,8 @@ def _map(counts, irf, *, pfa=1e-3, rng=0):
         presence_llr=3.0, secondary_llr=0.0, refine=True, keep_suspects=True, max_surfaces=2,
         width=min(2 * irf_halfwidth(irf) + 1, counts.shape[-1]),
     )  # fmt: skip
-    return irf, bg, nul, map_candidates(counts, filters, nul, opts, block_rows=None, n_jobs=1)
+    mp = map_candidates(counts, filters, nul, opts, block_rows=block_rows, n_jobs=n_jobs)
+    return irf, bg, nul, mp
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +178,36 @@ def test_map_candidates_keeps_a_bright_plane_in_every_pixel():
     assert pix.size == 400  # every pixel holds its return
     assert np.all(t.origin == STAGES.index("map"))
     assert mp.mask.shape == (20, 20, 100) and 0 < mp.reduction.voxel_fraction < 0.2
+
+
+def test_schedule_hands_out_every_block_once():
+    # a thread done with its run helps the run with the most blocks left, from its bottom
+    plan = _4_map._Schedule([(0, 30), (30, 50)], 7)
+    first = list(plan.blocks_for(0))
+    assert first == [(0, 7), (7, 14), (14, 21), (21, 28), (28, 30), (44, 50), (37, 44), (30, 37)]
+    assert list(plan.blocks_for(1)) == []
+    plan = _4_map._Schedule([(0, 30), (30, 50)], 7)
+    own1, own0 = plan.blocks_for(1), plan.blocks_for(0)
+    got = [next(own1), next(own1), *own0, *own1]
+    assert sorted(got) == _4_map._blocks(0, 30, 7) + _4_map._blocks(30, 50, 7)
+
+
+def test_map_candidates_same_map_whatever_order_of_blocks(monkeypatch, net_map):
+    # one thread computes every block bottom-up (the halo rows move the other way, and
+    # jump from one run to the next): the same map and candidates as one run downwards
+    sim, _, ref = net_map
+
+    def upwards(self, k):
+        yield from [b for run in self.blocks for b in run][::-1] if k == 1 else []
+
+    monkeypatch.setattr(_4_map._Schedule, "blocks_for", upwards)
+    *_, mp = _map(np.asarray(sim.cube.counts), sim.cube.irf, block_rows=5, n_jobs=2)
+    np.testing.assert_array_equal(mp.saliency, ref.saliency)
+    np.testing.assert_array_equal(mp.mask, ref.mask)
+    np.testing.assert_array_equal(mp.spatial, ref.spatial)
+    np.testing.assert_array_equal(mp.candidates.keep, ref.candidates.keep)
+    for k, v in ref.candidates.columns.items():
+        np.testing.assert_array_equal(mp.candidates.columns[k], v, err_msg=k)
 
 
 def _check_pass(res, before, keep0, *, removes: bool):

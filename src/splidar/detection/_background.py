@@ -68,15 +68,26 @@ def temporal_shape(
     kr, kc, row_starts, col_starts = sample_grid(counts.shape, k, n_samples)
     if windows is None:
         sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
-        for i, a in enumerate(row_starts):
-            # exact window sums in one numba pass over the rows (_fast.window_means)
-            sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
+
+        def rows(part):
+            for i in part:
+                # exact window sums in one numba pass over the rows (_fast.window_means)
+                a = row_starts[i]
+                sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
+
+        _on_threads(rows, np.arange(row_starts.size), workers)
     else:
         sampled = windows(counts, row_starts, kr, col_starts, kc)
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
     n = coarse.shape[0]
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
-    prof = _low_median(coarse, m).astype(np.float64)  # eq:background_1
+    prof = np.empty(L * T, np.float32)
+
+    def low_median(part):  # eq:background_1, one selection per (l, t): any split
+        prof[part] = _low_median(coarse.reshape(n, L * T)[:, part], m)
+
+    _on_threads(low_median, np.arange(L * T), workers)
+    prof = prof.reshape(L, T).astype(np.float64)
     if smooth > 1:
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     if refine:
@@ -97,6 +108,17 @@ def temporal_shape(
         else:
             prof = np.stack([one(l) for l in range(L)])
     return prof.astype(np.float32)
+
+
+def _on_threads(fn, items: np.ndarray, workers: int) -> None:
+    """``fn(part)`` for ``workers`` contiguous parts of ``items``, on as many threads
+    (the calls release the GIL: numba kernels, NumPy selections)."""
+    n_thr = max(1, min(int(workers), items.size))
+    if n_thr == 1:
+        fn(items)
+        return
+    with ThreadPoolExecutor(n_thr) as ex:
+        list(ex.map(fn, np.array_split(items, n_thr)))
 
 
 def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:
