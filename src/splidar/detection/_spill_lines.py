@@ -16,18 +16,25 @@ bright as the mean own signal of the candidates on ``j``'s line ``P_j`` (through
 perpendicular to ``u``; the structure the spread would come from):
 
 1. ``P_j``'s summed own log-likelihood ratio shows the return: ``>= llr_level``;
-2. ``i``'s parallel line ``P_i`` rejects it: ``< -llr_level`` (a surface continuing
-   through ``i`` alongside ``j``'s would show there);
-3. ``i``'s line along ``u`` rejects it, ``j``'s pixel left out: ``< -llr_level`` (a
-   structure through ``i`` across ``j``'s, such as a strand crossing, would show there;
-   without ``j`` the line holds none of the structure's own pixels);
-4. the parallel line beyond ``i`` (through ``i - u``) does not show it: ``<
-   llr_level`` (a dim surface enclosed on both sides by a brighter one, such as the
-   object seen through a strand between open pixels, is not spread).
+2. ``i``'s parallel line ``P_i`` rejects it, ``< -llr_level``, and shows no return
+   of any brightness up to it (the largest log-ratio over a halving grid of fractions
+   of it), ``< llr_level``: a surface continuing through ``i`` alongside ``j``'s would
+   show there, even a dimmer one (the object seen through a strand, the strand taking
+   40 % of its light);
+3. the same for ``i``'s line along ``u``, ``j``'s pixel left out (a structure through
+   ``i`` across ``j``'s, such as a strand crossing, or a surface ending at ``i`` on
+   one side, would show there; without ``j`` the line holds none of the structure's
+   own pixels);
+4. the parallel line beyond ``i`` (through ``i - u``) shows no return of any brightness
+   up to it: ``< llr_level`` (a surface enclosed on both sides, such as the object seen
+   through a strand between open pixels, or a dim region's boundary row beside a
+   bright region at its depth, is not spread).
 
 Each pixel on a line is taken at the depth of its kept candidate nearest the line's
-course within the FWHM, else at that course (from ``i``'s depth, extrapolated from the
-last two pixels: a sloped surface keeps its lines). The own
+course within the FWHM, else at that course: from ``i``'s depth with the slope of the
+opposite neighbours' candidates that interpolate to it (the enclosure test's pairs),
+then extrapolated from the last two pixels (a sloped surface keeps its lines, even one
+steeper than the FWHM per pixel). The own
 log-likelihood ratio of a pixel is the Poisson ratio of a return of ``s`` photons
 against the background alone over the IRF's extent, ``sum_t y_t log(1 + s g(t - d) /
 b_t) - s sum_t g(t - d)`` with ``b = max(spatial + dev, 0)`` (``eq:background_3``).
@@ -49,6 +56,10 @@ from ._slopes import _row_bands
 
 __all__ = ["SpillLines", "reject_spill_lines"]
 
+#: "A return of any brightness up to the structure's": the fractions 1, 1/2, ..., 1/16
+#: of it (a halving grid over the range where a line of pixels can show a return: at
+#: 1/16 of a strand's 1.6 photons, 11 pixels hold about one photon)
+_N_FRACTIONS = 5
 #: the 4-neighbour directions (row, col) in which a candidate's source ``j`` is sought
 _DIRS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.int64)
 
@@ -222,30 +233,67 @@ def _depth_at(p, d, depth, order, starts, fwhm):
 
 
 @njit(cache=True, nogil=True)
+def _slope_at(r0, c0, ur, uc, d, depth, order, starts, R, C, fwhm):
+    """Depth change per pixel along ``(ur, uc)`` at ``(r0, c0)``: half the difference of
+    the opposite neighbours' candidates whose mean is nearest ``d`` within ``fwhm`` (the
+    enclosure test's interpolation, ``docs/detection.md``), else 0."""
+    ra, ca, rb, cb = r0 - ur, c0 - uc, r0 + ur, c0 + uc
+    if ra < 0 or ra >= R or ca < 0 or ca >= C or rb < 0 or rb >= R or cb < 0 or cb >= C:
+        return 0.0
+    pa = ra * C + ca
+    pb = rb * C + cb
+    best = fwhm
+    slope = 0.0
+    for ka in range(starts[pa], starts[pa + 1]):
+        da = depth[order[ka]]
+        for kb in range(starts[pb], starts[pb + 1]):
+            db = depth[order[kb]]
+            gap = abs(0.5 * (da + db) - d)
+            if gap <= best:
+                best = gap
+                slope = 0.5 * (db - da)
+    return slope
+
+
+@njit(cache=True, nogil=True)
 def _line(r0, c0, ur, uc, skip, d, s, a):
     """Summed own log-likelihood ratio over the pixels ``(r0, c0) + k (ur, uc)``, ``|k| <=
     h``, ``k != skip``, inside the image; ``a`` = ``(depth, order, starts, R, C, y, y0,
     sp, dev, irf, peak, fwhm, h)``. Each pixel is taken at the depth of its candidate
-    nearest the line's course (from ``d`` at ``k = 0``, extrapolated from the last two
-    pixels' depths: a sloped surface is followed), else at that course."""
+    nearest the line's course within ``fwhm``, else at that course: from ``d`` at ``k =
+    0`` with the slope of :func:`_slope_at`, then extrapolated from the last two pixels'
+    depths (a sloped surface is followed)."""
     depth, order, starts, R, C, y, y0, sp, dev, irf, peak, fwhm, h = a
+    slope0 = _slope_at(r0, c0, ur, uc, d, depth, order, starts, R, C, fwhm)
     tot = 0.0
     for sgn in (1, -1):
         prev = d
-        slope = 0.0
+        slope = sgn * slope0
         for m in range(0 if sgn == 1 else 1, h + 1):
             k = sgn * m
             r = r0 + k * ur
             c = c0 + k * uc
             if r < 0 or r >= R or c < 0 or c >= C:
                 break
-            e = _depth_at(r * C + c, prev + slope, depth, order, starts, fwhm)
+            e = _depth_at(r * C + c, prev + (slope if m > 0 else 0.0), depth, order, starts, fwhm)
             if m > 0:
                 slope = e - prev
             prev = e
             if k != skip:
                 tot += _pixel_llr(y, r - y0, c, sp[r, c], dev, irf, peak, e, s)
     return tot
+
+
+@njit(cache=True, nogil=True)
+def _line_any(r0, c0, ur, uc, skip, d, s, a):
+    """:func:`_line`'s largest value for a return of any brightness up to ``s``: over the
+    fractions 1, 1/2, ..., of it (:data:`_N_FRACTIONS`)."""
+    best = -np.inf
+    f = 1.0
+    for _ in range(_N_FRACTIONS):
+        best = max(best, _line(r0, c0, ur, uc, skip, d, s * f, a))
+        f *= 0.5
+    return best
 
 
 @njit(cache=True, nogil=True)
@@ -294,17 +342,20 @@ def _lines_kernel(
                         n += 1
             s /= max(n, 1)
             a = (depth, order, starts, R, C, y, y0, sp, dev, irf, peak, fwhm, h)
+            # 2. i's parallel line rejects the return and shows none fainter
             if _line(r, c, ur, uc, h + 1, d, s, a) >= -level:
-                continue  # 2. i's parallel line does not reject the return
-            # the line along (dr, dc) through i: k = 1 is j's pixel
+                continue
+            # 3. the same along (dr, dc) through i, j's pixel (k = 1) left out
             if _line(r, c, dr, dc, 1, d, s, a) >= -level:
-                continue  # 3. a structure through i across j's
+                continue
+            if _line_any(r, c, dr, dc, 1, d, s, a) >= level:
+                continue
             if _line(rj, cj, ur, uc, h + 1, d, s, a) < level:
                 continue  # 1. j's line does not show the return
             rf = r - dr
             cf = c - dc
-            if 0 <= rf < R and 0 <= cf < C and _line(rf, cf, ur, uc, h + 1, d, s, a) >= level:
-                continue  # 4. enclosed by the structure on both sides
+            if 0 <= rf < R and 0 <= cf < C and _line_any(rf, cf, ur, uc, h + 1, d, s, a) >= level:
+                continue  # 4. enclosed by a surface on both sides
             out[i] = True
             for rr in range(max(r - 1, 0), min(r + 2, R)):
                 for cc in range(max(c - 1, 0), min(c + 2, C)):
