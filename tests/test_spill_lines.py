@@ -96,6 +96,25 @@ def test_reject_spill_lines_keeps_a_dim_surface_enclosed_by_a_bright_one():
     assert not res.rejected.any()
 
 
+def test_reject_spill_lines_keeps_a_dim_edge_column_beside_a_wide_bright_surface():
+    # column 2 at a quarter of its bright neighbours' light, nothing beyond it (a depth
+    # edge): its parallel line rejects the bright return and the far side shows none,
+    # but the line across it shows the surface it belongs to (condition 3)
+    rng = np.random.default_rng(4)
+    rows = 40
+    y = _counts(rng, rows, [0.0, 0.0, 2.0, 8.0, 8.0, 8.0, 8.0])
+    cands = [(r, 2, FAR) for r in range(rows)]
+    cands += [(r, c, NEAR) for r in range(rows) for c in range(2, 7)]
+    res = _run(y, _table(y, cands))
+    assert not res.rejected.any()
+    # the same column with nothing at that depth is the bright surface's spread
+    y = _counts(rng, rows, [0.0, 0.0, 0.0, 8.0, 0.0, 0.0, 0.0])
+    cands = [(r, 2, FAR) for r in range(rows)] + [(r, c, NEAR) for r in range(rows) for c in (2, 3)]
+    surf = _table(y, cands)
+    res = _run(y, surf)
+    assert res.rejected[(surf["col"] == 2) & (surf["depth_bin"] == NEAR)].mean() > 0.9
+
+
 def test_reject_spill_lines_tests_only_pixels_with_another_candidate():
     # the same spread without the pixels' own surfaces: each is its pixel's only
     # candidate, which keeps the per-pixel rule

@@ -22,9 +22,10 @@ perpendicular to ``u``; the structure the spread would come from):
    show there, even a dimmer one (the object seen through a strand, the strand taking
    40 % of its light);
 3. the same for ``i``'s line along ``u``, ``j``'s pixel left out (a structure through
-   ``i`` across ``j``'s, such as a strand crossing, or a surface ending at ``i`` on
-   one side, would show there; without ``j`` the line holds none of the structure's
-   own pixels);
+   ``i`` across ``j``'s, such as a strand crossing, or a surface that ends at ``i``
+   beside a depth edge, would show there; beside a thin structure, without ``j`` the
+   line holds none of its pixels: the test is for thin structures, the spread beside
+   a wide one is the per-pixel test's);
 4. the parallel line beyond ``i`` (through ``i - u``) shows no return of any brightness
    up to it: ``< llr_level`` (a surface enclosed on both sides, such as the object seen
    through a strand between open pixels, or a dim region's boundary row beside a
