@@ -131,7 +131,16 @@ def test_reject_spill_lines_reads_a_lazy_cube_by_bands_with_the_same_result():
     rng = np.random.default_rng(3)
     y, surf = _strand(rng, rows=70)
     a = _run(y, surf)
+    assert a.rejected.sum() > 50  # something to compare
     b = _run(da.from_array(y, chunks=(16, -1, -1, -1)), surf)
+    assert np.array_equal(a.rejected, b.rejected) and np.array_equal(a.support, b.support)
+
+
+def test_reject_spill_lines_gives_the_same_result_on_threads():
+    rng = np.random.default_rng(5)
+    y, surf = _strand(rng, rows=600)  # 600 candidates tested: 2 parts of >= 256
+    a = _run(y, surf)
+    b = _run(y, surf, n_jobs=2)
     assert np.array_equal(a.rejected, b.rejected) and np.array_equal(a.support, b.support)
 
 

@@ -45,6 +45,7 @@ def remove_spill_over(
     dev: np.ndarray | None = None,
     half: int = 0,
     line_level: float = np.inf,
+    n_jobs: int = 1,
 ) -> PassResult:
     """Reject the kept candidates that are a neighbour's spread; repeated to convergence.
 
@@ -76,6 +77,8 @@ def remove_spill_over(
     line_level : float
         Log-likelihood ratio at which a line shows or rejects a return (``detect``
         passes ``PRESENCE_LLR``).
+    n_jobs : int
+        Threads of the line test.
 
     Returns
     -------
@@ -111,6 +114,7 @@ def remove_spill_over(
             fwhm=fwhm,
             half=half,
             llr_level=line_level,
+            n_jobs=n_jobs,
         )
         keep &= ~lines.rejected
         # the structures the spread came from keep that support (stage 5b)

@@ -440,7 +440,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
         vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,
-        half=half, line_level=PRESENCE_LLR))  # fmt: skip
+        half=half, line_level=PRESENCE_LLR, n_jobs=o["n_jobs"]))  # fmt: skip
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
         t, irf=irf, peak=peak, fwhm=fwhm, half=half, pfa=surface_pfa,

@@ -16,15 +16,15 @@ bright as the mean own signal of the candidates on ``j``'s line ``P_j`` (through
 perpendicular to ``u``; the structure the spread would come from):
 
 1. ``P_j``'s summed own log-likelihood ratio shows the return: ``>= llr_level``;
-2. ``i``'s parallel line ``P_i`` rejects it, ``< -llr_level``, and shows no return
-   of any brightness up to it (the largest log-ratio over a halving grid of fractions
-   of it), ``< llr_level``: a surface continuing through ``i`` alongside ``j``'s would
-   show there, even a dimmer one (the object seen through a strand, the strand taking
-   40 % of its light);
-3. the same for ``i``'s line along ``u``, ``j``'s pixel left out (a structure through
-   ``i`` across ``j``'s, such as a strand crossing, or a surface that ends at ``i``
-   beside a depth edge, would show there; beside a thin structure, without ``j`` the
-   line holds none of its pixels: the test is for thin structures, the spread beside
+2. ``i``'s parallel line ``P_i`` rejects it: ``< -llr_level`` (a surface continuing
+   through ``i`` alongside ``j``'s would show there);
+3. ``i``'s line along ``u``, ``j``'s pixel left out, rejects it, ``< -llr_level``, and
+   shows no return of any brightness up to it (the largest log-ratio over a halving
+   grid of fractions of it), ``< llr_level``: a structure through ``i`` across
+   ``j``'s, such as a strand crossing, or a surface that ends at ``i`` beside a depth
+   edge, even one dimmer than ``j``'s (the object seen through a strand, the strand
+   taking 40 % of its light), would show there. Beside a thin structure the line holds
+   none of its pixels without ``j``: the test is for thin structures (the spread beside
    a wide one is the per-pixel test's);
 4. the parallel line beyond ``i`` (through ``i - u``) shows no return of any brightness
    up to it: ``< llr_level`` (a surface enclosed on both sides, such as the object seen
@@ -35,9 +35,9 @@ Each pixel on a line is taken at the depth of its kept candidate nearest the lin
 course within the FWHM, else at that course: from ``i``'s depth with the slope of the
 opposite neighbours' candidates that interpolate to it (the enclosure test's pairs),
 then extrapolated from the last two pixels (a sloped surface keeps its lines, even one
-steeper than the FWHM per pixel). The own
-log-likelihood ratio of a pixel is the Poisson ratio of a return of ``s`` photons
-against the background alone over the IRF's extent, ``sum_t y_t log(1 + s g(t - d) /
+steeper than the FWHM per pixel). The own log-likelihood ratio of a pixel is the
+Poisson ratio of a return of ``s`` photons against the background alone over the IRF's
+extent, ``sum_t y_t log(1 + s g(t - d) /
 b_t) - s sum_t g(t - d)`` with ``b = max(spatial + dev, 0)`` (``eq:background_3``).
 At even odds (``llr_level`` 0) a noisy line decides by chance; ``detect`` passes
 ``PRESENCE_LLR`` (odds of 20:1 each way, the presence test's level). All candidates are
@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import _interp_irf
-from ._slopes import _row_bands
+from ._slopes import _row_bands, _split
 
 __all__ = ["SpillLines", "reject_spill_lines"]
 
@@ -96,6 +96,7 @@ def reject_spill_lines(
     fwhm: float,
     half: int,
     llr_level: float,
+    n_jobs: int = 1,
 ) -> SpillLines:
     """Kept candidates that are the spread of a structure beside them, on lines of pixels.
 
@@ -125,6 +126,9 @@ def reject_spill_lines(
     llr_level : float
         Natural-log likelihood ratio at which a line shows (``>= llr_level``) or rejects
         (``< -llr_level``) the return (module docstring).
+    n_jobs : int
+        Threads (the candidates are decided independently: the result does not depend
+        on it).
 
     Returns
     -------
@@ -188,10 +192,15 @@ def reject_spill_lines(
     dv = np.ascontiguousarray(dev, np.float64)
     h = int(half)
     for sel, y, y0 in _row_bands(counts, row[test], h + 1):
-        _lines_kernel(
-            test[sel], row, col, depth, own, order, starts, R, C, y, int(y0), sp, dv,
-            irf, pk, float(fwhm), h, float(llr_level), out, src,
-        )  # fmt: skip
+        part = test[sel]
+
+        def run(a, b, part=part, y=y, y0=y0):
+            _lines_kernel(
+                part[a:b], row, col, depth, own, order, starts, R, C, y, int(y0), sp, dv,
+                irf, pk, float(fwhm), h, float(llr_level), out, src,
+            )  # fmt: skip
+
+        _split(part.size, n_jobs, run)
     rej[idx] = out
     sup[idx] = src & ~out
     return SpillLines(rej, sup)
@@ -201,15 +210,34 @@ def reject_spill_lines(
 def _pixel_llr(y, yr, c, sp, dev, irf, peak, d, s):
     """Own log-likelihood ratio of a return of ``s`` (L,) photons at depth ``d`` (bins)
     in the raw counts ``y[yr, c]`` (L, T) against ``max(sp[l] + dev[l, t], 0)``, over the
-    IRF's extent."""
+    IRF's extent. The IRF's interpolation is evaluated at the bins holding photons only:
+    its sum over the extent is ``sum(g) - (1 - f) g[-1] - f g[0]`` for a shift of
+    fractional part ``f`` when the window does not cut it (linear interpolation)."""
     L = y.shape[2]
     T = y.shape[3]
     n = irf.shape[1]
     out = 0.0
     for l in range(L):
         sl = max(s[l], 1e-9)
-        t0 = max(int(np.ceil(d - peak[l])), 0)
-        t1 = min(int(np.floor(d - peak[l])) + n, T)
+        lo = int(np.ceil(d - peak[l]))
+        hi = int(np.floor(d - peak[l])) + n
+        t0 = max(lo, 0)
+        t1 = min(hi, T)
+        if t0 == lo and t1 == hi:
+            f = lo - (d - peak[l])  # the first sample's position in the IRF, in [0, 1)
+            gsum = 0.0
+            for i in range(n):
+                gsum += irf[l, i]
+            if f > 0.0:
+                gsum -= (1.0 - f) * irf[l, n - 1] + f * irf[l, 0]
+            out -= sl * gsum
+            for t in range(t0, t1):
+                v = y[yr, c, l, t]
+                if v != 0:
+                    g = _interp_irf(irf[l], t - d + peak[l])
+                    b = max(np.float64(sp[l]) + dev[l, t], 1e-9)
+                    out += v * np.log1p(sl * g / b)
+            continue
         for t in range(t0, t1):
             g = _interp_irf(irf[l], t - d + peak[l])
             out -= sl * g
@@ -257,15 +285,21 @@ def _slope_at(r0, c0, ur, uc, d, depth, order, starts, R, C, fwhm):
 
 
 @njit(cache=True, nogil=True)
-def _line(r0, c0, ur, uc, skip, d, s, a):
+def _line(r0, c0, ur, uc, skip, d, s, a, floor=np.inf):
     """Summed own log-likelihood ratio over the pixels ``(r0, c0) + k (ur, uc)``, ``|k| <=
     h``, ``k != skip``, inside the image; ``a`` = ``(depth, order, starts, R, C, y, y0,
     sp, dev, irf, peak, fwhm, h)``. Each pixel is taken at the depth of its candidate
     nearest the line's course within ``fwhm``, else at that course: from ``d`` at ``k =
     0`` with the slope of :func:`_slope_at`, then extrapolated from the last two pixels'
-    depths (a sloped surface is followed)."""
+    depths (a sloped surface is followed). Returns early, with a partial sum ``>=
+    floor``, once the pixels left cannot take it below ``floor`` (a pixel's ratio is at
+    least ``-sum(s)``: the IRF sums to 1): for callers that compare with ``floor``."""
     depth, order, starts, R, C, y, y0, sp, dev, irf, peak, fwhm, h = a
     slope0 = _slope_at(r0, c0, ur, uc, d, depth, order, starts, R, C, fwhm)
+    s_sum = 0.0
+    for v in s:
+        s_sum += max(v, 1e-9)
+    left = 2 * h + 1
     tot = 0.0
     for sgn in (1, -1):
         prev = d
@@ -282,6 +316,9 @@ def _line(r0, c0, ur, uc, skip, d, s, a):
             prev = e
             if k != skip:
                 tot += _pixel_llr(y, r - y0, c, sp[r, c], dev, irf, peak, e, s)
+                left -= 1
+                if tot - left * s_sum >= floor:
+                    return tot
     return tot
 
 
@@ -304,7 +341,8 @@ def _lines_kernel(
 ):  # fmt: skip
     """The test of :func:`reject_spill_lines` for the candidates ``test`` (rows of the
     kept table); ``y`` holds image rows from ``y0``. ``out`` marks the spread, ``src``
-    the same-depth candidates among a rejected one's 8 neighbours."""
+    the same-depth candidates among a rejected one's 8 neighbours (threads on parts of
+    ``test`` may both set an element of ``src``: to the same value)."""
     L = own.shape[1]
     s = np.empty(L, np.float64)
     for i in test:
@@ -343,11 +381,12 @@ def _lines_kernel(
                         n += 1
             s /= max(n, 1)
             a = (depth, order, starts, R, C, y, y0, sp, dev, irf, peak, fwhm, h)
-            # 2. i's parallel line rejects the return and shows none fainter
-            if _line(r, c, ur, uc, h + 1, d, s, a) >= -level:
+            # 2. i's parallel line rejects the return
+            if _line(r, c, ur, uc, h + 1, d, s, a, -level) >= -level:
                 continue
-            # 3. the same along (dr, dc) through i, j's pixel (k = 1) left out
-            if _line(r, c, dr, dc, 1, d, s, a) >= -level:
+            # 3. so does the line along (dr, dc) through i, j's pixel (k = 1) left out,
+            # and it shows no fainter return
+            if _line(r, c, dr, dc, 1, d, s, a, -level) >= -level:
                 continue
             if _line_any(r, c, dr, dc, 1, d, s, a) >= level:
                 continue
