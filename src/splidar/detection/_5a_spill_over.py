@@ -84,8 +84,8 @@ def remove_spill_over(
     -------
     PassResult
         With the line test, its table has a ``line_support`` column (S,) bool: the
-        candidates whose line showed the return of a spread it rejected (stage 5b counts
-        them as shared).
+        kept candidates at the depth of a spread it rejected among that spread's 8
+        neighbours (stage 5b counts them as shared).
     """
     if not table.keep.any():
         return skipped("spill_over", table)
