@@ -174,9 +174,11 @@ def reject_spill_lines(
     row = np.asarray(surf["row"], np.int64)[idx]
     col = np.asarray(surf["col"], np.int64)[idx]
     depth = np.asarray(surf["depth_bin"], np.float64)[idx]
-    cnt = np.asarray(surf["own_counts"])[idx]
-    bkg = np.asarray(surf["own_background"])[idx]
-    own = np.maximum(cnt.sum(axis=-1, dtype=np.float64) - bkg.sum(axis=-1, dtype=np.float64), 0.0)
+    # the own signal (S, L) summed over the windows, then taken: no copy of the windows
+    cnt = np.asarray(surf["own_counts"]).sum(axis=-1, dtype=np.float64)
+    bkg = np.asarray(surf["own_background"]).sum(axis=-1, dtype=np.float64)
+    own = np.maximum(cnt[idx] - bkg[idx], 0.0)
+    del cnt, bkg
     pix = row * C + col
     order = np.argsort(pix, kind="stable")
     starts = np.searchsorted(pix[order], np.arange(R * C + 1))
