@@ -13,7 +13,10 @@ candidate keeps the per-pixel rule: a dim surface's pixels speak weakly either w
 is the spread of the structure through its 4-neighbour ``j`` (a kept candidate at the
 same depth, within the IRF's FWHM, in direction ``u`` from ``i``) when, for a return as
 bright as the mean own signal of the candidates on ``j``'s line ``P_j`` (through ``j``,
-perpendicular to ``u``; the structure the spread would come from):
+perpendicular to ``u``; the structure the spread would come from), ``i``'s own counts
+do not favour the return by ``llr_level`` (a pixel with no return gives such odds with
+probability at most ``exp(-llr_level)``; at high counts most surfaces are decided
+there, without their lines) and:
 
 1. ``P_j``'s summed own log-likelihood ratio shows the return: ``>= llr_level``;
 2. ``i``'s parallel line ``P_i`` rejects it: ``< -llr_level`` (a surface continuing
@@ -382,6 +385,10 @@ def _lines_kernel(
                         s += own[jj]
                         n += 1
             s /= max(n, 1)
+            # 0. i's own counts favour the return at the level: they decide (a pixel with
+            # no return gives such odds with probability at most exp(-level))
+            if _pixel_llr(y, r - y0, c, sp[r, c], dev, irf, peak, d, s) >= level:
+                continue
             a = (depth, order, starts, R, C, y, y0, sp, dev, irf, peak, fwhm, h)
             # 2. i's parallel line rejects the return
             if _line(r, c, ur, uc, h + 1, d, s, a, -level) >= -level:
