@@ -2,12 +2,16 @@
 
 A candidate that no neighbour shares at its depth got no support from the spatial
 pooling; it is kept only when its own counts are significant by themselves at the
-surface level (:func:`~splidar.detection._quality.reject_isolated`).
+surface level (:func:`~splidar.detection._quality.reject_isolated`). A candidate beside a
+spread that stage 5a's line test rejected at its depth (column ``line_support``) had
+that support from the pooling all the same: it is not tested.
 """
 
 from __future__ import annotations
 
 import time
+
+import numpy as np
 
 from ._quality import reject_isolated
 from ._table import CandidateTable, PassResult, skipped, with_keep
@@ -32,4 +36,6 @@ def remove_isolated(table: CandidateTable, *, fwhm: float, pfa: float, n_bins: i
         return skipped("isolated", table)
     t0 = time.perf_counter()
     iso = reject_isolated(table.view(), table.keep, fwhm=fwhm, pfa=pfa, n_bins=n_bins)
+    if "line_support" in table.columns:
+        iso &= ~np.asarray(table.columns["line_support"], bool)
     return with_keep("isolated", table, table.keep & ~iso, t0)

@@ -436,14 +436,16 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
         done.append(res)
         return res.table
 
+    half = int(o["scales"].max()) // 2
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
-        vouch_level=-PRESENCE_LLR))  # fmt: skip
+        vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,
+        half=half, line_level=PRESENCE_LLR, n_jobs=o["n_jobs"]))  # fmt: skip
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
-        t, irf=irf, peak=peak, fwhm=fwhm, half=int(o["scales"].max()) // 2, pfa=surface_pfa,
+        t, irf=irf, peak=peak, fwhm=fwhm, half=half, pfa=surface_pfa,
         llr_level=-PRESENCE_LLR))  # fmt: skip
-    table = table.without("own_counts", "own_background")
+    table = table.without("own_counts", "own_background", "line_support")
     done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
     table = run("slopes", lambda t: recover_slope_surfaces(
         t, cube.counts, saliency=mp.saliency, threshold=mp.threshold, spatial=mp.spatial,

@@ -86,6 +86,10 @@ class CandidateTable:
         cols = compact_columns(self.columns, self.image_shape, n_bins)
         return replace(self, columns=cols, **small)
 
+    def with_columns(self, **new: np.ndarray) -> CandidateTable:
+        """The table with the named (n, ...) columns added or replaced."""
+        return replace(self, columns={**self.columns, **new})
+
     def without(self, *names: str) -> CandidateTable:
         """The table without the named columns."""
         return replace(self, columns={k: v for k, v in self.columns.items() if k not in names})
