@@ -214,25 +214,31 @@ _WORK: dict = {}
 _WORK_LOCK = threading.Lock()
 
 
-def _work(own: int, ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
+def _work(own: int, ext: int, shape, n_box: int, thr: bool) -> tuple[dict, np.ndarray]:
     """This thread's ``(work, corr)`` flat buffers for tiles of up to ``own`` pixels and
-    ``ext`` pixels with their halo (grown when a larger tile comes)."""
+    ``ext`` pixels with their halo (grown when a larger tile comes); ``thr``: with a
+    per-voxel threshold buffer (written to a store)."""
     _, _, L, T = shape
     key = threading.get_ident()
     with _WORK_LOCK:
         have = _WORK.get(key)
-    if have is not None and have[0] >= (own, ext) and have[1] == (L, T, n_box):
+    if have is not None and have[0] >= (own, ext) and have[1] == (L, T, n_box, thr):
         return have[2], have[3]
     work = dict(
         d=np.empty(own * T, np.float32),
         cand=np.empty(own * T, bool),
         ev=np.empty(own * T, np.float32),
+        # the tile's outputs before they are written out (store or returned arrays)
+        sal=np.empty(own * T, np.float32),
+        mask=np.empty(own * T, bool),
     )
+    if thr:
+        work["thr"] = np.empty(own * T, np.float32)
     if n_box:
         work["box"] = np.empty(L * n_box * own * T, np.float32)
     corr = np.empty(ext * L * T, np.float32)
     with _WORK_LOCK:
-        _WORK[key] = ((own, ext), (L, T, n_box), work, corr)
+        _WORK[key] = ((own, ext), (L, T, n_box, thr), work, corr)
     return work, corr
 
 
@@ -293,7 +299,7 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     y = np.ascontiguousarray(y)
     er, ec, L, T = y.shape
     n_box = int((ctx.scales > 1).sum()) if opts["store_boxes"] else 0
-    work, corr = _work(most[0], most[1], y.shape, n_box)
+    work, corr = _work(most[0], most[1], y.shape, n_box, bool(table[2]))
     c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.size].reshape(y.shape))
     r, c = r1 - r0, c1 - c0
     own = dict(spatial=np.empty((r, c, L), np.float32))
