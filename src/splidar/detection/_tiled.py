@@ -14,8 +14,10 @@ chunks and do the work; only small results travel back).
    and is simulated in the calling process, seeded as in memory.
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
-   sides (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
-   ``boundary="none"``: the image edge is handled as in memory). By default the tiles
+   sides (no padding at the image edge, which is handled as in memory, like
+   ``map_overlap`` with ``boundary="none"``). A tile reads its counts with their halo
+   straight from the cube's chunks (column pieces cut from each chunk, copied once into
+   the worker thread's kept buffer: :func:`_tile_inputs`). By default the tiles
    are square, with as many pixels as the rows of whole image rows that fit (64 MB of
    work buffers, or :data:`TILE_SHARE` of a worker's memory): the halo is then a small
    share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
