@@ -281,7 +281,7 @@ class _BlockOut:
 
 def _buffer(work, key: str, shape, dtype) -> np.ndarray:
     """A ``shape`` view of the reused work buffer ``work[key]`` (a new array without)."""
-    if work is None:
+    if work is None or key not in work:
         return np.empty(shape, dtype)
     return work[key].reshape(-1)[: int(np.prod(shape))].reshape(shape)
 
@@ -327,9 +327,11 @@ def _block(
     in_ram = isinstance(out["saliency"], np.ndarray) and cols is None
     # in memory the block writes straight into the outputs; with a store it writes
     # into buffers copied to the (chunk-aligned) store at the end
-    sal_out = out["saliency"][r0:r1] if in_ram else None
     L, T = ctx.dev.shape
     r, C = i1 - i0, j1 - j0
+    # else the tiles' own buffers (``work["sal"]``, ``"thr"``, ``"mask"``, kept from
+    # tile to tile by the worker thread: no fresh pages per tile), copied out by ``_put``
+    sal_out = out["saliency"][r0:r1] if in_ram else _buffer(work, "sal", (r, C, T), np.float32)
     if opts["store_boxes"]:
         Qb = int((ctx.scales > 1).sum())
         box = _buffer(work, "box", (L, Qb, r, C, T), np.float32)
@@ -346,8 +348,12 @@ def _block(
     ev_vox = _buffer(work, "ev", (r, C, T), np.float32)
     # a per-voxel threshold is written out only to a store (in memory it is kept as
     # the background factors: ThresholdField)
-    thr = np.empty((r, C, T) if store_thr else (1, 1, 1), np.float32)
-    mask = out["mask"][r0:r1] if in_ram else np.empty((r, C, T), bool)
+    thr = (
+        _buffer(work, "thr", (r, C, T), np.float32)
+        if store_thr
+        else np.empty((1, 1, 1), np.float32)
+    )
+    mask = out["mask"][r0:r1] if in_ram else _buffer(work, "mask", (r, C, T), bool)
     # threshold, M, candidate voxels, evidence and photon counts in one pass
     n_ph, kept = threshold_pass(
         sal,

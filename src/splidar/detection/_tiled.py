@@ -14,8 +14,10 @@ chunks and do the work; only small results travel back).
    and is simulated in the calling process, seeded as in memory.
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
-   sides (:func:`dask.array.overlap.overlap`, the halo exchange of ``map_overlap``, with
-   ``boundary="none"``: the image edge is handled as in memory). By default the tiles
+   sides (no padding at the image edge, which is handled as in memory, like
+   ``map_overlap`` with ``boundary="none"``). A tile reads its counts with their halo
+   straight from the cube's chunks (column pieces cut from each chunk, copied once into
+   the worker thread's kept buffer: :func:`_tile_inputs`). By default the tiles
    are square, with as many pixels as the rows of whole image rows that fit (64 MB of
    work buffers, or :data:`TILE_SHARE` of a worker's memory): the halo is then a small
    share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
@@ -214,25 +216,34 @@ _WORK: dict = {}
 _WORK_LOCK = threading.Lock()
 
 
-def _work(own: int, ext: int, shape, n_box: int) -> tuple[dict, np.ndarray]:
+def _work(own: int, ext: int, shape, n_box: int, thr: bool, dtype) -> tuple[dict, np.ndarray]:
     """This thread's ``(work, corr)`` flat buffers for tiles of up to ``own`` pixels and
-    ``ext`` pixels with their halo (grown when a larger tile comes)."""
+    ``ext`` pixels with their halo (grown when a larger tile comes); ``thr``: with a
+    per-voxel threshold buffer (written to a store); ``dtype``: the counts' (``work["y"]``
+    receives the tile's counts with their halo)."""
     _, _, L, T = shape
     key = threading.get_ident()
     with _WORK_LOCK:
         have = _WORK.get(key)
-    if have is not None and have[0] >= (own, ext) and have[1] == (L, T, n_box):
+    dtype = np.dtype(dtype)
+    if have is not None and have[0] >= (own, ext) and have[1] == (L, T, n_box, thr, dtype):
         return have[2], have[3]
     work = dict(
         d=np.empty(own * T, np.float32),
         cand=np.empty(own * T, bool),
         ev=np.empty(own * T, np.float32),
+        # the tile's outputs before they are written out (store or returned arrays)
+        sal=np.empty(own * T, np.float32),
+        mask=np.empty(own * T, bool),
+        y=np.empty(ext * L * T, dtype),
     )
+    if thr:
+        work["thr"] = np.empty(own * T, np.float32)
     if n_box:
         work["box"] = np.empty(L * n_box * own * T, np.float32)
     corr = np.empty(ext * L * T, np.float32)
     with _WORK_LOCK:
-        _WORK[key] = ((own, ext), (L, T, n_box), work, corr)
+        _WORK[key] = ((own, ext), (L, T, n_box, thr, dtype), work, corr)
     return work, corr
 
 
@@ -279,10 +290,19 @@ class _Tile:
         self.array[rows.start - r : rows.stop - r, cols.start - c : cols.stop - c] = value
 
 
+def _assemble(pieces, places, out: np.ndarray) -> np.ndarray:
+    """The tile's counts with their halo: each of the cube's chunks ``pieces[k]`` gives
+    its part ``places[k] = (source slices, destination slices)`` to ``out``."""
+    for piece, (src, dst) in zip(pieces, places, strict=True):
+        out[dst] = np.asarray(piece)[src]
+    return out
+
+
 def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: bool):
     """Stage 4 on image rows ``[r0, r1)`` and columns ``[c0, c1)``; ``y`` holds the
-    pixels from ``(e0, ce0)`` (the tile with its halo). ``tile = (e0, r0, r1, ce0, c0,
-    c1)``.
+    pixels from ``(e0, ce0)`` (the tile with its halo), or is ``(shape, dtype, pieces,
+    places)``: the cube's chunks that cover them (:func:`_assemble`, into this thread's
+    kept buffer). ``tile = (e0, r0, r1, ce0, c0, c1)``.
 
     ``most`` = ``(own pixels, pixels with halo)`` of the largest tile: the size of this
     thread's reused work buffers. ``carry``: the box filters' running column sums at
@@ -290,10 +310,17 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     Returns ``(result, own arrays, carry at column c1 - 1)`` (None when ``last``).
     """
     e0, r0, r1, ce0, c0, c1 = tile
-    y = np.ascontiguousarray(y)
-    er, ec, L, T = y.shape
     n_box = int((ctx.scales > 1).sum()) if opts["store_boxes"] else 0
-    work, corr = _work(most[0], most[1], y.shape, n_box)
+    if isinstance(y, tuple):
+        shape, dtype, pieces, places = y
+        work, corr = _work(most[0], most[1], shape, n_box, bool(table[2]), dtype)
+        y = work["y"][: int(np.prod(shape))].reshape(shape)
+        y = _assemble(pieces, places, y)
+        del pieces
+    else:
+        y = np.ascontiguousarray(y)
+        work, corr = _work(most[0], most[1], y.shape, n_box, bool(table[2]), y.dtype)
+    er, ec, L, T = y.shape
     c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.size].reshape(y.shape))
     r, c = r1 - r0, c1 - c0
     own = dict(spatial=np.empty((r, c, L), np.float32))
@@ -370,6 +397,58 @@ def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) ->
         )
 
 
+def _parts(chunks, a: int, b: int) -> list[tuple[int, slice, slice]]:
+    """The chunks of one axis that cover ``[a, b)``: ``(chunk index, slice in the chunk,
+    slice in [a, b))`` each."""
+    ends = np.cumsum(chunks)
+    out = []
+    for k, (c0, c1) in enumerate(zip(ends - np.asarray(chunks), ends, strict=True)):
+        lo, hi = max(a, int(c0)), min(b, int(c1))
+        if lo < hi:
+            out.append((k, slice(lo - int(c0), hi - int(c0)), slice(lo - a, hi - a)))
+    return out
+
+
+def _piece(chunk, cols: slice) -> np.ndarray:
+    """A copy of the columns ``cols`` of one of the cube's chunks (so that the chunk
+    itself is released once every tile's columns are taken)."""
+    return np.array(np.asarray(chunk)[:, cols], copy=True)
+
+
+def _tile_inputs(counts, ext, ext_c):
+    """``inputs(i, j)``: what the tile of row range ``ext[i]`` and column range
+    ``ext_c[j]`` (with their halos) reads: ``(shape, dtype, pieces, places)`` for
+    :func:`_assemble`. The pieces are Dask tasks ("splidar-map-input"): the columns of
+    a column of tiles cut from each of the cube's chunks, shared by the tiles of
+    consecutive bands of rows (the halo's rows)."""
+    import dask
+
+    blocks = counts.to_delayed()
+    L, T = counts.shape[2:]
+    whole = [_parts(counts.chunks[2], 0, L), _parts(counts.chunks[3], 0, T)]
+    name = "splidar-map-input-" + dask.base.tokenize(counts.name, ext_c)
+    made = {}
+
+    def piece(k: tuple, j: int, sc: slice):
+        key = (name, *k, j)
+        if key not in made:
+            made[key] = dask.delayed(_piece, pure=True)(blocks[k], sc, dask_key_name=key)
+        return made[key]
+
+    def inputs(i: int, j: int):
+        (e0, e1), (f0, f1) = ext[i], ext_c[j]
+        pieces, places = [], []
+        for kr, sr, dr in _parts(counts.chunks[0], e0, e1):
+            for kc, sc, dc in _parts(counts.chunks[1], f0, f1):
+                for kl, sl, dl in whole[0]:
+                    for kt, st, dt in whole[1]:
+                        pieces.append(piece((kr, kc, kl, kt), j, sc))
+                        places.append(((sr, slice(None), sl, st), (dr, dc, dl, dt)))
+        return (e1 - e0, f1 - f0, L, T), counts.dtype, pieces, places
+
+    return inputs
+
+
 def map_candidates_tiled(
     counts,
     filters: SaliencyFilters,
@@ -384,7 +463,7 @@ def map_candidates_tiled(
     Parameters
     ----------
     counts : dask.array.Array (rows, cols, L, T)
-        Any chunking: it is rechunked to tiles of whole rows.
+        Any chunking: each tile reads the chunks that cover it with its halo.
     filters, null, options
         As for the in-memory pass.
     block_rows : int or None
@@ -403,7 +482,6 @@ def map_candidates_tiled(
         Identical to the in-memory pass's (``block_rows`` is the tile height).
     """
     import dask
-    import dask.array as da
 
     R, C, L, T = counts.shape
     h = int(filters.scales.max()) // 2
@@ -432,13 +510,9 @@ def map_candidates_tiled(
         max(b - a for a, b in rows) * max(b - a for a, b in cols),
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
-    x = counts.rechunk(
-        {0: tuple(b - a for a, b in rows), 1: tuple(b - a for a, b in cols), 2: -1, 3: -1}
-    )
-    depth = {0: h if len(rows) > 1 else 0, 1: hc if len(cols) > 1 else 0, 2: 0, 3: 0}
-    if depth[0] or depth[1]:
-        x = da.overlap.overlap(x, depth=depth, boundary="none")
-    blocks = x.to_delayed()
+    # each tile reads the cube's chunks that cover it with its halo and copies their
+    # parts into its thread's kept buffer (no rechunked or overlapped copies in between)
+    inputs = _tile_inputs(counts, ext, ext_c)
     if store is not None:
         out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
         store_path = str(store)
@@ -454,7 +528,7 @@ def map_candidates_tiled(
     # keys named for the dashboard: "splidar-map-tile" computes a tile,
     # "splidar-map-carry" passes its running sums to the tile on its right,
     # "splidar-map-result" is what the calling process fetches (not the sums)
-    token = dask.base.tokenize(x.name, rows, cols, ctx.key, shared.key, store_path)
+    token = dask.base.tokenize(counts.name, rows, cols, ctx.key, shared.key, store_path)
     name = "splidar-map-tile-" + token
     tasks, where = [], []
     for i, ((r0, r1), (e0, _)) in enumerate(zip(rows, ext, strict=True)):
@@ -462,7 +536,7 @@ def map_candidates_tiled(
         for j, ((c0, c1), (ce0, _)) in enumerate(zip(cols, ext_c, strict=True)):
             tile = (e0, r0, r1, ce0, c0, c1)
             done = dask.delayed(_map_tile, pure=True)(
-                blocks[i, j, 0, 0], tile, ctx, shared[0], shared[1], store_path, most, carry,
+                inputs(i, j), tile, ctx, shared[0], shared[1], store_path, most, carry,
                 j == len(cols) - 1, dask_key_name=(name, i, j),
             )  # fmt: skip
             carry = dask.delayed(_carry, pure=True)(
