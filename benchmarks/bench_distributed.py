@@ -216,6 +216,11 @@ def _timed(cube, process=False, **kw):
     return dataclasses.replace(rec.detection, timings=timings), t
 
 
+def _warm_process(tiny) -> None:
+    """Load ``splidar.process``'s compiled kernels in this process (a worker's)."""
+    splidar.process(tiny, rng=0)
+
+
 def _cluster_run(
     cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None, process=False
 ):
@@ -237,8 +242,12 @@ def _cluster_run(
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
-        # numba's cached kernels loaded once per worker process (not timed)
+        # numba's cached kernels loaded once per worker process (not timed): the map
+        # pass's through a Dask cube; with --process also the reconstruction's, in each
+        # worker, as the in-memory run has them loaded in the calling process
         splidar.detect(splidar.Cube(dask.array.from_array(tiny.counts), irf=tiny.irf))
+        if process:
+            client.run(_warm_process, tiny)
         pids = client.run(os.getpid)
         pids["caller"] = os.getpid()
         print(f"cluster-{n}: calling process at {_rss_mb():.0f} MB before the run", flush=True)
@@ -273,7 +282,8 @@ def large(args) -> int:
             f"{time.perf_counter() - t0:.0f} s to write"
         )
         tiny = splidar.Cube(scene_rows(0, 24, 24, T), irf=lazy.irf)
-        splidar.detect(tiny, rng=0)  # numba kernels loaded in this process
+        # numba kernels loaded in this process (the in-memory runs' too)
+        (splidar.process if args.process else splidar.detect)(tiny, rng=0)
         rows, dets = [], {}
         for n in args.workers:
             store = base / f"det-{n}.zarr"
