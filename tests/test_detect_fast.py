@@ -204,13 +204,16 @@ def test_saliency_wavelength_any_layout_matches_reference(layout):
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
 
 
+def _median_sample(n, ties):
+    """n float32 normal samples; with ``ties``, few distinct values (sparse coarse counts)."""
+    x = np.random.default_rng(n).normal(size=n).astype(np.float32)
+    return np.round(x * 2).astype(np.float32) / 4 if ties else x
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 10, 75, 76, 375])
 @pytest.mark.parametrize("ties", [False, True])
 def test_median_scratch_equals_numpy_median(n, ties):
-    rng = np.random.default_rng(n)
-    x = rng.normal(size=n).astype(np.float32)
-    if ties:  # few distinct values, as in sparse coarse counts
-        x = np.round(x * 2).astype(np.float32) / 4
+    x = _median_sample(n, ties)
     want = np.median(x)
     got = _median_scratch(x.copy(), n)
     assert got == np.float64(want)  # the order statistic: exact
@@ -221,10 +224,7 @@ def test_median_scratch_equals_numpy_median(n, ties):
 def test_median_near_equals_median_scratch_whatever_the_hint(n, ties):
     # the band about the hint only speeds the selection up: the same value with a hint
     # on the median, beside it, far off (no band holds it), NaN, or a band of width 0
-    rng = np.random.default_rng(n)
-    x = rng.normal(size=n).astype(np.float32)
-    if ties:  # few distinct values, as in sparse coarse counts
-        x = np.round(x * 2).astype(np.float32) / 4
+    x = _median_sample(n, ties)
     want = _median_scratch(x.copy(), n)
     for hint, width in [(want, 0.1), (want, 0.0), (want + 0.05, 0.1), (want - 0.3, 0.2),
                         (50.0, 1.0), (np.nan, 0.1), (want, np.inf)]:  # fmt: skip
