@@ -407,6 +407,38 @@ HEADER = (
 )
 
 
+def _art_cells(scene, seed, rows, **extra) -> list:
+    """The Art cells of ``scene`` at ``PPP_ART`` (uniform background), printed and added
+    to ``rows`` with ``extra`` and the colour-boundary share; returns the calibration
+    pairs ``(confidence, correct)`` of the cells that have them."""
+    edge = colour_boundary(scene.truth, scene.shape)
+    cals = []
+    for ppp in PPP_ART:
+        r, cal = run_cell(scene, ppp, "uniform", seed, tau_m=0.004, special=edge, special2=~edge)
+        r.update(extra, boundary=float(edge.mean()))
+        print(_fmt(r), flush=True)
+        rows.append(r)
+        if cal is not None:
+            cals.append(cal)
+            print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
+    return cals
+
+
+def _save_reliability(cals, name, figure, suffix) -> None:
+    """The reliability figure of the pooled ``cals`` beside ``figure`` (``suffix`` added)."""
+    if not cals or figure is None:
+        return
+    from splidar.plotting import reliability_diagram
+
+    c = np.concatenate([a for a, _ in cals])
+    o = np.concatenate([b for _, b in cals])
+    path = figure.with_name(figure.stem + suffix + figure.suffix)
+    reliability_diagram(c, o, title=f"{name}, PPP 4-64 (ECE {ece(c, o):.3f})").savefig(
+        path, dpi=110
+    )
+    print(f"reliability figure: {path}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
@@ -466,52 +498,13 @@ def main(argv=None) -> int:
             "Art's class map (front layer): " + ", ".join(f"{k} {v:.3g}" for k, v in stats.items())
         )
         print(HEADER)
-        art_cal = []
-        edge = colour_boundary(art.truth, art.shape)
-        for ppp in PPP_ART:
-            r, cal = run_cell(
-                art, ppp, "uniform", args.seed, tau_m=0.004, special=edge, special2=~edge
-            )
-            r["separability"] = sep
-            r["boundary"] = float(edge.mean())
-            print(_fmt(r), flush=True)
-            rows.append(r)
-            if cal is not None:
-                art_cal.append(cal)
-                print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
+        art_cal = _art_cells(art, args.seed, rows, separability=sep)
         if args.art_objects:
             obj = art_object_scene(art)
-            edge_o = colour_boundary(obj.truth, obj.shape)
             print("\nArt, one class per object (art_object_scene; not the paper's scene)")
-            obj_cal = []
-            for ppp in PPP_ART:
-                r, cal = run_cell(
-                    obj, ppp, "uniform", args.seed, tau_m=0.004, special=edge_o, special2=~edge_o
-                )
-                r["boundary"] = float(edge_o.mean())
-                print(_fmt(r), flush=True)
-                rows.append(r)
-                if cal is not None:
-                    obj_cal.append(cal)
-                    print(f"  ECE {ece(*cal):.4f}, mean confidence {cal[0].mean():.3f}")
-            if obj_cal and args.figure is not None:
-                from splidar.plotting import reliability_diagram
-
-                c = np.concatenate([a for a, _ in obj_cal])
-                o = np.concatenate([b for _, b in obj_cal])
-                title = f"art_objects, PPP 4-64 (ECE {ece(c, o):.3f})"
-                path = args.figure.with_name(args.figure.stem + "_art_objects" + args.figure.suffix)
-                reliability_diagram(c, o, title=title).savefig(path, dpi=110)
-                print(f"reliability figure: {path}")
-        if art_cal and args.figure is not None:
-            from splidar.plotting import reliability_diagram
-
-            c = np.concatenate([a for a, _ in art_cal])
-            o = np.concatenate([b for _, b in art_cal])
-            fig = reliability_diagram(c, o, title=f"Art, PPP 4-64 (ECE {ece(c, o):.3f})")
-            path = args.figure.with_name(args.figure.stem + "_art" + args.figure.suffix)
-            fig.savefig(path, dpi=110)
-            print(f"reliability figure: {path}")
+            obj_cal = _art_cells(obj, args.seed, rows)
+            _save_reliability(obj_cal, "art_objects", args.figure, "_art_objects")
+        _save_reliability(art_cal, "Art", args.figure, "_art")
     print(f"total {time.perf_counter() - t_all:.0f} s")
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1))
