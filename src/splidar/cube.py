@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -14,6 +15,8 @@ from .irf import irf_peak, normalise_irf
 from .library import SpectralLibrary, as_library
 
 __all__ = ["Cube", "SPEED_OF_LIGHT", "as_counts"]
+
+log = logging.getLogger(__name__)
 
 #: Speed of light in vacuum, metres per second.
 SPEED_OF_LIGHT = 299_792_458.0
@@ -97,6 +100,30 @@ def as_counts(counts, name: str = "counts"):
     return a.astype(dtype)
 
 
+#: IRF samples at most this fraction of their wavelength's peak are negligible: an IRF
+#: longer than the window loses them from its ends (a measured pulse is often stored
+#: in a long record of zeros).
+IRF_NEGLIGIBLE = 1e-9
+
+
+def _trim_irf(irf: np.ndarray, T: int) -> np.ndarray:
+    """``irf`` (L, n) without its negligible ends (renormalised), if that fits in T bins."""
+    big = np.any(irf > IRF_NEGLIGIBLE * irf.max(axis=1, keepdims=True), axis=0)
+    lo, hi = int(np.argmax(big)), int(big.size - np.argmax(big[::-1]))
+    if hi - lo > T:
+        raise SplidarError(
+            f"`irf` is longer ({irf.shape[1]} samples; {hi - lo} above {IRF_NEGLIGIBLE:g} of "
+            f"the peak) than the histograms (T = {T} bins); crop the IRF around its peak or "
+            "use a longer time window (the IRF must fit inside it)."
+        )
+    log.info(
+        "irf: %d samples kept of %d (the rest below %g of the peak) to fit T = %d bins",
+        hi - lo, irf.shape[1], IRF_NEGLIGIBLE, T,
+    )  # fmt: skip
+    out = irf[:, lo:hi]
+    return out / out.sum(axis=1, keepdims=True)
+
+
 @dataclass(frozen=True)
 class Cube:
     """Histograms of photon arrival times, ``(rows, cols, L, T)``, with their IRF.
@@ -113,6 +140,8 @@ class Cube:
     irf : array_like, shape (L, n_irf) or (n_irf,)
         Instrument response per wavelength; normalised to sum 1 per wavelength into a
         new array (the caller's is not modified). A 1-D IRF serves every wavelength.
+        An IRF longer than T loses its negligible ends (a measured pulse in a long
+        record of zeros fits a shorter window).
         Its peak (argmax) is the depth reference.
     bin_width_ps : float, optional
         Width of one time bin in picoseconds; enables depths in metres.
@@ -127,7 +156,8 @@ class Cube:
     ------
     SplidarError
         Wrong number of dimensions, NaN, negative or non-integer counts, an IRF longer
-        than T, an IRF with no positive value, or L differing between counts and IRF.
+        than T (after dropping its negligible ends: samples at most ``1e-9`` of the
+        peak), an IRF with no positive value, or L differing between counts and IRF.
 
     Examples
     --------
@@ -160,10 +190,7 @@ class Cube:
                 ) from None
             raise
         if irf.shape[1] > T:
-            raise SplidarError(
-                f"`irf` is longer ({irf.shape[1]} samples) than the histograms (T = {T} bins); "
-                "crop the IRF around its peak (it must fit inside the time window)."
-            )
+            irf = _trim_irf(irf, T)
         irf.flags.writeable = False
         bw = self.bin_width_ps
         if bw is not None:

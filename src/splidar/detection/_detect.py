@@ -41,6 +41,7 @@ from ._5e_enclosed import restore_enclosed_holes
 from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
+from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._result import Background, Detection, StageRecord, StoredHistograms
 from ._table import remove_tree, skipped, store_histograms
 from ._tiled import is_dask, map_candidates_tiled, tiled_window_means
@@ -254,6 +255,7 @@ def detect(
     o = _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence)
     check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
+    cube = _without_hot_pixels(cube, o)
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
@@ -284,6 +286,28 @@ def detect(
     provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
+
+
+def _without_hot_pixels(cube: Cube, o: dict) -> Cube:
+    """The cube with its stuck pixels' counts set to 0 (``_hot_pixels``); logged, and
+    counted in ``o["hot_pixels"]``. A Dask cube is taken as it is."""
+    o["hot_pixels"] = 0
+    if is_dask(cube.counts):
+        return cube
+    hot = hot_pixels(cube.counts)
+    n = int(hot.sum())
+    if n == 0:
+        return cube
+    counts = np.array(cube.counts)
+    counts[hot] = 0
+    where = ", ".join(f"({r}, {c})" for r, c in np.argwhere(hot)[:5]) + (" ..." if n > 5 else "")
+    logger.warning(
+        "detect: %d stuck (hot) pixel(s) with a flat count level over %g times their "
+        "neighbours' treated as dead (no counts): %s",
+        n, HOT_RATIO, where,
+    )  # fmt: skip
+    o["hot_pixels"] = n
+    return dataclasses.replace(cube, counts=counts)
 
 
 def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence):
@@ -510,6 +534,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             slopes=SLOPE_PIXELS if "slopes" in passes else False,
             n_slopes=rec["slopes"].added,
             n_aligned=rec["align_depths"].moved,
+            hot_pixels=o["hot_pixels"],
             passes=passes,
         )
     )

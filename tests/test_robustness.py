@@ -1,0 +1,77 @@
+"""Robustness of the defaults to sensors and defects other groups' data have.
+
+The cases of ``benchmarks/bench_robustness.py`` that failed before their fix: an IRF
+given in a record longer than the window, and a stuck (hot) pixel.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from splidar import Cube, PointSet, SplidarError, gaussian_irf
+from splidar.detection import detect
+from splidar.detection._hot_pixels import hot_pixels
+from splidar.metrics import evaluate
+from splidar.simulation import simulate
+
+
+def _plane_cube(shape=(24, 24), n_bins=120, ppp=2.0, sbr=1.0, seed=0):
+    r, c = shape
+    rr, cc = np.meshgrid(np.arange(r), np.arange(c), indexing="ij")
+    truth = PointSet(
+        row=rr.ravel(), col=cc.ravel(), depth_bin=50.0 + 0.3 * (rr + cc).ravel(),
+        image_shape=shape, intensity=np.ones((r * c, 1)),
+    )  # fmt: skip
+    sim = simulate(truth, n_bins=n_bins, irf=gaussian_irf(3.0), ppp=ppp, sbr=sbr, rng=seed)
+    return sim.cube, sim.truth
+
+
+def test_cube_irf_longer_than_t_loses_its_zero_ends():
+    g = gaussian_irf(3.0)
+    padded = np.zeros(625)
+    padded[300 : 300 + g.size] = g  # a measured pulse in a long record of zeros
+    counts = np.zeros((2, 3, 200), np.uint16)
+    cube = Cube(counts, irf=padded)
+    assert cube.irf.shape == (1, g.size)
+    np.testing.assert_allclose(cube.irf[0], g, rtol=1e-12, atol=0)
+    assert cube.irf_peak.tolist() == [g.size // 2]
+
+
+def test_cube_irf_longer_than_t_refused_when_not_negligible():
+    flat_tail = np.r_[gaussian_irf(3.0), np.full(300, 1e-4)]
+    with pytest.raises(SplidarError, match=r"`irf` is longer .*T = 200 bins"):
+        Cube(np.zeros((2, 3, 200), np.uint16), irf=flat_tail)
+
+
+def test_detect_hot_pixel_set_aside_keeps_the_image(caplog):
+    cube, truth = _plane_cube()
+    rng = np.random.default_rng(1)
+    counts = np.array(cube.counts, np.uint32)
+    counts[12, 12, 0] += rng.poisson(100.0, cube.n_bins).astype(np.uint32)  # 10^4 x bg
+    with caplog.at_level(logging.WARNING, logger="splidar.detection"):
+        det = detect(Cube(counts, irf=cube.irf))
+    assert det.options["hot_pixels"] == 1
+    assert "(12, 12)" in caplog.text
+    ref = detect(cube)
+    # before the fix: F_true 0.2 (the threshold of every pixel raised ten-fold)
+    f_hot = evaluate(det.points, truth, tau=2).f_true
+    assert f_hot >= evaluate(ref.points, truth, tau=2).f_true - 0.02
+    assert ref.options["hot_pixels"] == 0
+
+
+def test_hot_pixels_leaves_returns_and_bright_patches():
+    rng = np.random.default_rng(2)
+    T = 64
+    counts = rng.poisson(0.05, (12, 12, 1, T)).astype(np.uint32)
+    g = gaussian_irf(3.0)
+    counts[2, 2, 0, 20 : 20 + g.size] += (1e6 * g).astype(np.uint32)  # a glint: peaked
+    counts[6:9, 6:9, 0] += rng.poisson(200.0, (3, 3, T)).astype(np.uint32)  # sunlit patch
+    wide = np.exp(-0.5 * ((np.arange(T) - 32) / 12.7) ** 2)  # FWHM 30 bins
+    counts[10, 2, 0] += (1e4 * wide).astype(np.uint32)  # a return over half of T
+    counts[2, 9, 0] += rng.poisson(200.0, T).astype(np.uint32)  # a stuck pixel
+    hot = hot_pixels(counts)
+    assert np.argwhere(hot).tolist() == [[2, 9]]
+    assert not hot_pixels(counts[:1, :1]).any()  # one pixel: nothing to compare with
