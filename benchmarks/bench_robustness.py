@@ -102,21 +102,39 @@ def _irf_margin(irf) -> float:
 
 
 def basic(
-    T=200, fwhm=3.0, *, irf=None, ppp=10.0, sbr=1.0, second=None, bw=250.0, shape=None, steep=False
+    T=200,
+    fwhm=3.0,
+    *,
+    irf=None,
+    ppp=10.0,
+    sbr=1.0,
+    second=None,
+    bw=250.0,
+    shape=None,
+    steep=False,
+    span=None,
+    bg="uniform",
 ):
-    """The common case: a gently tilted plane (its depths spread over ``4 FWHM + 10`` bins
-    about the window's middle; ``steep``: over the whole usable window) with the IRF given."""
+    """The common case: a gently tilted plane (on 32 x 32 pixels its depths spread over
+    ``4 FWHM + 10`` bins about the window's middle; the same slope per pixel on other
+    shapes; ``steep``: over the whole usable window; ``span``: over that many bins)."""
 
     def build(size):
         g = gaussian_irf(fwhm) if irf is None else irf
         m = _irf_margin(g)
         lo, hi = m, T - 1 - m - (second or 0)
-        if not steep:
-            span = min(hi - lo, 4.0 * float(irf_fwhm(np.asarray(g, float))) + 10.0)
+        if span is not None:
             mid = 0.5 * (lo + hi)
             lo, hi = mid - span / 2, mid + span / 2
+        elif not steep:
+            # the same slope per pixel step as on a 32 x 32 image, whatever the shape
+            r, c = shape or (size, size)
+            sp = (4.0 * float(irf_fwhm(np.asarray(g, float))) + 10.0) * (r + c - 2) / 62
+            sp = min(hi - lo, sp)
+            mid = 0.5 * (lo + hi)
+            lo, hi = mid - sp / 2, mid + sp / 2
         truth = _plane(shape or (size, size), lo, hi, second=second)
-        return _sim(truth, T, g, ppp=ppp, sbr=sbr, bw=bw)
+        return _sim(truth, T, g, ppp=ppp, sbr=sbr, bw=bw, bg=bg)
 
     return build
 
@@ -134,6 +152,7 @@ def _cases() -> list[Case]:
     cases = [
         Case("reference T200 fwhm3", basic()),
         Case("steep plane over the window", basic(steep=True)),
+        Case("T=32", basic(T=32)),
         Case("T=64", basic(T=64)),
         Case("T=1000", basic(T=1000)),
         Case("T=4000 fwhm 8", basic(T=4000, fwhm=8.0)),
@@ -164,6 +183,10 @@ def _cases() -> list[Case]:
         Case("L=2", _multi(2)),
         Case("L=4 per-wl background", _multi(4, bpb=[0.01, 0.05, 0.2, 1.0])),
         Case("L=16", _multi(16)),
+        Case(
+            "L=4 IRF FWHM 1, 3, 6, 10 per band",
+            _multi(4, irf=[("gaussian", f) for f in (1, 3, 6, 10)]),
+        ),
         Case("L=4 one dark band", _multi(4, spectrum=[1, 1, 1, 0.0])),
         Case("SBR 0.01 PPP 10", basic(sbr=0.01)),
         Case("SBR 100 PPP 10", basic(sbr=100.0)),
@@ -172,9 +195,19 @@ def _cases() -> list[Case]:
         Case("PPP 1000 SBR 1", basic(ppp=1000.0)),
         Case("PPP 1000 SBR 100 (saturated)", basic(ppp=1000.0, sbr=100.0)),
         Case("no background (sbr None)", basic(sbr=None)),
+        Case("decaying background", basic(bg="decaying", sbr=0.25)),
+        Case("pile-up background", basic(bg="pileup", sbr=0.25)),
+        Case("PPP 100 SBR 0.01 (50 bg counts a bin)", basic(ppp=100.0, sbr=0.01)),
+        Case("PPP 1e5 (counts over 65535 a bin)", basic(ppp=1e5, sbr=10.0)),
         Case("float64 counts", _float_counts()),
+        Case("float32 counts", _float_counts(np.float32)),
+        Case("int64 counts", _float_counts(np.int64)),
+        Case("uint8 counts", _float_counts(np.uint8)),
+        Case("float counts, dead pixels NaN", _dead(nan=True)),
+        Case("masked array, dead pixels masked", _dead(masked=True)),
         Case("surface at bin 0 / T-1", _edges()),
         Case("two surfaces 2 FWHM apart", basic(second=6.0)),
+        Case("two surfaces 2.5 FWHM apart", basic(second=7.5)),
         Case("two surfaces 3 FWHM apart", basic(second=9.0)),
         Case("two surfaces 2 FWHM, fwhm 8", basic(T=300, fwhm=8.0, second=16.0)),
         Case("empty scene (background only)", _empty()),
@@ -183,11 +216,14 @@ def _cases() -> list[Case]:
         Case("shape 1x40", basic(shape=(1, 40))),
         Case("shape 40x1", basic(shape=(40, 1))),
         Case("shape 3x3", basic(shape=(3, 3))),
+        Case("shape 3x3, 5.5 bins a pixel step", basic(shape=(3, 3), span=22.0)),
         Case("shape 2x2", basic(shape=(2, 2))),
         Case("shape 12x50", basic(shape=(12, 50))),
         Case("dead pixels (10 %)", _dead()),
         Case("dead column", _dead(column=True)),
         Case("hot pixel (1e5 counts/bin)", _hot()),
+        Case("hot pixel (5 counts/bin, 50x bg)", _hot(5)),
+        Case("one-bin spike (1e5 counts) in one pixel", _hot(spike=True)),
     ]
     return cases
 
@@ -218,20 +254,20 @@ def _long_irf(irf, T):
     return build
 
 
-def _multi(L, bpb=None, spectrum=None):
+def _multi(L, bpb=None, spectrum=None, irf=None):
     def build(size):
-        g = gaussian_irf(3.0)
-        m = _irf_margin(g)
+        g = gaussian_irf(3.0) if irf is None else irf
+        m = 30.0
         truth = _with_L(_plane((size, size), m, 199 - m), L, spectrum)
         return _sim(truth, 200, g, ppp=10.0 * L, sbr=1.0, bpb=bpb)
 
     return build
 
 
-def _float_counts():
+def _float_counts(dtype=np.float64):
     def build(size):
         cube, tr = basic()(size)
-        return Cube(cube.counts.astype(np.float64), irf=cube.irf), tr
+        return Cube(cube.counts.astype(dtype), irf=cube.irf), tr
 
     return build
 
@@ -267,17 +303,21 @@ def _zeros():
     return build
 
 
-def _dead(column=False):
+def _dead(column=False, nan=False, masked=False):
     def build(size):
         cube, tr = basic()(size)
-        c = np.array(cube.counts)
+        c = np.array(cube.counts, dtype=np.float64 if nan else cube.counts.dtype)
         rng = np.random.default_rng(1)
         if column:
             dead = np.zeros((size, size), bool)
             dead[:, size // 3] = True
         else:
             dead = rng.random((size, size)) < 0.1
-        c[dead] = 0
+        if masked:
+            c = np.ma.masked_array(c, mask=np.broadcast_to(dead[:, :, None, None], c.shape))
+            c.data[dead] = 7  # what the masked values hold must not matter
+        else:
+            c[dead] = np.nan if nan else 0
         keep = ~dead[tr.row, tr.col]
         kw = tr.to_dict()
         kw.pop("image_shape")
@@ -289,11 +329,15 @@ def _dead(column=False):
     return build
 
 
-def _hot():
+def _hot(level=100_000, spike=False):
     def build(size):
         cube, tr = basic()(size)
         c = np.array(cube.counts, dtype=np.uint32)
-        c[size // 2, size // 2] += 100_000
+        if spike:
+            c[size // 2, size // 2, 0, 77] += 100_000
+        else:
+            rng = np.random.default_rng(3)
+            c[size // 2, size // 2] += rng.poisson(level, c.shape[2:]).astype(np.uint32)
         return Cube(c, irf=cube.irf, bin_width_ps=cube.bin_width_ps), tr
 
     return build

@@ -75,3 +75,20 @@ def test_hot_pixels_leaves_returns_and_bright_patches():
     hot = hot_pixels(counts)
     assert np.argwhere(hot).tolist() == [[2, 9]]
     assert not hot_pixels(counts[:1, :1]).any()  # one pixel: nothing to compare with
+
+
+def test_cube_masked_array_dead_pixels_count_zero():
+    counts = np.ones((3, 4, 1, 16), np.uint16)
+    dead = np.zeros(counts.shape, bool)
+    dead[1, 2] = True
+    cube = Cube(np.ma.masked_array(counts * 9, mask=dead), irf=[0.25, 0.5, 0.25])
+    assert cube.counts.dtype == np.uint16
+    assert cube.counts[1, 2].sum() == 0  # not the 9s the mask hides
+    assert cube.counts.sum() == 9 * 16 * 11
+
+
+def test_cube_nan_counts_refused_suggesting_dead_pixel_forms():
+    counts = np.ones((2, 2, 8))
+    counts[0, 1] = np.nan
+    with pytest.raises(SplidarError, match=r"`counts` holds 8 NaN .*nan_to_num.*masked array"):
+        Cube(counts, irf=[1.0])

@@ -33,7 +33,8 @@ def as_counts(counts, name: str = "counts"):
     A ``(rows, cols, T)`` input is returned as a ``(rows, cols, 1, T)`` view. Integer
     input is kept as it is (no copy). Float input is accepted only when every value is
     a non-negative whole number, and is converted to the smallest unsigned type
-    (uint16 or uint32) that holds it.
+    (uint16 or uint32) that holds it. A masked array's masked voxels (dead pixels)
+    count 0 photons.
 
     Raises
     ------
@@ -41,6 +42,13 @@ def as_counts(counts, name: str = "counts"):
         Wrong number of dimensions, NaN/inf, negative or non-integer values.
     """
     lazy = _is_lazy(counts)
+    if np.ma.isMaskedArray(counts):
+        # masked voxels (dead pixels, gated-off bins) recorded no photons: 0, never the
+        # values the mask hides
+        n_masked = int(np.count_nonzero(np.ma.getmaskarray(counts)))
+        counts = np.ma.filled(counts, 0)
+        if n_masked:
+            log.info("`%s`: %d masked voxel(s) taken as 0 counts", name, n_masked)
     a = counts if lazy else np.asarray(counts)
     check_ndim(a, name, (3, 4), "(rows, cols, T) or (rows, cols, L, T)")
     if a.ndim == 3:
@@ -76,7 +84,8 @@ def as_counts(counts, name: str = "counts"):
     if not np.all(np.isfinite(a)):
         raise SplidarError(
             f"`{name}` holds {int(np.count_nonzero(~np.isfinite(a)))} NaN or infinite value(s); "
-            "photon counts must be finite whole numbers."
+            "photon counts must be finite whole numbers. If NaN marks dead pixels, pass "
+            "np.nan_to_num(counts) (no photons) or a numpy masked array."
         )
     mn = a.min()
     if mn < 0:
@@ -135,7 +144,8 @@ class Cube:
     counts : array_like of int, shape (rows, cols, L, T) or (rows, cols, T)
         Photon counts per pixel, wavelength and time bin (time last). A 3-D array means
         L = 1. Integer dtypes are kept without a copy (uint16/uint32 recommended); float
-        input must hold whole numbers. A Dask array is accepted for data larger than RAM
+        input must hold whole numbers; a masked array's masked voxels (dead pixels)
+        count 0. A Dask array is accepted for data larger than RAM
         (checked by shape and dtype only).
     irf : array_like, shape (L, n_irf) or (n_irf,)
         Instrument response per wavelength; normalised to sum 1 per wavelength into a
