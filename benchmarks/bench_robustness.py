@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import splidar
-from splidar import Cube, PointSet
+from splidar import Cube, PointSet, SplidarError
 from splidar.baselines import per_pixel_detect
 from splidar.irf import exp_tail_irf, gaussian_irf, irf_fwhm
 from splidar.metrics import evaluate
@@ -42,6 +42,7 @@ class Case:
     name: str
     build: Callable[[int], tuple[Cube, PointSet | None]]  # size -> (cube, truth)
     note: str = ""
+    refused: bool = False  # the input cannot work: one clear SplidarError is the answer
 
 
 def _plane(shape, lo, hi, *, second=None, refl=True):
@@ -203,7 +204,7 @@ def _cases() -> list[Case]:
         Case("float32 counts", _float_counts(np.float32)),
         Case("int64 counts", _float_counts(np.int64)),
         Case("uint8 counts", _float_counts(np.uint8)),
-        Case("float counts, dead pixels NaN", _dead(nan=True)),
+        Case("float counts, dead pixels NaN", _dead(nan=True), refused=True),
         Case("masked array, dead pixels masked", _dead(masked=True)),
         Case("surface at bin 0 / T-1", _edges()),
         Case("two surfaces 2 FWHM apart", basic(second=6.0)),
@@ -347,6 +348,10 @@ def _run_one(case: Case, size: int) -> dict:
     out: dict = {"case": case.name}
     try:
         cube, truth = case.build(size)
+    except SplidarError as exc:
+        out["status"] = "refused" if case.refused else f"build: SplidarError: {str(exc)[:70]}"
+        out["message"] = str(exc)
+        return out
     except Exception as exc:  # noqa: BLE001 - the table reports it
         out["status"] = f"build: {type(exc).__name__}: {str(exc)[:70]}"
         return out
@@ -398,7 +403,7 @@ def main() -> None:
     if args.only:
         cases = [c for c in cases if any(s in c.name for s in args.only)]
     hdr = (
-        f"| {'case':<48} | {'cube':<14} | {'runs':<4} | {'warn':>4} | "
+        f"| {'case':<48} | {'cube':<14} | {'runs':<7} | {'warn':>4} | "
         f"{'wall s':>6} | {'cpu s':>6} | "
         f"{'n true':>6} | {'F_true':>6} | {'false':>5} | {'DAE':>5} | "
         f"{'base F_true':>11} | {'base false':>10} | {'base DAE':>8} |"
@@ -409,10 +414,11 @@ def main() -> None:
     for case in cases:
         r = _run_one(case, args.size)
         ok = r["status"] == "ok"
-        if not ok:
+        runs = "yes" if ok else "refused" if r["status"] == "refused" else "NO"
+        if runs == "NO":
             failures.append((case.name, r["status"]))
         print(
-            f"| {case.name:<48} | {r.get('shape', '-'):<14} | {'yes' if ok else 'NO':<4} | "
+            f"| {case.name:<48} | {r.get('shape', '-'):<14} | {runs:<7} | "
             f"{r.get('warn', 0):>4} | {_fmt(r.get('wall'), '6.2f'):>6} | "
             f"{_fmt(r.get('cpu'), '6.2f'):>6} | {r.get('n_true', '-'):>6} | "
             f"{_fmt(r.get('f_true'), '6.3f'):>6} | {r.get('false', '-'):>5} | "
@@ -420,6 +426,8 @@ def main() -> None:
             f"{r.get('b_false', r.get('b_status', '-')):>10} | {_fmt(r.get('b_dae'), '8.2f'):>8} |",
             flush=True,
         )
+        if runs == "refused":
+            print(f"    refused, as it should be: {r['message']}")
         if r.get("warn"):
             print(f"    first warning: {r['warn_first']}")
     for name, status in failures:
