@@ -151,8 +151,9 @@ def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, 
         hole or the image ends: the hole is inside the plane's patch, not beyond its
         edge).
     h0 : int
-        Index of ``hr[0]`` among all the holes of the call's round (the per-hole seed is
-        ``seed * 1000003 + h0 + h``): a split over threads gives the same planes.
+        Index of ``hr[0]`` among all the holes of the call's round (unused: the per-hole
+        seed is ``seed * 1000003 + row * C + col``, so a split over threads gives the
+        same planes and a change elsewhere in the image does not move this hole's).
     """
     R, C, K = D.shape
     nmax = (2 * radius + 1) * (2 * radius + 1) * K
@@ -186,7 +187,9 @@ def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, 
                         pdu[n] = D[i, j, k]
                         used[n] = False
                         n += 1
-        st = np.int64(seed) * 1000003 + h0 + h  # per hole: reproducible, order-free
+        # per hole, from its pixel: reproducible, order-free, and local (another pixel's
+        # change, which adds or removes holes, leaves this hole's draws as they were)
+        st = np.int64(seed) * 1000003 + np.int64(hr[h]) * C + hc[h]
         avail = n  # points not on a plane yet
         for p in range(max_planes):
             if avail < min_inliers:
