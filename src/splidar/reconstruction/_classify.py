@@ -120,6 +120,11 @@ __all__ = [
 _N_GRID = 16
 #: interaction strength per link (nats) of the label field: see docs/classification.md
 GAMMA = 1.5
+#: burn-in sweeps after which the strength is re-estimated (``classify_surfaces``):
+#: every third from the 5th (the chains have coarsened from the per-surface labels) to
+#: the last burn-in sweep (sweeps 5, 8, 11 of 12)
+_ADAPT = (4, 1_000_000, 3)
+_HI = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -389,15 +394,36 @@ def _draw_clusters(csum, root, logpi, u, seed, it):
 
 @njit(cache=True)
 def _swendsen_wang(
-    unary, logpi, indptr, indices, gam_e, parity, u, n_burn, n_keep, seed, counts, rb
+    unary,
+    logpi,
+    indptr,
+    indices,
+    wunit,
+    parity,
+    u,
+    n_burn,
+    n_keep,
+    seed,
+    counts,
+    rb,
+    g=1.0,
+    a_from=0,
+    a_to=0,
+    a_step=1,
+    lo=0.0,
+    hi=0.0,
 ):
     """Swendsen-Wang sweeps of the Potts field with external field ``unary`` (plus
     ``logpi`` once per cluster), each followed by a heat-bath sweep; ``counts``
-    accumulates the label of every surface over the ``n_keep`` sweeps after ``n_burn``."""
+    accumulates the label of every surface over the ``n_keep`` sweeps after ``n_burn``.
+    Link strengths ``g * wunit``; after the burn-in sweeps ``it = a_from, a_from +
+    a_step, ...`` below ``a_to``, ``g`` is replaced by the maximum pseudo-likelihood
+    strength of the current labels within ``[lo, hi]``. Returns the final ``g``."""
     S, K = unary.shape
     parent = np.empty(S, np.int64)
     root = np.empty(S, np.int64)
     bond = np.zeros(indices.size, np.bool_)
+    gam_e = g * wunit
     p_bond = np.empty(gam_e.size)
     for e in range(gam_e.size):
         p_bond[e] = -math.expm1(-gam_e[e])
@@ -452,6 +478,13 @@ def _swendsen_wang(
         if keep and not rb:
             for s in range(S):
                 counts[s, u[s]] += 1
+        if a_from <= it < min(a_to, n_burn) and (it - a_from) % a_step == 0:
+            # every stride-th surface's term: about 16,384 of them
+            g = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, max(1, S // 16384))
+            for e in range(gam_e.size):
+                gam_e[e] = g * wunit[e]
+                p_bond[e] = -math.expm1(-gam_e[e])
+    return g
 
 
 @njit(cache=True, parallel=_PARALLEL)
@@ -570,46 +603,66 @@ def link_gamma(graph, gamma: float) -> np.ndarray:
     return np.minimum(8.0 * gamma / (deg[src] + deg[graph.indices]), 4.0 * gamma)
 
 
-@njit(cache=True)
-def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi):
-    """Newton ascent of the (concave) log pseudo-likelihood of the labels ``u`` in the
-    strength ``g``, kept within ``[lo, hi]``."""
-    S = indptr.size - 1
-    n = np.zeros((S, K))
-    for s in range(S):
+@njit(cache=True, parallel=_PARALLEL)
+def _cut_weights(u, indptr, indices, wunit, K, stride, n):
+    """``n[i, k]``: weight of the links of surface ``s = i * stride`` that label k would
+    cut under labels ``u``; ``n[i, K]``: the same for its own label ``u[s]``."""
+    for i in prange(n.shape[0]):
+        s = i * stride
         tot = 0.0
+        for k in range(K):
+            n[i, k] = 0.0
         for e in range(indptr[s], indptr[s + 1]):
             tot += wunit[e]
-            n[s, u[indices[e]]] -= wunit[e]
+            n[i, u[indices[e]]] -= wunit[e]
         for k in range(K):
-            n[s, k] += tot  # weight of the links of s that label k would cut
+            n[i, k] += tot
+        n[i, K] = n[i, u[s]]
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def _pl_derivatives(n, g):
+    """First and second derivatives in ``g`` of the log pseudo-likelihood, given the cut
+    weights ``n`` of :func:`_cut_weights`."""
+    S, K1 = n.shape
+    K = K1 - 1
+    d1 = 0.0
+    d2 = 0.0
+    for s in prange(S):
+        m = n[s, 0]
+        for k in range(1, K):
+            m = min(m, n[s, k])
+        z = 0.0
+        e1 = 0.0
+        e2 = 0.0
+        for k in range(K):
+            w = math.exp(-g * (n[s, k] - m))
+            z += w
+            e1 += w * n[s, k]
+            e2 += w * n[s, k] * n[s, k]
+        e1 /= z
+        d1 += e1 - n[s, K]
+        d2 += e1 * e1 - e2 / z
+    return d1, d2
+
+
+@njit(cache=True)
+def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, stride=1):
+    """Newton ascent of the (concave) log pseudo-likelihood of the labels ``u`` in the
+    strength ``g``, kept within ``[lo, hi]``. The sum over surfaces runs over every
+    ``stride``-th one (an unbiased subsample of the sum's terms)."""
+    S = indptr.size - 1
+    n = np.empty(((S + stride - 1) // stride, K + 1))
+    _cut_weights(u, indptr, indices, wunit, K, stride, n)
     for _ in range(50):
-        d1 = 0.0
-        d2 = 0.0
-        for s in range(S):
-            if indptr[s + 1] == indptr[s]:
-                continue
-            m = n[s, 0]
-            for k in range(1, K):
-                m = min(m, n[s, k])
-            z = 0.0
-            e1 = 0.0
-            e2 = 0.0
-            for k in range(K):
-                w = math.exp(-g * (n[s, k] - m))
-                z += w
-                e1 += w * n[s, k]
-                e2 += w * n[s, k] * n[s, k]
-            e1 /= z
-            d1 += e1 - n[s, u[s]]
-            d2 -= e2 / z - e1 * e1
+        d1, d2 = _pl_derivatives(n, g)
         if d2 < -1e-12:
             step = -d1 / d2
         else:
             step = 1.0 if d1 > 0.0 else -1.0
         step = max(-1.0, min(1.0, step))
         new = max(lo, min(hi, g + step))
-        if abs(new - g) < 1e-6:
+        if abs(new - g) < 1e-4:
             return new
         g = new
     return g
@@ -745,6 +798,8 @@ def potts_marginals(
     n_chains: int = 1,
     link_weights: np.ndarray | None = None,
     rao_blackwell: bool = True,
+    estimate: tuple[float, float] | None = None,
+    return_gamma: bool = False,
 ) -> np.ndarray:
     """Label marginals of a Potts field by Swendsen-Wang + heat-bath sampling.
 
@@ -780,11 +835,21 @@ def potts_marginals(
         expectation, a smaller Monte Carlo error at the same cost (issue 14, session
         10: the net of the two-layer scene at PPP 10 moved by up to 0.02 between
         sampler seeds with label counts). ``False``: label frequencies (before).
+    estimate : (float, float), optional
+        Bounds ``(lo, hi)``: re-estimate each chain's strength during its burn-in
+        (after every third of its sweeps from the 5th to ``n_burn``: 5, 8, 11 of 12) as
+        the maximum pseudo-likelihood strength of the chain's current labels
+        (:func:`estimate_gamma`), starting from ``gamma``; the kept sweeps run at the
+        last estimate. Default: ``gamma`` fixed.
+    return_gamma : bool
+        Also return the chains' final strengths.
 
     Returns
     -------
     marginals : ndarray (S, K), rows sum to 1 (averages over the kept sweeps of all
         chains, with half a count in all added so that no marginal is exactly 0 or 1).
+    gammas : ndarray (n_chains,)
+        Only with ``return_gamma``.
     """
     un = np.ascontiguousarray(unary, np.float64)
     S, K = un.shape
@@ -794,17 +859,23 @@ def potts_marginals(
     counts = np.zeros((S, K))
     lp = np.zeros(K) if logpi is None else np.ascontiguousarray(logpi, np.float64)
     gam = np.broadcast_to(np.asarray(gamma, np.float64), (int(n_chains),))
+    wunit = link_gamma(graph, 1.0)
+    if link_weights is not None:
+        wunit = wunit * np.asarray(link_weights, np.float64)
+    wunit = np.ascontiguousarray(wunit)
+    a_from, a_to, a_step = (0, 0, 1) if estimate is None else _ADAPT
+    lo, hi = (0.0, 0.0) if estimate is None else estimate
+    g_out = np.empty(int(n_chains))
     for c in range(int(n_chains)):
-        gam_e = link_gamma(graph, float(gam[c]))
-        if link_weights is not None:
-            gam_e = gam_e * np.asarray(link_weights, np.float64)
-        _swendsen_wang(
-            un, lp, graph.indptr, graph.indices, gam_e, graph.parity, u0.copy(),
+        g_out[c] = _swendsen_wang(
+            un, lp, graph.indptr, graph.indices, wunit, graph.parity, u0.copy(),
             int(n_burn), int(n_keep),
             int(seed) + 7919 * c, counts, bool(rao_blackwell),
+            float(gam[c]), a_from, a_to, a_step, float(lo), float(hi),
         )  # fmt: skip
     counts += 0.5 / K
-    return counts / counts.sum(axis=1, keepdims=True)
+    marg = counts / counts.sum(axis=1, keepdims=True)
+    return (marg, g_out) if return_gamma else marg
 
 
 def unknown_llr(y: np.ndarray, background: np.ndarray, eta: np.ndarray, signatures, label):
@@ -850,7 +921,8 @@ class Classification:
     loglik : ndarray (S, K)
         Per-surface class log-likelihood (:func:`class_loglik`).
     gamma : float
-        Interaction strength used.
+        Interaction strength of the kept sweeps (mean over the chains: the estimate
+        when ``classify_surfaces(estimate=True)``, else the rule's value).
     """
 
     label: np.ndarray
@@ -883,6 +955,7 @@ def classify_surfaces(
     contrast: bool = True,
     spread: bool = False,
     loglik: np.ndarray | None = None,
+    estimate: bool = False,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
 
@@ -937,6 +1010,18 @@ def classify_surfaces(
     loglik : ndarray (S, K), optional
         :func:`class_loglik` of these surfaces (with this ``alpha``) when already
         computed (a tiled reconstruction computes it once for the whole image).
+    estimate : bool
+        Re-estimate the strength from the data (default): during each chain's burn-in
+        the strength is set to the maximum pseudo-likelihood strength of the chain's
+        current labels (:func:`estimate_gamma`), starting from ``gamma`` and kept within
+        ``[log(1 + sqrt(K)), 2 gamma]`` (the ordering threshold of the K-state Potts
+        model, below which regions stop pooling, and twice the rule's value); the kept
+        sweeps run at the chain's last estimate. Where the photons pin the labels down,
+        the estimate follows the map they show (regions: up to 2-2.5 at PPP 10 on the
+        benchmark scenes; more cut links: down); where they do not, the draws follow
+        the prior and the estimate stays near ``gamma``
+        (``docs/classification.md``, "Estimating the strength from the data").
+        ``False``: ``gamma`` fixed (sessions 7-11).
 
     Returns
     -------
@@ -962,15 +1047,19 @@ def classify_surfaces(
     gam = chain_gammas(gamma, K, n_chains) if spread else gamma
     marg = np.full((S, K), 1.0 / K)
     start = None
+    bounds = (min(gamma, math.log1p(math.sqrt(K))), _HI * gamma) if estimate else None
+    g_used = float(gamma)
     for i in range(n_rounds):
         logpi = np.log(np.maximum(pi, 1e-6))
         # independent chains, kept sweeps pooled: one chain rarely flips a whole patch
         # once it has settled, so its marginals miss the other modes (over-confident)
-        marg = potts_marginals(
+        marg, g_c = potts_marginals(
             ll, graph, gam, seed=seed + i, start=start, logpi=logpi,
             n_burn=n_burn, n_keep=n_keep, n_chains=n_chains, link_weights=w,
+            estimate=bounds, return_gamma=True,
         )  # fmt: skip
+        g_used = float(np.mean(g_c)) if S else g_used
         start = np.argmax(marg, axis=1)
         if S:
             pi = marg.mean(axis=0)
-    return Classification(np.argmax(marg, axis=1).astype(np.int64), marg, pi, ll, float(gamma))
+    return Classification(np.argmax(marg, axis=1).astype(np.int64), marg, pi, ll, g_used)
