@@ -121,9 +121,10 @@ _N_GRID = 16
 #: interaction strength per link (nats) of the label field: see docs/classification.md
 GAMMA = 1.5
 #: burn-in sweeps after which the strength is re-estimated (``classify_surfaces``):
-#: every third from the 5th (the chains have coarsened from the per-surface labels) to
-#: the last burn-in sweep (sweeps 5, 8, 11 of 12)
-_ADAPT = (4, 1_000_000, 3)
+#: every one from the 5th (the chains have coarsened from the per-surface labels) to
+#: the last burn-in sweep (sweeps 5-12 of 12), on about 8,192 surfaces' terms
+_ADAPT = (4, 1_000_000, 1)
+_MPL_SITES = 8192
 _HI = 1.0
 
 
@@ -479,12 +480,20 @@ def _swendsen_wang(
             for s in range(S):
                 counts[s, u[s]] += 1
         if a_from <= it < min(a_to, n_burn) and (it - a_from) % a_step == 0:
-            # every stride-th surface's term: about 16,384 of them
-            g = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, max(1, S // 16384))
-            for e in range(gam_e.size):
-                gam_e[e] = g * wunit[e]
-                p_bond[e] = -math.expm1(-gam_e[e])
+            # every stride-th surface's term: about _MPL_SITES of them
+            gn = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, max(1, S // _MPL_SITES))
+            # moves under 0.01 (the estimate's own noise) leave the links as they are
+            if abs(gn - g) >= 0.01:
+                g = gn
+                _set_links(wunit, g, gam_e, p_bond)
     return g
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def _set_links(wunit, g, gam_e, p_bond):
+    for e in prange(gam_e.size):
+        gam_e[e] = g * wunit[e]
+        p_bond[e] = -math.expm1(-gam_e[e])
 
 
 @njit(cache=True, parallel=_PARALLEL)
@@ -603,11 +612,11 @@ def link_gamma(graph, gamma: float) -> np.ndarray:
     return np.minimum(8.0 * gamma / (deg[src] + deg[graph.indices]), 4.0 * gamma)
 
 
-@njit(cache=True, parallel=_PARALLEL)
+@njit(cache=True)
 def _cut_weights(u, indptr, indices, wunit, K, stride, n):
     """``n[i, k]``: weight of the links of surface ``s = i * stride`` that label k would
     cut under labels ``u``; ``n[i, K]``: the same for its own label ``u[s]``."""
-    for i in prange(n.shape[0]):
+    for i in range(n.shape[0]):
         s = i * stride
         tot = 0.0
         for k in range(K):
@@ -620,7 +629,7 @@ def _cut_weights(u, indptr, indices, wunit, K, stride, n):
         n[i, K] = n[i, u[s]]
 
 
-@njit(cache=True, parallel=_PARALLEL)
+@njit(cache=True)
 def _pl_derivatives(n, g):
     """First and second derivatives in ``g`` of the log pseudo-likelihood, given the cut
     weights ``n`` of :func:`_cut_weights`."""
@@ -628,7 +637,7 @@ def _pl_derivatives(n, g):
     K = K1 - 1
     d1 = 0.0
     d2 = 0.0
-    for s in prange(S):
+    for s in range(S):
         m = n[s, 0]
         for k in range(1, K):
             m = min(m, n[s, k])
@@ -837,8 +846,8 @@ def potts_marginals(
         sampler seeds with label counts). ``False``: label frequencies (before).
     estimate : (float, float), optional
         Bounds ``(lo, hi)``: re-estimate each chain's strength during its burn-in
-        (after every third of its sweeps from the 5th to ``n_burn``: 5, 8, 11 of 12) as
-        the maximum pseudo-likelihood strength of the chain's current labels
+        (after each of its sweeps from the 5th to ``n_burn``) as the maximum
+        pseudo-likelihood strength of the chain's current labels
         (:func:`estimate_gamma`), starting from ``gamma``; the kept sweeps run at the
         last estimate. Default: ``gamma`` fixed.
     return_gamma : bool
@@ -955,7 +964,7 @@ def classify_surfaces(
     contrast: bool = True,
     spread: bool = False,
     loglik: np.ndarray | None = None,
-    estimate: bool = False,
+    estimate: bool = True,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
 
