@@ -121,9 +121,9 @@ _N_GRID = 16
 #: interaction strength per link (nats) of the label field: see docs/classification.md
 GAMMA = 1.5
 #: burn-in sweeps after which the strength is re-estimated (``classify_surfaces``):
-#: every one from the 5th (the chains have coarsened from the per-surface labels) to
-#: the last burn-in sweep (sweeps 5-12 of 12), on about 8,192 surfaces' terms
-_ADAPT = (4, 1_000_000, 1)
+#: every third from the 5th (the chains have coarsened from the per-surface labels) to
+#: the last burn-in sweep (sweeps 5, 8, 11 of 12), on about 8,192 surfaces' terms
+_ADAPT = (4, 1_000_000, 3)
 _MPL_SITES = 8192
 _HI = 1.0
 
@@ -846,8 +846,8 @@ def potts_marginals(
         sampler seeds with label counts). ``False``: label frequencies (before).
     estimate : (float, float), optional
         Bounds ``(lo, hi)``: re-estimate each chain's strength during its burn-in
-        (after each of its sweeps from the 5th to ``n_burn``) as the maximum
-        pseudo-likelihood strength of the chain's current labels
+        (after every third of its sweeps from the 5th to ``n_burn``: 5, 8, 11 of 12)
+        as the maximum pseudo-likelihood strength of the chain's current labels
         (:func:`estimate_gamma`), starting from ``gamma``; the kept sweeps run at the
         last estimate. Default: ``gamma`` fixed.
     return_gamma : bool
@@ -1020,16 +1020,17 @@ def classify_surfaces(
         :func:`class_loglik` of these surfaces (with this ``alpha``) when already
         computed (a tiled reconstruction computes it once for the whole image).
     estimate : bool
-        Re-estimate the strength from the data (default): during each chain's burn-in
-        the strength is set to the maximum pseudo-likelihood strength of the chain's
-        current labels (:func:`estimate_gamma`), starting from ``gamma`` and kept within
-        ``[log(1 + sqrt(K)), 2 gamma]`` (the ordering threshold of the K-state Potts
-        model, below which regions stop pooling, and twice the rule's value); the kept
-        sweeps run at the chain's last estimate. Where the photons pin the labels down,
-        the estimate follows the map they show (regions: up to 2-2.5 at PPP 10 on the
-        benchmark scenes; more cut links: down); where they do not, the draws follow
-        the prior and the estimate stays near ``gamma``
-        (``docs/classification.md``, "Estimating the strength from the data").
+        Re-estimate the strength from the data (default): after the sweeps 5, 8 and 11
+        of each chain's burn-in the strength is set to the maximum pseudo-likelihood
+        strength of the chain's current labels (:func:`estimate_gamma`), starting from
+        ``gamma`` and kept within ``[log(1 + sqrt(K)), gamma]`` (the ordering threshold
+        of the K-state Potts model, below which regions stop pooling, and the rule's
+        value, above which one-pixel strands are erased); the kept sweeps run at the
+        chain's last estimate. Where the draws cut more links than a field at ``gamma``
+        would (PPP 1 on the benchmark scenes: 1.32-1.46) the coupling weakens; where the
+        photons are weak the draws follow the prior and the estimate stays near
+        ``gamma`` (Art: 1.44-1.48) (``docs/classification.md``, "Estimating the
+        strength from the data").
         ``False``: ``gamma`` fixed (sessions 7-11).
 
     Returns
