@@ -1027,7 +1027,7 @@ def classify_surfaces(
         of the K-state Potts model, below which regions stop pooling, and the rule's
         value, above which one-pixel strands are erased); the kept sweeps run at the
         chain's last estimate. Where the draws cut more links than a field at ``gamma``
-        would (PPP 1 on the benchmark scenes: 1.32-1.46) the coupling weakens; where the
+        would (PPP 1 on the benchmark scenes: 1.37-1.47) the coupling weakens; where the
         photons are weak the draws follow the prior and the estimate stays near
         ``gamma`` (Art: 1.44-1.48) (``docs/classification.md``, "Estimating the
         strength from the data").
