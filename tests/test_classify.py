@@ -207,6 +207,26 @@ def test_estimate_gamma_recovers_the_strength_of_a_potts_sample(gamma):
     assert abs(est - gamma) < 0.1, est
 
 
+def test_classify_surfaces_estimates_a_weaker_strength_on_a_fine_texture_only():
+    # strong evidence (30 photons a surface): on labels drawn independently per pixel the
+    # chains' draws follow the photons and cut most links, so the strength falls to the
+    # ordering threshold log(1 + sqrt(3)); on two regions it stays at the rule's 1.5
+    rng = np.random.default_rng(8)
+    noise = rng.integers(0, 3, (24, 24))
+    halves = np.zeros((24, 24), np.int64)
+    halves[:, 12:] = 2
+    y, b, eta, g, lab = _lattice(noise, 30.0, rng)
+    fine = classify_surfaces(y, b, eta, SIG, g, seed=0)
+    fixed = classify_surfaces(y, b, eta, SIG, g, seed=0, estimate=False)
+    assert fine.gamma == pytest.approx(np.log1p(np.sqrt(3.0)))
+    assert fixed.gamma == 1.5
+    assert np.mean(fine.label == lab) >= np.mean(fixed.label == lab)
+    y, b, eta, g, lab = _lattice(halves, 30.0, rng)
+    regions = classify_surfaces(y, b, eta, SIG, g, seed=0)
+    assert regions.gamma == 1.5
+    assert np.mean(regions.label == lab) > 0.99
+
+
 def test_classify_surfaces_confidence_is_calibrated():
     # regions of 3 materials at 3 photons a surface: among surfaces given confidence p,
     # a fraction ~p is right (ECE over 10 bins; 4,096 surfaces, sampling sd ~0.01)

@@ -863,7 +863,8 @@ def potts_marginals(
     un = np.ascontiguousarray(unary, np.float64)
     S, K = un.shape
     if S == 0:
-        return np.zeros((0, K))
+        empty = np.zeros((0, K))
+        return (empty, np.full(int(n_chains), float(np.mean(gamma)))) if return_gamma else empty
     u0 = np.argmax(un, axis=1).astype(np.int64) if start is None else start.astype(np.int64)
     counts = np.zeros((S, K))
     lp = np.zeros(K) if logpi is None else np.ascontiguousarray(logpi, np.float64)
