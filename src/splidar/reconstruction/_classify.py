@@ -83,7 +83,7 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    a strand broken by a missed detection (``build_graph(bridge=True)``; the heat-bath
    sweep then visits 4 colours, ``(row + col) % 4``).
 
-The interaction strength is a fixed rule, not fitted to a scene (:func:`link_gamma`):
+The interaction strength follows a rule that does not depend on the scene (:func:`link_gamma`):
 ``gamma = 1.5`` nats per link between two surfaces of 4 links each, scaled so that a
 surface's links weigh about ``4 gamma`` in all whatever their number (a strand of a net
 in front, linked only along itself, is pooled as strongly as a surface of a region).
@@ -92,6 +92,12 @@ model on the 4-neighbour lattice (``log(1 + sqrt(K))``, 1.0-1.1 for K = 3-4), so
 region of one material is pooled as a whole at PPP 1; below that, clusters stay small
 and PPP 1 accuracy fell to 0.60 (gamma = 0.5). Larger values erase thin strands sooner
 (one pixel wide, same depth as its surroundings, PPP 10: 0.85 at 1.5, 0.80 at 2).
+Since session 12 that value is each chain's start and ceiling: after its burn-in sweeps
+5, 8 and 11 a chain takes the maximum pseudo-likelihood strength of its own labels
+(:func:`estimate_gamma`) within ``[log(1 + sqrt(K)), gamma]``, so the coupling weakens
+where the draws cut more links than a field at ``gamma`` would (PPP 1: 1.37-1.47) and
+stays where the photons are weak (Art: 1.45-1.48) (``docs/classification.md``,
+"Estimating the strength from the data").
 """
 
 from __future__ import annotations
