@@ -56,6 +56,11 @@ from splidar.reconstruction import (
 )
 from splidar.scenes import art_scene, multispectral_scene
 
+try:  # added in issue 14, session 12 (absent before it: the figure is left out)
+    from splidar.reconstruction import estimate_gamma
+except ImportError:  # pragma: no cover
+    estimate_gamma = None
+
 try:  # the baselines added with issue 14 (absent before it: computed here then)
     from splidar.baselines import majority_filter_labels, per_pixel_classify
     from splidar.reconstruction import flag_unknown
@@ -187,6 +192,10 @@ def evidence_budget(rec, truth, est, true_idx, sig, gamma=1.5):
     ``boundary`` no Potts-type field can find the true map. Also the selection signature
     of the field's errors: on the surfaces ``rec`` gets wrong, the mean log-likelihood
     ratio (given label minus true label) of their photons and of their expected counts.
+    ``mpl_truth`` / ``mpl_field``: the maximum pseudo-likelihood interaction strength
+    (:func:`splidar.reconstruction.estimate_gamma`) of the true labels and of the
+    field's labels on the graph of the matched surfaces: how strongly each map clusters
+    (the field's above the truth's: the field smooths more than the scene).
     """
     det = rec.detection
     s = det.surfaces
@@ -211,6 +220,13 @@ def evidence_budget(rec, truth, est, true_idx, sig, gamma=1.5):
     cut &= lab[src] != lab[g.indices]
     boundary = float(link_gamma(g, gamma)[cut].sum())
     given = rec.points.label[est]
+    gm = build_graph(
+        s.row[est], s.col[est], s.slot[est], s.depth_bin[est], s.image_shape, int(s.n_slots),
+        links=links, gate=gate,
+    )  # fmt: skip
+    K = sig.shape[0]
+    nan = float("nan")
+    mpl = [estimate_gamma(v, gm, n_classes=K) if estimate_gamma else nan for v in (tl, given)]
     wrong = given != tl
     ll = class_loglik(y[est][wrong], b[est][wrong], eta[est][wrong], sig)
     llw = class_loglik(ye[wrong], b[est][wrong], eta[est][wrong], sig)
@@ -220,6 +236,8 @@ def evidence_budget(rec, truth, est, true_idx, sig, gamma=1.5):
         "evidence": float(ev.sum()),
         "evidence_per_surface": float(ev.mean()),
         "boundary_cost": boundary,
+        "mpl_truth": mpl[0],
+        "mpl_field": mpl[1],
         "wrong_llr_photons": float(np.mean(ll[i, gw] - ll[i, tw])) if i.size else float("nan"),
         "wrong_llr_expected": float(np.mean(llw[i, gw] - llw[i, tw])) if i.size else float("nan"),
     }
@@ -391,7 +409,8 @@ def _fmt(r):
         extra += (
             f" | evidence {r['evidence']:.0f} nats ({r['evidence_per_surface']:.3f}/surf)"
             f" vs boundary {r['boundary_cost']:.0f}; errors' llr photons "
-            f"{r['wrong_llr_photons']:+.3f} expected {r['wrong_llr_expected']:+.3f}"
+            f"{r['wrong_llr_photons']:+.3f} expected {r['wrong_llr_expected']:+.3f}; "
+            f"MPL strength truth {r['mpl_truth']:.2f} field {r['mpl_field']:.2f}"
         )
     frac = r["t_classify"] / r["t_process"]
     return (

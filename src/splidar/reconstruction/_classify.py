@@ -83,7 +83,7 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    a strand broken by a missed detection (``build_graph(bridge=True)``; the heat-bath
    sweep then visits 4 colours, ``(row + col) % 4``).
 
-The interaction strength is a fixed rule, not fitted to a scene (:func:`link_gamma`):
+The interaction strength follows a rule that does not depend on the scene (:func:`link_gamma`):
 ``gamma = 1.5`` nats per link between two surfaces of 4 links each, scaled so that a
 surface's links weigh about ``4 gamma`` in all whatever their number (a strand of a net
 in front, linked only along itself, is pooled as strongly as a surface of a region).
@@ -92,6 +92,12 @@ model on the 4-neighbour lattice (``log(1 + sqrt(K))``, 1.0-1.1 for K = 3-4), so
 region of one material is pooled as a whole at PPP 1; below that, clusters stay small
 and PPP 1 accuracy fell to 0.60 (gamma = 0.5). Larger values erase thin strands sooner
 (one pixel wide, same depth as its surroundings, PPP 10: 0.85 at 1.5, 0.80 at 2).
+Since session 12 that value is each chain's start and ceiling: after its burn-in sweeps
+5, 8 and 11 a chain takes the maximum pseudo-likelihood strength of its own labels
+(:func:`estimate_gamma`) within ``[log(1 + sqrt(K)), gamma]``, so the coupling weakens
+where the draws cut more links than a field at ``gamma`` would (PPP 1: 1.37-1.47) and
+stays where the photons are weak (Art: 1.45-1.48) (``docs/classification.md``,
+"Estimating the strength from the data").
 """
 
 from __future__ import annotations
@@ -110,6 +116,7 @@ __all__ = [
     "link_gamma",
     "link_contrast",
     "chain_gammas",
+    "estimate_gamma",
     "em_proportions",
     "potts_marginals",
     "classify_surfaces",
@@ -119,6 +126,12 @@ __all__ = [
 _N_GRID = 16
 #: interaction strength per link (nats) of the label field: see docs/classification.md
 GAMMA = 1.5
+#: burn-in sweeps after which the strength is re-estimated (``classify_surfaces``):
+#: every third from the 5th (the chains have coarsened from the per-surface labels) to
+#: the last burn-in sweep (sweeps 5, 8, 11 of 12), on about 8,192 surfaces' terms
+_ADAPT = (4, 1_000_000, 3)
+_MPL_SITES = 8192
+_HI = 1.0
 
 
 @njit(cache=True, inline="always")
@@ -388,15 +401,36 @@ def _draw_clusters(csum, root, logpi, u, seed, it):
 
 @njit(cache=True)
 def _swendsen_wang(
-    unary, logpi, indptr, indices, gam_e, parity, u, n_burn, n_keep, seed, counts, rb
+    unary,
+    logpi,
+    indptr,
+    indices,
+    wunit,
+    parity,
+    u,
+    n_burn,
+    n_keep,
+    seed,
+    counts,
+    rb,
+    g=1.0,
+    a_from=0,
+    a_to=0,
+    a_step=1,
+    lo=0.0,
+    hi=0.0,
 ):
     """Swendsen-Wang sweeps of the Potts field with external field ``unary`` (plus
     ``logpi`` once per cluster), each followed by a heat-bath sweep; ``counts``
-    accumulates the label of every surface over the ``n_keep`` sweeps after ``n_burn``."""
+    accumulates the label of every surface over the ``n_keep`` sweeps after ``n_burn``.
+    Link strengths ``g * wunit``; after the burn-in sweeps ``it = a_from, a_from +
+    a_step, ...`` below ``a_to``, ``g`` is replaced by the maximum pseudo-likelihood
+    strength of the current labels within ``[lo, hi]``. Returns the final ``g``."""
     S, K = unary.shape
     parent = np.empty(S, np.int64)
     root = np.empty(S, np.int64)
     bond = np.zeros(indices.size, np.bool_)
+    gam_e = g * wunit
     p_bond = np.empty(gam_e.size)
     for e in range(gam_e.size):
         p_bond[e] = -math.expm1(-gam_e[e])
@@ -451,6 +485,21 @@ def _swendsen_wang(
         if keep and not rb:
             for s in range(S):
                 counts[s, u[s]] += 1
+        if a_from <= it < min(a_to, n_burn) and (it - a_from) % a_step == 0:
+            # every stride-th surface's term: about _MPL_SITES of them
+            gn = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, max(1, S // _MPL_SITES))
+            # moves under 0.01 (the estimate's own noise) leave the links as they are
+            if abs(gn - g) >= 0.01:
+                g = gn
+                _set_links(wunit, g, gam_e, p_bond)
+    return g
+
+
+@njit(cache=True, parallel=_PARALLEL)
+def _set_links(wunit, g, gam_e, p_bond):
+    for e in prange(gam_e.size):
+        gam_e[e] = g * wunit[e]
+        p_bond[e] = -math.expm1(-gam_e[e])
 
 
 @njit(cache=True, parallel=_PARALLEL)
@@ -569,6 +618,144 @@ def link_gamma(graph, gamma: float) -> np.ndarray:
     return np.minimum(8.0 * gamma / (deg[src] + deg[graph.indices]), 4.0 * gamma)
 
 
+@njit(cache=True)
+def _cut_weights(u, indptr, indices, wunit, K, stride, n):
+    """``n[i, k]``: weight of the links of surface ``s = i * stride`` that label k would
+    cut under labels ``u``; ``n[i, K]``: the same for its own label ``u[s]``."""
+    for i in range(n.shape[0]):
+        s = i * stride
+        tot = 0.0
+        for k in range(K):
+            n[i, k] = 0.0
+        for e in range(indptr[s], indptr[s + 1]):
+            tot += wunit[e]
+            n[i, u[indices[e]]] -= wunit[e]
+        for k in range(K):
+            n[i, k] += tot
+        n[i, K] = n[i, u[s]]
+
+
+@njit(cache=True)
+def _pl_derivatives(n, g):
+    """First and second derivatives in ``g`` of the log pseudo-likelihood, given the cut
+    weights ``n`` of :func:`_cut_weights`."""
+    S, K1 = n.shape
+    K = K1 - 1
+    d1 = 0.0
+    d2 = 0.0
+    for s in range(S):
+        m = n[s, 0]
+        for k in range(1, K):
+            m = min(m, n[s, k])
+        z = 0.0
+        e1 = 0.0
+        e2 = 0.0
+        for k in range(K):
+            w = math.exp(-g * (n[s, k] - m))
+            z += w
+            e1 += w * n[s, k]
+            e2 += w * n[s, k] * n[s, k]
+        e1 /= z
+        d1 += e1 - n[s, K]
+        d2 += e1 * e1 - e2 / z
+    return d1, d2
+
+
+@njit(cache=True)
+def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, stride=1):
+    """Newton ascent of the (concave) log pseudo-likelihood of the labels ``u`` in the
+    strength ``g``, kept within ``[lo, hi]``. The sum over surfaces runs over every
+    ``stride``-th one (an unbiased subsample of the sum's terms)."""
+    S = indptr.size - 1
+    n = np.empty(((S + stride - 1) // stride, K + 1))
+    _cut_weights(u, indptr, indices, wunit, K, stride, n)
+    for _ in range(50):
+        d1, d2 = _pl_derivatives(n, g)
+        if d2 < -1e-12:
+            step = -d1 / d2
+        else:
+            step = 1.0 if d1 > 0.0 else -1.0
+        step = max(-1.0, min(1.0, step))
+        new = max(lo, min(hi, g + step))
+        if abs(new - g) < 1e-4:
+            return new
+        g = new
+    return g
+
+
+def estimate_gamma(
+    labels: np.ndarray,
+    graph,
+    *,
+    link_weights: np.ndarray | None = None,
+    n_classes: int | None = None,
+    bounds: tuple[float, float] = (0.0, 10.0),
+) -> float:
+    r"""Maximum pseudo-likelihood interaction strength of a label map on the surface graph.
+
+    The Potts prior of :func:`potts_marginals`, ``p(u) ~ exp(-gamma sum_links w_sj [u_s
+    != u_j])`` with ``w_sj`` the strength per unit ``gamma`` (:func:`link_gamma` at 1,
+    times ``link_weights``), has the log pseudo-likelihood (Besag)::
+
+        PL(gamma) = sum_s [ -gamma n_s(u_s) - log sum_k exp(-gamma n_s(k)) ]
+
+    where ``n_s(k)`` is the weight of the links of s that label k would cut. It is
+    concave in ``gamma``; its maximum (Newton steps, kept within ``bounds``) is the
+    estimate. A map in which every surface agrees with most of its neighbours (one
+    region, or regions with smooth boundaries) has its maximum at infinity: the
+    estimate is the upper bound. Single surfaces of another label than all their
+    neighbours pull it down fast; a map whose labels ignore their neighbours is
+    estimated near 0.
+
+    This measures how strongly a *given* label map (e.g. a ground truth) clusters. It is
+    not the classifier's rule for the strength: inside the sampler, re-estimated on the
+    field's own draws, it returns about the strength the draws were made at (the fixed
+    points form a ridge: from 1.1 / 1.5 / 2.0 it settled at 1.14-1.38 / 1.44-1.48 /
+    1.60-1.77 on the Art cells), so it does not say what the photons favour
+    (``docs/classification.md``, "Estimating the strength from the data").
+
+    Parameters
+    ----------
+    labels : ndarray (S,), int
+        Label of every surface of ``graph``, in ``0 .. n_classes - 1``.
+    graph : SurfaceGraph
+    link_weights : ndarray (E,), optional
+        Factor of each link's strength (CSR order), e.g. :func:`link_contrast`.
+    n_classes : int, optional
+        K (default: ``labels.max() + 1``).
+    bounds : (float, float)
+        Range of the estimate (nats per link between two surfaces of degree 4).
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> from splidar.reconstruction import build_graph
+    >>> row, col = np.divmod(np.arange(64), 8)
+    >>> g = build_graph(row, col, np.zeros(64, np.int64), np.zeros(64), (8, 8), 1)
+    >>> estimate_gamma(np.zeros(64, np.int64), g, n_classes=2)
+    10.0
+    >>> u = (col >= 4).astype(np.int64)  # two halves, three single pixels flipped
+    >>> u[[9, 30, 45]] = 1 - u[[9, 30, 45]]
+    >>> round(estimate_gamma(u, g), 2)
+    0.87
+    """
+    u = np.ascontiguousarray(labels, np.int64)
+    K = int(u.max()) + 1 if n_classes is None else int(n_classes)
+    wunit = link_gamma(graph, 1.0)
+    if link_weights is not None:
+        wunit = wunit * np.asarray(link_weights, np.float64)
+    lo, hi = float(bounds[0]), float(bounds[1])
+    if u.size == 0 or graph.indices.size == 0:
+        return lo
+    g0 = min(max(1.0, lo), hi)
+    return float(
+        _mpl_gamma(u, graph.indptr, graph.indices, np.ascontiguousarray(wunit), K, g0, lo, hi)
+    )
+
+
 def chain_gammas(gamma: float, n_classes: int, n_chains: int) -> np.ndarray:
     r"""Interaction strength of each chain: evenly spread over ``[g_lo, 2 gamma - g_lo]``.
 
@@ -626,6 +813,8 @@ def potts_marginals(
     n_chains: int = 1,
     link_weights: np.ndarray | None = None,
     rao_blackwell: bool = True,
+    estimate: tuple[float, float] | None = None,
+    return_gamma: bool = False,
 ) -> np.ndarray:
     """Label marginals of a Potts field by Swendsen-Wang + heat-bath sampling.
 
@@ -661,31 +850,48 @@ def potts_marginals(
         expectation, a smaller Monte Carlo error at the same cost (issue 14, session
         10: the net of the two-layer scene at PPP 10 moved by up to 0.02 between
         sampler seeds with label counts). ``False``: label frequencies (before).
+    estimate : (float, float), optional
+        Bounds ``(lo, hi)``: re-estimate each chain's strength during its burn-in
+        (after every third of its sweeps from the 5th to ``n_burn``: 5, 8, 11 of 12)
+        as the maximum pseudo-likelihood strength of the chain's current labels
+        (:func:`estimate_gamma`), starting from ``gamma``; the kept sweeps run at the
+        last estimate. Default: ``gamma`` fixed.
+    return_gamma : bool
+        Also return the chains' final strengths.
 
     Returns
     -------
     marginals : ndarray (S, K), rows sum to 1 (averages over the kept sweeps of all
         chains, with half a count in all added so that no marginal is exactly 0 or 1).
+    gammas : ndarray (n_chains,)
+        Only with ``return_gamma``.
     """
     un = np.ascontiguousarray(unary, np.float64)
     S, K = un.shape
     if S == 0:
-        return np.zeros((0, K))
+        empty = np.zeros((0, K))
+        return (empty, np.full(int(n_chains), float(np.mean(gamma)))) if return_gamma else empty
     u0 = np.argmax(un, axis=1).astype(np.int64) if start is None else start.astype(np.int64)
     counts = np.zeros((S, K))
     lp = np.zeros(K) if logpi is None else np.ascontiguousarray(logpi, np.float64)
     gam = np.broadcast_to(np.asarray(gamma, np.float64), (int(n_chains),))
+    wunit = link_gamma(graph, 1.0)
+    if link_weights is not None:
+        wunit = wunit * np.asarray(link_weights, np.float64)
+    wunit = np.ascontiguousarray(wunit)
+    a_from, a_to, a_step = (0, 0, 1) if estimate is None else _ADAPT
+    lo, hi = (0.0, 0.0) if estimate is None else estimate
+    g_out = np.empty(int(n_chains))
     for c in range(int(n_chains)):
-        gam_e = link_gamma(graph, float(gam[c]))
-        if link_weights is not None:
-            gam_e = gam_e * np.asarray(link_weights, np.float64)
-        _swendsen_wang(
-            un, lp, graph.indptr, graph.indices, gam_e, graph.parity, u0.copy(),
+        g_out[c] = _swendsen_wang(
+            un, lp, graph.indptr, graph.indices, wunit, graph.parity, u0.copy(),
             int(n_burn), int(n_keep),
             int(seed) + 7919 * c, counts, bool(rao_blackwell),
+            float(gam[c]), a_from, a_to, a_step, float(lo), float(hi),
         )  # fmt: skip
     counts += 0.5 / K
-    return counts / counts.sum(axis=1, keepdims=True)
+    marg = counts / counts.sum(axis=1, keepdims=True)
+    return (marg, g_out) if return_gamma else marg
 
 
 def unknown_llr(y: np.ndarray, background: np.ndarray, eta: np.ndarray, signatures, label):
@@ -731,7 +937,8 @@ class Classification:
     loglik : ndarray (S, K)
         Per-surface class log-likelihood (:func:`class_loglik`).
     gamma : float
-        Interaction strength used.
+        Interaction strength of the kept sweeps (mean over the chains: the estimate
+        when ``classify_surfaces(estimate=True)``, else the rule's value).
     """
 
     label: np.ndarray
@@ -764,6 +971,7 @@ def classify_surfaces(
     contrast: bool = True,
     spread: bool = False,
     loglik: np.ndarray | None = None,
+    estimate: bool = True,
 ) -> Classification:
     """Labels with calibrated marginal probabilities and class proportions (steps 1-3).
 
@@ -818,6 +1026,19 @@ def classify_surfaces(
     loglik : ndarray (S, K), optional
         :func:`class_loglik` of these surfaces (with this ``alpha``) when already
         computed (a tiled reconstruction computes it once for the whole image).
+    estimate : bool
+        Re-estimate the strength from the data (default): after the sweeps 5, 8 and 11
+        of each chain's burn-in the strength is set to the maximum pseudo-likelihood
+        strength of the chain's current labels (:func:`estimate_gamma`), starting from
+        ``gamma`` and kept within ``[log(1 + sqrt(K)), gamma]`` (the ordering threshold
+        of the K-state Potts model, below which regions stop pooling, and the rule's
+        value, above which one-pixel strands are erased); the kept sweeps run at the
+        chain's last estimate. Where the draws cut more links than a field at ``gamma``
+        would (PPP 1 on the benchmark scenes: 1.37-1.47) the coupling weakens; where the
+        photons are weak the draws follow the prior and the estimate stays near
+        ``gamma`` (Art: 1.44-1.48) (``docs/classification.md``, "Estimating the
+        strength from the data").
+        ``False``: ``gamma`` fixed (sessions 7-11).
 
     Returns
     -------
@@ -843,15 +1064,19 @@ def classify_surfaces(
     gam = chain_gammas(gamma, K, n_chains) if spread else gamma
     marg = np.full((S, K), 1.0 / K)
     start = None
+    bounds = (min(gamma, math.log1p(math.sqrt(K))), _HI * gamma) if estimate else None
+    g_used = float(gamma)
     for i in range(n_rounds):
         logpi = np.log(np.maximum(pi, 1e-6))
         # independent chains, kept sweeps pooled: one chain rarely flips a whole patch
         # once it has settled, so its marginals miss the other modes (over-confident)
-        marg = potts_marginals(
+        marg, g_c = potts_marginals(
             ll, graph, gam, seed=seed + i, start=start, logpi=logpi,
             n_burn=n_burn, n_keep=n_keep, n_chains=n_chains, link_weights=w,
+            estimate=bounds, return_gamma=True,
         )  # fmt: skip
+        g_used = float(np.mean(g_c)) if S else g_used
         start = np.argmax(marg, axis=1)
         if S:
             pi = marg.mean(axis=0)
-    return Classification(np.argmax(marg, axis=1).astype(np.int64), marg, pi, ll, float(gamma))
+    return Classification(np.argmax(marg, axis=1).astype(np.int64), marg, pi, ll, g_used)
