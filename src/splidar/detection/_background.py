@@ -26,6 +26,10 @@ CLIP = 2.5
 #: Values of ``dev`` at which :func:`low_quantile_bias` is computed (then interpolated):
 #: the bias is a smooth function of ``dev`` on the scale of the coarse values' spread.
 _BIAS_GRID = 33
+#: Passes of the low-quantile debiasing (:func:`_debias_profile`): the second takes the
+#: bias at the debiased shape (measured: the late bins of a 20-fold decay, +8 to +18 %
+#: after one pass, within +-6 % after two).
+_DEBIAS_PASSES = 2
 
 
 def temporal_shape(
@@ -87,9 +91,10 @@ def temporal_shape(
         prof[part] = _low_median(coarse.reshape(n, L * T)[:, part], m)
 
     _on_threads(low_median, np.arange(L * T), workers)
-    prof = prof.reshape(L, T).astype(np.float64)
+    raw = prof.reshape(L, T).astype(np.float64)
+    prof = raw
     if smooth > 1:
-        prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
+        prof = ndimage.median_filter(raw, size=(1, smooth), mode="nearest")
     if refine:
         var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
@@ -99,8 +104,8 @@ def temporal_shape(
         def one(l):
             quantum = float(corr.irf[l].max()) / (kr * kc)
             return _debias_profile(
-                coarse[:, l], prof[l], float(var_factor[l]), float(skew_factor[l]), m, smooth,
-                quantum=quantum, edge=(var_ratio[l], skew_ratio[l]),
+                coarse[:, l], raw[l], prof[l], float(var_factor[l]), float(skew_factor[l]), m,
+                smooth, quantum=quantum, edge=(var_ratio[l], skew_ratio[l]),
             )  # fmt: skip
 
         n_thr = max(1, min(int(workers), L))
@@ -157,48 +162,61 @@ def _low_median(x: np.ndarray, m: int) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
-def _debias_profile(x, prof, var_factor, skew_factor, m, smooth, quantum=0.0, edge=None):
+def _debias_profile(x, raw, prof, var_factor, skew_factor, m, smooth, quantum=0.0, edge=None):
     """Remove the low-quantile bias of ``eq:background_1`` (robust to signal).
 
     The median of the lowest 10 % sits below the background mean by an amount that
     grows with the level and with the skew of low counts, which distorts a decaying
     shape and then mis-calibrates the threshold along t. The bias of that estimator on
     background-only coarse values, with each sampled pixel at its own level
-    (:func:`robust_level`, detrended by the biased shape), is computed by
-    :func:`low_quantile_bias` and subtracted. The estimator itself keeps the paper's
+    (:func:`robust_level`, detrended by the current shape), is computed by
+    :func:`low_quantile_bias` for every bin and subtracted from the bin's own low
+    median ``raw``; the running median over ``smooth`` bins and a local quadratic fit
+    then follow, on the debiased values. The estimator itself keeps the paper's
     robustness to returns in up to 90 % of the pixels.
 
-    ``edge``: ``(var_ratio, skew_ratio)`` (T,) of
-    :func:`~splidar.detection._filters.edge_moments`. In the bins the IRF reaches past a
-    window edge the mirrored counts widen the coarse values' spread, and their low
-    quantile sits lower: that extra bias is added after the smoothing (a median over
-    ``smooth`` bins would remove a spike of one or two bins; left in the profile, the
-    quadratic fit then carried it about 10 bins in: ``bhat`` 4 % low at bin 0 of a
-    decaying background, measured).
+    ``prof`` is ``raw`` after the running median: the first shape the bias is taken
+    at. ``edge``: ``(var_ratio, skew_ratio)`` (T,) of
+    :func:`~splidar.detection._filters.edge_moments`. In the bins the IRF reaches past
+    a window edge the mirrored counts widen the coarse values' spread, so their low
+    quantile sits lower (uniform background, Gaussian IRF of FWHM 3 bins: 8 % of the
+    mean lower at bin 0 than inside): those bins take the bias at their own variance
+    and skew. It is subtracted before any smoothing, bin by bin: smoothed first, the
+    edge bins' dip was partly kept by the running median (its window is filled with
+    the edge value there) and the quadratic fit carried it about 10 bins in (``bhat``
+    7-11 % low at bin 0 of a uniform background, 7-12 % of a decaying one).
+
+    Two passes (:data:`_DEBIAS_PASSES`): the bias depends on the shape, and the first
+    pass takes it at the biased shape, whose relative error grows where the level is
+    low (the late bins of a 20-fold decay: +8 to +18 % after one pass, within +-6 %
+    after two; a third changes them by 2-5 % more, the noise of a low quantile that
+    holds few photons there). Measurements: benchmarks/README.md, "branch bias18".
     """
     T = x.shape[1]
-    dev = (prof - prof.mean()).astype(np.float32)
     # the levels from every s-th bin: the coarse series is smooth over the IRF's width,
     # so this keeps nearly all its information at a quarter of the cost (T >= 1024)
     s = max(1, min(4, T // 256))
-    lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
-    bias = low_quantile_bias(lvl, dev.astype(np.float64), var_factor, skew_factor, m)
-    if smooth > 1:
-        bias = ndimage.median_filter(bias, size=smooth, mode="nearest")
+    win = min(max(5, smooth | 1), T if T % 2 else T - 1)
+    at_edge = np.array([], np.int64)
     if edge is not None:
         var_ratio, skew_ratio = edge
-        for t in np.flatnonzero((var_ratio != 1.0) | (skew_ratio != 1.0)):
-            one = dev[t : t + 1].astype(np.float64)
-            wide = low_quantile_bias(
-                lvl, one, var_factor * var_ratio[t], skew_factor * skew_ratio[t], m
-            )
-            bias[t] += wide[0] - low_quantile_bias(lvl, one, var_factor, skew_factor, m)[0]
-    est = prof - bias
-    win = min(max(5, smooth | 1), T if T % 2 else T - 1)
-    if win >= 5:
-        # a local quadratic fit (Savitzky-Golay, polynomial at the window edges) takes
-        # the sampling noise of the low quantile off the shape; bumps are gone already
-        est = signal.savgol_filter(est, win, 2, mode="interp")
+        at_edge = np.flatnonzero((var_ratio != 1.0) | (skew_ratio != 1.0))
+    est = prof
+    for _ in range(_DEBIAS_PASSES):
+        dev = (est - est.mean()).astype(np.float32)
+        lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
+        d64 = dev.astype(np.float64)
+        bias = low_quantile_bias(lvl, d64, var_factor, skew_factor, m)
+        for t in at_edge:
+            vf, sf = var_factor * var_ratio[t], skew_factor * skew_ratio[t]
+            bias[t] = low_quantile_bias(lvl, d64[t : t + 1], vf, sf, m)[0]
+        est = raw - bias
+        if smooth > 1:
+            est = ndimage.median_filter(est, size=smooth, mode="nearest")
+        if win >= 5:
+            # a local quadratic fit (Savitzky-Golay, polynomial at the window edges)
+            # takes the sampling noise of the low quantile off the shape
+            est = signal.savgol_filter(est, win, 2, mode="interp")
     return est
 
 
