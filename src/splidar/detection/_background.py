@@ -207,9 +207,9 @@ def _debias_profile(x, raw, prof, var_factor, skew_factor, m, smooth, quantum=0.
         lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
         d64 = dev.astype(np.float64)
         bias = low_quantile_bias(lvl, d64, var_factor, skew_factor, m)
-        for t in at_edge:
-            vf, sf = var_factor * var_ratio[t], skew_factor * skew_ratio[t]
-            bias[t] = low_quantile_bias(lvl, d64[t : t + 1], vf, sf, m)[0]
+        if at_edge.size:  # the edge bins at their own variance and skew, in one solve
+            vf, sf = var_factor * var_ratio[at_edge], skew_factor * skew_ratio[at_edge]
+            bias[at_edge] = _bias_at(np.sort(lvl), d64[at_edge], vf, sf, m)
         est = raw - bias
         if smooth > 1:
             est = ndimage.median_filter(est, size=smooth, mode="nearest")
@@ -268,23 +268,32 @@ def low_quantile_bias(
     bias : ndarray (T,) float64
         Expected estimate less the mean of ``mu_{., t}`` over the pixels.
     """
-    n, T = levels.size, dev.size
+    T = dev.size
     srt = np.sort(np.asarray(levels, np.float64))
-    r = 0.5 * (min(m, n) + 1)
-    p = (r - 0.375) / (n + 0.25)
-    theta = max(float(skew_factor), 1e-300) / (2.0 * max(float(var_factor), 1e-300))
-    w, rep = _level_groups(srt)
     c_min, c_max = float(dev.min()), float(dev.max())
     cs = np.linspace(c_min, c_max, n_grid) if c_max > c_min else np.array([c_min])
-    mu = np.maximum(rep[:, None] + cs[None, :], 0.0)  # (groups, grid)
+    bias = _bias_at(srt, cs, float(var_factor), float(skew_factor), m)
+    return np.interp(dev, cs, bias) if cs.size > 1 else np.full(T, bias[0])
+
+
+def _bias_at(srt, cs, var_factor, skew_factor, m):
+    """:func:`low_quantile_bias` at the values ``cs`` of ``dev`` (no interpolation), for
+    the sorted levels ``srt``; ``var_factor`` and ``skew_factor`` scalars or one per
+    value (the window's edge bins, :func:`~splidar.detection._filters.edge_moments`)."""
+    n = srt.size
+    r = 0.5 * (min(m, n) + 1)
+    p = (r - 0.375) / (n + 0.25)
+    var_factor = np.maximum(np.asarray(var_factor, np.float64), 1e-300)
+    theta = np.maximum(np.asarray(skew_factor, np.float64), 1e-300) / (2.0 * var_factor)
+    w, rep = _level_groups(srt)
+    mu = np.maximum(rep[:, None] + cs[None, :], 0.0)  # (groups, values)
     shape = np.maximum(mu * var_factor / theta**2, 1e-300)
     shift = mu - shape * theta
     lo = np.minimum(shift.min(axis=0), 0.0)
     hi = (mu + 20.0 * np.sqrt(mu * var_factor) + 20.0 * theta).max(axis=0)
     q = _mixture_quantile(w, shape, shift, theta, p, lo, hi)
     mean_mu = np.maximum(srt[:, None] + cs[None, :], 0.0).mean(axis=0)
-    bias = np.maximum(q, 0.0) - mean_mu
-    return np.interp(dev, cs, bias) if cs.size > 1 else np.full(T, bias[0])
+    return np.maximum(q, 0.0) - mean_mu
 
 
 def _level_groups(srt: np.ndarray) -> tuple:
