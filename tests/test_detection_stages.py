@@ -395,12 +395,16 @@ def test_edge_factors_give_the_edge_bins_the_inside_noise(fwhm):
     np.testing.assert_allclose(v / v[T // 2], 1.0, atol=0.03)
 
 
-def test_calibrate_null_holds_the_false_alarm_rate_at_the_window_edges():
+@pytest.mark.parametrize("shape", ["uniform", "decaying"])
+def test_calibrate_null_holds_the_false_alarm_rate_at_the_window_edges(shape):
     # the first and last bins of fresh background: within 2.5x of pfa, as inside
-    # (without the edge factors: 4.9 x at bin 0 and 4.2 x at the last, measured)
+    # (without the edge factors: 4.9 x at bin 0 and 4.2 x at the last, measured; under a
+    # 20-fold decay 3.7 x at bin 0)
     T, pfa = 60, 1e-2
     rng = np.random.default_rng(4)
-    lam = np.full((64, 64, 1, T), 0.2)
+    t = np.arange(T)
+    rate = np.ones(T) if shape == "uniform" else np.exp(-3 * t / T)
+    lam = np.broadcast_to(0.2 * rate / rate.mean(), (64, 64, 1, T))
     counts = rng.poisson(lam)
     _, _, filters = _setup(counts, gaussian_irf(3.0))
     nul = calibrate_null(
