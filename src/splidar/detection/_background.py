@@ -27,8 +27,8 @@ CLIP = 2.5
 #: the bias is a smooth function of ``dev`` on the scale of the coarse values' spread.
 _BIAS_GRID = 33
 #: Passes of the low-quantile debiasing (:func:`_debias_profile`): the second takes the
-#: bias at the debiased shape (measured: the late bins of a 20-fold decay, +8 to +18 %
-#: after one pass, within +-6 % after two).
+#: bias at the debiased shape (measured: the last bins of a 20-fold decay under a scene,
+#: +8 to +18 % after one pass, within +-6 % after two).
 _DEBIAS_PASSES = 2
 
 
@@ -184,13 +184,17 @@ def _debias_profile(x, raw, prof, var_factor, skew_factor, m, smooth, quantum=0.
     and skew. It is subtracted before any smoothing, bin by bin: smoothed first, the
     edge bins' dip was partly kept by the running median (its window is filled with
     the edge value there) and the quadratic fit carried it about 10 bins in (``bhat``
-    7-11 % low at bin 0 of a uniform background, 7-12 % of a decaying one).
+    at bin 0 was 7-11 % low under a uniform background and 4-12 % under a decaying one;
+    with the edge bins' extra bias added after the smoothing, 2-6 % and 2-5 %).
 
     Two passes (:data:`_DEBIAS_PASSES`): the bias depends on the shape, and the first
     pass takes it at the biased shape, whose relative error grows where the level is
-    low (the late bins of a 20-fold decay: +8 to +18 % after one pass, within +-6 %
-    after two; a third changes them by 2-5 % more, the noise of a low quantile that
-    holds few photons there). Measurements: benchmarks/README.md, "branch bias18".
+    low (the last 20 bins of a 20-fold decay under the single-surface scene at PPP 1-10:
+    +8 to +18 % after one pass, within +-6 % after two; a third moves them by 2-5 %
+    more, the noise of a low quantile that holds few photons there). Where a coarsest
+    box holds about one photon per bin the low quantile carries little information and
+    the estimate stays 5-15 % high (background alone, 0.005-0.02 photons per bin).
+    Measurements: benchmarks/README.md, "branch bias18, session 12".
     """
     T = x.shape[1]
     # the levels from every s-th bin: the coarse series is smooth over the IRF's width,
