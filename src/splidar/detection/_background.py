@@ -13,7 +13,7 @@ import numpy as np
 from scipy import ndimage, signal, special
 
 from ._fast import window_means
-from ._filters import Correlator, edge_moments
+from ._filters import Correlator
 
 __all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
 
@@ -26,10 +26,6 @@ CLIP = 2.5
 #: Values of ``dev`` at which :func:`low_quantile_bias` is computed (then interpolated):
 #: the bias is a smooth function of ``dev`` on the scale of the coarse values' spread.
 _BIAS_GRID = 33
-#: Passes of the low-quantile debiasing (:func:`_debias_profile`): the second takes the
-#: bias at the debiased shape (measured: the last bins of a 20-fold decay under a scene,
-#: +8 to +18 % after one pass, within +-6 % after two).
-_DEBIAS_PASSES = 2
 
 
 def temporal_shape(
@@ -91,21 +87,18 @@ def temporal_shape(
         prof[part] = _low_median(coarse.reshape(n, L * T)[:, part], m)
 
     _on_threads(low_median, np.arange(L * T), workers)
-    raw = prof.reshape(L, T).astype(np.float64)
-    prof = raw
+    prof = prof.reshape(L, T).astype(np.float64)
     if smooth > 1:
-        prof = ndimage.median_filter(raw, size=(1, smooth), mode="nearest")
+        prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
     if refine:
         var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
-        # the mirrored edges: larger spread, so a lower low quantile, in the edge bins
-        var_ratio, skew_ratio = edge_moments(corr)
 
         def one(l):
             quantum = float(corr.irf[l].max()) / (kr * kc)
             return _debias_profile(
-                coarse[:, l], raw[l], prof[l], float(var_factor[l]), float(skew_factor[l]), m,
-                smooth, quantum=quantum, edge=(var_ratio[l], skew_ratio[l]),
+                coarse[:, l], prof[l], float(var_factor[l]), float(skew_factor[l]), m, smooth,
+                quantum=quantum,
             )  # fmt: skip
 
         n_thr = max(1, min(int(workers), L))
@@ -162,65 +155,32 @@ def _low_median(x: np.ndarray, m: int) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
-def _debias_profile(x, raw, prof, var_factor, skew_factor, m, smooth, quantum=0.0, edge=None):
+def _debias_profile(x, prof, var_factor, skew_factor, m, smooth, quantum=0.0):
     """Remove the low-quantile bias of ``eq:background_1`` (robust to signal).
 
     The median of the lowest 10 % sits below the background mean by an amount that
     grows with the level and with the skew of low counts, which distorts a decaying
     shape and then mis-calibrates the threshold along t. The bias of that estimator on
     background-only coarse values, with each sampled pixel at its own level
-    (:func:`robust_level`, detrended by the current shape), is computed by
-    :func:`low_quantile_bias` for every bin and subtracted from the bin's own low
-    median ``raw``; the running median over ``smooth`` bins and a local quadratic fit
-    then follow, on the debiased values. The estimator itself keeps the paper's
+    (:func:`robust_level`, detrended by the biased shape), is computed by
+    :func:`low_quantile_bias` and subtracted. The estimator itself keeps the paper's
     robustness to returns in up to 90 % of the pixels.
-
-    ``prof`` is ``raw`` after the running median: the first shape the bias is taken
-    at. ``edge``: ``(var_ratio, skew_ratio)`` (T,) of
-    :func:`~splidar.detection._filters.edge_moments`. In the bins the IRF reaches past
-    a window edge the mirrored counts widen the coarse values' spread, so their low
-    quantile sits lower (uniform background, Gaussian IRF of FWHM 3 bins: 8 % of the
-    mean lower at bin 0 than inside): those bins take the bias at their own variance
-    and skew. It is subtracted before any smoothing, bin by bin: smoothed first, the
-    edge bins' dip was partly kept by the running median (its window is filled with
-    the edge value there) and the quadratic fit carried it about 10 bins in (``bhat``
-    at bin 0 was 7-11 % low under a uniform background and 4-12 % under a decaying one;
-    with the edge bins' extra bias added after the smoothing, 2-6 % and 2-5 %).
-
-    Two passes (:data:`_DEBIAS_PASSES`): the bias depends on the shape, and the first
-    pass takes it at the biased shape, whose relative error grows where the level is
-    low (the last 20 bins of a 20-fold decay under the single-surface scene at PPP 1-10:
-    +8 to +18 % after one pass, within +-6 % after two; a third moves them by 2-5 %
-    more, the noise of a low quantile that holds few photons there). Where a coarsest
-    box holds about one photon per bin the low quantile carries little information and
-    the estimate stays 5-15 % high (background alone, 0.005-0.02 photons per bin).
-    Measurements: benchmarks/README.md, "branch bias18, session 12".
     """
     T = x.shape[1]
+    dev = (prof - prof.mean()).astype(np.float32)
     # the levels from every s-th bin: the coarse series is smooth over the IRF's width,
     # so this keeps nearly all its information at a quarter of the cost (T >= 1024)
     s = max(1, min(4, T // 256))
+    lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
+    bias = low_quantile_bias(lvl, dev.astype(np.float64), var_factor, skew_factor, m)
+    if smooth > 1:
+        bias = ndimage.median_filter(bias, size=smooth, mode="nearest")
+    est = prof - bias
     win = min(max(5, smooth | 1), T if T % 2 else T - 1)
-    at_edge = np.array([], np.int64)
-    if edge is not None:
-        var_ratio, skew_ratio = edge
-        at_edge = np.flatnonzero((var_ratio != 1.0) | (skew_ratio != 1.0))
-    est = prof
-    for _ in range(_DEBIAS_PASSES):
-        dev = (est - est.mean()).astype(np.float32)
-        lvl = robust_level(x[:, ::s], dev[::s], var_factor, quantum=quantum).astype(np.float64)
-        d64 = dev.astype(np.float64)
-        bias = low_quantile_bias(lvl, d64, var_factor, skew_factor, m)
-        if at_edge.size:  # the edge bins at their own variance and skew, in one solve
-            vf, sf = var_factor * var_ratio[at_edge], skew_factor * skew_ratio[at_edge]
-            bias[at_edge] = _bias_at(np.sort(lvl), d64[at_edge], vf, sf, m)
-        est = raw - bias
-        if smooth > 1:
-            est = ndimage.median_filter(est, size=smooth, mode="nearest")
-        if win >= 5:
-            # a local quadratic fit (Savitzky-Golay, polynomial at the window edges)
-            # takes the sampling noise of the low quantile off the shape
-            est = signal.savgol_filter(est, win, 2, mode="interp")
+    if win >= 5:
+        # a local quadratic fit (Savitzky-Golay, polynomial at the window edges) takes
+        # the sampling noise of the low quantile off the shape; bumps are gone already
+        est = signal.savgol_filter(est, win, 2, mode="interp")
     return est
 
 
@@ -272,32 +232,23 @@ def low_quantile_bias(
     bias : ndarray (T,) float64
         Expected estimate less the mean of ``mu_{., t}`` over the pixels.
     """
-    T = dev.size
+    n, T = levels.size, dev.size
     srt = np.sort(np.asarray(levels, np.float64))
-    c_min, c_max = float(dev.min()), float(dev.max())
-    cs = np.linspace(c_min, c_max, n_grid) if c_max > c_min else np.array([c_min])
-    bias = _bias_at(srt, cs, float(var_factor), float(skew_factor), m)
-    return np.interp(dev, cs, bias) if cs.size > 1 else np.full(T, bias[0])
-
-
-def _bias_at(srt, cs, var_factor, skew_factor, m):
-    """:func:`low_quantile_bias` at the values ``cs`` of ``dev`` (no interpolation), for
-    the sorted levels ``srt``; ``var_factor`` and ``skew_factor`` scalars or one per
-    value (the window's edge bins, :func:`~splidar.detection._filters.edge_moments`)."""
-    n = srt.size
     r = 0.5 * (min(m, n) + 1)
     p = (r - 0.375) / (n + 0.25)
-    var_factor = np.maximum(np.asarray(var_factor, np.float64), 1e-300)
-    theta = np.maximum(np.asarray(skew_factor, np.float64), 1e-300) / (2.0 * var_factor)
+    theta = max(float(skew_factor), 1e-300) / (2.0 * max(float(var_factor), 1e-300))
     w, rep = _level_groups(srt)
-    mu = np.maximum(rep[:, None] + cs[None, :], 0.0)  # (groups, values)
+    c_min, c_max = float(dev.min()), float(dev.max())
+    cs = np.linspace(c_min, c_max, n_grid) if c_max > c_min else np.array([c_min])
+    mu = np.maximum(rep[:, None] + cs[None, :], 0.0)  # (groups, grid)
     shape = np.maximum(mu * var_factor / theta**2, 1e-300)
     shift = mu - shape * theta
     lo = np.minimum(shift.min(axis=0), 0.0)
     hi = (mu + 20.0 * np.sqrt(mu * var_factor) + 20.0 * theta).max(axis=0)
     q = _mixture_quantile(w, shape, shift, theta, p, lo, hi)
     mean_mu = np.maximum(srt[:, None] + cs[None, :], 0.0).mean(axis=0)
-    return np.maximum(q, 0.0) - mean_mu
+    bias = np.maximum(q, 0.0) - mean_mu
+    return np.interp(dev, cs, bias) if cs.size > 1 else np.full(T, bias[0])
 
 
 def _level_groups(srt: np.ndarray) -> tuple:

@@ -12,16 +12,7 @@ from scipy import ndimage
 
 from ._fast import correlate_direct
 
-__all__ = [
-    "Correlator",
-    "box",
-    "edge_factors",
-    "edge_moments",
-    "fisher_sums",
-    "irf_fwhm",
-    "irf_halfwidth",
-    "reflect_index",
-]
+__all__ = ["Correlator", "box", "fisher_sums", "irf_fwhm", "irf_halfwidth", "reflect_index"]
 
 #: Bytes of padded float32 input per FFT call of :class:`Correlator` (a few MB: in cache).
 _CHUNK_BYTES = 4 << 20
@@ -152,58 +143,6 @@ def fisher_sums(irf: np.ndarray) -> np.ndarray:
         [(dg**2).sum(axis=1), (g * dg**2).sum(axis=1), 2.0 * (a0 - a1) / np.maximum(a0, 1e-300)],
         axis=1,
     )
-
-
-def edge_moments(corr: Correlator) -> tuple[np.ndarray, np.ndarray]:
-    """Per wavelength and bin, ``sum_k w_{t,k}^2 / sum g^2`` and ``sum_k w_{t,k}^3 /
-    sum g^3``: the variance and third cumulant of the matched filter's response to a
-    flat Poisson background, relative to those inside the window.
-
-    ``w_{t,k}`` are the weights of :class:`Correlator`'s response at bin ``t`` on the
-    counts of bin ``k``. Inside the window they are the IRF (ratios 1); in the bins the
-    IRF reaches past an edge the mirrored counts enter twice (bin 0 of a Gaussian IRF of
-    FWHM 3 bins: 1.9 times the variance).
-
-    Returns
-    -------
-    var_ratio, skew_ratio : ndarray (L, T), float64
-        1 except within the IRF's length of either edge.
-    """
-    irf = np.asarray(corr.irf, np.float64)
-    L, n = irf.shape
-    T = corr.n_bins
-    # the bins within n of an edge read counts within 2 n of it (mirrored or not)
-    m = min(T, 2 * n + 1)
-    ks = np.unique(np.concatenate([np.arange(m), np.arange(T - m, T)]))
-    imp = np.zeros((ks.size, L, T), np.float32)
-    imp[np.arange(ks.size), :, ks] = 1.0
-    w = np.asarray(corr(imp), np.float64)  # w[i, l, t]: weight of bin ks[i] at bin t
-    near = np.unique(np.concatenate([np.arange(min(n, T)), np.arange(max(T - n, 0), T)]))
-    var_ratio, skew_ratio = np.ones((L, T)), np.ones((L, T))
-    var_ratio[:, near] = (w[:, :, near] ** 2).sum(axis=0) / (irf**2).sum(axis=1)[:, None]
-    skew_ratio[:, near] = (w[:, :, near] ** 3).sum(axis=0) / (irf**3).sum(axis=1)[:, None]
-    # float32 rounding of the weights: bins with the interior's moments keep exactly 1
-    var_ratio[np.abs(var_ratio - 1.0) < 1e-5] = 1.0
-    skew_ratio[np.abs(skew_ratio - 1.0) < 1e-5] = 1.0
-    return var_ratio, skew_ratio
-
-
-def edge_factors(corr: Correlator) -> np.ndarray:
-    """Per wavelength and bin, ``min(1, 1 / sqrt(var_ratio))`` of :func:`edge_moments`:
-    the factor that gives the response's deviation from the background the same noise
-    at the window's edges as inside.
-
-    Without it, a threshold that holds inside the window lets through several times
-    ``pfa`` in the bins the IRF reaches past an edge (measured on background-only cubes,
-    Gaussian IRF of FWHM 3 bins: 6 x at bin 0, 26 x under a decaying background).
-
-    Returns
-    -------
-    ndarray (L, T), float32
-        1 except within the IRF's length of either edge.
-    """
-    var_ratio, _ = edge_moments(corr)
-    return (1.0 / np.sqrt(np.maximum(var_ratio, 1.0))).astype(np.float32)
 
 
 def irf_halfwidth(irf: np.ndarray) -> int:
