@@ -331,6 +331,9 @@ def test_reconstruct_labels_come_from_the_classifier():
     assert np.mean(rec.points.label == truth.label) > 0.9
     pi = rec.hyperparameters["class_proportions"]
     assert pi.shape == (3,) and pi.sum() == pytest.approx(1.0)
+    # the strength the label field used: estimated within [log(1 + sqrt K), gamma]
+    g = rec.hyperparameters["label_gamma"]
+    assert np.log(1 + np.sqrt(3)) - 1e-9 <= g <= rec.hyperparameters["gamma"] + 1e-9
     again = reconstruct(det, rng=0)
     np.testing.assert_array_equal(again.points.label, rec.points.label)
 

@@ -1074,11 +1074,13 @@ def _hyperparameters(su, opt, prior, pi, bias2, graph) -> dict:
 
 @_one_at_a_time
 def _labels(su: _Setup, surf, gamma, rng):
-    """(labels, marginals, class proportions) of the surfaces (``classify_surfaces``
-    on the label field's graph, which bridges one-pixel gaps in the detections)."""
+    """(labels, marginals, class proportions, strength used) of the surfaces
+    (``classify_surfaces`` on the label field's graph, which bridges one-pixel gaps in
+    the detections; the strength is the chains' mean of the estimated one, ``None`` for
+    one class)."""
     S, K = len(surf), su.sig.shape[0]
     if K == 1:
-        return np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1)
+        return np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1), None
     cgraph = build_graph(
         surf.row, surf.col, surf.slot, surf.depth_bin, surf.image_shape, int(surf.n_slots),
         links=su.links, gate=su.gate, bridge=True,
@@ -1086,7 +1088,7 @@ def _labels(su: _Setup, surf, gamma, rng):
     cls = classify_surfaces(
         su.y, su.b, su.eta, su.sig, cgraph, gamma=gamma, seed=int(rng.integers(2**31))
     )
-    return cls.label, cls.marginals, cls.proportions
+    return cls.label, cls.marginals, cls.proportions, float(cls.gamma)
 
 
 def reconstruct(
@@ -1209,7 +1211,7 @@ def reconstruct(
     )  # fmt: skip
     t_graph = time.perf_counter()
     S = len(surf)
-    u, marg, pi = _labels(su, surf, opt["gamma"], rng)
+    u, marg, pi, label_gamma = _labels(su, surf, opt["gamma"], rng)
     conf = marg.max(axis=1) if S else np.ones(0)
     t_cls = time.perf_counter()
     state, prior, history = _sweeps(
@@ -1218,6 +1220,7 @@ def reconstruct(
     t_iter = time.perf_counter()
     intensity, std, bias2 = _intensity_and_std(su, graph, u, marg, state, prior, opt["rho"], rng)
     hyper = _hyperparameters(su, opt, prior, pi, bias2, graph)
+    hyper["label_gamma"] = label_gamma
     t_end = time.perf_counter()
     timings = {
         "setup": t_graph - t0,
