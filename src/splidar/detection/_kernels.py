@@ -703,10 +703,9 @@ def extract_surfaces(
     """Clean histograms, scale selection, depth and presence statistics of candidates.
 
     One candidate at a time (``order[i_begin:i_end]``: indices into the candidate
-    arrays, in the order they are computed; each candidate's outputs do not depend on
-    it), every output written in place at the candidate's position ``ii`` in ``order``
-    (written one after the other, not scattered over the arrays: 5 % faster); see
-    :func:`splidar.detection._4_map._extract` for the meaning of each. ``rows``: block
+    arrays, in the order they are computed; no output depends on it), each output
+    written at the candidate's position ``ii`` in ``order`` (one after the other, not
+    scattered: 5 % faster); see :func:`splidar.detection._4_map._extract` for each. ``rows``: block
     rows (image ``r0 + rows``); ``cols``: image columns. Box means (``mode="reflect"``
     at the image's edges) come from the correlated block ``c`` (``(er, ec, L, T)``
     from image pixel ``(e0, ce0)``), ``bhat`` (``eq:background_3``) from ``sp`` (from
@@ -743,8 +742,7 @@ def extract_surfaces(
     for ii in range(i_begin, i_end):
         _prefetch_next(c, y, rows, cols, peak_bin, order, ii + 1, i_end, scales, r0, e0, ce0, W,
                        T, n_rows_img, n_cols_img)  # fmt: skip
-        s = order[ii]  # inputs at s, outputs at so
-        so = ii
+        s, so = order[ii], ii  # inputs at s, outputs at so
         irow = rows[s] + r0
         jcol = cols[s]
         jc = jcol - ce0  # column in c and y
