@@ -552,18 +552,21 @@ def _refl_np(i, n):
 
 
 def _box_sums_call(c, scales, irow, jcol, e0, ce0, off, W, n_rows, n_cols, cache=None):
-    """``_box_sums`` with a cold cache, or ``cache = (colbuf, stamp, state, hint)``."""
+    """``_box_sums`` with a cold cache, or ``cache = (colbuf, valid, state, hint)``."""
     from splidar.detection._kernels import _box_sums
 
     Q, L = scales.size, c.shape[2]
-    colbuf, stamp, state, hint = cache or (
+    colbuf, valid, state, hint = cache or (
         np.empty((Q, c.shape[1], L, W)),
-        np.zeros((c.shape[1], W), np.int64),
+        np.zeros((c.shape[1], 3), np.int64),
         np.array([0, -1, 0]),
         off,
     )
     acc = np.empty((Q, L, W))
-    _box_sums(acc, colbuf, stamp, state, c, scales, irow, jcol, e0, ce0, hint, off, n_rows, n_cols)
+    rr = np.empty(int(scales[-1]) // 2 * 2 + 1, np.int64)
+    _box_sums(
+        acc, colbuf, valid, state, rr, c, scales, irow, jcol, e0, ce0, hint, off, n_rows, n_cols
+    )
     return acc
 
 
@@ -584,6 +587,15 @@ def test_box_sums_match_numpy_boxes_at_edges_and_inside(scales):
     np.testing.assert_array_equal(got, _box_sums_reference(c, scales, 8, 7, 0, 0, 10, W, 14, 12))
 
 
+def test_reflect_fast_path_is_the_reflect_rule():
+    from splidar.detection._fast import _refl
+    from splidar.detection._kernels import _reflect
+
+    for n in (1, 2, 5, 13):
+        for i in range(-3 * n - 2, 3 * n + 2):
+            assert _reflect(i, n) == _refl(i, n) == _refl_np(i, n)
+
+
 def test_box_sums_cached_column_sums_give_the_same_bits():
     # float noise over 6 decades: float64 sums are inexact, so the same bits from a warm
     # cache (shifted windows, neighbouring pixels of one row) as from a cold one show that
@@ -595,11 +607,15 @@ def test_box_sums_cached_column_sums_give_the_same_bits():
     c = c.astype(np.float32)
     Q = scales.size
     colbuf = np.empty((Q, n_cols, L, n_span))
-    stamp = np.zeros((n_cols, n_span), np.int64)
+    valid = np.zeros((n_cols, 3), np.int64)
     state = np.array([0, -1, 0])
-    for jcol, off in [(4, 20), (5, 24), (9, 36), (6, 22), (29, 30), (0, 27), (3, 50), (2, 21)]:
+    # windows inside a cached interval, overlapping it on either side, touching it, apart
+    # from it (the interval restarts), leaving the span (the cache restarts)
+    cases = [(4, 20), (5, 24), (9, 36), (6, 22), (29, 30), (0, 27), (3, 50), (2, 21),
+             (4, 8), (5, 5), (6, 18), (7, 4), (8, 6), (6, 20), (7, 3)]  # fmt: skip
+    for jcol, off in cases:
         warm = _box_sums_call(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols,
-                              cache=(colbuf, stamp, state, 20))  # fmt: skip
+                              cache=(colbuf, valid, state, 20))  # fmt: skip
         cold = _box_sums_call(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
         np.testing.assert_array_equal(warm, cold)
         ref = _box_sums_reference(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
