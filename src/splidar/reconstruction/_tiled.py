@@ -57,6 +57,7 @@ import numpy as np
 
 from .._memory import reconstruct_peak_bytes
 from ..detection._result import Detection
+from ..detection._table import remove_tree
 from ..detection._tiled import compute_each, tile_bounds
 from . import _core
 from . import _kernels as kern
@@ -646,7 +647,8 @@ def reconstruct_tiled(
     try:
         return _on_strips(detection, opt, cores, options, store, assemble, folder or scratch)
     finally:
-        if scratch is not None:
+        if scratch is not None:  # its arrays on threads (each removal waits on the disk)
+            remove_tree(Path(scratch) / "surfaces.zarr")
             shutil.rmtree(scratch, ignore_errors=True)
 
 
