@@ -196,9 +196,9 @@ def _labels_tile(st: _Strip, shared):
     labels and marginals, with ``alpha="auto"`` the first phase's mean shading of each
     core surface's neighbours, and the labels of the whole strip (its own, margins
     included: a restart redoes the first phase with them). ``carry`` stays where the task
-    ran, for step 4: (``alpha="auto"``) the first phase's state, else None. The strip and
-    its graph are not kept: step 4 reads and builds them again (a few ms, against tens
-    of MB a strip held, spilled or sent between workers)."""
+    ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state
+    (:func:`_register_sizes`: the scheduler knows their size)."""
+    _register_sizes()  # where the carry is kept (a worker)
     st = _as_strip(st)
     su = _strip_setup(st, shared)
     graph = _strip_graph(st, su, shared)
@@ -229,20 +229,26 @@ def _labels_tile(st: _Strip, shared):
     if shared["prior"][0] and S:
         state = _phase_one_state(su, graph, u, shared)
         h_nb = _neighbour_shading(graph, state["h"])[core]
-    return (u[core], marg[core], h_nb, u), state
+    return (u[core], marg[core], h_nb, u), dict(strip=st, graph=graph, state=state)
 
 
 @_one_at_a_time
-def _fit_tile(state, st, u, own, shared, eb):
-    """Step 4: the sweeps from the first phase's ``state`` (the carry of step 2; when
-    None, after a restart, the first phase again on ``st`` with the strip's ``own``
-    labels: the same state). ``u``: the strip's labels (None: one class). Returns
-    ``(small, carry)``: the core's residuals for the std's smoothing-bias term, its
-    surfaces and links, the history; the state and prior for step 5."""
+def _fit_tile(carry, st, u, own, shared, eb):
+    """Step 4: the sweeps from the first phase's state (``carry`` of step 2; when None,
+    after a restart, the first phase again on ``st`` with the strip's ``own`` labels:
+    the same state). ``u``: the strip's labels (None: one class). Returns ``(small,
+    carry)``: the core's residuals for the std's smoothing-bias term, its surfaces and
+    links, the history; the strip, graph, state and prior for step 5."""
+    _register_sizes()
     auto = shared["prior"][0]
-    st = _as_strip(st)
-    su = _strip_setup(st, shared)
-    graph = _strip_graph(st, su, shared)
+    state = None
+    if carry is not None:
+        st, graph, state = carry["strip"], carry["graph"], carry["state"]
+        su = _strip_setup(st, shared)
+    else:
+        st = _as_strip(st)
+        su = _strip_setup(st, shared)
+        graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
     u = _labels_of(u, S)
     if state is None:  # fixed alpha: the only phase, with these labels (or no surfaces)
@@ -269,17 +275,15 @@ def _fit_tile(state, st, u, own, shared, eb):
     n_links = int(np.diff(graph.indptr)[core].sum())
     small = (resid, int(np.count_nonzero(core)), n_links, hist)
     state.pop("z"), state.pop("q")  # the last E-step's: step 5 redoes it (less to keep)
-    return small, dict(state=state, prior=prior)
+    return small, dict(strip=st, graph=graph, state=state, prior=prior)
 
 
 @_one_at_a_time
-def _std_tile(carry, st, u, marg, shared, bias2):
+def _std_tile(carry, u, marg, shared, bias2):
     """Step 5: the core's intensities and std, with the run's smoothing-bias term
     (``u``, ``marg`` None: one class)."""
-    state, prior = carry["state"], carry["prior"]
-    st = _as_strip(st)
+    st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
     su = _strip_setup(st, shared)
-    graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
     u = _labels_of(u, S)
     marg = np.ones((S, 1)) if marg is None else _loaded(marg)
@@ -488,6 +492,23 @@ def _points(detection, ci, intensity, std, u, conf) -> dict:
     )  # fmt: skip
 
 
+@functools.cache
+def _register_sizes() -> None:
+    """Dask's ``sizeof`` of a strip and its graph (the carries): their arrays' bytes, not
+    the few hundred bytes of the objects it counts by default. Told 0.3 kB, the scheduler
+    moved carries of tens of MB to idle workers (work stealing: up to 15 s of transfers
+    in a run of ``bench_distributed.py --large --process``) and the workers spilled them
+    late."""
+    from dask.sizeof import sizeof
+
+    from ._graph import SurfaceGraph
+
+    @sizeof.register(_Strip)
+    @sizeof.register(SurfaceGraph)
+    def _arrays(x) -> int:
+        return 64 + sum(a.nbytes for a in vars(x).values() if isinstance(a, np.ndarray))
+
+
 def _persist(tasks: dict, name: str, take) -> dict:
     """Compute ``{strip: task}`` (each returning ``(small, carry)``) on the active
     scheduler, keeping the results where they are (``dask.persist``: on a cluster, on the
@@ -495,6 +516,7 @@ def _persist(tasks: dict, name: str, take) -> dict:
     small part arrives. Returns ``{strip: the persisted task}`` for the next step."""
     import dask
 
+    _register_sizes()
     keys = list(tasks)
     t = time.perf_counter()
     kept = dict(zip(keys, dask.persist(*[tasks[n] for n in keys]), strict=True))
@@ -561,8 +583,8 @@ def _fit_pass(strips_, core_idx, us, own, carries, sh, eb, token, store, skip):
             continue
         carry = carries[n][1] if n in carries else None
         tasks[n] = dask.delayed(_fit_tile, pure=True, nout=2)(
-            carry, st, us[n], own[n] if carry is None else None, sh, eb,
-            dask_key_name=(f"splidar-fit-tile-{token}", n),
+            carry, st if carry is None else None, us[n], own[n] if carry is None else None,
+            sh, eb, dask_key_name=(f"splidar-fit-tile-{token}", n),
         )  # fmt: skip
     kept = _persist(tasks, "sweeps", take)
     return resid, metas, kept
@@ -728,7 +750,7 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
                 std[pts["surface"]] = pts["intensity_std"]
             continue
         tasks[n] = dask.delayed(_std_tile, pure=True)(
-            fits[n][1], strips_[n], us[n], margs[n], sh, bias2,
+            fits[n][1], us[n], margs[n], sh, bias2,
             dask_key_name=(f"splidar-reconstruct-tile-{token}", n),
         )  # fmt: skip
     _run(tasks, "reconstruct", take)
