@@ -57,6 +57,7 @@ import numpy as np
 
 from .._memory import reconstruct_peak_bytes
 from ..detection._result import Detection
+from ..detection._table import remove_tree
 from ..detection._tiled import compute_each, tile_bounds
 from . import _core
 from . import _kernels as kern
@@ -195,7 +196,9 @@ def _labels_tile(st: _Strip, shared):
     labels and marginals, with ``alpha="auto"`` the first phase's mean shading of each
     core surface's neighbours, and the labels of the whole strip (its own, margins
     included: a restart redoes the first phase with them). ``carry`` stays where the task
-    ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state."""
+    ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state
+    (:func:`_register_sizes`: the scheduler knows their size)."""
+    _register_sizes()  # where the carry is kept (a worker)
     st = _as_strip(st)
     su = _strip_setup(st, shared)
     graph = _strip_graph(st, su, shared)
@@ -233,10 +236,12 @@ def _labels_tile(st: _Strip, shared):
 def _fit_tile(carry, st, u, own, shared, eb):
     """Step 4: the sweeps from the first phase's state (``carry`` of step 2; when None,
     after a restart, the first phase again on ``st`` with the strip's ``own`` labels:
-    the same state). Returns ``(small, carry)``: the core's residuals for the std's
-    smoothing-bias term, its surfaces and links, the history; the state for step 5."""
+    the same state). ``u``: the strip's labels (None: one class). Returns ``(small,
+    carry)``: the core's residuals for the std's smoothing-bias term, its surfaces and
+    links, the history; the strip, graph, state and prior for step 5."""
+    _register_sizes()
     auto = shared["prior"][0]
-    state, u = None, _loaded(u)
+    state = None
     if carry is not None:
         st, graph, state = carry["strip"], carry["graph"], carry["state"]
         su = _strip_setup(st, shared)
@@ -245,6 +250,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
         su = _strip_setup(st, shared)
         graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
+    u = _labels_of(u, S)
     if state is None:  # fixed alpha: the only phase, with these labels (or no surfaces)
         state = _phase_one_state(su, graph, own if auto and own is not None else u, shared)
     else:  # a copy: the carry may be used again if this task is recomputed
@@ -274,10 +280,13 @@ def _fit_tile(carry, st, u, own, shared, eb):
 
 @_one_at_a_time
 def _std_tile(carry, u, marg, shared, bias2):
-    """Step 5: the core's intensities and std, with the run's smoothing-bias term."""
+    """Step 5: the core's intensities and std, with the run's smoothing-bias term
+    (``u``, ``marg`` None: one class)."""
     st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
-    u, marg = _loaded(u), _loaded(marg)
     su = _strip_setup(st, shared)
+    S = st.y.shape[0]
+    u = _labels_of(u, S)
+    marg = np.ones((S, 1)) if marg is None else _loaded(marg)
     z, q = np.empty(st.y.shape), np.empty(st.y.shape)
     kern.estep(st.y, st.b, st.eta, state["r"], state["h"], z, q)  # as _sweeps_end did
     state = {**state, "z": z, "q": q}
@@ -363,7 +372,10 @@ class _StripRef:
         import zarr
 
         g = zarr.open_group(self.path, mode="r")
-        return _Strip(self.r0, self.r1, *(g[f][self.lo : self.hi] for f in _Strip.FIELDS))
+        n = self.hi - self.lo
+        # one class: no class likelihoods written (all 0)
+        cols = [g[f][self.lo : self.hi] if f in g else np.zeros((n, 1)) for f in _Strip.FIELDS]
+        return _Strip(self.r0, self.r1, *cols)
 
 
 def _as_strip(st):
@@ -391,6 +403,11 @@ def _loaded(x):
     return x.load() if isinstance(x, _RowsRef) else x
 
 
+def _labels_of(u, n: int) -> np.ndarray:
+    """A strip's labels: ``u`` (or its :class:`_RowsRef`), or all 0 (one class: None)."""
+    return np.zeros(n, np.int64) if u is None else _loaded(u)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Pieces:
     """The strips' surfaces: per strip, their indices in the detection's table (core and
@@ -411,19 +428,25 @@ class _Pieces:
         return [_RowsRef(self.path, name, lo, hi) for lo, hi in self.bounds]
 
 
-def _write_table(path: str, order, columns: dict, chunk: int = 2**16, mode: str = "w") -> None:
+def _write_table(path: str, order, columns: dict, chunk: int = 2**18, mode: str = "w") -> None:
     """The columns, rows sorted by ``order``, to the Zarr group ``path`` (by chunks; a new
     group with ``mode="w"``, added to it with ``"a"``)."""
     import zarr
+    from zarr.codecs import BloscCodec
 
+    # lz4 at about the disk's speed (zstd, Zarr's default, took 3 s of the calling
+    # process for the 3.4 M surfaces of bench_distributed.py --large); each array in one
+    # write, which Zarr spreads over its threads; chunks of 2**18 rows (2 MB of int64):
+    # fewer files to write and remove (each removal waits on the disk's trim here)
+    fast = [BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")]
     g = zarr.open_group(path, mode=mode)
+    ordered = not np.any(np.diff(order) != 1)
     for name, a in columns.items():
         z = g.create_array(
             name, shape=a.shape, dtype=a.dtype, chunks=(min(chunk, max(len(a), 1)),) + a.shape[1:],
-            overwrite=True,
+            compressors=fast, overwrite=True,
         )  # fmt: skip
-        for k in range(0, len(order), chunk):
-            z[k : k + chunk] = a[order[k : k + chunk]]
+        z[...] = a if ordered else a[order]
 
 
 def _cut(detection, su, cores, ll, folder=None):
@@ -441,7 +464,10 @@ def _cut(detection, su, cores, ll, folder=None):
         import uuid
 
         path, run = str(Path(folder) / "surfaces.zarr"), uuid.uuid4().hex
-        _write_table(path, order, columns)
+        # one class (``ll`` of one column): its likelihoods are not needed, nor written
+        _write_table(
+            path, order, {k: v for k, v in columns.items() if k != "ll" or ll.shape[1] > 1}
+        )
     idx, strips_, core_idx, bounds = [], [], [], []
     for r0, r1 in cores:
         lo, hi = (int(k) for k in np.searchsorted(srow, [r0 - MARGIN, r1 + MARGIN]))
@@ -466,6 +492,23 @@ def _points(detection, ci, intensity, std, u, conf) -> dict:
     )  # fmt: skip
 
 
+@functools.cache
+def _register_sizes() -> None:
+    """Dask's ``sizeof`` of a strip and its graph (the carries): their arrays' bytes, not
+    the few hundred bytes of the objects it counts by default. Told 0.3 kB, the scheduler
+    moved carries of tens of MB to idle workers (work stealing: up to 15 s of transfers
+    in a run of ``bench_distributed.py --large --process``) and the workers spilled them
+    late."""
+    from dask.sizeof import sizeof
+
+    from ._graph import SurfaceGraph
+
+    @sizeof.register(_Strip)
+    @sizeof.register(SurfaceGraph)
+    def _arrays(x) -> int:
+        return 64 + sum(a.nbytes for a in vars(x).values() if isinstance(a, np.ndarray))
+
+
 def _persist(tasks: dict, name: str, take) -> dict:
     """Compute ``{strip: task}`` (each returning ``(small, carry)``) on the active
     scheduler, keeping the results where they are (``dask.persist``: on a cluster, on the
@@ -473,6 +516,7 @@ def _persist(tasks: dict, name: str, take) -> dict:
     small part arrives. Returns ``{strip: the persisted task}`` for the next step."""
     import dask
 
+    _register_sizes()
     keys = list(tasks)
     t = time.perf_counter()
     kept = dict(zip(keys, dask.persist(*[tasks[n] for n in keys]), strict=True))
@@ -625,7 +669,8 @@ def reconstruct_tiled(
     try:
         return _on_strips(detection, opt, cores, options, store, assemble, folder or scratch)
     finally:
-        if scratch is not None:
+        if scratch is not None:  # its arrays on threads (each removal waits on the disk)
+            remove_tree(Path(scratch) / "surfaces.zarr")
             shutil.rmtree(scratch, ignore_errors=True)
 
 
@@ -671,7 +716,9 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
     if eb is not None:  # the prior every strip used: (auto, alpha, upsilon, epsilon)
         prior = (True, eb[0], eb[1], su.sig * (eb[1] - 1.0) / eb[0])
     t_cls = time.perf_counter()
-    us = idx.put("u", u)  # each strip's labels: read by its tasks of steps 4 and 5
+    # each strip's labels and marginals, read by its tasks of steps 4 and 5 (one class:
+    # all 0 and 1, made by the tasks)
+    us = idx.put("u", u) if K > 1 else [None] * len(cores)
     resid, metas, fits = _fit_pass(
         strips_, core_idx, us, own, carries, sh, eb, token, store, finished
     )
@@ -694,7 +741,7 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
             intensity[ci], std[ci] = ic, sc
 
     tasks = {}
-    margs = idx.put("marginals", marg)
+    margs = idx.put("marginals", marg) if K > 1 else [None] * len(cores)
     for n in range(len(cores)):
         if n in finished:
             if assemble:
