@@ -761,6 +761,7 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
         types.SimpleNamespace(n_edges=sum(m["n_links"] for m in metas) // 2),
     )  # fmt: skip
     hyper["tiles"] = dict(cores=tuple(cores), margin=MARGIN, seeds="rng and first row")
+    hyper["label_gamma"] = None  # each strip's label field estimates its own strength
     timings = {
         "setup": t_setup - t0,
         "classify": t_cls - t_setup,
