@@ -81,6 +81,18 @@ def test_detect_dask_cube_matches_in_memory():
     assert b.options["block_rows"] == 6
 
 
+def test_detect_dask_cube_with_a_hot_pixel_matches_in_memory():
+    # a stuck pixel (10^4 x the background, flat in t) is set aside in both paths
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
+    counts = counts.astype(np.uint32)
+    counts[9, 7, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint32)
+    cube, lazy = _cubes(counts, irf, (7, 20, 1, 100))
+    a = splidar.detect(cube, rng=3)
+    b = splidar.detect(lazy, rng=3, block_rows=6)
+    assert a.options["hot_pixels"] == b.options["hot_pixels"] == 1
+    _assert_same_detection(a, b)
+
+
 def test_detect_dask_same_result_whatever_tiles_and_threads():
     _, lazy = _cubes(*_varying_cube(shape=(26, 18), n_bins=100, seed=7), (13, 18, 1, 100))
     ref = splidar.detect(lazy, rng=11, block_rows=26)  # one tile

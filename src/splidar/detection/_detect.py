@@ -290,16 +290,19 @@ def detect(
 
 def _without_hot_pixels(cube: Cube, o: dict) -> Cube:
     """The cube with its stuck pixels' counts set to 0 (``_hot_pixels``); logged, and
-    counted in ``o["hot_pixels"]``. A Dask cube is taken as it is."""
+    counted in ``o["hot_pixels"]``. A Dask cube is checked too (one reduction over its
+    chunks on the active scheduler) and masked lazily, so that it gives the in-memory
+    result."""
     o["hot_pixels"] = 0
-    if is_dask(cube.counts):
-        return cube
     hot = hot_pixels(cube.counts)
     n = int(hot.sum())
     if n == 0:
         return cube
-    counts = np.array(cube.counts)
-    counts[hot] = 0
+    if is_dask(cube.counts):
+        counts = cube.counts * (~hot)[:, :, None, None]  # lazy; the counts' dtype kept
+    else:
+        counts = np.array(cube.counts)
+        counts[hot] = 0
     where = ", ".join(f"({r}, {c})" for r, c in np.argwhere(hot)[:5]) + (" ..." if n > 5 else "")
     logger.warning(
         "detect: %d stuck (hot) pixel(s) with a flat count level over %g times their "

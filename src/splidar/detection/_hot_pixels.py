@@ -33,16 +33,19 @@ HOT_MIN_LEVEL = 5.0
 
 
 def hot_pixels(counts: np.ndarray) -> np.ndarray:
-    """Mask ``(rows, cols)`` of the stuck pixels of an in-memory cube ``(rows, cols, L, T)``.
+    """Mask ``(rows, cols)`` of the stuck pixels of a cube ``(rows, cols, L, T)``.
 
-    Reads the counts once (their totals per pixel); the median over t is taken only on
-    the few pixels whose total passes the ratio test.
+    Reads the counts once (their totals per pixel; for a Dask array, one reduction on
+    the active scheduler); the median over t is taken only on the few pixels whose
+    total passes the ratio test.
     """
     R, C, L, T = counts.shape
     hot = np.zeros((R, C), bool)
     if R * C < 2:
         return hot
     total = counts.sum(axis=(2, 3), dtype=np.float64)
+    if hasattr(total, "compute"):  # a Dask cube: one pass over its chunks
+        total = total.compute()
     foot = np.ones((3, 3), bool)
     foot[1, 1] = False
     # third largest of the 8 neighbours (reflected at the image border)
