@@ -426,3 +426,19 @@ def test_potts_marginals_rao_blackwell_is_exact_for_an_unlinked_surface():
     expect = (24 * np.array([0.6, 0.3, 0.1]) + 0.5 / 3) / 24.5
     np.testing.assert_allclose(rb, np.broadcast_to(expect, rb.shape), atol=1e-12)
     assert np.abs(freq - expect).max() > 0.05
+
+
+def test_estimate_gamma_refuses_labels_that_do_not_fit_the_graph():
+    from splidar import SplidarError
+    from splidar.reconstruction import build_graph, estimate_gamma
+
+    row, col = np.divmod(np.arange(16), 4)
+    g = build_graph(row, col, np.zeros(16, np.int64), np.zeros(16), (4, 4), 1)
+    with pytest.raises(SplidarError, match=r"`labels` must be an integer array of shape \(16,\)"):
+        estimate_gamma(np.zeros(15, np.int64), g)
+    with pytest.raises(SplidarError, match=r"class indices 0 .. n_classes - 1 = 1; got values 2"):
+        estimate_gamma(np.full(16, 2), g, n_classes=2)
+    with pytest.raises(SplidarError, match=r"class indices 0; got values -1"):
+        estimate_gamma(-np.ones(16, np.int64), g)
+    with pytest.raises(SplidarError, match="`bounds`"):
+        estimate_gamma(np.zeros(16, np.int64), g, bounds=(2.0, 1.0))

@@ -108,6 +108,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from .._validation import SplidarError, describe
 from ._kernels import _PARALLEL
 
 __all__ = [
@@ -683,6 +684,26 @@ def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, stride=1):
     return g
 
 
+def _check_labels(labels, graph, n_classes) -> np.ndarray:
+    """``labels`` as int64, one per surface of ``graph``, in ``0 .. n_classes - 1``."""
+    u = np.asarray(labels)
+    S = graph.indptr.size - 1
+    if u.shape != (S,) or not (u.size == 0 or np.issubdtype(u.dtype, np.integer)):
+        raise SplidarError(
+            f"`labels` must be an integer array of shape ({S},), one label per surface of "
+            f"`graph`; got {describe(labels)}."
+        )
+    u = np.ascontiguousarray(u, np.int64)
+    K = None if n_classes is None else int(n_classes)
+    top = "" if K is None else f" .. n_classes - 1 = {K - 1}"
+    if u.size and (u.min() < 0 or (K is not None and u.max() >= K)):
+        raise SplidarError(
+            f"`labels` must be class indices 0{top}; got values {int(u.min())} .. "
+            f"{int(u.max())} (relabel from 0, or pass the number of classes as n_classes)."
+        )
+    return u
+
+
 def estimate_gamma(
     labels: np.ndarray,
     graph,
@@ -730,6 +751,12 @@ def estimate_gamma(
     -------
     float
 
+    Raises
+    ------
+    SplidarError
+        ``labels`` not one integer per surface of ``graph``, a label outside
+        ``0 .. n_classes - 1``, or ``bounds`` not ``0 <= low <= high``.
+
     Examples
     --------
     >>> from splidar.reconstruction import build_graph
@@ -742,8 +769,12 @@ def estimate_gamma(
     >>> round(estimate_gamma(u, g), 2)
     0.87
     """
-    u = np.ascontiguousarray(labels, np.int64)
-    K = int(u.max()) + 1 if n_classes is None else int(n_classes)
+    u = _check_labels(labels, graph, n_classes)
+    K = int(u.max(initial=0)) + 1 if n_classes is None else int(n_classes)
+    if not 0.0 <= float(bounds[0]) <= float(bounds[1]):
+        raise SplidarError(
+            f"`bounds` must be (low, high) with 0 <= low <= high; got {tuple(bounds)!r}."
+        )
     wunit = link_gamma(graph, 1.0)
     if link_weights is not None:
         wunit = wunit * np.asarray(link_weights, np.float64)
