@@ -131,7 +131,7 @@ def _solve3_into(A, v, out):
 
 
 @njit(cache=True, nogil=True)
-def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, out, h0=0):
+def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, out):
     """Local planes of the kept surfaces around each hole (sequential RANSAC + LSQ).
 
     Parameters
@@ -145,15 +145,14 @@ def fit_planes(D, hr, hc, radius, tol, max_planes, min_inliers, n_trials, seed, 
     tol : float
         Inlier tolerance (bins).
     max_planes, min_inliers, n_trials, seed : int
+        Each hole draws from ``seed * 1000003 + row * C + col``: a split over threads
+        gives the same planes, and a change elsewhere in the image does not move a
+        hole's.
     out : (H, max_planes, 5) float64
         Written: ``a, b, c, n_inliers, enclosed`` of each plane (``n_inliers = 0``:
         none; ``enclosed`` 1.0 when, in each of 8 directions, an inlier lies beyond the
         hole or the image ends: the hole is inside the plane's patch, not beyond its
         edge).
-    h0 : int
-        Index of ``hr[0]`` among all the holes of the call's round (unused: the per-hole
-        seed is ``seed * 1000003 + row * C + col``, so a split over threads gives the
-        same planes and a change elsewhere in the image does not move this hole's).
     """
     R, C, K = D.shape
     nmax = (2 * radius + 1) * (2 * radius + 1) * K
@@ -576,7 +575,7 @@ def recover_slopes(
             n_jobs,
             lambda a, b, it=it, hr=hr, hc=hc, planes=planes: fit_planes(
                 D, hr[a:b], hc[a:b], h_max, float(fwhm), K, MIN_INLIERS, N_TRIALS,
-                seed + 7919 * it, planes[a:b], a,
+                seed + 7919 * it, planes[a:b],
             ),
         )  # fmt: skip
         hr, hc, planes, valid, repl = _testable(D, Di, n_in, hr, hc, planes, h_max, fwhm, excl)
