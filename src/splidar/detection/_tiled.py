@@ -156,7 +156,7 @@ def worker_memory_limit() -> int | None:
     """The smallest memory limit (bytes) of the active client's workers; None without a
     ``dask.distributed`` client or when no worker has a limit."""
     client = _client()
-    if client is None or not PLACE_BANDS:
+    if client is None:
         return None
     try:  # every worker (recent versions list 5 by default)
         info = client.scheduler_info(n_workers=-1)
@@ -409,72 +409,30 @@ def _parts(chunks, a: int, b: int) -> list[tuple[int, slice, slice]]:
     return out
 
 
-def _piece(chunk, cols) -> np.ndarray:
-    """A copy of the columns ``cols`` (a slice; or ``(rows, columns)`` slices) of one
-    of the cube's chunks (so that the chunk itself is released once every tile's
-    columns are taken)."""
-    rows, cols = cols if isinstance(cols, tuple) else (slice(None), cols)
-    return np.array(np.asarray(chunk)[rows, cols], copy=True)
+def _piece(chunk, cols: slice) -> np.ndarray:
+    """A copy of the columns ``cols`` of one of the cube's chunks (so that the chunk
+    itself is released once every tile's columns are taken)."""
+    return np.array(np.asarray(chunk)[:, cols], copy=True)
 
 
-def _read_chunk(z, region: tuple, after=None) -> np.ndarray:
-    """One chunk of the cube, read from its Zarr array ``z`` (the values
-    ``dask.array.from_zarr``'s task gives). ``after``: a result it waits for, unused
-    (the first tile of an earlier band on the same worker: a worker reads a band's
-    chunks while it runs the band before, not every chunk at once)."""
-    return np.asarray(z[region])
-
-
-def _tile_inputs(counts, ext, ext_c, owner=None, after=None):
+def _tile_inputs(counts, ext, ext_c):
     """``inputs(i, j)``: what the tile of row range ``ext[i]`` and column range
     ``ext_c[j]`` (with their halos) reads: ``(shape, dtype, pieces, places)`` for
     :func:`_assemble`. The pieces are Dask tasks ("splidar-map-input"): the columns of
     a column of tiles cut from each of the cube's chunks, shared by the tiles of
-    consecutive bands of rows (the halo's rows).
-
-    ``owner(first row)``, when given, names the worker that should read a chunk (the
-    one whose tiles use it: :func:`_band_workers`): the chunk of a Zarr cube
-    (``splidar.load``) is then read by a task of ours ("splidar-map-chunk", the same
-    values as Dask's) placed there, after ``after(worker)`` (see :func:`_read_chunk`),
-    and each band's piece holds only the rows that band reads, so that only a halo's
-    rows travel to a neighbouring band's worker (a Dask read task cannot be placed
-    after the fact)."""
+    consecutive bands of rows (the halo's rows)."""
     import dask
-
-    from ._slopes import _zarr_of
 
     blocks = counts.to_delayed()
     L, T = counts.shape[2:]
     whole = [_parts(counts.chunks[2], 0, L), _parts(counts.chunks[3], 0, T)]
     name = "splidar-map-input-" + dask.base.tokenize(counts.name, ext_c)
-    z = _zarr_of(counts) if owner is not None else None
-    if z is not None:
-        zd = dask.delayed(z, name="splidar-map-zarr-" + dask.base.tokenize(counts.name))
-        starts = [np.concatenate([[0], np.cumsum(c)]) for c in counts.chunks]
     made = {}
 
-    def source(k: tuple):
-        if z is None:
-            return blocks[k], None
-        region = tuple(slice(int(s[i]), int(s[i + 1])) for s, i in zip(starts, k, strict=True))
-        where = owner(region[0].start)
-        key = ("splidar-map-chunk-" + dask.base.tokenize(counts.name), *k)
+    def piece(k: tuple, j: int, sc: slice):
+        key = (name, *k, j)
         if key not in made:
-            with dask.annotate(**_placed(where)):
-                made[key] = dask.delayed(_read_chunk, pure=True)(
-                    zd, region, after(where), dask_key_name=key
-                )
-        return made[key], where
-
-    def piece(k: tuple, j: int, sc: slice, i: int, sr: slice):
-        if z is None:  # shared by the bands that read the chunk
-            key = (name, *k, j)
-        else:  # the band's rows only
-            key, sc = (name, *k, j, i), (sr, sc)
-        if key not in made:
-            chunk, where = source(k)
-            with dask.annotate(**_placed(where)):
-                made[key] = dask.delayed(_piece, pure=True)(chunk, sc, dask_key_name=key)
+            made[key] = dask.delayed(_piece, pure=True)(blocks[k], sc, dask_key_name=key)
         return made[key]
 
     def inputs(i: int, j: int):
@@ -484,50 +442,11 @@ def _tile_inputs(counts, ext, ext_c, owner=None, after=None):
             for kc, sc, dc in _parts(counts.chunks[1], f0, f1):
                 for kl, sl, dl in whole[0]:
                     for kt, st, dt in whole[1]:
-                        pieces.append(piece((kr, kc, kl, kt), j, sc, i, sr))
-                        src = (slice(None) if z is not None else sr, slice(None), sl, st)
-                        places.append((src, (dr, dc, dl, dt)))
+                        pieces.append(piece((kr, kc, kl, kt), j, sc))
+                        places.append(((sr, slice(None), sl, st), (dr, dc, dl, dt)))
         return (e1 - e0, f1 - f0, L, T), counts.dtype, pieces, places
 
     return inputs
-
-
-def _placed(worker) -> dict:
-    """Dask annotations that place a task on ``worker`` (any other when it is gone)."""
-    return {} if worker is None else dict(workers=[worker], allow_other_workers=True)
-
-
-#: Groups of consecutive bands of tiles per worker and pass (:func:`_band_workers`).
-BAND_GROUPS = 4
-
-#: Place the bands of tiles on the workers (:func:`_band_workers`); False: Dask does.
-PLACE_BANDS = True
-
-
-def _band_workers(n_bands: int) -> list | None:
-    """The worker each band of tiles runs on (a ``dask.distributed`` client with two
-    workers or more; else None: the scheduler places them).
-
-    A tile takes the running sums of the tile on its left and its counts from the
-    chunks of its rows: placed by Dask alone, both travelled between workers (440-550 MB
-    and as much spilled to disk for a 512 x 1024 x 1000 slab on 2 workers). So the
-    bands are dealt to the workers in runs of consecutive bands (:data:`BAND_GROUPS` runs
-    per worker, which keeps them busy to the end), and a band's chunks are read where
-    its tiles run: only the halo rows at a run's edge cross. The placement is a
-    preference (``allow_other_workers``): a killed worker's tiles run elsewhere."""
-    client = _client()
-    if client is None or not PLACE_BANDS:
-        return None
-    try:  # every worker (recent versions list 5 by default)
-        info = client.scheduler_info(n_workers=-1)
-    except TypeError:  # distributed before 2025: always every worker
-        info = client.scheduler_info()
-    workers = sorted(info.get("workers", {}))
-    n = len(workers)
-    if n < 2:
-        return None
-    run = max(1, n_bands // (BAND_GROUPS * n))
-    return [workers[(i // run) % n] for i in range(n_bands)]
 
 
 def map_candidates_tiled(
@@ -593,16 +512,7 @@ def map_candidates_tiled(
     )
     # each tile reads the cube's chunks that cover it with its halo and copies their
     # parts into its thread's kept buffer (no rechunked or overlapped copies in between)
-    band_worker = _band_workers(len(rows))
-    owner = None
-    if band_worker is not None:
-        firsts = np.array([a for a, _ in rows])
-
-        def owner(row: int):  # the band whose own rows hold a chunk's first row
-            return band_worker[int(np.searchsorted(firsts, row, side="right")) - 1]
-
-    latest: dict = {}  # per worker, the first tile's carry of its latest band so far
-    inputs = _tile_inputs(counts, ext, ext_c, owner, latest.get)
+    inputs = _tile_inputs(counts, ext, ext_c)
     if store is not None:
         out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
         store_path = str(store)
@@ -625,23 +535,18 @@ def map_candidates_tiled(
         carry = None  # the tiles of a band of rows run left to right, passing the sums
         for j, ((c0, c1), (ce0, _)) in enumerate(zip(cols, ext_c, strict=True)):
             tile = (e0, r0, r1, ce0, c0, c1)
-            place = _placed(None if band_worker is None else band_worker[i])
-            inp = inputs(i, j)
-            with dask.annotate(**place):
-                done = dask.delayed(_map_tile, pure=True)(
-                    inp, tile, ctx, shared[0], shared[1], store_path, most, carry,
-                    j == len(cols) - 1, dask_key_name=(name, i, j),
-                )  # fmt: skip
-                carry = dask.delayed(_carry, pure=True)(
-                    done, dask_key_name=("splidar-map-carry-" + token, i, j)
+            done = dask.delayed(_map_tile, pure=True)(
+                inputs(i, j), tile, ctx, shared[0], shared[1], store_path, most, carry,
+                j == len(cols) - 1, dask_key_name=(name, i, j),
+            )  # fmt: skip
+            carry = dask.delayed(_carry, pure=True)(
+                done, dask_key_name=("splidar-map-carry-" + token, i, j)
+            )
+            tasks.append(
+                dask.delayed(_result, pure=True)(
+                    done, dask_key_name=("splidar-map-result-" + token, i, j)
                 )
-                tasks.append(
-                    dask.delayed(_result, pure=True)(
-                        done, dask_key_name=("splidar-map-result-" + token, i, j)
-                    )
-                )
-            if j == 0 and band_worker is not None:
-                latest[band_worker[i]] = carry
+            )
             where.append((r0, r1, c0, c1))
     logger.info(
         "detect: map pass on %d tile(s) of %d x %d pixels (halo %d rows, %d columns)",
