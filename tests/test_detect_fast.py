@@ -11,6 +11,7 @@ from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temp
 from splidar.detection._fast import (
     _median_near,
     _median_scratch,
+    pixel_totals,
     poisson_background,
     saliency_wavelength,
     window_means,
@@ -241,6 +242,20 @@ def test_window_means_exact(dtype):
     assert got.dtype == np.float32
     # integer sums are exact in float64: the float32 rounding of the exact mean
     np.testing.assert_array_equal(got, ref.astype(np.float32))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.uint32, np.float32])
+def test_pixel_totals_equal_numpy_sums(dtype):
+    rng = np.random.default_rng(3)
+    hi = 200 if dtype == np.uint8 else 60_000
+    y = rng.integers(0, hi, size=(7, 5, 3, 301)).astype(dtype)
+    y[2, 3] = np.iinfo(dtype).max if dtype != np.float32 else 1e6  # large values exact
+    ref = y.sum(axis=(2, 3), dtype=np.float64)
+    out = pixel_totals(y)
+    assert out.dtype == np.float64 and out.shape == (7, 5)
+    assert np.array_equal(out, ref)
+    # a strided view gives the same totals as its copy
+    assert np.array_equal(pixel_totals(y[::2, 1:]), ref[::2, 1:])
 
 
 def test_window_means_rejects_windows_outside():
