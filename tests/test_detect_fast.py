@@ -7,7 +7,13 @@ import pytest
 from scipy import ndimage
 
 from splidar import gaussian_irf
-from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temporal_shape
+from splidar.detection._background import (
+    CLIP,
+    LOW_FRACTION,
+    _low_median,
+    robust_level,
+    temporal_shape,
+)
 from splidar.detection._fast import (
     _median_near,
     _median_scratch,
@@ -256,6 +262,25 @@ def test_pixel_totals_equal_numpy_sums(dtype):
     assert np.array_equal(out, ref)
     # a strided view gives the same totals as its copy
     assert np.array_equal(pixel_totals(y[::2, 1:]), ref[::2, 1:])
+
+
+@pytest.mark.parametrize("m", [1, 2, 37, 38, 300])
+@pytest.mark.parametrize("ties", [False, True])
+def test_low_median_equals_numpy_partition(m, ties):
+    rng = np.random.default_rng(m)
+    x = rng.gamma(2.0, 1.0, size=(301, 45)).astype(np.float32)
+    if ties:  # few distinct values, as the window means of sparse counts
+        x = (np.round(x * 2) / 7).astype(np.float32)
+    x[3, 5] = np.nan  # a NaN column: NumPy's rule (NaNs sorted to the end)
+    k1, k2 = (m - 1) // 2, m // 2
+    part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
+    ref = (part[k1] + part[k2]) / np.float32(2)
+    assert np.array_equal(_low_median(x, m), ref, equal_nan=True)
+    assert np.array_equal(_low_median(x, m, slice(7, 40)), ref[7:40], equal_nan=True)
+    # the definition: the median of the lowest m values of each column
+    y = np.delete(x, 5, axis=1)
+    low = np.sort(y, axis=0)[:m]
+    assert np.array_equal(_low_median(y, m), np.median(low, axis=0).astype(np.float32))
 
 
 def test_window_means_rejects_windows_outside():

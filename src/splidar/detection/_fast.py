@@ -33,6 +33,7 @@ from numba import njit
 
 __all__ = [
     "correlate_direct",
+    "low_median",
     "pixel_totals",
     "poisson_background",
     "poisson_scaled",
@@ -700,6 +701,67 @@ def poisson_scaled(lam: np.ndarray, scale: float, rng) -> np.ndarray:
     out = np.empty(lam.shape, np.float64)
     _poisson_scaled_kernel(lam, float(scale), int(rng.integers(2**62)), out)
     return out
+
+
+#: Columns gathered together by :func:`_low_median_kernel` (a row of the block is one
+#: 64-byte cache line of float32).
+_LOW_COLS = 16
+
+
+@njit(cache=True, nogil=True)
+def _low_median_kernel(x, k1, k2, p0, p1, out, bad):
+    """``out[p] = (a[k1] + a[k2]) / 2`` with ``a`` the order statistics of ``x[:, p]``,
+    for the columns ``[p0, p1)``; a column holding a NaN is flagged in ``bad`` (the
+    caller takes NumPy's selection for it)."""
+    n = x.shape[0]
+    blk = np.empty((n, _LOW_COLS), np.float32)
+    a = np.empty(n, np.float32)
+    for q0 in range(p0, p1, _LOW_COLS):
+        nq = min(_LOW_COLS, p1 - q0)
+        for i in range(n):  # the block's rows: whole cache lines
+            for u in range(nq):
+                blk[i, u] = x[i, q0 + u]
+        for u in range(nq):
+            nan = False
+            for i in range(n):
+                v = blk[i, u]
+                a[i] = v
+                nan |= v != v
+            if nan:
+                bad[q0 + u] = True
+                continue
+            lo = _select_inplace(a, n, k1)
+            hi = lo
+            if k2 > k1:  # the next order statistic: the smallest above a[k1]
+                hi = a[k1 + 1]
+                for i in range(k1 + 2, n):
+                    if a[i] < hi:
+                        hi = a[i]
+            out[q0 + u] = (lo + hi) / np.float32(2)
+
+
+def low_median(x: np.ndarray, k1: int, k2: int, cols: slice, out: np.ndarray) -> None:
+    """``out[cols] = (part[k1] + part[k2]) / 2`` (float32) with ``part`` the order
+    statistics of each column of ``x`` (n, P) float32 (``k2`` is ``k1`` or ``k1 + 1``):
+    the value of ``np.partition(x[:, cols], [k1, k2], axis=0)``, bit for bit (order
+    statistics do not depend on the selection), without its copy of the columns.
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> x = np.random.default_rng(0).random((101, 5)).astype(np.float32)
+    >>> out = np.empty(5, np.float32)
+    >>> low_median(x, 9, 10, slice(0, 5), out)
+    >>> p = np.partition(x, [9, 10], axis=0)
+    >>> bool(np.array_equal(out, (p[9] + p[10]) / np.float32(2)))
+    True
+    """
+    p0, p1, _ = cols.indices(x.shape[1])
+    bad = np.zeros(x.shape[1], np.bool_)
+    _low_median_kernel(x, int(k1), int(k2), p0, p1, out, bad)
+    for p in np.flatnonzero(bad):  # NaNs: NumPy's rule (sorted to the end)
+        part = np.partition(x[:, p], [k1, k2] if k2 > k1 else k1)
+        out[p] = (part[k1] + part[k2]) / x.dtype.type(2)
 
 
 @njit(cache=True, nogil=True)
