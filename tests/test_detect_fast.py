@@ -283,6 +283,23 @@ def test_low_median_equals_numpy_partition(m, ties):
     assert np.array_equal(_low_median(y, m), np.median(low, axis=0).astype(np.float32))
 
 
+def test_low_median_neighbouring_columns_hint_gives_the_same_statistics():
+    # columns that drift slowly (the band about the previous column's statistic holds
+    # them), with jumps (the band misses): the same values as a full selection
+    rng = np.random.default_rng(11)
+    n, P, m = 500, 300, 50
+    level = np.cumsum(rng.normal(0, 0.01, P)) + 2.0
+    level[100:] += 5.0  # a jump
+    level[200:210] = 0.0  # a stretch of zeros (ties at 0)
+    x = (level[None, :] + rng.gamma(2.0, 0.3, size=(n, P))).astype(np.float32)
+    x[:, 200:210] = 0.0
+    x[:, 150] = np.float32(1.5)  # one column of ties
+    k1, k2 = (m - 1) // 2, m // 2
+    part = np.partition(x, [k1, k2], axis=0)
+    ref = (part[k1] + part[k2]) / np.float32(2)
+    assert np.array_equal(_low_median(x, m), ref)
+
+
 def test_window_means_rejects_windows_outside():
     with pytest.raises(ValueError, match="columns"):
         window_means(np.zeros((3, 10, 1, 4), np.uint16), np.array([0, 8]), 3)

@@ -709,13 +709,36 @@ _LOW_COLS = 16
 
 
 @njit(cache=True, nogil=True)
+def _low_pair(a, n, k1, k2):
+    """Order statistics ``k1`` and ``k2`` (``k1`` or ``k1 + 1``) of ``a[:n]``; ``a``
+    permuted."""
+    lo = _select_inplace(a, n, k1)
+    hi = lo
+    if k2 > k1:  # the next order statistic: the smallest above a[k1]
+        hi = a[k1 + 1]
+        for i in range(k1 + 2, n):
+            if a[i] < hi:
+                hi = a[i]
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
 def _low_median_kernel(x, k1, k2, p0, p1, out, bad):
     """``out[p] = (a[k1] + a[k2]) / 2`` with ``a`` the order statistics of ``x[:, p]``,
     for the columns ``[p0, p1)``; a column holding a NaN is flagged in ``bad`` (the
-    caller takes NumPy's selection for it)."""
+    caller takes NumPy's selection for it).
+
+    Neighbouring columns (bins ``t`` and ``t + 1``) have close order statistics: the
+    values within ``hint +- width`` of the previous column's ``a[k1]`` are counted and,
+    when both order statistics lie among them, selected from those only (the rank less
+    the count below): the same values (as :func:`_median_near`). ``width`` adapts
+    (shrunk after a hit, widened after a miss), for speed only.
+    """
     n = x.shape[0]
     blk = np.empty((n, _LOW_COLS), np.float32)
     a = np.empty(n, np.float32)
+    hint = np.nan
+    width = 0.0
     for q0 in range(p0, p1, _LOW_COLS):
         nq = min(_LOW_COLS, p1 - q0)
         for i in range(n):  # the block's rows: whole cache lines
@@ -730,13 +753,32 @@ def _low_median_kernel(x, k1, k2, p0, p1, out, bad):
             if nan:
                 bad[q0 + u] = True
                 continue
-            lo = _select_inplace(a, n, k1)
-            hi = lo
-            if k2 > k1:  # the next order statistic: the smallest above a[k1]
-                hi = a[k1 + 1]
-                for i in range(k1 + 2, n):
-                    if a[i] < hi:
-                        hi = a[i]
+            done = False
+            if hint == hint and width > 0:
+                lo_b = np.float32(hint - width)
+                hi_b = np.float32(hint + width)
+                nb = 0
+                nm = 0
+                for i in range(n):
+                    v = a[i]
+                    nb += v < lo_b
+                    nm += (v >= lo_b) & (v <= hi_b)
+                if nb <= k1 and k2 < nb + nm:
+                    c = 0
+                    for i in range(n):  # the band's values to the front
+                        v = a[i]
+                        a[c] = v
+                        c += (v >= lo_b) & (v <= hi_b)
+                    lo, hi = _low_pair(a, nm, k1 - nb, k2 - nb)
+                    done = True
+                    width *= 0.75
+                else:
+                    width *= 4.0
+            if not done:
+                lo, hi = _low_pair(a, n, k1, k2)
+                if not width > 0:
+                    width = max(abs(np.float64(lo)), 1e-6) * 0.02
+            hint = np.float64(lo)
             out[q0 + u] = (lo + hi) / np.float32(2)
 
 
