@@ -12,7 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage, signal, special
 
-from ._fast import low_median, window_means
+from ._fast import low_median as _low_median_kernel
+from ._fast import window_means
 from ._filters import Correlator
 
 __all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
@@ -83,11 +84,11 @@ def temporal_shape(
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
     prof = np.empty(L * T, np.float32)
 
-    def low_median(part):  # eq:background_1, one selection per (l, t): any split
+    def select_part(part):  # eq:background_1, one selection per (l, t): any split
         cols = slice(int(part[0]), int(part[-1]) + 1)  # contiguous parts: no copy
         prof[cols] = _low_median(coarse.reshape(n, L * T), m, cols)
 
-    _on_threads(low_median, np.arange(L * T), workers)
+    _on_threads(select_part, np.arange(L * T), workers)
     prof = prof.reshape(L, T).astype(np.float64)
     if smooth > 1:
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
@@ -157,7 +158,7 @@ def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
     k1, k2 = (m - 1) // 2, m // 2
     if x.ndim == 2 and x.dtype == np.float32 and x.strides[1] == x.itemsize:
         out = np.empty(x.shape[1], np.float32)
-        low_median(x, k1, k2, slice(None), out)
+        _low_median_kernel(x, k1, k2, slice(None), out)
         return out
     part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
     return (part[k1] + part[k2]) / x.dtype.type(2)
