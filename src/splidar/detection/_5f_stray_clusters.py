@@ -6,15 +6,16 @@ FWHM of a neighbour's) that nothing else at that depth joins within
 :data:`REACH_BOXES` x the largest box's half-width, keeps its other candidate only.
 A true surface continues into its neighbours (a region, a line or the fragments of one
 along a thin structure); the spatial pooling's false alarms behind a pixel's own surface
-(the "background" and detached "spread 2-5 px" kinds of issue #15's false surfaces) come
-in clusters of 1-4 pixels at a depth no other surface nearby holds, which stage 5b
-(a single pixel without a same-depth neighbour) does not see. A pixel's only candidate
-is never removed.
+(the "background" and "window edge" kinds of issue #15's false surfaces) come in
+clusters of 1-4 pixels at a depth no other surface nearby holds, which stage 5b (a
+single pixel without a same-depth neighbour) does not see. A pixel's only candidate is
+never removed, nor a neighbour's spread (a surface at its depth lies beside it).
 
 Measured (``benchmarks/README.md``, "Issue #15 point 5, session 13"): single surface,
 PPP 4, SBR 0.25, 96 x 80, seeds 0-2, false surfaces 147.7 -> 119.3 (uniform), 182.0 ->
-148.0 (decaying) with F_true unchanged in every cube; the sheet and the net (a partly
-transmissive layer) the same F_true in every cube, 16-28 fewer false surfaces.
+148.0 (decaying; background kind 27.0 -> 6.0 and 31.0 -> 8.7, window edge 12.7 -> 5.3
+and 20.0 -> 8.3) with F_true unchanged in every cube; the sheet and the net (a partly
+transmissive layer) the same F_true in every cube, fewer false surfaces.
 """
 
 from __future__ import annotations
