@@ -3,7 +3,8 @@
 A pixel that holds two kept candidates, one of them in a small cluster of same-depth
 candidates (at most :data:`MAX_CLUSTER`, 8-connected, depths within :data:`GATE_FWHM`
 FWHM of a neighbour's) that nothing else at that depth joins within
-:data:`REACH_BOXES` x the largest box's half-width, keeps its other candidate only.
+:data:`REACH_BOXES` x the largest box's half-width (15 pixels with the default scales),
+keeps its other candidate only.
 A true surface continues into its neighbours (a region, a line or the fragments of one
 along a thin structure); the spatial pooling's false alarms behind a pixel's own surface
 (the "background" and "window edge" kinds of issue #15's false surfaces) come in
@@ -30,17 +31,19 @@ from ._table import CandidateTable, PassResult, skipped, with_keep
 __all__ = ["GATE_FWHM", "MAX_CLUSTER", "REACH_BOXES", "remove_stray_clusters"]
 
 #: Candidates of neighbouring pixels whose depths differ by at most this many FWHM are
-#: one cluster (4.5 bins at FWHM 3: a ramp of 3.2 bins per row stays one cluster).
-GATE_FWHM = 1.5
+#: one cluster, and a candidate this close in depth within the reach joins it (9 bins at
+#: FWHM 3). On the Art scene (PPP 4, SBR 1, curved surfaces) 1.5 FWHM with a reach of 10
+#: pixels removed 22 true surfaces with 33 false ones, 3 FWHM with 15 pixels 1 with 19.
+GATE_FWHM = 3.0
 #: A cluster of at most this many candidates can be a stray one. Issue #15's cells
-#: (seeds 0-2): at most 2 -> 128.3 / 159.0 false surfaces (uniform / decaying), 4 ->
-#: 119.3 / 148.0, 6 -> 115.7 / 144.3 with the same F_true (prototype on main's output).
+#: (seeds 0-2, gate 1.5 FWHM, reach 10): at most 2 -> 128.3 / 159.0 false surfaces
+#: (uniform / decaying), 4 -> 119.3 / 148.0, 6 -> 115.7 / 144.3, the same F_true.
 MAX_CLUSTER = 4
 #: The reach searched for other candidates at the cluster's depth, in half-widths of the
-#: largest box (10 pixels with the default 11 x 11): at 5 pixels the net under a
+#: largest box (15 pixels with the default 11 x 11): at 5 pixels the net under a
 #: decaying background lost 2-11 strand surfaces per cube (fragments of a strand whose
-#: neighbours the map missed), at 8 one, at 10 none.
-REACH_BOXES = 2
+#: neighbours the map missed), at 10 none; Art (above) wants 15.
+REACH_BOXES = 3
 
 
 @njit(cache=True, nogil=True)
