@@ -13,9 +13,9 @@ single pixel without a same-depth neighbour) does not see. A pixel's only candid
 never removed, nor a neighbour's spread (a surface at its depth lies beside it).
 
 Measured (``benchmarks/README.md``, "Issue #15 point 5, session 13"): single surface,
-PPP 4, SBR 0.25, 96 x 80, seeds 0-2, false surfaces 147.7 -> 119.3 (uniform), 182.0 ->
-148.0 (decaying; background kind 27.0 -> 6.0 and 31.0 -> 8.7, window edge 12.7 -> 5.3
-and 20.0 -> 8.3) with F_true unchanged in every cube; the sheet and the net (a partly
+PPP 4, SBR 0.25, 96 x 80, seeds 0-2, false surfaces 147.7 -> 126.7 (uniform), 182.0 ->
+160.0 (decaying; background kind 27.0 -> 13.3 and 31.0 -> 17.7, window edge 12.7 -> 5.3
+and 20.0 -> 11.3) with F_true unchanged in every cube; the sheet and the net (a partly
 transmissive layer) the same F_true in every cube, fewer false surfaces.
 """
 
