@@ -202,9 +202,8 @@ def detect(
         test. The clean-up passes run with ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
-        ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
-        ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``. What each does and its
-        measured gain:
+        ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``, ``"enclosed"``,
+        ``"stray_clusters"``, ``"align_depths"``. What each does and its measured gain:
         ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
