@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.ndimage import correlate1d
+from scipy.signal import fftconvolve
 from scipy.stats import norm, poisson
 
 from ._validation import SplidarError
@@ -53,7 +53,8 @@ def _pool(a: np.ndarray, kernel: np.ndarray, k_left: int, k_right: int, z: float
     for s in range(0, n_pix, step):
         y = np.asarray(a[s : s + step], dtype=np.float32)
         ys = y.sum(axis=1)
-        score = correlate1d(ys, kp.astype(np.float32), axis=-1, mode="constant")
+        # correlation with the template (FFT: a long-tailed template on thousands of bins)
+        score = fftconvolve(ys, kp[::-1][None, :].astype(np.float32), mode="same", axes=-1)
         p = np.argmax(score, axis=-1)
         cs = np.concatenate([np.zeros(y.shape[:2] + (1,), np.float64), np.cumsum(y, -1)], -1)
         lo = np.clip(p - k_left, 0, n_bins - 1)
