@@ -93,6 +93,17 @@ def sim_cases():
         ("exp tail 3/6", basic(irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
         ("exp tail 2/25", basic(T=400, irf=exp_tail_irf(2.0, 25.0)), exp_tail_irf(2.0, 25.0)),
         ("gaussian fwhm 3 (control)", basic(), gaussian_irf(3.0)),
+        ("exp tail 3/6, PPP 2", basic(ppp=2.0, irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
+        (
+            "exp tail 3/6, PPP 40",
+            basic(ppp=40.0, irf=exp_tail_irf(3.0, 6.0)),
+            exp_tail_irf(3.0, 6.0),
+        ),
+        (
+            "exp tail 3/6, 2nd surface +20 bins, every other column",
+            basic(T=240, second=20.0, irf=exp_tail_irf(3.0, 6.0)),
+            exp_tail_irf(3.0, 6.0),
+        ),
     ]
     w = measured_irf()
     if w is not None:

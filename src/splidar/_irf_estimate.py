@@ -112,10 +112,14 @@ def _loo_peak(score, p, kp, i, t, reach: int) -> np.ndarray:
     return out
 
 
-def _support(r: np.ndarray, sig: np.ndarray, z: float) -> tuple[int, int]:
+def _support(r: np.ndarray, sig: np.ndarray, z: float, m: int) -> tuple[int, int]:
     """First and last lag index kept: walking out of the peak, stop before the curve
     reaches ``z`` noise sigmas, or, once below half the peak, at its lowest point
-    before a rise of more than ``z`` sigmas (a second surface)."""
+    before a rise of more than ``z`` sigmas (a second surface). Both tests read the
+    curve averaged over ``m`` bins (odd), whose noise is ``sqrt(m)`` times lower."""
+    box = np.ones(m) / m
+    rs = np.convolve(r, box, mode="same")
+    ss = np.sqrt(np.convolve(sig**2, box / m, mode="same"))
     pk = int(np.argmax(r))
     half = r[pk] / 2.0
     ends = []
@@ -123,12 +127,12 @@ def _support(r: np.ndarray, sig: np.ndarray, z: float) -> tuple[int, int]:
         j, jmin, end = pk, pk, None
         while 0 <= j + direction < r.size:
             j += direction
-            if r[j] <= z * sig[j]:
+            if rs[j] <= z * ss[j]:
                 end = j - direction
                 break
-            if r[j] < r[jmin]:
+            if rs[j] < rs[jmin]:
                 jmin = j
-            elif r[jmin] < half and r[j] - r[jmin] > z * math.hypot(sig[j], sig[jmin]):
+            elif rs[jmin] < half and rs[j] - rs[jmin] > z * math.hypot(ss[j], ss[jmin]):
                 end = jmin
                 break
         ends.append(j if end is None else end)
@@ -142,6 +146,7 @@ def pooled_shape(
     ``fwhm``, then the first pass's shape), cut to its support, unit sum per row.
     Returns the IRF and the number of pixels pooled."""
     kernel = gaussian_irf(fwhm)
+    m = 2 * int(fwhm // 4) + 1  # about half the FWHM, odd
     for _ in range(2):
         tot, var, cover, n_used = _pool(a, kernel, k_left, k_right, z)
         if n_used < min_pixels:
@@ -155,10 +160,10 @@ def pooled_shape(
         sig = np.sqrt(np.maximum(var, 1.0)) / n
         rows = []
         for l in range(r.shape[0]):
-            lo, hi = _support(r[l], sig[l], z)
+            lo, hi = _support(r[l], sig[l], z, m)
             rows.append(np.clip(r[l, lo : hi + 1], 0.0, None))
         pooled = r.sum(axis=0)
-        lo, hi = _support(pooled, np.sqrt((sig**2).sum(axis=0)), z)
+        lo, hi = _support(pooled, np.sqrt((sig**2).sum(axis=0)), z, m)
         kernel = np.clip(pooled[lo : hi + 1], 0.0, None)
     width = max(row.size for row in rows)
     out = np.zeros((len(rows), width))

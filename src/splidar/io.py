@@ -552,14 +552,17 @@ def estimate_irf(
        a probability below that of a one-sided ``significance``-sigma Gaussian,
        Bonferroni-corrected for the ``T / width`` windows searched: a rule from the
        Poisson noise of each pixel, not a scene constant.
-    2. **Align and pool.** Each used pixel's histogram, minus its background, is shifted
-       so its return sits on lag 0 (whole bins: the estimate is the IRF convolved with
-       a uniform +-0.5-bin jitter, negligible for a FWHM of a few bins) and the
-       pixels are averaged per lag and per wavelength.
+    2. **Align and pool.** Each photon of a used pixel is placed at its lag from the
+       return the pixel's *other* photons give (leave-one-out, searched within the
+       template's width of the peak; aligning a photon with itself would pile the
+       peak bin up); the pixels' histograms so aligned, minus their background, are
+       averaged per lag and per wavelength. Whole bins: the estimate is the IRF
+       convolved with the alignment's jitter (+-0.5 bin at least).
     3. **Cut.** Walking out of the peak, the curve stops before it reaches
        ``significance`` times its Poisson standard error (the noise floor) or, once
        below half the peak, at its lowest point before a rise of more than
-       ``significance`` standard errors (a second surface behind the first).
+       ``significance`` standard errors (a second surface behind the first); both
+       tests read the curve averaged over about half a FWHM.
     4. The pooled shape becomes the template of a second pass (a matched filter: the
        return's reference is then the IRF's own peak), and each row is normalised to
        unit sum.
@@ -595,12 +598,13 @@ def estimate_irf(
 
     Notes
     -----
-    Pixels are aligned on their own photons, so a pixel of a few photons pulls its
-    photons towards its peak: the estimate is slightly narrower than the truth at low
-    counts (measured in ``benchmarks/bench_irf_estimate.py``). A second surface at a
-    fixed distance behind the first is cut away; second surfaces at depths that vary
-    from pixel to pixel within ``max_length`` average into a pedestal that the cut
-    may keep as tail.
+    The alignment's jitter widens the estimate a little (FWHM +5 to +25 % on the
+    simulated exp-tail pulses of ``benchmarks/bench_irf_estimate.py``). The depth
+    reference is the estimate's argmax: on a flat-topped or slowly decaying pulse it
+    may sit a few bins from the true pulse's (a constant depth offset). A second
+    surface at a fixed distance behind the first is cut away; second surfaces at
+    depths that vary from pixel to pixel within ``max_length`` average into a pedestal
+    that the cut may keep as tail. Needs the counts in memory (not lazy data).
 
     Examples
     --------
