@@ -10,8 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.optimize import curve_fit
 from scipy.signal import fftconvolve
-from scipy.stats import norm, poisson
+from scipy.stats import chi2, norm, poisson
 
 from ._validation import SplidarError
 from .irf import gaussian_irf
@@ -139,12 +140,36 @@ def _support(r: np.ndarray, sig: np.ndarray, z: float, m: int) -> tuple[int, int
     return ends[0], ends[1]
 
 
+def gaussian_test(r: np.ndarray, sig: np.ndarray) -> tuple[float, int, float]:
+    """Chi-square of the best Gaussian (amplitude, centre, width: weighted least squares)
+    against the pooled curve ``r`` of standard errors ``sig`` (its support). Returns
+    (chi-square, degrees of freedom, p-value): a large p-value means the pooled photons
+    cannot tell the curve from a Gaussian."""
+    x = np.arange(r.size, dtype=np.float64)
+    k = r.size - 3
+    if k < 1:
+        return 0.0, max(k, 0), 1.0
+    pk = int(np.argmax(r))
+    w0 = max(0.5, float(np.sum(r > r[pk] / 2.0)) / 2.3548)
+
+    def model(x, a, c, s):
+        return a * np.exp(-0.5 * ((x - c) / s) ** 2)
+
+    try:
+        popt, _ = curve_fit(model, x, r, p0=(r[pk], pk, w0), sigma=sig, maxfev=2000)
+    except (RuntimeError, ValueError):  # no convergence: the curve is far from a Gaussian
+        return math.inf, k, 0.0
+    c2 = float(np.sum(((r - model(x, *popt)) / sig) ** 2))
+    return c2, k, float(chi2.sf(c2, k))
+
+
 def pooled_shape(
     a: np.ndarray, fwhm: float, k_left: int, k_right: int, z: float, min_pixels: int
-) -> tuple[np.ndarray, int]:
+) -> tuple[np.ndarray, int, tuple[float, int, float]]:
     """IRF ``(L, n)`` pooled from ``a`` (P, L, T): two alignment passes (a Gaussian of
     ``fwhm``, then the first pass's shape), cut to its support, unit sum per row.
-    Returns the IRF and the number of pixels pooled."""
+    Returns the IRF, the number of pixels pooled and :func:`gaussian_test` of the
+    pooled curve (all wavelengths) on its support."""
     kernel = gaussian_irf(fwhm)
     m = 2 * int(fwhm // 4) + 1  # about half the FWHM, odd
     for _ in range(2):
@@ -163,8 +188,10 @@ def pooled_shape(
             lo, hi = _support(r[l], sig[l], z, m)
             rows.append(np.clip(r[l, lo : hi + 1], 0.0, None))
         pooled = r.sum(axis=0)
-        lo, hi = _support(pooled, np.sqrt((sig**2).sum(axis=0)), z, m)
+        sig_p = np.sqrt((sig**2).sum(axis=0))
+        lo, hi = _support(pooled, sig_p, z, m)
         kernel = np.clip(pooled[lo : hi + 1], 0.0, None)
+    test = gaussian_test(pooled[lo : hi + 1], sig_p[lo : hi + 1])
     width = max(row.size for row in rows)
     out = np.zeros((len(rows), width))
     for l, row in enumerate(rows):
@@ -174,4 +201,4 @@ def pooled_shape(
                 "be estimated; pass irf= (array or file) or irf_fwhm=."
             )
         out[l, : row.size] = row / row.sum()
-    return out, n_used
+    return out, n_used, test

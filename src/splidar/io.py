@@ -537,6 +537,7 @@ def estimate_irf(
     max_length: int | None = None,
     significance: float = 3.0,
     min_pixels: int = 20,
+    fallback: bool = True,
 ) -> np.ndarray:
     """Estimate the IRF **shape** from the data, without a model (non-parametric).
 
@@ -566,6 +567,12 @@ def estimate_irf(
     4. The pooled shape becomes the template of a second pass (a matched filter: the
        return's reference is then the IRF's own peak), and each row is normalised to
        unit sum.
+    5. **Fall-back.** The best Gaussian (amplitude, centre, width; weighted least
+       squares) is fitted to the pooled curve (all wavelengths) on its support; when
+       its chi-square (``samples - 3`` degrees of freedom, the Poisson standard errors)
+       does not reject it at the ``significance``-sigma p-value, the pooled photons
+       cannot support a shape better than a Gaussian and the Gaussian of ``fwhm`` is
+       returned instead (logged; ``load`` records it in ``metadata["irf_source"]``).
 
     Parameters
     ----------
@@ -581,6 +588,9 @@ def estimate_irf(
         Sigmas of the Poisson tests (bright pixels, noise floor, second-surface rise).
     min_pixels : int, default 20
         Fewest bright pixels accepted.
+    fallback : bool, default True
+        Return the Gaussian of ``fwhm`` when the pooled curve does not reject a
+        Gaussian (step 5); ``False``: always the pooled shape.
 
     Returns
     -------
@@ -620,6 +630,21 @@ def estimate_irf(
     >>> est.shape[0], round(float(est.sum()), 6)
     (1, 1.0)
     """
+    irf, _ = _estimate_irf(
+        counts,
+        fwhm=fwhm,
+        max_length=max_length,
+        significance=significance,
+        min_pixels=min_pixels,
+        fallback=fallback,
+    )
+    return irf
+
+
+def _estimate_irf(counts, *, fwhm, max_length, significance, min_pixels, fallback):
+    """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``."""
+    from scipy.stats import norm
+
     from ._irf_estimate import pooled_shape
 
     a = np.asarray(counts)
@@ -648,9 +673,27 @@ def estimate_irf(
                 f"`max_length` must be below T - 1 = {n_bins - 1} bins; got {k_right}."
             )
     k_left = max(2, k_right // 4)
-    out, n_used = pooled_shape(a.reshape(-1, *a.shape[2:]), fwhm, k_left, k_right, z, min_pixels)
+    out, n_used, (c2, dof, p) = pooled_shape(
+        a.reshape(-1, *a.shape[2:]), fwhm, k_left, k_right, z, min_pixels
+    )
+    if fallback and p >= norm.sf(z):
+        log.warning(
+            "IRF shape: the pooled curve of %d bright pixels does not reject a Gaussian "
+            "(chi2 %.1f on %d dof, p %.2g >= %.2g): using the Gaussian of FWHM %.2f bins",
+            n_used,
+            c2,
+            dof,
+            p,
+            norm.sf(z),
+            fwhm,
+        )
+        g = np.repeat(gaussian_irf(fwhm)[None, :], out.shape[0], axis=0)
+        return g, (
+            f"estimated gaussian fwhm={fwhm:.3f} bins (shape not supported by the pooled "
+            f"photons: chi2 {c2:.1f} on {dof} dof, p {p:.2g})"
+        )
     log.info("IRF shape estimated from %d bright pixels: %d samples", n_used, out.shape[1])
-    return out
+    return out, f"estimated shape from the data ({out.shape[1]} samples)"
 
 
 def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
@@ -792,8 +835,9 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
                 "irf='estimate-shape' needs the counts in memory, not lazy (Dask/zarr) data; "
                 "pass irf= (array or file) or irf_fwhm=."
             )
-        shape = estimate_irf(counts)
-        return shape, f"estimated shape from the data ({shape.shape[1]} samples)"
+        return _estimate_irf(
+            counts, fwhm=None, max_length=None, significance=3.0, min_pixels=20, fallback=True
+        )
     if isinstance(irf, str) and irf == "estimate":
         file_irf = None
         irf = None
