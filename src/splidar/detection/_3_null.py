@@ -21,11 +21,17 @@ from scipy import stats
 
 from ._2_saliency import SaliencyFilters, block_saliency
 from ._fast import poisson_background
-from ._kernels import find_segments
+from ._kernels import find_segments, fine_response
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import NullModel
 
-__all__ = ["NullCalibration", "calibrate_null", "evidence"]
+__all__ = ["NullCalibration", "calibrate_null", "evidence", "split_rule"]
+
+# the fine response of the null's patches comes precomputed (find_segments's ``fine``)
+_NO_C = np.empty((0, 0, 0, 0), np.float32)
+_NO_SP = np.empty((0, 0, 0), np.float32)
+_NO_DEV = np.empty((0, 0), np.float32)
+_NO_Y = np.empty((0, 0, 0, 0), np.uint16)
 
 
 @dataclass(frozen=True)
@@ -133,11 +139,18 @@ def _null_samples(
         sp, real = windows[(r0, r1, c0, c1)]
         # Poisson cube of bhat (eq:background_3), drawn in numba (seeded from rng)
         ysim = poisson_background(sp, ctx.dev, _FixedSeed(seed))
-        _, sal, d, _, level = block_saliency(ysim, wctx, spatial=sp)
+        c, sal, d, _, level = block_saliency(ysim, wctx, spatial=sp)
         i0, j0 = r0 - max(0, r0 - h), c0 - max(0, c0 - h)
         sl = (slice(i0, i0 + r1 - r0), slice(j0, j0 + c1 - c0))
-        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real
+        # the own pixel's fine response, photons and background (the map pass's second
+        # split)
+        shp = (r1 - r0, c1 - c0, T)
+        fine = tuple(np.empty(shp, np.float64) for _ in range(3))
+        fine_response(c[sl], ysim[sl], sp[sl], dev, win, *fine)
+        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, fine
 
+    dev = np.ascontiguousarray(ctx.dev, np.float32)
+    win = split_rule(ctx.corr.irf, 0.0)[3]
     keys = list(dict.fromkeys(p[:4] for p in plan))
     n_par = max(1, min(int(ctx.workers), len(plan)))
     # one patch per thread when there are several; threads inside a single patch
@@ -152,7 +165,45 @@ def _null_samples(
     s_sim = [r[0] for r in res]
     lev = [r[1] for r in res]
     d_sim = [r[2] for r in res]
-    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res])
+    fine = [r[4] for r in res]
+    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), fine
+
+
+def split_rule(irf: np.ndarray, z: float) -> tuple:
+    """The fine split's settings for :func:`~splidar.detection._kernels.find_segments`.
+
+    Parameters
+    ----------
+    irf : ndarray (L, n_irf)
+        Normalised IRF.
+    z : float
+        The Poisson z a second return's photons need beside the first (0: no split).
+
+    Returns
+    -------
+    (z, tail, gmin, win) : (float, ndarray (n_irf,), float, ndarray (L, 2) int64)
+        ``win[l]``: offsets from a response's bin to the first and last bin where the
+        IRF of a return peaking there is above half its peak (the half-peak window);
+        ``tail[k]``: the fraction of one return's photons in the half-peak window of a
+        bin ``k`` bins from its peak (the largest over the wavelengths and both sides);
+        ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response).
+    """
+    g = np.asarray(irf, np.float64)
+    L, n = g.shape
+    win = np.zeros((L, 2), np.int64)
+    tail = np.zeros(n)
+    for l in range(L):
+        p = int(np.argmax(g[l]))
+        above = np.flatnonzero(g[l] >= 0.5 * g[l, p])
+        lo, hi = int(above[0]) - p, int(above[-1]) - p
+        win[l] = lo, hi
+        # a return peaking at 0: its photon at bin u has probability g[p + u]
+        for k in range(n):
+            for sgn in (1, -1):
+                idx = p + sgn * k + np.arange(lo, hi + 1)
+                ok = (idx >= 0) & (idx < n)
+                tail[k] = max(tail[k], float(g[l, idx[ok]].sum()))
+    return float(z), tail, float((g * g).sum(axis=1).min()), win
 
 
 def evidence(sal, thr):
@@ -173,6 +224,7 @@ def calibrate_null(
     null: str,
     min_separation: int,
     split_ratio: float,
+    split_z: float,
     rng: np.random.Generator,
     n_jobs: int,
 ) -> NullCalibration:
@@ -186,7 +238,7 @@ def calibrate_null(
     pfa, surface_pfa : float
         False alarms per voxel; false surfaces per background-only pixel.
     null : {"empirical", "gamma"}
-    min_separation, split_ratio
+    min_separation, split_ratio, split_z
         How runs of the map split into candidates (as in the map pass).
     rng : Generator
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
@@ -196,7 +248,7 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    p_sim, p_lev, p_d, s_real = _null_samples(counts, null_ctx, n_target, rng)
+    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(counts, null_ctx, n_target, rng)
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
@@ -218,18 +270,22 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    for a, lv, dd in zip(p_sim, p_lev, p_d, strict=True):
+    split = split_rule(filters.corr.irf, split_z)
+    # (split as the map pass splits: at d's deep dips, then at the own pixel's)
+    for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)
+        fine = (_NO_C, _NO_Y, 0, 0, _NO_SP, _NO_DEV, f, n, mu)
         ev_null.append(
             find_segments(
-                (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio
+                (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio,
+                fine, split,
             )[-1]
-        )
+        )  # fmt: skip
     ev_null = np.sort(np.concatenate(ev_null))[::-1]
     n_null_px = sum(a.shape[0] * a.shape[1] for a in p_sim)
     n_allowed = int(np.floor(surface_pfa * n_null_px))
     ev_thr = float(ev_null[n_allowed]) if n_allowed < ev_null.size else 0.0
-    del p_sim, p_lev, p_d
+    del p_sim, p_lev, p_d, p_fine
     model = NullModel(
         shape=float(a_fit),
         scale=float(sc_fit),

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
-from ._3_null import NullCalibration
+from ._3_null import NullCalibration, split_rule
 from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
@@ -43,6 +43,13 @@ PRESENCE_SECONDARY = 0.0
 #: A run of the map is split between two peaks when the response dips below this
 #: fraction of the smaller peak between them (half: two resolved returns).
 SPLIT_RATIO = 0.5
+#: A segment of that response is split again where the own pixel's matched-filter
+#: response (the finest scale, which the coarse boxes do not fill) has two peaks at
+#: least ``min_separation`` apart with a dip below the smaller one of this many Poisson
+#: standard deviations (3 sigma, as ``PRESENCE_Z`` and ``REFINE_Z``; the null's
+#: candidates are split the same way). Two returns 2.5 FWHM apart, every other column,
+#: PPP 10: F_true 0.684 -> see benchmarks/README.md (branch close19); 0: never.
+SPLIT_Z = 3.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -61,6 +68,8 @@ _BY_SLOT = ("histograms", "signal", "own_counts", "own_background")
 #: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
+#: Placeholder for the fine response's precomputed arrays (read from ``c_ext`` here).
+_NO_FINE = np.empty((0, 0, 0), np.float64)
 
 
 @dataclass(frozen=True)
@@ -397,8 +406,12 @@ def _block(
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
     # block rows and own columns (from r0, c0)
+    # the own pixel's fine response is read from the correlated rows (block row i at
+    # c_ext row i0 + i, own column j at j0 + j)
+    dev = np.ascontiguousarray(ctx.dev, np.float32)
+    fine = (c_ext, y, i0, j0, sp, dev, _NO_FINE, _NO_FINE, _NO_FINE)
     rows, cols, start, stop, peak, mass, ev = find_segments(
-        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"]
+        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"], fine, opts["split"]
     )
     del cand, ev_vox, d
     n_cand = int(rows.size)
@@ -700,6 +713,7 @@ def map_plan(
         store_boxes=store_boxes,
         min_separation=options.min_separation,
         split_ratio=options.split_ratio,
+        split=split_rule(filters.corr.irf, SPLIT_Z),
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,
