@@ -45,9 +45,10 @@ class Case:
     refused: bool = False  # the input cannot work: one clear SplidarError is the answer
 
 
-def _plane(shape, lo, hi, *, second=None, refl=True):
+def _plane(shape, lo, hi, *, second=None, refl=True, every=False):
     """A tilted plane spanning depths ``lo..hi`` (bins), shaded; ``second``: offset in bins
-    of a second surface behind it in every other column (or None)."""
+    of a second surface behind it in every other column (or None; ``every``: in every
+    pixel)."""
     r, c = shape
     rr, cc = np.meshgrid(np.arange(r), np.arange(c), indexing="ij")
     u = (rr / max(r - 1, 1) + cc / max(c - 1, 1)) / 2.0
@@ -61,7 +62,7 @@ def _plane(shape, lo, hi, *, second=None, refl=True):
         [np.zeros(r * c, int)],
     )
     if second is not None:
-        m = (cc % 2 == 0).ravel()
+        m = (cc % 2 == 0).ravel() | every
         rows.append(rr.ravel()[m])
         cols.append(cc.ravel()[m])
         dep.append(depth.ravel()[m] + second)
@@ -110,6 +111,7 @@ def basic(
     ppp=10.0,
     sbr=1.0,
     second=None,
+    every=False,
     bw=250.0,
     shape=None,
     steep=False,
@@ -134,7 +136,7 @@ def basic(
             sp = min(hi - lo, sp)
             mid = 0.5 * (lo + hi)
             lo, hi = mid - sp / 2, mid + sp / 2
-        truth = _plane(shape or (size, size), lo, hi, second=second)
+        truth = _plane(shape or (size, size), lo, hi, second=second, every=every)
         return _sim(truth, T, g, ppp=ppp, sbr=sbr, bw=bw, bg=bg)
 
     return build
@@ -211,6 +213,8 @@ def _cases() -> list[Case]:
         Case("two surfaces 2.5 FWHM apart", basic(second=7.5)),
         Case("two surfaces 3 FWHM apart", basic(second=9.0)),
         Case("two surfaces 2 FWHM, fwhm 8", basic(T=300, fwhm=8.0, second=16.0)),
+        Case("two surfaces 2 FWHM apart, every pixel", basic(second=6.0, every=True)),
+        Case("two surfaces 2.5 FWHM apart, every pixel", basic(second=7.5, every=True)),
         Case("empty scene (background only)", _empty()),
         Case("all-zero cube", _zeros()),
         Case("shape 1x1", basic(shape=(1, 1))),

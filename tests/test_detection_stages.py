@@ -9,7 +9,7 @@ from splidar import gaussian_irf
 from splidar.detection import STAGES, _4_map, detect
 from splidar.detection._1_background import estimate_temporal_background
 from splidar.detection._2_saliency import block_saliency, saliency_filters
-from splidar.detection._3_null import calibrate_null
+from splidar.detection._3_null import calibrate_null, split_rule
 from splidar.detection._4_map import MapOptions, map_candidates
 from splidar.detection._5a_spill_over import remove_spill_over
 from splidar.detection._5b_isolated import remove_isolated
@@ -17,6 +17,7 @@ from splidar.detection._5c_dark_regions import restore_dark_regions
 from splidar.detection._5e_enclosed import restore_enclosed_holes
 from splidar.detection._6_select import select_surfaces
 from splidar.detection._filters import Correlator, irf_fwhm, irf_halfwidth
+from splidar.detection._kernels import find_segments, fine_response
 from splidar.scenes import two_layer_scene
 
 SCALES = np.array([1, 3, 7, 11])
@@ -35,8 +36,8 @@ def _map(counts, irf, *, pfa=1e-3, rng=0, block_rows=None, n_jobs=1):
     fw = irf_fwhm(irf)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical",
-        min_separation=int(np.ceil(fw)), split_ratio=0.5, rng=np.random.default_rng(rng),
-        n_jobs=1,
+        min_separation=int(np.ceil(fw)), split_ratio=0.5, split_z=_4_map.SPLIT_Z,
+        rng=np.random.default_rng(rng), n_jobs=1,
     )  # fmt: skip
     opts = MapOptions(
         min_separation=int(np.ceil(fw)), split_ratio=0.5, presence="adaptive", presence_z=3.0,
@@ -154,7 +155,7 @@ def test_calibrate_null_holds_the_false_alarm_rate_on_fresh_background():
     _, _, filters = _setup(counts, g)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical", min_separation=3,
-        split_ratio=0.5, rng=np.random.default_rng(0), n_jobs=1,
+        split_ratio=0.5, split_z=_4_map.SPLIT_Z, rng=np.random.default_rng(0), n_jobs=1,
     )  # fmt: skip
     _, sal, _, _, level = block_saliency(rng.poisson(lam), filters)
     rate = float(np.mean(sal > nul.threshold_at(level)))
@@ -372,3 +373,67 @@ def test_rescue_dark_ignores_pools_whose_members_peak_at_their_own_depths():
     cnt[:, 0, 6] = 1
     surf.update(own_counts=cnt, depth_bin=np.full(n, 6.0))
     assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == n
+
+
+def _close_pair_segments(second: bool, z: float, n_pix: int = 300, seed: int = 5):
+    """find_segments on pixels whose multiscale response ``d`` is one broad bump (the
+    coarse scales fill the dip) over own counts with one return of 10 photons at bin
+    30, or two of 5 photons each 2.5 FWHM (7.5 bins) apart; background 0.025 a bin (the
+    close-pair case of bench_robustness, PPP 10, SBR 1). Returns the segments from the
+    correlated counts (the map pass's way) and from fine_response (the null's way)."""
+    T, fwhm = 80, 3.0
+    g = gaussian_irf(fwhm).reshape(1, -1)
+    lam = np.full((1, n_pix, 1, T), 0.025)
+    for centre, n in [(30.0, 5.0), (37.5, 5.0)] if second else [(30.0, 10.0)]:
+        x = np.arange(T) - centre
+        prof = np.exp(-0.5 * (x / (fwhm / 2.3548)) ** 2)
+        lam[..., :] += n * prof / prof.sum()
+    y = np.random.default_rng(seed).poisson(lam).astype(np.uint16)
+    c = Correlator(g, T)(y, workers=1)
+    sp = np.full((1, n_pix, 1), 0.025, np.float32)
+    dev = np.zeros((1, T), np.float32)
+    tt = np.arange(T)
+    d = np.broadcast_to(np.exp(-0.5 * ((tt - 33.0) / 6.0) ** 2), (1, n_pix, T))
+    d = np.ascontiguousarray(d, np.float32)
+    mask = np.ascontiguousarray(d > 0.05)
+    ones = np.ones_like(d)
+    rule = split_rule(g, z)
+    no = np.empty((0, 0, 0), np.float64)
+    from_c = find_segments(mask, d, ones, ones, 3, 0.5, (c, y, 0, 0, sp, dev, no, no, no), rule)
+    pre = tuple(np.empty((1, n_pix, T)) for _ in range(3))
+    fine_response(c, y, sp, dev, rule[3], *pre)
+    no_c = np.empty((0, 0, 0, 0), np.float32)
+    no_y = np.empty((0, 0, 0, 0), np.uint16)
+    no_sp = np.empty((0, 0, 0), np.float32)
+    no_dev = np.empty((0, 0), np.float32)
+    from_f = find_segments(
+        mask, d, ones, ones, 3, 0.5, (no_c, no_y, 0, 0, no_sp, no_dev, *pre), rule
+    )
+    return from_c, from_f, n_pix
+
+
+@pytest.mark.parametrize("second", [True, False])
+def test_find_segments_splits_two_returns_25_fwhm_apart_not_one(second):
+    # the broad d alone never splits; the own pixel's photons split two returns 2.5 FWHM
+    # apart in most pixels (5 photons each on average: the Poisson z of 3 or more against the
+    # background's 0.1 in the half-peak window is far above 3) and one return of the
+    # same 10 photons almost never (its photons beyond min_sep are its own tail)
+    from_c, from_f, n_pix = _close_pair_segments(second, _4_map.SPLIT_Z)
+    for a, b in zip(from_c, from_f, strict=True):
+        np.testing.assert_array_equal(a, b)  # the null's way gives the map pass's segments
+    col, stop, peak = from_c[1], from_c[3], from_c[4]
+    n_seg = np.bincount(col, minlength=n_pix)
+    assert np.all(n_seg >= 1)
+    if second:
+        assert np.mean(n_seg == 2) > 0.8  # 0.887: the second return short of photons in the rest
+        two = np.flatnonzero(n_seg == 2)
+        first = np.searchsorted(col, two)
+        cut = stop[first]
+        assert np.mean((cut > 30) & (cut < 38)) > 0.95  # cut between the returns
+        assert np.median(np.abs(peak[first] - 30)) <= 1
+        assert np.median(np.abs(peak[first + 1] - 37.5)) <= 1
+    else:
+        assert np.mean(n_seg > 1) < 0.02
+    # without the fine split (z = 0): one segment per pixel, as d alone has
+    off = _close_pair_segments(second, 0.0)[0]
+    assert np.array_equal(off[1], np.arange(n_pix))

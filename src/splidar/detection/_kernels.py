@@ -415,14 +415,13 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                         o_ev[k] = seg_ev[u]
                         k += 1
                         continue
-                    # d's segment split at the fine response's dips; the part holding
-                    # d's peak keeps it, the others take the fine response's peak
+                    # d's segment split at the fine response's dips, each part about
+                    # the fine response's peak (d's, the coarse blend of both, lies
+                    # between them)
                     lo = seg_start[u]
                     for w in range(nf):
                         hi = f_cuts[w] if w < nf - 1 else seg_stop[u]
                         pk = f_peaks[w]
-                        if lo <= seg_peak[u] < hi:
-                            pk = seg_peak[u]
                         m, ev = _segment_sums(s[i, j], e[i, j], lo, hi)
                         o_row[k] = i
                         o_col[k] = j
