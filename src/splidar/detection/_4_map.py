@@ -44,11 +44,13 @@ PRESENCE_SECONDARY = 0.0
 #: fraction of the smaller peak between them (half: two resolved returns).
 SPLIT_RATIO = 0.5
 #: A segment of that response is split again where the own pixel's matched-filter
-#: response (the finest scale, which the coarse boxes do not fill) has two peaks at
-#: least ``min_separation`` apart with a dip below the smaller one of this many Poisson
-#: standard deviations (3 sigma, as ``PRESENCE_Z`` and ``REFINE_Z``; the null's
-#: candidates are split the same way). Two returns 2.5 FWHM apart, every other column,
-#: PPP 10: F_true 0.684 -> see benchmarks/README.md (branch close19); 0: never.
+#: response (the finest scale, whose dip the coarse boxes do not fill) has a second peak
+#: at least ``min_separation`` from a stronger one and the pixel's photons in its
+#: half-peak window exceed what the background and the stronger return's tail bring
+#: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched: 3 sigma
+#: against the largest of them, as ``REFINE_Z``); the null's candidates are split the
+#: same way. Two returns 2.5 FWHM apart in every other column (PPP 10, SBR 1): F_true
+#: 0.684 -> 0.861, false surfaces 7 -> 9. benchmarks/README.md (close19); 0: never.
 SPLIT_Z = 3.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell

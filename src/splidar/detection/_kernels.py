@@ -230,7 +230,9 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
     Interior local maxima of ``fr``, strongest first, are accepted when at least
     ``min_sep`` bins from every accepted (stronger) peak ``p`` and when the pixel's
     photons in the half-peak window at ``q``, ``nr[q]``, exceed what the background
-    (``mr[q]``) and the return at ``p`` bring there by ``z`` (:func:`_poisson_z`): the
+    (``mr[q]``) and the return at ``p`` bring there by ``sqrt(z^2 + 2 ln n)``
+    (:func:`_poisson_z`; ``n`` the segment's bins, the places a second return was
+    looked for: ``z`` against the largest of ``n`` background values): the
     return at ``p`` holds ``fr[p] / gmin`` photons (``gmin``: the smallest ``sum g^2``),
     a fraction ``tail[k]`` of them in the window ``k = |q - p|`` bins away. Writes the
     accepted peaks in increasing order into ``peaks`` and the cuts (the response's
@@ -248,6 +250,9 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
             nc += 1
     if nc < 2:
         return 1
+    # the largest of the segment's bins: z against the max of that many tested places
+    # (as _window_centre)
+    z_need = np.sqrt(z * z + 2.0 * np.log(n))
     vals = np.empty(nc)
     for i in range(nc):
         vals[i] = -fr[cand[i]]
@@ -264,7 +269,7 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
                 ok = False
                 break
             spill = tail[k] * max(fr[p], 0.0) / gmin if k < tail.size else 0.0
-            if _poisson_z(nr[q], mr[q] + spill) < z:
+            if _poisson_z(nr[q], mr[q] + spill) < z_need:
                 ok = False
                 break
         if ok:
