@@ -223,8 +223,7 @@ def calibrate_null(
     surface_pfa: float,
     null: str,
     min_separation: int,
-    split_ratio: float,
-    split_z: float,
+    split: tuple,
     rng: np.random.Generator,
     n_jobs: int,
 ) -> NullCalibration:
@@ -238,8 +237,10 @@ def calibrate_null(
     pfa, surface_pfa : float
         False alarms per voxel; false surfaces per background-only pixel.
     null : {"empirical", "gamma"}
-    min_separation, split_ratio, split_z
-        How runs of the map split into candidates (as in the map pass).
+    min_separation : int
+    split : (float, float)
+        ``(split_ratio, split_z)``: how runs of the map split into candidates (as in the
+        map pass: ``SPLIT_RATIO``, ``SPLIT_Z``).
     rng : Generator
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
     n_jobs : int
@@ -270,7 +271,8 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    split = split_rule(filters.corr.irf, split_z)
+    split_ratio, split_z = split
+    rule = split_rule(filters.corr.irf, split_z)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)
@@ -278,7 +280,7 @@ def calibrate_null(
         ev_null.append(
             find_segments(
                 (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio,
-                fine, split,
+                fine, rule,
             )[-1]
         )  # fmt: skip
     ev_null = np.sort(np.concatenate(ev_null))[::-1]
