@@ -145,7 +145,7 @@ def _null_samples(
         # the own pixel's fine response, photons and background (the map pass's second
         # split)
         shp = (r1 - r0, c1 - c0, T)
-        fine = tuple(np.empty(shp, np.float64) for _ in range(3))
+        fine = tuple(np.empty(shp, np.float32) for _ in range(3))
         fine_response(c[sl], ysim[sl], sp[sl], dev, win, *fine)
         return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, fine
 

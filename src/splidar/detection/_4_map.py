@@ -71,7 +71,7 @@ _BY_SLOT = ("histograms", "signal", "own_counts", "own_background")
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
 #: Placeholder for the fine response's precomputed arrays (read from ``c_ext`` here).
-_NO_FINE = np.empty((0, 0, 0), np.float64)
+_NO_FINE = np.empty((0, 0, 0), np.float32)
 
 
 @dataclass(frozen=True)

@@ -196,7 +196,7 @@ def _fine_at(c, y, sp, dev, win, t):
 
 @njit(cache=True, nogil=True)
 def fine_response(c, y, sp, dev, win, f, n, mu):
-    """:func:`_fine_at` of every voxel: ``f``, ``n``, ``mu`` (r, C, T) float64 written.
+    """:func:`_fine_at` of every voxel: ``f``, ``n``, ``mu`` (r, C, T) float32 written.
 
     ``c`` (r, C, L, T) correlated counts, ``y`` (r, C, L, T) counts, ``sp`` (r, C, L)
     background level, ``dev`` (L, T), ``win`` (L, 2) the half-peak window's offsets.
@@ -206,9 +206,9 @@ def fine_response(c, y, sp, dev, win, f, n, mu):
         for j in range(C):
             for t in range(T):
                 a, b, m = _fine_at(c[i, j], y[i, j], sp[i, j], dev, win, t)
-                f[i, j, t] = a
-                n[i, j, t] = b
-                mu[i, j, t] = m
+                f[i, j, t] = np.float32(a)
+                n[i, j, t] = np.float32(b)
+                mu[i, j, t] = np.float32(m)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -322,8 +322,8 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
         ``(c, y, row0, col0, sp, dev, f, n, mu)``: the own pixel's fine response, read
         by :func:`_fine_at` from the correlated counts ``c`` and counts ``y`` (pixel
         ``(i, j)`` at ``[row0 + i, col0 + j]``, background ``sp[i, j]``, ``dev``), or
-        taken from ``f``, ``n`` and ``mu`` (r, c, T) float64 when ``c`` is empty (the
-        null's patches).
+        taken from ``f``, ``n`` and ``mu`` (r, c, T) float32 when ``c`` is empty (the
+        null's patches; the values read from ``c`` are rounded to float32 alike).
     split : tuple
         ``(z, tail, gmin, win)`` (:func:`~splidar.detection._3_null.split_rule`): a
         segment of ``d`` is split further where the own pixel's photons show a second
@@ -396,9 +396,11 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     for u in range(a, b):
                         if from_c:
                             ii, jj = row0 + i, col0 + j
-                            fr[u], nr[u], mr[u] = _fine_at(
-                                c[ii, jj], y[ii, jj], sp[i, j], dev, win, u
-                            )
+                            fa, na, ma = _fine_at(c[ii, jj], y[ii, jj], sp[i, j], dev, win, u)
+                            # rounded as the null's stored float32 values (same tests)
+                            fr[u] = np.float32(fa)
+                            nr[u] = np.float32(na)
+                            mr[u] = np.float32(ma)
                         else:
                             fr[u] = f_in[i, j, u]
                             nr[u] = n_in[i, j, u]
