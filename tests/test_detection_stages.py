@@ -419,7 +419,7 @@ def test_find_segments_splits_two_returns_25_fwhm_apart_not_one(second):
     # a Poisson z of 6 against the background's 0.1 there, above the sqrt(9 + 2 ln 29)
     # = 4.0 needed in a segment of 29 bins) and one return of the same 16 photons
     # never (its photons beyond min_sep are its own tail)
-    from_c, from_f, n_pix = _close_pair_segments(second, _4_map.SPLIT_Z)
+    from_c, from_f, n_pix = _close_pair_segments(second, 3.0)  # SPLIT_Z measured
     for a, b in zip(from_c, from_f, strict=True):
         np.testing.assert_array_equal(a, b)  # the null's way gives the map pass's segments
     col, stop, peak = from_c[1], from_c[3], from_c[4]
@@ -438,3 +438,36 @@ def test_find_segments_splits_two_returns_25_fwhm_apart_not_one(second):
     # without the fine split (z = 0): one segment per pixel, as d alone has
     off = _close_pair_segments(second, 0.0)[0]
     assert np.array_equal(off[1], np.arange(n_pix))
+
+
+def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch):
+    # end to end (map pass and the null's candidates split alike): a second surface 2.5
+    # FWHM behind a gently tilted plane in every other column (the close-pair case of
+    # bench_robustness, PPP 10, SBR 1): the coarse boxes halve it and fill the dip, so
+    # with SPLIT_Z = 0 (the default) most of those pixels keep one merged surface; at 3
+    # five times as many get both
+    from splidar import PointSet
+    from splidar.detection import _detect
+    from splidar.simulation import simulate
+
+    n, T = 24, 120
+    rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    dep = 50.0 + 0.35 * (rr + cc).ravel()
+    even = (cc % 2 == 0).ravel()
+    truth = PointSet(
+        row=np.concatenate([rr.ravel(), rr.ravel()[even]]),
+        col=np.concatenate([cc.ravel(), cc.ravel()[even]]),
+        depth_bin=np.concatenate([dep, dep[even] + 7.5]), image_shape=(n, n),
+    )  # fmt: skip
+    cube = simulate(truth, n_bins=T, irf=gaussian_irf(3.0), ppp=10.0, sbr=1.0, rng=0).cube
+    both = {}
+    for z in (0.0, 3.0):
+        monkeypatch.setattr(_4_map, "SPLIT_Z", z)
+        monkeypatch.setattr(_detect, "SPLIT_Z", z)
+        p = detect(cube, rng=0).points
+        k = p.row * n + p.col
+        front = np.bincount(k[np.abs(p.depth_bin - dep[k]) <= 2], minlength=n * n)
+        back = np.bincount(k[np.abs(p.depth_bin - dep[k] - 7.5) <= 2], minlength=n * n)
+        both[z] = np.mean(((front > 0) & (back > 0))[even])
+    # measured 0.10 / 0.53 of those pixels (the rest: the second return's few photons)
+    assert both[0.0] < 0.2 and both[3.0] > 0.4, both

@@ -91,15 +91,18 @@ class _FixedSeed:
 
 
 def _null_samples(
-    counts, ctx: SaliencyFilters, n_target: int, rng, *, patch: int = 32, max_patches=400
-):
+    counts, ctx: SaliencyFilters, n_target: int, rng, *, patch: int = 32, max_patches=400,
+    fine: bool = False,
+):  # fmt: skip
     """Saliency of background-only cubes drawn from the estimated background.
 
     Random patches of the image: the background level is estimated from the data around
     each (exactly as in the main pass), a Poisson cube of ``bhat`` is drawn and its
     saliency computed with the same filters; the patch interior (at least ``h`` pixels
-    from any cut) is kept. Returns null saliency, its level, and the data's saliency on
-    the same patches (for the gamma fit).
+    from any cut) is kept. Returns null saliency, its level, its signed response, the
+    data's saliency on the same patches (for the gamma fit), and with ``fine`` each
+    patch's own-pixel fine response, photons and background
+    (:func:`~splidar.detection._kernels.fine_response`; empty arrays without).
 
     The patches and their seeds are drawn first, in order, from ``rng``; the patches are
     then computed on ``ctx.workers`` threads (one patch per thread), so the result does
@@ -143,11 +146,12 @@ def _null_samples(
         i0, j0 = r0 - max(0, r0 - h), c0 - max(0, c0 - h)
         sl = (slice(i0, i0 + r1 - r0), slice(j0, j0 + c1 - c0))
         # the own pixel's fine response, photons and background (the map pass's second
-        # split)
-        shp = (r1 - r0, c1 - c0, T)
-        fine = tuple(np.empty(shp, np.float32) for _ in range(3))
-        fine_response(c[sl], ysim[sl], sp[sl], dev, win, *fine)
-        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, fine
+        # split), when it splits
+        shp = (r1 - r0, c1 - c0, T) if fine else (0, 0, 0)
+        f_n_mu = tuple(np.empty(shp, np.float32) for _ in range(3))
+        if fine:
+            fine_response(c[sl], ysim[sl], sp[sl], dev, win, *f_n_mu)
+        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, f_n_mu
 
     dev = np.ascontiguousarray(ctx.dev, np.float32)
     win = split_rule(ctx.corr.irf, 0.0)[3]
@@ -165,8 +169,8 @@ def _null_samples(
     s_sim = [r[0] for r in res]
     lev = [r[1] for r in res]
     d_sim = [r[2] for r in res]
-    fine = [r[4] for r in res]
-    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), fine
+    f_n_mu = [r[4] for r in res]
+    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), f_n_mu
 
 
 def split_rule(irf: np.ndarray, z: float) -> tuple:
@@ -249,7 +253,10 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(counts, null_ctx, n_target, rng)
+    split_ratio, split_z = split
+    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
+        counts, null_ctx, n_target, rng, fine=split_z > 0
+    )
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
@@ -271,7 +278,6 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    split_ratio, split_z = split
     rule = split_rule(filters.corr.irf, split_z)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):

@@ -43,15 +43,17 @@ PRESENCE_SECONDARY = 0.0
 #: A run of the map is split between two peaks when the response dips below this
 #: fraction of the smaller peak between them (half: two resolved returns).
 SPLIT_RATIO = 0.5
-#: A segment of that response is split again where the own pixel's matched-filter
+#: A segment of that response can be split again where the own pixel's matched-filter
 #: response (the finest scale, whose dip the coarse boxes do not fill) has a second peak
 #: at least ``min_separation`` from a stronger one and the pixel's photons in its
-#: half-peak window exceed what the background and the stronger return's tail bring
-#: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched: 3 sigma
-#: against the largest of them, as ``REFINE_Z``); the null's candidates are split the
-#: same way. Two returns 2.5 FWHM apart in every other column (PPP 10, SBR 1): F_true
-#: 0.684 -> 0.861, false surfaces 7 -> 9. benchmarks/README.md (close19); 0: never.
-SPLIT_Z = 3.0
+#: half-peak window exceed what the background and the stronger return's IRF tail bring
+#: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched); the
+#: null's candidates are then split the same way (``_kernels._fine_split``). Off (0):
+#: with 3, two returns 2 / 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.651 / 0.684 to
+#: 0.837 / 0.861, but on real data, whose returns have a longer tail than the estimated
+#: Gaussian IRF, it splits the tail off as a second surface 1-2.5 FWHM behind (face
+#: +4 %, tower +9 % surfaces). Measured: benchmarks/README.md (branch close19).
+SPLIT_Z = 0.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
