@@ -154,7 +154,7 @@ def _null_samples(
         return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, f_n_mu
 
     dev = np.ascontiguousarray(ctx.dev, np.float32)
-    win = split_rule(ctx.corr.irf, 0.0)[3]
+    win = split_rule(ctx.corr.irf, 0.0)[3] if fine else None
     keys = list(dict.fromkeys(p[:4] for p in plan))
     n_par = max(1, min(int(ctx.workers), len(plan)))
     # one patch per thread when there are several; threads inside a single patch
