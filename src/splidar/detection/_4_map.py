@@ -53,7 +53,7 @@ SPLIT_RATIO = 0.5
 #: 0.837 / 0.861, but on real data, whose returns have a longer tail than the estimated
 #: Gaussian IRF, it splits the tail off as a second surface 1-2.5 FWHM behind (face
 #: +4 %, tower +9 % surfaces). Measured: benchmarks/README.md (branch close19).
-SPLIT_Z = 0.0
+SPLIT_Z = 3.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -717,7 +717,8 @@ def map_plan(
         store_boxes=store_boxes,
         min_separation=options.min_separation,
         split_ratio=options.split_ratio,
-        split=split_rule(filters.corr.irf, SPLIT_Z),
+        # the null's rule (its tail from the data), else the IRF's
+        split=null.split if null.split is not None else split_rule(filters.corr.irf, SPLIT_Z),
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,
