@@ -46,14 +46,15 @@ SPLIT_RATIO = 0.5
 #: A segment of that response can be split again where the own pixel's matched-filter
 #: response (the finest scale, whose dip the coarse boxes do not fill) has a second peak
 #: at least ``min_separation`` from a stronger one and the pixel's photons in its
-#: half-peak window exceed what the background and the stronger return's IRF tail bring
+#: half-peak window exceed what the background and the stronger return's tail bring
 #: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched); the
-#: null's candidates are then split the same way (``_kernels._fine_split``). Off (0):
-#: with 3, two returns 2 / 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.651 / 0.684 to
-#: 0.837 / 0.861, but on real data, whose returns have a longer tail than the estimated
-#: Gaussian IRF, it splits the tail off as a second surface 1-2.5 FWHM behind (face
-#: +4 %, tower +9 % surfaces). Measured: benchmarks/README.md (branch close19).
-SPLIT_Z = 3.0
+#: null's candidates are then split the same way (``_kernels._fine_split``). The tail:
+#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0):
+#: with 3, two returns 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.861 and
+#: the face and 21 km data keep their counts (+0.02 %), but the tower gains 3.1 %
+#: surfaces, second ones 1-4 FWHM behind (real structure or not: unverified). Measured:
+#: benchmarks/README.md (branches close19, close19b).
+SPLIT_Z = 0.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
