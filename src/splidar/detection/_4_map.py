@@ -52,8 +52,8 @@ SPLIT_RATIO = 0.5
 #: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0):
 #: with 3, two returns 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.861 and
 #: the face and 21 km data keep their counts (+0.02 %), but the tower gains 3.1 %
-#: surfaces, second ones 1-4 FWHM behind (real structure or not: unverified). Measured:
-#: benchmarks/README.md (branches close19, close19b).
+#: surfaces, second ones 1-4 FWHM behind, barely more coherent across pixels than
+#: chance. Measured: benchmarks/README.md (branches close19, close19b).
 SPLIT_Z = 0.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
