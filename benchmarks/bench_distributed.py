@@ -133,26 +133,28 @@ class _Sampler:
                     pass
             self.done.wait(self.dt)
 
-    def _cpu(self) -> float:
-        total = 0.0
-        for pr in self.procs.values():
+    def _cpus(self) -> dict:
+        out = {}
+        for k, pr in self.procs.items():
             try:
                 t = pr.cpu_times()
-                total += t.user + t.system
+                out[k] = t.user + t.system
             except Exception:
-                pass
-        return total
+                out[k] = 0.0
+        return out
 
     def __enter__(self):
-        self.cpu0 = self._cpu()
+        self.cpu0 = self._cpus()
         self.thread.start()
         return self
 
     def __exit__(self, *exc):
         self.done.set()
         self.thread.join()
-        #: CPU seconds of all the sampled processes during the run
-        self.cpu = self._cpu() - self.cpu0
+        now = self._cpus()
+        #: CPU seconds of each sampled process during the run, and of them all
+        self.cpus = {k: now[k] - self.cpu0[k] for k in now}
+        self.cpu = sum(self.cpus.values())
 
 
 def _rss_mb() -> float:
@@ -258,7 +260,7 @@ def _cluster_run(
             0, n - len(client.scheduler_info()["workers"])
         )
     caller = s.peaks.pop("caller")
-    return det, t, sorted(s.peaks.values()), caller, restarted, s.cpu
+    return det, t, sorted(s.peaks.values()), caller, restarted, s.cpu, s.cpus
 
 
 def large(args) -> int:
@@ -288,13 +290,14 @@ def large(args) -> int:
         for n in args.workers:
             store = base / f"det-{n}.zarr"
             shutil.rmtree(store, ignore_errors=True)
-            det, t, peaks, caller, restarted, cpu = _cluster_run(
+            det, t, peaks, caller, restarted, cpu, cpus = _cluster_run(
                 lazy, n, args.memory_limit, store, tiny, args.block_rows, args.process
             )
             # the surfaces only: a Detection kept here would count in the next run's
             # calling-process peak
             dets[n] = _Digest(det.surfaces.row, det.surfaces.col, det.surfaces.depth_bin)
-            print(f"cluster-{n}: {t:.1f} s ({cpu:.1f} s CPU), stages " + _stages(det), flush=True)
+            print(f"cluster-{n}: {t:.1f} s ({cpu:.1f} s CPU: caller {cpus['caller']:.1f}), "
+                  "stages " + _stages(det), flush=True)  # fmt: skip
             del det
             name = f"cluster-{n}" + ("-process" if args.process else "")
             rows.append((name, n, t, n_vox, peaks, caller, restarted, cpu))
@@ -500,7 +503,10 @@ def caller(args) -> int:
 def _stages(det) -> str:
     keep = ("background_temporal", "null", "saliency_and_surfaces", "quality_and_selection")
     keep += ("reconstruct",)
-    return ", ".join(f"{k} {det.timings[k]:.1f}" for k in keep if k in det.timings)
+    out = ", ".join(f"{k} {det.timings[k]:.1f}" for k in keep if k in det.timings)
+    # the clean-up passes, the selection and the depth alignment, each
+    passes = [(r.stage, r.seconds) for r in det.provenance if r.stage != "map" and r.ran]
+    return out + " (" + ", ".join(f"{k} {s:.1f}" for k, s in passes) + ")"
 
 
 def _du(path: Path) -> int:

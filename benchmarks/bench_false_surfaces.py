@@ -51,6 +51,7 @@ from splidar import Cube
 from splidar.detection import STAGES, detect
 from splidar.detection._filters import irf_fwhm
 from splidar.metrics import PointSet, evaluate, match_points
+from splidar.reconstruction import reconstruct
 from splidar.scenes import Scene, single_surface_scene, two_layer_scene
 
 TAU = 3.0
@@ -157,10 +158,11 @@ KINDS = (
 )  # fmt: skip
 
 
-def run_single(scene, bg, ppp, sbr, rng, null=False) -> dict:
+def run_single(scene, bg, ppp, sbr, rng, null=False, process=False, opts=None) -> dict:
+    opts = opts or {}
     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=rng)
     t0 = time.perf_counter()
-    det = detect(sim.cube, rng=0)
+    det = detect(sim.cube, rng=0, **opts)
     sec = time.perf_counter() - t0
     pts, truth = det.points, sim.truth
     m = evaluate(pts, truth, tau=TAU)
@@ -179,11 +181,21 @@ def run_single(scene, bg, ppp, sbr, rng, null=False) -> dict:
         by_stage_cause=dict(sorted(by.items())), seconds=round(sec, 2),
         by_kind={k: sum(1 for x in kinds if x[0] == k) for k in KINDS}, false_surfaces=kinds,
     )  # fmt: skip
+    if process:
+        # what `process` outputs: the reconstruction's points (reconstruct(detect(cube)))
+        rec = reconstruct(det, rng=0)
+        mr = evaluate(rec.points, truth, tau=TAU)
+        same = len(rec.points) == len(pts) and np.array_equal(rec.points.depth_bin, pts.depth_bin)
+        n_false = len(match_points(rec.points, truth, tau=TAU).unmatched_est)
+        out["process"] = dict(
+            f_true=float(mr.f_true), n_false=int(n_false),
+            dae=float(mr.dae), same_depths=bool(same),
+        )  # fmt: skip
     if null:
         # the same background, no signal: what surface_pfa allows by design
         lam = sim.background_spatial[..., None] * sim.background_temporal[None, None]
         y = rng.poisson(lam).astype(np.uint16)
-        out["null_false"] = len(detect(Cube(y, irf=sim.cube.irf), rng=0).points)
+        out["null_false"] = len(detect(Cube(y, irf=sim.cube.irf), rng=0, **opts).points)
     return out
 
 
@@ -196,9 +208,9 @@ def net_scene(shape=SHAPE, n_bins=N_BINS) -> tuple[Scene, np.ndarray]:
     return scene, net
 
 
-def run_layer(scene, sheet, bg, ppp, sbr, rng) -> dict:
+def run_layer(scene, sheet, bg, ppp, sbr, rng, opts=None) -> dict:
     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=rng)
-    det = detect(sim.cube, rng=0)
+    det = detect(sim.cube, rng=0, **(opts or {}))
     pts, truth = det.points, sim.truth
     m = evaluate(pts, truth, tau=TAU)
     false, cause = false_causes(pts, truth)
@@ -231,6 +243,13 @@ def print_layer(r: dict) -> None:
 def print_kinds(r: dict, detail: bool) -> None:
     """The false surfaces by kind (and the background-only figure when measured)."""
     null = f"; background alone: {r['null_false']} false" if "null_false" in r else ""
+    if "process" in r:
+        p = r["process"]
+        print(
+            f"     process (reconstruct's points): F_true {p['f_true']:.4f}, false "
+            f"{p['n_false']}, DAE {p['dae']:.3f}; depths as detection's: {p['same_depths']}",
+            flush=True,
+        )
     print(f"     by kind: {r['by_kind']}{null}", flush=True)
     if detail:
         for kind in KINDS:
@@ -249,7 +268,13 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--null", action="store_true", help="also detect on each cell's background alone"
     )
+    ap.add_argument(
+        "--process", action="store_true", help="also reconstruct (single): `process`'s points"
+    )
+    ap.add_argument("--surface-pfa", type=float, help="detect's surface_pfa (default its own)")
+    ap.add_argument("--pfa", type=float, help="detect's pfa (default its own)")
     args = ap.parse_args(argv)
+    opts = {k: v for k, v in (("surface_pfa", args.surface_pfa), ("pfa", args.pfa)) if v}
     rows = []
     if args.only != "layer":
         scene = single_surface_scene(SHAPE, n_bins=N_BINS)
@@ -257,7 +282,7 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             for i, cell in enumerate(SINGLE):
                 rng = np.random.default_rng([seed, i])
-                r = dict(seed=seed, **run_single(scene, *cell, rng, null=args.null))
+                r = dict(seed=seed, **run_single(scene, *cell, rng, args.null, args.process, opts))
                 rows.append(r)
                 print(
                     f"{seed:4d} {r['bg']:9s} {r['ppp']:3g} {r['sbr']:4g} {r['f_true']:.4f} "
@@ -276,6 +301,10 @@ def main(argv=None) -> int:
             if args.null:
                 nul = np.mean([r["null_false"] for r in sel])
                 print(f"  background alone (no signal): {nul:.1f} false / 7680 px")
+            if args.process:
+                f = np.mean([r["process"]["f_true"] for r in sel])
+                n = np.mean([r["process"]["n_false"] for r in sel])
+                print(f"  process (reconstruct's points): F_true {f:.4f}, false {n:.1f}")
     if args.only != "single":
         layers = (sheet_scene(), net_scene())
         print(LAYER_HEAD + "  causes; stages")
@@ -283,7 +312,7 @@ def main(argv=None) -> int:
             for j, (scene, sheet) in enumerate(layers):
                 for i, cell in enumerate(LAYER):
                     rng = np.random.default_rng([seed, 100 * (j + 1) + i])
-                    r = dict(seed=seed, **run_layer(scene, sheet, *cell, rng))
+                    r = dict(seed=seed, **run_layer(scene, sheet, *cell, rng, opts))
                     rows.append(r)
                     print_layer(r)
         for name in ("sheet", "two_layer"):

@@ -425,7 +425,10 @@ def test_main_run_skip_passes_the_other_passes(simulated, tmp_path, monkeypatch,
     for out, extra in (("o", ["--skip", "slopes,enclosed"]), ("p", [])):
         args = ["run", str(cube), "-q", "--seed", "0", "--no-figures", "--out", str(tmp_path / out)]
         assert main(args + extra) == 0
-    assert seen == [("spill_over", "isolated", "dark_regions", "align_depths"), "default"]
+    assert seen == [
+        ("spill_over", "isolated", "dark_regions", "stray_clusters", "align_depths"),
+        "default",
+    ]
     capsys.readouterr()
     assert main(["run", str(cube), "--skip", "dark", "--out", str(tmp_path / "x")]) == 2
     assert "--skip" in capsys.readouterr().err

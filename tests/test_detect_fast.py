@@ -7,10 +7,17 @@ import pytest
 from scipy import ndimage
 
 from splidar import gaussian_irf
-from splidar.detection._background import CLIP, LOW_FRACTION, robust_level, temporal_shape
+from splidar.detection._background import (
+    CLIP,
+    LOW_FRACTION,
+    _low_median,
+    robust_level,
+    temporal_shape,
+)
 from splidar.detection._fast import (
     _median_near,
     _median_scratch,
+    pixel_totals,
     poisson_background,
     saliency_wavelength,
     window_means,
@@ -241,6 +248,56 @@ def test_window_means_exact(dtype):
     assert got.dtype == np.float32
     # integer sums are exact in float64: the float32 rounding of the exact mean
     np.testing.assert_array_equal(got, ref.astype(np.float32))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.uint32, np.float32])
+def test_pixel_totals_equal_numpy_sums(dtype):
+    rng = np.random.default_rng(3)
+    hi = 200 if dtype == np.uint8 else 60_000
+    y = rng.integers(0, hi, size=(7, 5, 3, 301)).astype(dtype)
+    y[2, 3] = np.iinfo(dtype).max if dtype != np.float32 else 1e6  # large values exact
+    ref = y.sum(axis=(2, 3), dtype=np.float64)
+    out = pixel_totals(y)
+    assert out.dtype == np.float64 and out.shape == (7, 5)
+    assert np.array_equal(out, ref)
+    # a strided view gives the same totals as its copy
+    assert np.array_equal(pixel_totals(y[::2, 1:]), ref[::2, 1:])
+
+
+@pytest.mark.parametrize("m", [1, 2, 37, 38, 300])
+@pytest.mark.parametrize("ties", [False, True])
+def test_low_median_equals_numpy_partition(m, ties):
+    rng = np.random.default_rng(m)
+    x = rng.gamma(2.0, 1.0, size=(301, 45)).astype(np.float32)
+    if ties:  # few distinct values, as the window means of sparse counts
+        x = (np.round(x * 2) / 7).astype(np.float32)
+    x[3, 5] = np.nan  # a NaN column: NumPy's rule (NaNs sorted to the end)
+    k1, k2 = (m - 1) // 2, m // 2
+    part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
+    ref = (part[k1] + part[k2]) / np.float32(2)
+    assert np.array_equal(_low_median(x, m), ref, equal_nan=True)
+    assert np.array_equal(_low_median(x, m, slice(7, 40)), ref[7:40], equal_nan=True)
+    # the definition: the median of the lowest m values of each column
+    y = np.delete(x, 5, axis=1)
+    low = np.sort(y, axis=0)[:m]
+    assert np.array_equal(_low_median(y, m), np.median(low, axis=0).astype(np.float32))
+
+
+def test_low_median_neighbouring_columns_hint_gives_the_same_statistics():
+    # columns that drift slowly (the band about the previous column's statistic holds
+    # them), with jumps (the band misses): the same values as a full selection
+    rng = np.random.default_rng(11)
+    n, P, m = 500, 300, 50
+    level = np.cumsum(rng.normal(0, 0.01, P)) + 2.0
+    level[100:] += 5.0  # a jump
+    level[200:210] = 0.0  # a stretch of zeros (ties at 0)
+    x = (level[None, :] + rng.gamma(2.0, 0.3, size=(n, P))).astype(np.float32)
+    x[:, 200:210] = 0.0
+    x[:, 150] = np.float32(1.5)  # one column of ties
+    k1, k2 = (m - 1) // 2, m // 2
+    part = np.partition(x, [k1, k2], axis=0)
+    ref = (part[k1] + part[k2]) / np.float32(2)
+    assert np.array_equal(_low_median(x, m), ref)
 
 
 def test_window_means_rejects_windows_outside():

@@ -16,6 +16,7 @@ from splidar.detection._5b_isolated import remove_isolated
 from splidar.detection._5c_dark_regions import restore_dark_regions
 from splidar.detection._5e_enclosed import restore_enclosed_holes
 from splidar.detection._6_select import select_surfaces
+from splidar.detection._detect import PASSES
 from splidar.detection._filters import Correlator, irf_fwhm, irf_halfwidth
 from splidar.detection._kernels import find_segments, fine_response
 from splidar.scenes import two_layer_scene
@@ -538,3 +539,71 @@ def test_detect_fine_split_leaves_a_tail_the_irf_lacks(monkeypatch):
     monkeypatch.setattr(_3_null, "data_tail", lambda *a, **k: np.zeros(0))
     irf_only = twice(one)
     assert data < 0.045 and irf_only > 1.8 * data and both > 0.95, (data, irf_only, both)
+def _plane_with(extra):
+    """Candidates: a plane at depth 50 over 24 x 24 pixels, plus ``extra`` (row, col,
+    depth) second candidates; all kept."""
+    r, c = np.mgrid[0:24, 0:24]
+    row = np.concatenate([r.ravel(), [e[0] for e in extra]])
+    col = np.concatenate([c.ravel(), [e[1] for e in extra]])
+    depth = np.concatenate([np.full(r.size, 50.0), [float(e[2]) for e in extra]])
+    return row, col, depth, np.ones(row.size, bool)
+
+
+def test_stray_clusters_removes_a_small_cluster_behind_a_pixels_surface():
+    from splidar.detection._5f_stray_clusters import stray_clusters
+
+    # a 2-pixel cluster at depth 120 behind the plane, nothing else there within reach
+    row, col, depth, keep = _plane_with([(5, 5, 120.0), (5, 6, 121.0)])
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert out.tolist() == [False] * 576 + [True, True]
+    # the same pixels' only candidates (no plane there) are never removed
+    far = (row < 5) | (row > 5) | (col < 5) | (col > 6) | (np.arange(row.size) >= 576)
+    out = stray_clusters(row[far], col[far], depth[far], keep[far], image_shape=(24, 24),
+                         fwhm=3.0, half=5)  # fmt: skip
+    assert not out.any()
+    # a rejected candidate (keep False) neither counts nor is removed
+    keep2 = keep.copy()
+    keep2[-1] = False
+    out = stray_clusters(row, col, depth, keep2, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert out.tolist() == [False] * 576 + [True, False]
+
+
+def test_stray_clusters_keeps_lines_and_the_fragments_of_a_thin_structure():
+    from splidar.detection._5f_stray_clusters import stray_clusters
+
+    # a strand along row 10 (a line of 24 second candidates) is one large cluster
+    row, col, depth, keep = _plane_with([(10, j, 20.0) for j in range(24)])
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert not out.any()
+    # its fragments of 2 pixels with gaps of 4 (the map missed the rest) join within
+    # the reach (2 x the largest box's half-width): kept
+    frag = [(10, j, 20.0 + 0.1 * j) for j in range(24) if j % 6 < 2]
+    row, col, depth, keep = _plane_with(frag)
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert not out.any()
+    # beyond the reach (half-width 1: 2 pixels) the same fragments are stray
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=1)
+    assert out[576:].all() and not out[:576].any()
+    # a second candidate at another depth beside the fragments does not join them
+    row, col, depth, keep = _plane_with([(3, 3, 20.0), (3, 4, 160.0), (3, 12, 161.0)])
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert out[576:].tolist() == [True, False, False]
+
+
+def test_detect_stray_clusters_removes_only_candidates_of_crowded_pixels(net_map):
+    # stage 7 left out on both sides: it moves depths after the pass
+    sim, _, _ = net_map
+    passes = [p for p in PASSES if p != "align_depths"]
+    on = detect(sim.cube, rng=0, passes=passes)
+    off = detect(sim.cube, rng=0, passes=[p for p in passes if p != "stray_clusters"])
+    rec = {r.stage: r for r in on.provenance}["stray_clusters"]
+    assert rec.ran and rec.added == 0 and rec.removed > 0
+
+    def key(s):
+        return set(zip(s.row.tolist(), s.col.tolist(), s.depth_bin.tolist(), strict=True))
+
+    gone, new = key(off.surfaces) - key(on.surfaces), key(on.surfaces) - key(off.surfaces)
+    assert not new and len(gone) == rec.removed
+    # every pixel that lost a surface keeps one
+    kept = set(zip(on.surfaces.row.tolist(), on.surfaces.col.tolist(), strict=True))
+    assert {(r, c) for r, c, _ in gone} <= kept

@@ -249,7 +249,8 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         type=_pass_list,
         metavar="PASS,..",
         help="clean-up passes of the detection to skip (default: run all): spill_over, "
-        "isolated, dark_regions, slopes, enclosed, align_depths (docs/detection.md)",
+        "isolated, dark_regions, slopes, enclosed, stray_clusters, align_depths "
+        "(docs/detection.md)",
     )
     g.add_argument(
         "--store",
@@ -427,7 +428,9 @@ def _run_parser(sub, fmt) -> None:
         "--irf",
         metavar="FILE",
         help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, a .ptu/.sdt "
-        "measurement summed over its pixels, or a .phu histogram)",
+        "measurement summed over its pixels, or a .phu histogram); 'estimate': a Gaussian "
+        "of the width estimated from the data; 'estimate-shape': the pulse shape pooled "
+        "from the bright pixels (long-tailed pulses)",
     )
     irf.add_argument(
         "--irf-fwhm",

@@ -48,6 +48,7 @@ from .library import SpectralLibrary, load_library
 __all__ = [
     "PhotonLists",
     "bin_photons",
+    "estimate_irf",
     "estimate_irf_fwhm",
     "load",
     "load_irf",
@@ -529,6 +530,129 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
     return out
 
 
+def estimate_irf(
+    counts,
+    *,
+    fwhm: float | None = None,
+    max_length: int | None = None,
+    significance: float = 3.0,
+    min_pixels: int = 20,
+) -> np.ndarray:
+    """Estimate the IRF **shape** from the data, without a model (non-parametric).
+
+    The pulse of a real detector is rarely Gaussian (a SPAD response has a long
+    exponential tail); this pools the returns of the bright pixels:
+
+    1. **Bright pixels.** Each pixel (wavelengths summed) is correlated with a template
+       (first a Gaussian of ``fwhm``) and its return is the correlation's peak. Its
+       background rate ``b`` is the mean count per bin away from the return (outside
+       ``[peak - max_length / 4, peak + max_length]``), taken as ``(photons + 1) / bins``
+       for the test, so never zero. A pixel is used when the photons in the template's
+       window (samples >= 5 % of its peak) would occur under Poisson(``width * b``) with
+       a probability below that of a one-sided ``significance``-sigma Gaussian,
+       Bonferroni-corrected for the ``T / width`` windows searched: a rule from the
+       Poisson noise of each pixel, not a scene constant.
+    2. **Align and pool.** Each photon of a used pixel is placed at its lag from the
+       return the pixel's *other* photons give (leave-one-out, searched within the
+       template's width of the peak; aligning a photon with itself would pile the
+       peak bin up); the pixels' histograms so aligned, minus their background, are
+       averaged per lag and per wavelength. Whole bins: the estimate is the IRF
+       convolved with the alignment's jitter (+-0.5 bin at least).
+    3. **Cut.** Walking out of the peak, the curve stops before it reaches
+       ``significance`` times its Poisson standard error (the noise floor) or, once
+       below half the peak, at its lowest point before a rise of more than
+       ``significance`` standard errors (a second surface behind the first); both
+       tests read the curve averaged over about half a FWHM.
+    4. The pooled shape becomes the template of a second pass (a matched filter: the
+       return's reference is then the IRF's own peak), and each row is normalised to
+       unit sum.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (rows, cols, L, T) or (rows, cols, T)
+        Photon counts (non-negative).
+    fwhm : float, optional
+        Width (bins) of the first pass's Gaussian template. Default:
+        :func:`estimate_irf_fwhm` of ``counts``.
+    max_length : int, optional
+        Longest tail searched after the peak, bins (the leading edge: a quarter of it).
+        Default ``min(T // 3, max(32, 20 * fwhm))``.
+    significance : float, default 3.0
+        Sigmas of the Poisson tests (bright pixels, noise floor, second-surface rise).
+    min_pixels : int, default 20
+        Fewest bright pixels accepted.
+
+    Returns
+    -------
+    irf : ndarray, shape (L, n), float64
+        Non-negative, unit sum per wavelength, cut to its support (rows of different
+        lengths padded with zeros at the end). The depth reference is each row's
+        ``argmax`` (:func:`splidar.irf.irf_peak`). Units: time bins of ``counts``.
+
+    Raises
+    ------
+    SplidarError
+        ``counts`` not of the forms above, negative or not finite; a bad option
+        (named); fewer than ``min_pixels`` bright pixels, or a wavelength without a
+        return: give the IRF (``irf=``) or a Gaussian width (``irf_fwhm=``).
+
+    Notes
+    -----
+    The alignment's jitter widens the estimate a little (FWHM +5 to +25 % on the
+    simulated exp-tail pulses of ``benchmarks/bench_irf_estimate.py``). The depth
+    reference is the estimate's argmax: on a flat-topped or slowly decaying pulse it
+    may sit a few bins from the true pulse's (a constant depth offset). A second
+    surface at a fixed distance behind the first is cut away; second surfaces at
+    depths that vary from pixel to pixel within ``max_length`` average into a pedestal
+    that the cut may keep as tail. Needs the counts in memory (not lazy data).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.ndimage import convolve1d
+    >>> from splidar.irf import exp_tail_irf
+    >>> rng = np.random.default_rng(0)
+    >>> h = exp_tail_irf(2.0, 6.0)
+    >>> lam = np.zeros((40, 40, 160))
+    >>> lam[np.arange(40)[:, None], np.arange(40), rng.integers(40, 100, (40, 40))] = 30.0
+    >>> y = rng.poisson(convolve1d(lam, h, axis=-1) + 0.02)
+    >>> est = estimate_irf(y)
+    >>> est.shape[0], round(float(est.sum()), 6)
+    (1, 1.0)
+    """
+    from ._irf_estimate import pooled_shape
+
+    a = np.asarray(counts)
+    if a.ndim == 3:
+        a = a[:, :, None, :]
+    if a.ndim != 4 or a.shape[-1] < 8 or a.size == 0:
+        raise SplidarError(
+            f"`counts` must be (rows, cols[, L], T) with T >= 8 bins; got {describe(counts)}."
+        )
+    if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
+        raise SplidarError(f"`counts` must hold photon counts; got {describe(counts)}.")
+    if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+        raise SplidarError("`counts` holds NaN or inf; photon counts must be finite.")
+    if a.min() < 0:
+        raise SplidarError("`counts` holds negative values; photon counts must be >= 0.")
+    z = check_positive(significance, "significance")
+    min_pixels = check_int(min_pixels, "min_pixels", minimum=1)
+    n_bins = a.shape[-1]
+    fwhm = estimate_irf_fwhm(a) if fwhm is None else check_positive(fwhm, "fwhm")
+    if max_length is None:
+        k_right = int(min(n_bins // 3, max(32, math.ceil(20 * fwhm))))
+    else:
+        k_right = check_int(max_length, "max_length", minimum=2)
+        if k_right > n_bins - 2:
+            raise SplidarError(
+                f"`max_length` must be below T - 1 = {n_bins - 1} bins; got {k_right}."
+            )
+    k_left = max(2, k_right // 4)
+    out, n_used = pooled_shape(a.reshape(-1, *a.shape[2:]), fwhm, k_left, k_right, z, min_pixels)
+    log.info("IRF shape estimated from %d bright pixels: %d samples", n_used, out.shape[1])
+    return out
+
+
 def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
     """Estimate the IRF width (FWHM, bins) from the photons themselves.
 
@@ -660,8 +784,16 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
     if isinstance(irf, (int, float, np.number)) and not isinstance(irf, bool):
         raise SplidarError(
             f"`irf` got the number {irf!r}; for a Gaussian IRF pass irf_fwhm={irf!r} (FWHM in "
-            "bins); `irf` takes an array, a file path or 'estimate'."
+            "bins); `irf` takes an array, a file path, 'estimate' or 'estimate-shape'."
         )
+    if isinstance(irf, str) and irf == "estimate-shape":
+        if hasattr(counts, "compute") and not isinstance(counts, np.ndarray):
+            raise SplidarError(
+                "irf='estimate-shape' needs the counts in memory, not lazy (Dask/zarr) data; "
+                "pass irf= (array or file) or irf_fwhm=."
+            )
+        shape = estimate_irf(counts)
+        return shape, f"estimated shape from the data ({shape.shape[1]} samples)"
     if isinstance(irf, str) and irf == "estimate":
         file_irf = None
         irf = None
@@ -756,11 +888,13 @@ def load(
         Photon lists only: unit of the arrival times. With a physical unit, the cube's
         ``bin_width_ps`` is ``bin_width`` converted to picoseconds. ``"bin"`` (default)
         means time-bin indices of unknown duration.
-    irf : array_like (L, n) or (n,), path, or "estimate", optional
+    irf : array_like (L, n) or (n,), path, "estimate" or "estimate-shape", optional
         Instrument response. Default: the file's ``irf``; if it has none, a Gaussian
         whose width is estimated from the data (:func:`estimate_irf_fwhm`; logged as a
-        warning). A path is read by :func:`load_irf`. An IRF longer than T - 1 samples
-        is cropped around its peak (logged).
+        warning), as with ``"estimate"``. ``"estimate-shape"``: the non-parametric
+        shape pooled from the bright pixels (:func:`estimate_irf`; for a long-tailed
+        pulse), whatever IRF the file holds. A path is read by :func:`load_irf`. An
+        IRF longer than T - 1 samples is cropped around its peak (logged).
     irf_fwhm : float, optional
         Use a Gaussian IRF of this FWHM in bins instead (data without a measured IRF).
     irf_variable : str, optional

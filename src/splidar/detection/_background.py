@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage, signal, special
 
+from ._fast import low_median as _low_median_kernel
 from ._fast import window_means
 from ._filters import Correlator
 
@@ -83,10 +84,11 @@ def temporal_shape(
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
     prof = np.empty(L * T, np.float32)
 
-    def low_median(part):  # eq:background_1, one selection per (l, t): any split
-        prof[part] = _low_median(coarse.reshape(n, L * T)[:, part], m)
+    def select_part(part):  # eq:background_1, one selection per (l, t): any split
+        cols = slice(int(part[0]), int(part[-1]) + 1)  # contiguous parts: no copy
+        prof[cols] = _low_median(coarse.reshape(n, L * T), m, cols)
 
-    _on_threads(low_median, np.arange(L * T), workers)
+    _on_threads(select_part, np.arange(L * T), workers)
     prof = prof.reshape(L, T).astype(np.float64)
     if smooth > 1:
         prof = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
@@ -139,18 +141,25 @@ def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:
     return kr, kc, row_starts, col_starts
 
 
-def _low_median(x: np.ndarray, m: int) -> np.ndarray:
-    """Median over axis 0 of the ``m`` lowest values of ``x`` (float32).
+def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
+    """Median over axis 0 of the ``m`` lowest values of ``x`` (float32), of the columns
+    ``cols`` (default all) of a 2-d ``x``.
 
     The same as ``np.median(np.partition(x, m - 1, axis=0)[:m], axis=0)``, bit for bit:
     the middle of the lowest ``m`` are the order statistics ``(m - 1) // 2`` and
-    ``m // 2`` of all, found by one selection; their float32 mean as ``np.median``
-    takes it.
+    ``m // 2`` of all, found by one selection (a numba kernel for 2-d float32 ``x``,
+    :func:`~splidar.detection._fast.low_median`: no copy of the columns, 2 x faster
+    than ``np.partition`` over axis 0); their float32 mean as ``np.median`` takes it.
     """
+    x = x if cols is None else x[:, cols]
     n = x.shape[0]
     if m >= n:
         return np.median(x, axis=0)
     k1, k2 = (m - 1) // 2, m // 2
+    if x.ndim == 2 and x.dtype == np.float32 and x.strides[1] == x.itemsize:
+        out = np.empty(x.shape[1], np.float32)
+        _low_median_kernel(x, k1, k2, slice(None), out)
+        return out
     part = np.partition(x, [k1, k2] if k2 > k1 else k1, axis=0)
     return (part[k1] + part[k2]) / x.dtype.type(2)
 

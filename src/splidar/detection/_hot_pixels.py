@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from ._fast import pixel_totals
+
 __all__ = ["HOT_MIN_LEVEL", "HOT_RATIO", "hot_pixels"]
 
 #: A hot pixel's flat level over its third brightest neighbour's mean counts per bin.
@@ -43,7 +45,10 @@ def hot_pixels(counts: np.ndarray) -> np.ndarray:
     hot = np.zeros((R, C), bool)
     if R * C < 2:
         return hot
-    total = counts.sum(axis=(2, 3), dtype=np.float64)
+    if isinstance(counts, np.ndarray):  # one numba pass, the same values (_fast)
+        total = pixel_totals(counts)
+    else:
+        total = counts.sum(axis=(2, 3), dtype=np.float64)
     if hasattr(total, "compute"):  # a Dask cube: one pass over its chunks
         total = total.compute()
     foot = np.ones((3, 3), bool)

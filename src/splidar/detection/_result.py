@@ -36,6 +36,7 @@ STAGES = (
     "dark_regions",  # 5c: restores candidates of dim patches, pooled
     "slopes",  # 5d: adds surfaces on steep slopes (sheared pooled tests)
     "enclosed",  # 5e: restores candidates of holes that a surface encloses
+    "stray_clusters",  # 5f: removes a crowded pixel's small stray same-depth clusters
     "select",  # 6: keeps at most K_s candidates per pixel
     "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
 )

@@ -1,0 +1,215 @@
+"""The IRF shape estimated from the data (``splidar.io.estimate_irf``) against the truth.
+
+Simulated cubes (32 x 32 tilted plane of ``bench_robustness.basic``: PPP 10, SBR 1) with a
+known non-Gaussian IRF: exponential tails 3/6 and 2/25 (``exp_tail_irf``) and, when
+``../shared/data/irf-sample`` is present, the measured pulse (cropped, T 300). For each:
+
+* the shape against the true IRF, both put on one grid with their peaks on one sample:
+  L1 distance, FWHM (bins), tail mass beyond peak + 1 true FWHM and + 2 true FWHM; for the
+  estimated shape (``estimate_irf``) and the Gaussian of the width ``estimate_irf_fwhm``
+  gives (what ``load`` uses today when a file has no IRF);
+* ``splidar.process(cube, rng=0)`` with (a) the true IRF, (b) the Gaussian estimate,
+  (c) the estimated shape: F_true, false surfaces, DAE (``splidar.metrics.evaluate``,
+  tau = max(2, FWHM / 2) bins as in bench_robustness).
+
+Then, with ``--real``, the three photon-list files (loaded as in ``real_data.py``): the
+estimated FWHM, tail mass and time, and ``detect(rng=0, pfa=1e-4)`` with the Gaussian
+estimate and with the shape: surfaces, pixels with >= 2 surfaces (no truth there).
+
+Usage::
+
+    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--real] [--data DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_robustness import basic, measured_irf  # noqa: E402
+from real_data import REAL, _default_data  # noqa: E402
+
+import splidar  # noqa: E402
+from splidar.io import estimate_irf, estimate_irf_fwhm  # noqa: E402
+from splidar.irf import exp_tail_irf, gaussian_irf, irf_fwhm  # noqa: E402
+from splidar.metrics import evaluate  # noqa: E402
+
+
+def common_grid(a, b):
+    """Both IRFs (1-D, unit sum) on one grid with their peaks on sample ``o``."""
+    a = np.asarray(a, float) / np.sum(a)
+    b = np.asarray(b, float) / np.sum(b)
+    pa, pb = int(np.argmax(a)), int(np.argmax(b))
+    o = max(pa, pb)
+    n = o + max(a.size - pa, b.size - pb)
+    x, y = np.zeros(n), np.zeros(n)
+    x[o - pa : o - pa + a.size] = a
+    y[o - pb : o - pb + b.size] = b
+    return x, y, o
+
+
+def tail_mass(irf, k: float) -> float:
+    """Mass of a unit-sum IRF more than ``k`` bins after its peak."""
+    g = np.asarray(irf, float).ravel()
+    g = g / g.sum()
+    return float(g[int(np.argmax(g)) + int(np.ceil(k)) :].sum())
+
+
+def shape_row(true, est, fw_true):
+    t, e, _ = common_grid(true, est)
+    return dict(
+        l1=float(np.abs(t - e).sum()),
+        fwhm=float(irf_fwhm(e)),
+        tail1=tail_mass(e, fw_true),
+        tail2=tail_mass(e, 2 * fw_true),
+    )
+
+
+def depth_offset(points, truth) -> float:
+    """Median signed depth difference (bins) of each estimated point to the nearest true
+    depth of its pixel: the constant shift an IRF's reference (its argmax) puts on every
+    depth; a flat-topped pulse leaves that reference ill-defined."""
+    n = truth.image_shape[1]
+    t_key = truth.row * n + truth.col
+    e_key = points.row * n + points.col
+    d = []
+    for k, z in zip(e_key, points.depth_bin, strict=True):
+        tz = truth.depth_bin[t_key == k]
+        if tz.size:
+            d.append(z - tz[np.argmin(np.abs(tz - z))])
+    return float(np.median(d)) if d else 0.0
+
+
+def sim_cases():
+    cases = [
+        ("exp tail 3/6", basic(irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
+        ("exp tail 2/25", basic(T=400, irf=exp_tail_irf(2.0, 25.0)), exp_tail_irf(2.0, 25.0)),
+        ("gaussian fwhm 3 (control)", basic(), gaussian_irf(3.0)),
+        ("exp tail 3/6, PPP 2", basic(ppp=2.0, irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
+        (
+            "exp tail 3/6, PPP 40",
+            basic(ppp=40.0, irf=exp_tail_irf(3.0, 6.0)),
+            exp_tail_irf(3.0, 6.0),
+        ),
+        (
+            "exp tail 3/6, 2nd surface +20 bins, every other column",
+            basic(T=240, second=20.0, irf=exp_tail_irf(3.0, 6.0)),
+            exp_tail_irf(3.0, 6.0),
+        ),
+    ]
+    w = measured_irf()
+    if w is not None:
+        cases.append(("measured pulse, T 300", basic(T=300, irf=w[230:300]), w[230:300]))
+    return cases
+
+
+def run_sim(seeds):
+    print("## simulated, 32 x 32, PPP 10, SBR 1; process(rng=0)")
+    print(
+        "| case | seed | IRF | L1 | FWHM | tail > 1 FWHM | tail > 2 FWHM | F_true | false "
+        "| DAE | offset | F_true / DAE after offset | estimate s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, build, true in sim_cases():
+        true = np.asarray(true, float) / np.sum(true)
+        fw = float(irf_fwhm(true))
+        tau = max(2.0, fw / 2.0)
+        for seed in seeds:
+            cube, truth = build(32) if seed == 0 else _reseed(build, seed)
+            t0 = time.perf_counter()
+            shape = estimate_irf(cube.counts)
+            t_est = time.perf_counter() - t0
+            g = gaussian_irf(estimate_irf_fwhm(cube.counts))
+            rows = [("true", true), ("gaussian est.", g), ("shape est.", shape[0])]
+            for label, irf in rows:
+                s = shape_row(true, irf, fw)
+                c = dataclasses.replace(cube, irf=np.asarray(irf, float)[None, :])
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    rec = splidar.process(c, rng=0)
+                m = evaluate(rec.points, truth, tau=tau)
+                off = depth_offset(rec.points, truth)
+                moved = dataclasses.replace(rec.points, depth_bin=rec.points.depth_bin - off)
+                m2 = evaluate(moved, truth, tau=tau)
+                print(
+                    f"| {name} | {seed} | {label} | {s['l1']:.3f} | {s['fwhm']:.2f} | "
+                    f"{s['tail1']:.3f} | {s['tail2']:.3f} | {m.f_true:.3f} | {m.f_false} | "
+                    f"{m.dae:.2f} | {off:+.1f} | {m2.f_true:.3f} / {m2.dae:.2f} | "
+                    f"{t_est if label == 'shape est.' else 0:.2f} |"
+                )
+
+
+def _reseed(build, seed):
+    """``build`` of bench_robustness with another simulation seed."""
+    import bench_robustness as br
+
+    old = dict(br._sim.__kwdefaults__)
+    try:
+        br._sim.__kwdefaults__["seed"] = seed
+        return build(32)
+    finally:
+        br._sim.__kwdefaults__.update(old)
+
+
+def run_real(data: Path):
+    print("\n## real photon lists; detect(rng=0, pfa=1e-4)")
+    print(
+        "| data | IRF | samples | FWHM | tail > 1 FWHM | tail > 2 FWHM | estimate s | surfaces "
+        "| pixels >= 2 | detect s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, (rel, kw, _) in REAL.items():
+        path = data / rel
+        if not path.is_file():
+            print(f"| {name} | missing: skipped |")
+            continue
+        cube = splidar.load(path, **kw)  # the Gaussian estimate (no IRF in the file)
+        t0 = time.perf_counter()
+        shape = estimate_irf(cube.counts)
+        t_est = time.perf_counter() - t0
+        for label, irf, te in (("gaussian est.", cube.irf, 0.0), ("shape est.", shape, t_est)):
+            g = np.asarray(irf, float)[0]
+            fw = float(irf_fwhm(g))
+            c = dataclasses.replace(cube, irf=np.asarray(irf, float))
+            t0 = time.perf_counter()
+            det = splidar.detect(c, pfa=1e-4, rng=0)
+            t_det = time.perf_counter() - t0
+            pts = det.points
+            per = np.bincount(pts.row * c.n_cols + pts.col, minlength=c.n_pixels)
+            print(
+                f"| {name} | {label} | {g.size} | {fw:.2f} | {tail_mass(g, fw):.3f} | "
+                f"{tail_mass(g, 2 * fw):.3f} | {te:.2f} | {len(pts):,} | "
+                f"{np.mean(per > 1):.1%} | {t_det:.1f} |"
+            )
+            if label == "shape est.":
+                p = int(np.argmax(g))
+                rel_ = [g[p + k] / g[p] if p + k < g.size else 0.0 for k in (4, 8, 12, 16, 24)]
+                txt = " / ".join(f"{v:.3f}" for v in rel_)
+                print(f"|  | shape at +4/+8/+12/+16/+24 bins: {txt} |")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="*", default=[0])
+    ap.add_argument("--real", action="store_true", help="also the three real photon lists")
+    ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--data", default=str(_default_data()))
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    if not args.no_sim:
+        run_sim(args.seeds)
+    if args.real:
+        run_real(Path(args.data))
+    print(f"\nwall {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
