@@ -539,6 +539,8 @@ def test_detect_fine_split_leaves_a_tail_the_irf_lacks(monkeypatch):
     monkeypatch.setattr(_3_null, "data_tail", lambda *a, **k: np.zeros(0))
     irf_only = twice(one)
     assert data < 0.045 and irf_only > 1.8 * data and both > 0.95, (data, irf_only, both)
+
+
 def _plane_with(extra):
     """Candidates: a plane at depth 50 over 24 x 24 pixels, plus ``extra`` (row, col,
     depth) second candidates; all kept."""
