@@ -9,7 +9,7 @@ from splidar import gaussian_irf
 from splidar.detection import STAGES, _4_map, detect
 from splidar.detection._1_background import estimate_temporal_background
 from splidar.detection._2_saliency import block_saliency, saliency_filters
-from splidar.detection._3_null import calibrate_null
+from splidar.detection._3_null import calibrate_null, split_rule
 from splidar.detection._4_map import MapOptions, map_candidates
 from splidar.detection._5a_spill_over import remove_spill_over
 from splidar.detection._5b_isolated import remove_isolated
@@ -18,6 +18,7 @@ from splidar.detection._5e_enclosed import restore_enclosed_holes
 from splidar.detection._6_select import select_surfaces
 from splidar.detection._detect import PASSES
 from splidar.detection._filters import Correlator, irf_fwhm, irf_halfwidth
+from splidar.detection._kernels import find_segments, fine_response
 from splidar.scenes import two_layer_scene
 
 SCALES = np.array([1, 3, 7, 11])
@@ -36,8 +37,8 @@ def _map(counts, irf, *, pfa=1e-3, rng=0, block_rows=None, n_jobs=1):
     fw = irf_fwhm(irf)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical",
-        min_separation=int(np.ceil(fw)), split_ratio=0.5, rng=np.random.default_rng(rng),
-        n_jobs=1,
+        min_separation=int(np.ceil(fw)), split=(0.5, _4_map.SPLIT_Z),
+        rng=np.random.default_rng(rng), n_jobs=1,
     )  # fmt: skip
     opts = MapOptions(
         min_separation=int(np.ceil(fw)), split_ratio=0.5, presence="adaptive", presence_z=3.0,
@@ -155,7 +156,7 @@ def test_calibrate_null_holds_the_false_alarm_rate_on_fresh_background():
     _, _, filters = _setup(counts, g)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical", min_separation=3,
-        split_ratio=0.5, rng=np.random.default_rng(0), n_jobs=1,
+        split=(0.5, _4_map.SPLIT_Z), rng=np.random.default_rng(0), n_jobs=1,
     )  # fmt: skip
     _, sal, _, _, level = block_saliency(rng.poisson(lam), filters)
     rate = float(np.mean(sal > nul.threshold_at(level)))
@@ -373,6 +374,171 @@ def test_rescue_dark_ignores_pools_whose_members_peak_at_their_own_depths():
     cnt[:, 0, 6] = 1
     surf.update(own_counts=cnt, depth_bin=np.full(n, 6.0))
     assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == n
+
+
+def _close_pair_segments(second: bool, z: float, n_pix: int = 300, seed: int = 5):
+    """find_segments on pixels whose multiscale response ``d`` is one broad bump (the
+    coarse scales fill the dip) over own counts with one return of 16 photons at bin
+    30, or two of 8 photons each 2.5 FWHM (7.5 bins) apart; background 0.025 a bin (as
+    in the close-pair cases of bench_robustness). Returns the segments from the
+    correlated counts (the map pass's way) and from fine_response (the null's way)."""
+    T, fwhm = 80, 3.0
+    g = gaussian_irf(fwhm).reshape(1, -1)
+    lam = np.full((1, n_pix, 1, T), 0.025)
+    for centre, n in [(30.0, 8.0), (37.5, 8.0)] if second else [(30.0, 16.0)]:
+        x = np.arange(T) - centre
+        prof = np.exp(-0.5 * (x / (fwhm / 2.3548)) ** 2)
+        lam[..., :] += n * prof / prof.sum()
+    y = np.random.default_rng(seed).poisson(lam).astype(np.uint16)
+    c = Correlator(g, T)(y, workers=1)
+    sp = np.full((1, n_pix, 1), 0.025, np.float32)
+    dev = np.zeros((1, T), np.float32)
+    tt = np.arange(T)
+    d = np.broadcast_to(np.exp(-0.5 * ((tt - 33.0) / 6.0) ** 2), (1, n_pix, T))
+    d = np.ascontiguousarray(d, np.float32)
+    mask = np.ascontiguousarray(d > 0.05)
+    ones = np.ones_like(d)
+    rule = split_rule(g, z)
+    no = np.empty((0, 0, 0), np.float32)
+    from_c = find_segments(mask, d, ones, ones, 3, 0.5, (c, y, 0, 0, sp, dev, no, no, no), rule)
+    pre = tuple(np.empty((1, n_pix, T), np.float32) for _ in range(3))
+    fine_response(c, y, sp, dev, rule[3], *pre)
+    no_c = np.empty((0, 0, 0, 0), np.float32)
+    no_y = np.empty((0, 0, 0, 0), np.uint16)
+    no_sp = np.empty((0, 0, 0), np.float32)
+    no_dev = np.empty((0, 0), np.float32)
+    from_f = find_segments(
+        mask, d, ones, ones, 3, 0.5, (no_c, no_y, 0, 0, no_sp, no_dev, *pre), rule
+    )
+    return from_c, from_f, n_pix
+
+
+@pytest.mark.parametrize("second", [True, False])
+def test_find_segments_splits_two_returns_25_fwhm_apart_not_one(second):
+    # the broad d alone never splits; the own pixel's photons split two returns 2.5 FWHM
+    # apart in most pixels (8 photons each on average, about 6 in the half-peak window:
+    # a Poisson z of 6 against the background's 0.1 there, above the sqrt(9 + 2 ln 29)
+    # = 4.0 needed in a segment of 29 bins) and one return of the same 16 photons
+    # never (its photons beyond min_sep are its own tail)
+    from_c, from_f, n_pix = _close_pair_segments(second, 3.0)  # SPLIT_Z measured
+    for a, b in zip(from_c, from_f, strict=True):
+        np.testing.assert_array_equal(a, b)  # the null's way gives the map pass's segments
+    col, stop, peak = from_c[1], from_c[3], from_c[4]
+    n_seg = np.bincount(col, minlength=n_pix)
+    assert np.all(n_seg >= 1)
+    if second:
+        assert np.mean(n_seg == 2) > 0.85  # 0.92: the rest short of photons (Poisson)
+        two = np.flatnonzero(n_seg == 2)
+        first = np.searchsorted(col, two)
+        cut = stop[first]
+        assert np.mean((cut > 30) & (cut < 38)) > 0.95  # cut between the returns
+        assert np.median(np.abs(peak[first] - 30)) <= 1
+        assert np.median(np.abs(peak[first + 1] - 37.5)) <= 1
+    else:
+        assert np.mean(n_seg > 1) < 0.02
+    # without the fine split (z = 0): one segment per pixel, as d alone has
+    off = _close_pair_segments(second, 0.0)[0]
+    assert np.array_equal(off[1], np.arange(n_pix))
+
+
+def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch):
+    # end to end (map pass and the null's candidates split alike): a second surface 2.5
+    # FWHM behind a gently tilted plane in every other column (the close-pair case of
+    # bench_robustness, PPP 10, SBR 1): the coarse boxes halve it and fill the dip, so
+    # with SPLIT_Z = 0 (the default) most of those pixels keep one merged surface; at 3
+    # five times as many get both
+    from splidar import PointSet
+    from splidar.detection import _detect
+    from splidar.simulation import simulate
+
+    n, T = 24, 120
+    rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    dep = 50.0 + 0.35 * (rr + cc).ravel()
+    even = (cc % 2 == 0).ravel()
+    truth = PointSet(
+        row=np.concatenate([rr.ravel(), rr.ravel()[even]]),
+        col=np.concatenate([cc.ravel(), cc.ravel()[even]]),
+        depth_bin=np.concatenate([dep, dep[even] + 7.5]), image_shape=(n, n),
+    )  # fmt: skip
+    cube = simulate(truth, n_bins=T, irf=gaussian_irf(3.0), ppp=10.0, sbr=1.0, rng=0).cube
+    both = {}
+    for z in (0.0, 3.0):
+        monkeypatch.setattr(_4_map, "SPLIT_Z", z)
+        monkeypatch.setattr(_detect, "SPLIT_Z", z)
+        p = detect(cube, rng=0).points
+        k = p.row * n + p.col
+        front = np.bincount(k[np.abs(p.depth_bin - dep[k]) <= 2], minlength=n * n)
+        back = np.bincount(k[np.abs(p.depth_bin - dep[k] - 7.5) <= 2], minlength=n * n)
+        both[z] = np.mean(((front > 0) & (back > 0))[even])
+    # measured 0.10 / 0.53 of those pixels (the rest: the second return's few photons)
+    assert both[0.0] < 0.2 and both[3.0] > 0.4, both
+
+
+def _tailed_cube(n, T, sep, amp, rng):
+    # a tilted plane (and with sep a second one sep bins behind in every pixel) whose
+    # returns carry an exponential tail (70 % of the photons, 1/e length 2 FWHM: the
+    # real face's at 1 FWHM) that the Gaussian IRF the cube is given lacks
+    from splidar import Cube
+
+    g = gaussian_irf(3.0, length=61)
+    tail = np.convolve(g, np.exp(-np.arange(61) / 6.0))[:61]
+    shape = 0.3 * g + 0.7 * tail / tail.sum()
+    rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    dep = (40 + 0.2 * (rr + cc)).astype(int)
+    lam = np.full((n, n, 1, T), 0.03)
+    for i in range(n):
+        for j in range(n):
+            for d0 in (dep[i, j],) if sep is None else (dep[i, j], dep[i, j] + sep):
+                lam[i, j, 0, d0 - 30 : d0 + 31] += amp * shape
+    return Cube(rng.poisson(lam), irf=gaussian_irf(3.0))
+
+
+def test_data_tail_measures_a_tail_the_irf_lacks_not_a_second_return():
+    from splidar import PointSet
+    from splidar.detection import _3_null
+    from splidar.simulation import simulate
+
+    irf = gaussian_irf(3.0)[None] / gaussian_irf(3.0).sum()
+    t_irf = split_rule(irf, 3.0)[1]
+    one = _tailed_cube(24, 160, None, 20.0, np.random.default_rng(1))
+    t_one = _3_null.data_tail(one.counts, irf, np.zeros((1, 160), np.float32))
+    # 1.7-2.3 FWHM from the peak the tailed returns put over 5 % of their photons in
+    # a half-peak window (measured 9-15 %), the IRF under 1 %
+    assert np.all(t_one[5:8] > 0.05) and np.all(t_irf[5:8] < 0.01), (t_one, t_irf)
+    # a second (Gaussian) return 2.5 FWHM behind every first one: the pool rises
+    # again past the dip, where the data's tail ends (measured 0 from 1.7 FWHM on)
+    rr, cc = np.meshgrid(np.arange(24), np.arange(24), indexing="ij")
+    dep = 50.0 + 0.35 * (rr + cc).ravel()
+    truth = PointSet(
+        row=np.tile(rr.ravel(), 2), col=np.tile(cc.ravel(), 2),
+        depth_bin=np.concatenate([dep, dep + 7.5]), image_shape=(24, 24),
+    )  # fmt: skip
+    pair = simulate(truth, n_bins=120, irf=gaussian_irf(3.0), ppp=10.0, sbr=1.0, rng=0).cube
+    t_pair = _3_null.data_tail(pair.counts, irf, np.zeros((1, 120), np.float32))
+    assert np.all(t_pair[5:10] < 0.01), t_pair
+
+
+def test_detect_fine_split_leaves_a_tail_the_irf_lacks(monkeypatch):
+    # end to end, SPLIT_Z = 3: returns with a tail the IRF lacks; with the rule of the
+    # IRF alone the split takes their tail for a second return in 7 % of the pixels,
+    # with the data's tail in 3 % (measured 0.030 / 0.071); two such returns 4 FWHM
+    # apart are both found in nearly every pixel (measured 1.0)
+    from splidar.detection import _3_null, _detect
+
+    monkeypatch.setattr(_4_map, "SPLIT_Z", 3.0)
+    monkeypatch.setattr(_detect, "SPLIT_Z", 3.0)
+    n = 24
+
+    def twice(cube):
+        p = detect(cube, rng=0).points
+        return np.mean(np.bincount(p.row * n + p.col, minlength=n * n) > 1)
+
+    one = _tailed_cube(n, 160, None, 40.0, np.random.default_rng(2))
+    two = _tailed_cube(n, 160, 12, 40.0, np.random.default_rng(2))
+    data, both = twice(one), twice(two)
+    monkeypatch.setattr(_3_null, "data_tail", lambda *a, **k: np.zeros(0))
+    irf_only = twice(one)
+    assert data < 0.045 and irf_only > 1.8 * data and both > 0.95, (data, irf_only, both)
 
 
 def _plane_with(extra):

@@ -21,11 +21,17 @@ from scipy import stats
 
 from ._2_saliency import SaliencyFilters, block_saliency
 from ._fast import poisson_background
-from ._kernels import find_segments
+from ._kernels import find_segments, fine_response
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import NullModel
 
-__all__ = ["NullCalibration", "calibrate_null", "evidence"]
+__all__ = ["NullCalibration", "calibrate_null", "data_tail", "evidence", "split_rule"]
+
+# the fine response of the null's patches comes precomputed (find_segments's ``fine``)
+_NO_C = np.empty((0, 0, 0, 0), np.float32)
+_NO_SP = np.empty((0, 0, 0), np.float32)
+_NO_DEV = np.empty((0, 0), np.float32)
+_NO_Y = np.empty((0, 0, 0, 0), np.uint16)
 
 
 @dataclass(frozen=True)
@@ -43,6 +49,10 @@ class NullCalibration:
         The paper's gamma threshold at ``pfa``.
     evidence_threshold : float
         A candidate is kept when its evidence exceeds this (``surface_pfa``).
+    split : tuple, optional
+        The fine split's rule the null's candidates were split with
+        (:func:`split_rule`, its tail taken from the data by :func:`data_tail`); the
+        map pass splits with the same. ``None``: the rule of the IRF alone.
     """
 
     model: NullModel
@@ -50,6 +60,7 @@ class NullCalibration:
     thresholds: np.ndarray
     gamma_threshold: float
     evidence_threshold: float
+    split: tuple | None = None
 
     def threshold_at(self, level):
         """The voxel threshold (float32) at a summed background level."""
@@ -85,15 +96,18 @@ class _FixedSeed:
 
 
 def _null_samples(
-    counts, ctx: SaliencyFilters, n_target: int, rng, *, patch: int = 32, max_patches=400
-):
+    counts, ctx: SaliencyFilters, n_target: int, rng, *, patch: int = 32, max_patches=400,
+    fine: bool = False,
+):  # fmt: skip
     """Saliency of background-only cubes drawn from the estimated background.
 
     Random patches of the image: the background level is estimated from the data around
     each (exactly as in the main pass), a Poisson cube of ``bhat`` is drawn and its
     saliency computed with the same filters; the patch interior (at least ``h`` pixels
-    from any cut) is kept. Returns null saliency, its level, and the data's saliency on
-    the same patches (for the gamma fit).
+    from any cut) is kept. Returns null saliency, its level, its signed response, the
+    data's saliency on the same patches (for the gamma fit), and with ``fine`` each
+    patch's own-pixel fine response, photons and background
+    (:func:`~splidar.detection._kernels.fine_response`; empty arrays without).
 
     The patches and their seeds are drawn first, in order, from ``rng``; the patches are
     then computed on ``ctx.workers`` threads (one patch per thread), so the result does
@@ -133,11 +147,19 @@ def _null_samples(
         sp, real = windows[(r0, r1, c0, c1)]
         # Poisson cube of bhat (eq:background_3), drawn in numba (seeded from rng)
         ysim = poisson_background(sp, ctx.dev, _FixedSeed(seed))
-        _, sal, d, _, level = block_saliency(ysim, wctx, spatial=sp)
+        c, sal, d, _, level = block_saliency(ysim, wctx, spatial=sp)
         i0, j0 = r0 - max(0, r0 - h), c0 - max(0, c0 - h)
         sl = (slice(i0, i0 + r1 - r0), slice(j0, j0 + c1 - c0))
-        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real
+        # the own pixel's fine response, photons and background (the map pass's second
+        # split), when it splits
+        shp = (r1 - r0, c1 - c0, T) if fine else (0, 0, 0)
+        f_n_mu = tuple(np.empty(shp, np.float32) for _ in range(3))
+        if fine:
+            fine_response(c[sl], ysim[sl], sp[sl], dev, win, *f_n_mu)
+        return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, f_n_mu
 
+    dev = np.ascontiguousarray(ctx.dev, np.float32)
+    win = split_rule(ctx.corr.irf, 0.0)[3] if fine else None
     keys = list(dict.fromkeys(p[:4] for p in plan))
     n_par = max(1, min(int(ctx.workers), len(plan)))
     # one patch per thread when there are several; threads inside a single patch
@@ -152,7 +174,182 @@ def _null_samples(
     s_sim = [r[0] for r in res]
     lev = [r[1] for r in res]
     d_sim = [r[2] for r in res]
-    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res])
+    f_n_mu = [r[4] for r in res]
+    return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), f_n_mu
+
+
+def split_rule(irf: np.ndarray, z: float, data: np.ndarray | None = None) -> tuple:
+    """The fine split's settings for :func:`~splidar.detection._kernels.find_segments`.
+
+    Parameters
+    ----------
+    irf : ndarray (L, n_irf)
+        Normalised IRF.
+    z : float
+        The Poisson z a second return's photons need beside the first (0: no split).
+    data : ndarray (m,), optional
+        The same fraction measured on the data's own returns (:func:`data_tail`):
+        ``tail`` is the larger of the IRF's and this at each offset (and as long as
+        the longer), so a real return's tail heavier than the IRF's is not taken for a
+        second return, and nothing changes where the IRF is right.
+
+    Returns
+    -------
+    (z, tail, gmin, win) : (float, ndarray (n_irf,), float, ndarray (L, 2) int64)
+        ``win[l]``: offsets from a response's bin to the first and last bin where the
+        IRF of a return peaking there is above half its peak (the half-peak window);
+        ``tail[k]``: the fraction of one return's photons in the half-peak window of a
+        bin ``k`` bins from its peak (the largest over the wavelengths and both sides);
+        ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response).
+    """
+    g = np.asarray(irf, np.float64)
+    L, n = g.shape
+    win = np.zeros((L, 2), np.int64)
+    tail = np.zeros(n)
+    for l in range(L):
+        p = int(np.argmax(g[l]))
+        above = np.flatnonzero(g[l] >= 0.5 * g[l, p])
+        lo, hi = int(above[0]) - p, int(above[-1]) - p
+        win[l] = lo, hi
+        # a return peaking at 0: its photon at bin u has probability g[p + u]
+        for k in range(n):
+            for sgn in (1, -1):
+                idx = p + sgn * k + np.arange(lo, hi + 1)
+                ok = (idx >= 0) & (idx < n)
+                tail[k] = max(tail[k], float(g[l, idx[ok]].sum()))
+    if data is not None and data.size:
+        m = max(n, data.size)
+        both = np.zeros((2, m))
+        both[0, :n], both[1, : data.size] = tail, data
+        tail = both.max(axis=0)
+    return float(z), tail, float((g * g).sum(axis=1).min()), win
+
+
+def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_000_000):
+    """The fraction of one real return's photons in the half-peak window ``k`` bins
+    from its peak, measured on the data (the fine split's ``tail``, :func:`split_rule`).
+
+    The pixels of a regular sub-grid (at most ``max_voxels`` voxels read) are aligned at
+    their own matched-filter peak; those whose peak is a bright return (the photons of
+    its half-peak window above the background by a Poisson z of ``sqrt(25 + 2 ln T)``)
+    are pooled: their background-subtracted photons in the half-peak window ``k`` bins
+    before and after the peak, over their summed matched-filter peak response divided
+    by ``sum g^2`` (the photons :func:`~splidar.detection._kernels._fine_split` gives a
+    return), the larger side. Made non-increasing in ``k`` (a running minimum), so that
+    second returns at a common distance (a scene of close pairs) do not raise it past
+    the dip before them. Background: each pixel's median matched-filtered level plus
+    the temporal shape ``dev``.
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+    irf : ndarray (L, n_irf)
+        Normalised IRF.
+    dev : ndarray (L, T)
+        The background's temporal shape (stage 1).
+    max_voxels : int
+        Voxels read at most.
+
+    Returns
+    -------
+    ndarray (m,) float64
+        ``m = n_irf + 4 x`` the half-peak width; empty when fewer than 20 pixels qualify.
+    """
+    from scipy.ndimage import correlate1d
+
+    g = np.asarray(irf, np.float64)
+    R, C, L, T = counts.shape
+    n = g.shape[1]
+    _, _, gmin, win = split_rule(g, 0.0)
+    fw = int((win[:, 1] - win[:, 0]).max()) + 1
+    m = n + 4 * fw
+    lo_u, hi_u = -m + int(win[:, 0].min()), m + int(win[:, 1].max())
+    s = max(1, int(np.ceil(np.sqrt(R * C * L * T / max_voxels))))
+    y = np.asarray(counts[::s, ::s], np.float32).reshape(-1, L, T)
+    if y.shape[0] < 20:
+        return np.zeros(0)
+    c = np.empty_like(y)
+    pk = np.argmax(g, axis=1)
+    for l in range(L):
+        # c[t] = sum_u y[t + u - pk] g[u]: a return peaking at t
+        c[:, l] = correlate1d(y[:, l], g[l].astype(np.float32), axis=-1, mode="constant",
+                              origin=int(pk[l]) - n // 2)  # fmt: skip
+    dv = np.asarray(dev, np.float32)
+    lvl = np.median(c, axis=-1) - np.median(dv, axis=-1)[None]
+    f = (c - np.maximum(lvl[:, :, None] + dv[None], 0.0)).sum(axis=1)
+    t0 = np.argmax(f, axis=1)
+    ok = (t0 + lo_u >= 0) & (t0 + hi_u < T)
+    idx = np.flatnonzero(ok)
+    u = np.arange(lo_u, hi_u + 1)
+    if idx.size < 20 or T - u.size < 16:
+        return np.zeros(0)
+    y, c, t0 = y[idx], c[idx], t0[idx]
+    tt = np.broadcast_to((t0[:, None] + u[None])[:, None, :], (idx.size, L, u.size))
+    ya = np.take_along_axis(y, tt, axis=-1)  # (P, L, U): aligned at the peak
+    # each pixel's background level: its mean outside the aligned bins (the median of
+    # a few counts a bin falls below their mean)
+    dva = dv[:, u[None, :] + t0[:, None]].transpose(1, 0, 2)
+    lvl = ((y - dv[None]).sum(axis=-1, dtype=np.float64) - (ya - dva).sum(axis=-1)) / (T - u.size)
+    b = np.maximum(lvl[:, :, None] + dva, 0.0)
+    i0 = -lo_u
+    cb = np.maximum(lvl + dv[:, t0].T, 0.0)  # (P, L) background at the peak
+    f = (c[np.arange(t0.size), :, t0] - cb).sum(axis=1)
+    # the half-peak window at the peak: a bright return (z against the T places)
+    nw = np.zeros(t0.size)
+    mw = np.zeros(t0.size)
+    for l in range(L):
+        sl = slice(int(win[l, 0]) + i0, int(win[l, 1]) + i0 + 1)
+        nw += ya[:, l, sl].sum(axis=-1)
+        mw += b[:, l, sl].sum(axis=-1)
+    mw = np.maximum(mw, 1e-12)
+    dvs = 2.0 * (nw * np.log(np.maximum(nw, 1e-300) / mw) - (nw - mw))
+    bright = (nw > mw) & (np.sqrt(np.maximum(dvs, 0.0)) >= np.sqrt(25.0 + 2.0 * np.log(T)))
+    if bright.sum() < 20:
+        return np.zeros(0)
+    return _pooled_tail(ya[bright], b[bright], f[bright].sum(dtype=np.float64) / gmin, win, i0, m)
+
+
+def _windows(a, win, i0, m):
+    """(P, m, 2): ``a`` (P, L, U) summed over L and the half-peak window ``k`` bins
+    after / before the bin ``i0``, ``k < m``."""
+    P, L, _ = a.shape
+    cs = np.concatenate([np.zeros((P, L, 1)), np.cumsum(a, axis=-1, dtype=np.float64)], axis=-1)
+    out = np.zeros((P, m, 2))
+    k = np.arange(m)
+    for l in range(L):
+        for side, sgn in enumerate((1, -1)):
+            lo = i0 + sgn * k + int(win[l, 0])
+            hi = i0 + sgn * k + int(win[l, 1]) + 1
+            out[:, :, side] += cs[:, l, hi] - cs[:, l, lo]
+    return out
+
+
+def _pooled_tail(ya, b, photons, win, i0, m):
+    """The pooled tail fraction (:func:`data_tail`) of aligned counts ``ya`` (P, L, U)
+    over the background ``b``, ``photons`` the pixels' summed return photons."""
+    if ya.shape[0] < 20 or photons <= 0:
+        return np.zeros(0)
+    var = ya.sum(axis=0, dtype=np.float64)  # (L, U) Poisson variance of the pooled counts
+    res = var - b.sum(axis=0, dtype=np.float64)
+    z_rise = np.sqrt(9.0 + 2.0 * np.log(res.shape[1]))
+    for l in range(res.shape[0]):
+        for sl in (slice(i0, None), slice(i0, None, -1)):
+            # non-increasing away from the peak, bin by bin; where the pool rises again
+            # significantly (a second return at a common distance, not a tail) the
+            # tail ends at the dip before it
+            v, w = res[l, sl], var[l, sl]
+            out = np.maximum(v, 0.0)
+            jmin = 0
+            for j in range(1, v.size):
+                if out[j] <= out[jmin]:
+                    jmin = j
+                elif v[j] - v[jmin] > z_rise * np.sqrt(w[j] + w[jmin]):
+                    out[jmin:] = 0.0
+                    break
+                out[j] = out[jmin]
+            res[l, sl] = out
+    out = _windows(res[None], win, i0, m)[0].max(axis=1)
+    return np.minimum.accumulate(np.maximum(out / photons, 0.0))
 
 
 def evidence(sal, thr):
@@ -172,7 +369,7 @@ def calibrate_null(
     surface_pfa: float,
     null: str,
     min_separation: int,
-    split_ratio: float,
+    split: tuple,
     rng: np.random.Generator,
     n_jobs: int,
 ) -> NullCalibration:
@@ -186,8 +383,10 @@ def calibrate_null(
     pfa, surface_pfa : float
         False alarms per voxel; false surfaces per background-only pixel.
     null : {"empirical", "gamma"}
-    min_separation, split_ratio
-        How runs of the map split into candidates (as in the map pass).
+    min_separation : int
+    split : (float, float)
+        ``(split_ratio, split_z)``: how runs of the map split into candidates (as in the
+        map pass: ``SPLIT_RATIO``, ``SPLIT_Z``).
     rng : Generator
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
     n_jobs : int
@@ -196,7 +395,10 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    p_sim, p_lev, p_d, s_real = _null_samples(counts, null_ctx, n_target, rng)
+    split_ratio, split_z = split
+    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
+        counts, null_ctx, n_target, rng, fine=split_z > 0
+    )
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
@@ -218,18 +420,24 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    for a, lv, dd in zip(p_sim, p_lev, p_d, strict=True):
+    # the first return's tail as the data's returns carry it (not only the IRF's)
+    tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
+    rule = split_rule(filters.corr.irf, split_z, tail)
+    # (split as the map pass splits: at d's deep dips, then at the own pixel's)
+    for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)
+        fine = (_NO_C, _NO_Y, 0, 0, _NO_SP, _NO_DEV, f, n, mu)
         ev_null.append(
             find_segments(
-                (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio
+                (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio,
+                fine, rule,
             )[-1]
-        )
+        )  # fmt: skip
     ev_null = np.sort(np.concatenate(ev_null))[::-1]
     n_null_px = sum(a.shape[0] * a.shape[1] for a in p_sim)
     n_allowed = int(np.floor(surface_pfa * n_null_px))
     ev_thr = float(ev_null[n_allowed]) if n_allowed < ev_null.size else 0.0
-    del p_sim, p_lev, p_d
+    del p_sim, p_lev, p_d, p_fine
     model = NullModel(
         shape=float(a_fit),
         scale=float(sc_fit),
@@ -252,4 +460,4 @@ def calibrate_null(
             }
         ),
     )
-    return NullCalibration(model, xs, ys, thr_gamma, ev_thr)
+    return NullCalibration(model, xs, ys, thr_gamma, ev_thr, rule)

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
-from ._3_null import NullCalibration
+from ._3_null import NullCalibration, split_rule
 from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
@@ -43,6 +43,18 @@ PRESENCE_SECONDARY = 0.0
 #: A run of the map is split between two peaks when the response dips below this
 #: fraction of the smaller peak between them (half: two resolved returns).
 SPLIT_RATIO = 0.5
+#: A segment of that response can be split again where the own pixel's matched-filter
+#: response (the finest scale, whose dip the coarse boxes do not fill) has a second peak
+#: at least ``min_separation`` from a stronger one and the pixel's photons in its
+#: half-peak window exceed what the background and the stronger return's tail bring
+#: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched); the
+#: null's candidates are then split the same way (``_kernels._fine_split``). The tail:
+#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0):
+#: with 3, two returns 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.861 and
+#: the face and 21 km data keep their counts (+0.02 %), but the tower gains 3.1 %
+#: surfaces, second ones 1-4 FWHM behind, barely more coherent across pixels than
+#: chance. Measured: benchmarks/README.md (branches close19, close19b).
+SPLIT_Z = 0.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -61,6 +73,8 @@ _BY_SLOT = ("histograms", "signal", "own_counts", "own_background")
 #: Half-width, in standard errors, of the ICI depth intervals (``refine``): 2 keeps a
 #: true depth inside its interval 95 % of the time.
 ICI_GAMMA = 2.0
+#: Placeholder for the fine response's precomputed arrays (read from ``c_ext`` here).
+_NO_FINE = np.empty((0, 0, 0), np.float32)
 
 
 @dataclass(frozen=True)
@@ -397,8 +411,12 @@ def _block(
     # a surface is a positive excursion: voxels of M where the response is below the
     # background (|.| of eq:4.s1) are kept in M but start no candidate
     # block rows and own columns (from r0, c0)
+    # the own pixel's fine response is read from the correlated rows (block row i at
+    # c_ext row i0 + i, own column j at j0 + j)
+    dev = np.ascontiguousarray(ctx.dev, np.float32)
+    fine = (c_ext, y, i0, j0, sp, dev, _NO_FINE, _NO_FINE, _NO_FINE)
     rows, cols, start, stop, peak, mass, ev = find_segments(
-        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"]
+        cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"], fine, opts["split"]
     )
     del cand, ev_vox, d
     n_cand = int(rows.size)
@@ -700,6 +718,8 @@ def map_plan(
         store_boxes=store_boxes,
         min_separation=options.min_separation,
         split_ratio=options.split_ratio,
+        # the null's rule (its tail from the data), else the IRF's
+        split=null.split if null.split is not None else split_rule(filters.corr.irf, SPLIT_Z),
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,

@@ -30,6 +30,7 @@ from ._4_map import (
     PRESENCE_Z,
     REFINE,
     SPLIT_RATIO,
+    SPLIT_Z,
     MapOptions,
     map_candidates,
 )
@@ -274,7 +275,7 @@ def detect(
     t0 = time.perf_counter()
     nul = calibrate_null(  # 3
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
-        min_separation=o["min_separation"], split_ratio=SPLIT_RATIO, rng=rng, n_jobs=n_jobs,
+        min_separation=o["min_separation"], split=(SPLIT_RATIO, SPLIT_Z), rng=rng, n_jobs=n_jobs,
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -524,6 +525,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             presence_secondary=PRESENCE_SECONDARY,
             min_separation=o["min_separation"],
             split_ratio=SPLIT_RATIO,
+            split_z=SPLIT_Z,
             refine=REFINE,
             block_rows=mp.block_rows,
             n_jobs=o["n_jobs"],

@@ -167,8 +167,140 @@ def _segments_of_run(d, s, e, a, b, min_sep, rho, seg_start, seg_stop, seg_peak,
     return na
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _fine_at(c, y, sp, dev, win, t):
+    """The own pixel's fine response at bin ``t``: ``(f, n, mu_b)``.
+
+    ``f = sum_l c_l(t) - bhat_l(t)``: the matched-filter response minus background
+    (``c`` (L, T) the pixel's correlated counts ``Y (*) g``, ``g`` summing to 1); ``n``:
+    the pixel's photons ``y`` (L, T) in the window of a return peaking at ``t`` (bins
+    ``t + win[l, 0]`` to ``t + win[l, 1]``: where the IRF is above half its peak);
+    ``mu_b``: the background ``bhat`` expects there.
+    """
+    L, T = c.shape
+    f = 0.0
+    n = 0.0
+    mu = 0.0
+    for l in range(L):
+        b = sp[l] + dev[l, t]
+        if b < 0:
+            b = np.float32(0.0)
+        f += np.float64(c[l, t]) - np.float64(b)
+        for u in range(max(t + win[l, 0], 0), min(t + win[l, 1] + 1, T)):
+            n += np.float64(y[l, u])
+            bu = sp[l] + dev[l, u]
+            if bu > 0:
+                mu += np.float64(bu)
+    return f, n, mu
+
+
 @njit(cache=True, nogil=True)
-def find_segments(mask, d, s, e, min_sep, rho):
+def fine_response(c, y, sp, dev, win, f, n, mu):
+    """:func:`_fine_at` of every voxel: ``f``, ``n``, ``mu`` (r, C, T) float32 written.
+
+    ``c`` (r, C, L, T) correlated counts, ``y`` (r, C, L, T) counts, ``sp`` (r, C, L)
+    background level, ``dev`` (L, T), ``win`` (L, 2) the half-peak window's offsets.
+    """
+    R, C, L, T = c.shape
+    for i in range(R):
+        for j in range(C):
+            for t in range(T):
+                a, b, m = _fine_at(c[i, j], y[i, j], sp[i, j], dev, win, t)
+                f[i, j, t] = np.float32(a)
+                n[i, j, t] = np.float32(b)
+                mu[i, j, t] = np.float32(m)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _poisson_z(n, mu):
+    """Signed root of the Poisson deviance of ``n`` counts against mean ``mu``: about
+    the normal z of the upper tail ``P(X >= n)``, also for a few counts."""
+    mu = max(mu, 1e-12)
+    if n <= mu:
+        return -1.0
+    dev = 2.0 * (n * np.log(n / mu) - (n - mu))
+    return np.sqrt(max(dev, 0.0))
+
+
+@njit(cache=True, nogil=True)
+def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
+    """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
+    are separate returns.
+
+    Interior local maxima of ``fr``, strongest first, are accepted when at least
+    ``min_sep`` bins from every accepted (stronger) peak ``p`` and when the pixel's
+    photons in the half-peak window at ``q``, ``nr[q]``, exceed what the background
+    (``mr[q]``) and the return at ``p`` bring there by ``sqrt(z^2 + 2 ln n)``
+    (:func:`_poisson_z`; ``n`` the segment's bins, the places a second return was
+    looked for: ``z`` against the largest of ``n`` background values): the
+    return at ``p`` holds ``fr[p] / gmin`` photons (``gmin``: the smallest ``sum g^2``),
+    a fraction ``tail[k]`` of them in the window ``k = |q - p|`` bins away. Writes the
+    accepted peaks in increasing order into ``peaks`` and the cuts (the response's
+    minimum between two consecutive peaks) into ``cuts``; returns their number (1: not
+    split).
+    """
+    n = en - st
+    if n < 3 or z <= 0:
+        return 1
+    cand = np.empty(n, np.int64)
+    nc = 0
+    for t in range(st + 1, en - 1):
+        if fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]:
+            cand[nc] = t
+            nc += 1
+    if nc < 2:
+        return 1
+    # the largest of the segment's bins: z against the max of that many tested places
+    # (as _window_centre)
+    z_need = np.sqrt(z * z + 2.0 * np.log(n))
+    vals = np.empty(nc)
+    for i in range(nc):
+        vals[i] = -fr[cand[i]]
+    order = np.argsort(vals)
+    acc = np.empty(nc, np.int64)
+    na = 0
+    for oi in range(nc):
+        q = cand[order[oi]]
+        ok = True
+        for j in range(na):
+            p = acc[j]
+            k = abs(p - q)
+            if k < min_sep:
+                ok = False
+                break
+            spill = tail[k] * max(fr[p], 0.0) / gmin if k < tail.size else 0.0
+            if _poisson_z(nr[q], mr[q] + spill) < z_need:
+                ok = False
+                break
+        if ok:
+            acc[na] = q
+            na += 1
+    if na < 2:
+        return 1
+    pk = np.sort(acc[:na])
+    for i in range(na):
+        peaks[i] = pk[i]
+    for i in range(na - 1):
+        m = pk[i]
+        for t in range(pk[i], pk[i + 1] + 1):
+            if fr[t] < fr[m]:
+                m = t
+        cuts[i] = m
+    return na
+
+
+@njit(cache=True, nogil=True)
+def _segment_sums(s, e, a, b):
+    m = 0.0
+    ev = 0.0
+    for t in range(a, b):
+        m += s[t]
+        ev += e[t]
+    return m, ev
+
+
+@njit(cache=True, nogil=True)
+def find_segments(mask, d, s, e, min_sep, rho, fine, split):
     """Candidate surfaces: runs of ``mask`` along t, split between resolved peaks.
 
     Parameters
@@ -184,13 +316,26 @@ def find_segments(mask, d, s, e, min_sep, rho):
     min_sep : int
         Peaks closer than this (bins) are one surface.
     rho : float
-        Two peaks are two surfaces only if ``d`` dips below ``rho`` times the smaller
-        peak between them.
+        Two peaks are two surfaces if ``d`` dips below ``rho`` times the smaller peak
+        between them.
+    fine : tuple
+        ``(c, y, row0, col0, sp, dev, f, n, mu)``: the own pixel's fine response, read
+        by :func:`_fine_at` from the correlated counts ``c`` and counts ``y`` (pixel
+        ``(i, j)`` at ``[row0 + i, col0 + j]``, background ``sp[i, j]``, ``dev``), or
+        taken from ``f``, ``n`` and ``mu`` (r, c, T) float32 when ``c`` is empty (the
+        null's patches; the values read from ``c`` are rounded to float32 alike).
+    split : tuple
+        ``(z, tail, gmin, win)`` (:func:`~splidar.detection._3_null.split_rule`): a
+        segment of ``d`` is split further where the own pixel's photons show a second
+        return of ``z`` beside the first (:func:`_fine_split`); ``z = 0``: never.
 
     Returns
     -------
     row, col, start, stop, peak : int64 arrays; mass, evidence : float64 arrays
     """
+    c, y, row0, col0, sp, dev, f_in, n_in, mu_in = fine
+    split_z, tail, gmin, win = split
+    from_c = c.shape[0] > 0
     R, C, T = mask.shape
     nmax = 0  # runs of the mask along t
     total = 0  # voxels of the mask
@@ -201,8 +346,9 @@ def find_segments(mask, d, s, e, min_sep, rho):
                     total += 1
                     if t == 0 or not mask[i, j, t - 1]:
                         nmax += 1
-    # each run gives at most ceil(len / min_sep) + 1 segments; bound generously
-    cap = min(total, nmax * (T // max(min_sep, 1) + 1)) + 1
+    # each segment holds a voxel of the mask; the resolved peaks of a run are min_sep
+    # apart in d and again within each of d's segments: bound generously
+    cap = min(total, nmax * 2 * (T // max(min_sep, 1) + 1)) + 1
     o_row = np.empty(cap, np.int64)
     o_col = np.empty(cap, np.int64)
     o_start = np.empty(cap, np.int64)
@@ -215,6 +361,11 @@ def find_segments(mask, d, s, e, min_sep, rho):
     seg_peak = np.empty(T, np.int64)
     seg_mass = np.empty(T, np.float64)
     seg_ev = np.empty(T, np.float64)
+    fr = np.zeros(T)
+    nr = np.zeros(T)
+    mr = np.zeros(T)
+    f_peaks = np.empty(T, np.int64)
+    f_cuts = np.empty(T, np.int64)
     k = 0
     for i in range(R):
         for j in range(C):
@@ -241,15 +392,53 @@ def find_segments(mask, d, s, e, min_sep, rho):
                     seg_mass,
                     seg_ev,
                 )
+                if split_z > 0 and b - a >= 3:
+                    for u in range(a, b):
+                        if from_c:
+                            ii, jj = row0 + i, col0 + j
+                            fa, na, ma = _fine_at(c[ii, jj], y[ii, jj], sp[i, j], dev, win, u)
+                            # rounded as the null's stored float32 values (same tests)
+                            fr[u] = np.float32(fa)
+                            nr[u] = np.float32(na)
+                            mr[u] = np.float32(ma)
+                        else:
+                            fr[u] = f_in[i, j, u]
+                            nr[u] = n_in[i, j, u]
+                            mr[u] = mu_in[i, j, u]
                 for u in range(ns):
-                    o_row[k] = i
-                    o_col[k] = j
-                    o_start[k] = seg_start[u]
-                    o_stop[k] = seg_stop[u]
-                    o_peak[k] = seg_peak[u]
-                    o_mass[k] = seg_mass[u]
-                    o_ev[k] = seg_ev[u]
-                    k += 1
+                    nf = 1
+                    if split_z > 0:
+                        nf = _fine_split(
+                            fr, nr, mr, seg_start[u], seg_stop[u], min_sep, split_z, tail, gmin,
+                            f_peaks, f_cuts,
+                        )  # fmt: skip
+                    if nf == 1:
+                        o_row[k] = i
+                        o_col[k] = j
+                        o_start[k] = seg_start[u]
+                        o_stop[k] = seg_stop[u]
+                        o_peak[k] = seg_peak[u]
+                        o_mass[k] = seg_mass[u]
+                        o_ev[k] = seg_ev[u]
+                        k += 1
+                        continue
+                    # d's segment split at the fine response's dips, each part about
+                    # the fine response's peak (d's, the coarse blend of both, lies
+                    # between them)
+                    lo = seg_start[u]
+                    for w in range(nf):
+                        hi = f_cuts[w] if w < nf - 1 else seg_stop[u]
+                        pk = f_peaks[w]
+                        m, ev = _segment_sums(s[i, j], e[i, j], lo, hi)
+                        o_row[k] = i
+                        o_col[k] = j
+                        o_start[k] = lo
+                        o_stop[k] = hi
+                        o_peak[k] = pk
+                        o_mass[k] = m
+                        o_ev[k] = ev
+                        k += 1
+                        lo = hi
     return o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k]
 
 
