@@ -55,6 +55,11 @@ SPLIT_RATIO = 0.5
 #: surfaces, second ones 1-4 FWHM behind, barely more coherent across pixels than
 #: chance. Measured: benchmarks/README.md (branches close19, close19b).
 SPLIT_Z = 0.0
+#: The fine split looks for a second return only within this many FWHMs of a stronger
+#: one (0: anywhere in the segment); ``SPLIT_N_LOCAL``: its look-elsewhere term counts
+#: those bins only.
+SPLIT_REACH = 0.0
+SPLIT_N_LOCAL = False
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -719,7 +724,9 @@ def map_plan(
         min_separation=options.min_separation,
         split_ratio=options.split_ratio,
         # the null's rule (its tail from the data), else the IRF's
-        split=null.split if null.split is not None else split_rule(filters.corr.irf, SPLIT_Z),
+        split=null.split
+        if null.split is not None
+        else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_N_LOCAL),
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,

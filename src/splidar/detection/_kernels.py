@@ -223,7 +223,7 @@ def _poisson_z(n, mu):
 
 
 @njit(cache=True, nogil=True)
-def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
+def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, n_local, peaks, cuts):
     """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
     are separate returns.
 
@@ -250,19 +250,35 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, peaks, cuts):
             nc += 1
     if nc < 2:
         return 1
-    # the largest of the segment's bins: z against the max of that many tested places
-    # (as _window_centre)
-    z_need = np.sqrt(z * z + 2.0 * np.log(n))
     vals = np.empty(nc)
     for i in range(nc):
         vals[i] = -fr[cand[i]]
     order = np.argsort(vals)
+    if reach > 0 and n_local:
+        # the places looked at: the segment's bins within reach of its strongest peak
+        p0 = cand[order[0]]
+        n = 0
+        for t in range(st, en):
+            if min_sep <= abs(t - p0) <= reach:
+                n += 1
+        n = max(n, 1)
+    # the largest of the places looked at: z against the max of that many tested
+    # places (as _window_centre)
+    z_need = np.sqrt(z * z + 2.0 * np.log(n))
     acc = np.empty(nc, np.int64)
     na = 0
     for oi in range(nc):
         q = cand[order[oi]]
         ok = True
-        for j in range(na):
+        if reach > 0 and na > 0:
+            # a second return only where the coarse scales merge it with a stronger
+            # one: within ``reach`` of an accepted peak
+            near = False
+            for j in range(na):
+                if abs(acc[j] - q) <= reach:
+                    near = True
+            ok = near
+        for j in range(na if ok else 0):
             p = acc[j]
             k = abs(p - q)
             if k < min_sep:
@@ -334,7 +350,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
     row, col, start, stop, peak : int64 arrays; mass, evidence : float64 arrays
     """
     c, y, row0, col0, sp, dev, f_in, n_in, mu_in = fine
-    split_z, tail, gmin, win = split
+    split_z, tail, gmin, win, reach, n_local = split
     from_c = c.shape[0] > 0
     R, C, T = mask.shape
     nmax = 0  # runs of the mask along t
@@ -410,7 +426,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     if split_z > 0:
                         nf = _fine_split(
                             fr, nr, mr, seg_start[u], seg_stop[u], min_sep, split_z, tail, gmin,
-                            f_peaks, f_cuts,
+                            reach, n_local, f_peaks, f_cuts,
                         )  # fmt: skip
                     if nf == 1:
                         o_row[k] = i
