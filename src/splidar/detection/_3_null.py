@@ -443,7 +443,7 @@ def calibrate_null(
             find_segments(
                 (a > thr) & (dd > 0), dd, a, evidence(a, thr), min_separation, split_ratio,
                 fine, rule,
-            )[-1]
+            )[6]
         )  # fmt: skip
     ev_null = np.sort(np.concatenate(ev_null))[::-1]
     n_null_px = sum(a.shape[0] * a.shape[1] for a in p_sim)

@@ -60,6 +60,10 @@ SPLIT_Z = 0.0
 #: those bins only.
 SPLIT_REACH = 0.0
 SPLIT_N_LOCAL = False
+#: A return the fine split added is kept only where a 4-neighbour pixel has a kept
+#: candidate within one FWHM of its depth (the map pass only: the null counts every
+#: split part, so its false-alarm rate is an upper bound).
+SPLIT_COHERENT = False
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -420,7 +424,7 @@ def _block(
     # c_ext row i0 + i, own column j at j0 + j)
     dev = np.ascontiguousarray(ctx.dev, np.float32)
     fine = (c_ext, y, i0, j0, sp, dev, _NO_FINE, _NO_FINE, _NO_FINE)
-    rows, cols, start, stop, peak, mass, ev = find_segments(
+    rows, cols, start, stop, peak, mass, ev, added = find_segments(
         cand, d, sal, ev_vox, opts["min_separation"], opts["split_ratio"], fine, opts["split"]
     )
     del cand, ev_vox, d
@@ -428,14 +432,16 @@ def _block(
     # candidates whose evidence does not beat the simulated null are dropped before
     # the (costly) extraction: the evidence does not depend on it
     pre = np.flatnonzero(ev > opts["evidence_threshold"])
-    rows, cols, start, stop, peak, mass, ev = (
-        a[pre] for a in (rows, cols, start, stop, peak, mass, ev)
+    rows, cols, start, stop, peak, mass, ev, added = (
+        a[pre] for a in (rows, cols, start, stop, peak, mass, ev, added)
     )
     surf, keep = _extract(
         y, c_ext, box, e0, r0, ce0, c0, rows, cols + c0, start, stop, peak, mass, sp, ctx, opts
     )
     del box
     surf["evidence"] = ev
+    if opts["split_coherent"]:
+        surf["_fine_added"] = added
     if opts["presence"] in ("auto", "adaptive") and keep.any():
         # a pixel's strongest candidate is supported by the scene's continuity; any
         # further one is an extra claim on the pixel and needs its own counts to favour
@@ -682,7 +688,7 @@ def _threshold(spatial, dev, table, null: NullCalibration, out, store):
     return ThresholdField(spatial, dev, table[0], table[1])
 
 
-def _table(outs, image_shape) -> CandidateTable:
+def _table(outs, image_shape, coherent_within: float = 0.0) -> CandidateTable:
     keys = list(outs[0].surf.keys())
     # column by column, the blocks' parts released once joined (the calling process
     # holds one column twice at most, not the whole table)
@@ -694,6 +700,16 @@ def _table(outs, image_shape) -> CandidateTable:
         keep = surf.pop("presence_ok").astype(bool)
     else:
         keep = np.ones(surf["row"].size, bool)
+    if "_fine_added" in surf:
+        # a return the fine split added stays only beside a 4-neighbour's kept
+        # candidate within ``coherent_within`` bins of its depth (whole-image, so
+        # the same whatever the blocks)
+        added = surf.pop("_fine_added").astype(bool)
+        lone = added & ~_coherent(surf, keep, image_shape, added, coherent_within)
+        if lone.any():
+            ok = ~lone
+            surf = {k: v[ok] for k, v in surf.items()}
+            keep, hist_block, hist_row = keep[ok], hist_block[ok], hist_row[ok]
     # raster order (row, column, then depth), whatever the blocks or tiles: blocks of
     # whole rows give it as they are; 2D tiles of a band need their candidates merged
     order = np.lexsort((surf["start"], surf["col"], surf["row"]))
@@ -702,6 +718,37 @@ def _table(outs, image_shape) -> CandidateTable:
         keep, hist_block, hist_row = keep[order], hist_block[order], hist_row[order]
     origin = np.full(keep.size, stage_code("map"), np.int8)
     return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
+
+
+def _fwhm_bins(irf) -> float:
+    """The IRF's FWHM in bins (its widest half-peak window over the wavelengths)."""
+    g = np.asarray(irf, np.float64)
+    return float(max(np.count_nonzero(r >= 0.5 * r.max()) for r in g))
+
+
+def _coherent(surf, keep, image_shape, query, tol) -> np.ndarray:
+    """Whether each candidate flagged in ``query`` has a kept candidate within ``tol``
+    bins of its depth in a 4-neighbour pixel (bool, length of the table; False
+    elsewhere)."""
+    R, C = image_shape
+    row, col, dep = surf["row"], surf["col"], surf["depth_bin"]
+    k = (row * C + col)[keep]
+    dk = dep[keep]
+    order = np.lexsort((dk, k))
+    k, dk = k[order], dk[order]
+    out = np.zeros(row.size, bool)
+    q = np.flatnonzero(query)
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        rr, cc = row[q] + dr, col[q] + dc
+        inside = (rr >= 0) & (rr < R) & (cc >= 0) & (cc < C)
+        qi = q[inside]
+        kn = rr[inside] * C + cc[inside]
+        lo = np.searchsorted(k, kn, side="left")
+        hi = np.searchsorted(k, kn, side="right")
+        for a, b, i in zip(lo, hi, qi, strict=True):
+            if b > a and np.any(np.abs(dk[a:b] - dep[i]) <= tol):
+                out[i] = True
+    return out
 
 
 def map_plan(
@@ -727,6 +774,8 @@ def map_plan(
         split=null.split
         if null.split is not None
         else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_N_LOCAL),
+        # a return the fine split added needs a 4-neighbour's candidate within a FWHM
+        split_coherent=_fwhm_bins(filters.corr.irf) if SPLIT_COHERENT else 0.0,
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,
@@ -760,7 +809,7 @@ def assemble_map(outs, out, filters, null, store, shape, block_rows, opts) -> Ca
         n_voxels=n_vox,
         n_photons=n_kept,
     )
-    cands = _table(outs, (R, C))
+    cands = _table(outs, (R, C), opts["split_coherent"])
     hists = tuple(o.histograms for o in outs)
     for o in outs:
         o.histograms = None

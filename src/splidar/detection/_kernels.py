@@ -347,7 +347,9 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
 
     Returns
     -------
-    row, col, start, stop, peak : int64 arrays; mass, evidence : float64 arrays
+    row, col, start, stop, peak : int64 arrays; mass, evidence : float64 arrays;
+    added : bool array
+        ``added``: a part the fine split cut off a stronger return's segment.
     """
     c, y, row0, col0, sp, dev, f_in, n_in, mu_in = fine
     split_z, tail, gmin, win, reach, n_local = split
@@ -368,6 +370,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
     o_row = np.empty(cap, np.int64)
     o_col = np.empty(cap, np.int64)
     o_start = np.empty(cap, np.int64)
+    o_add = np.zeros(cap, np.bool_)
     o_stop = np.empty(cap, np.int64)
     o_peak = np.empty(cap, np.int64)
     o_mass = np.empty(cap, np.float64)
@@ -442,6 +445,10 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     # the fine response's peak (d's, the coarse blend of both, lies
                     # between them)
                     lo = seg_start[u]
+                    w0 = 0  # the strongest part: the rest are returns the split added
+                    for w in range(1, nf):
+                        if fr[f_peaks[w]] > fr[f_peaks[w0]]:
+                            w0 = w
                     for w in range(nf):
                         hi = f_cuts[w] if w < nf - 1 else seg_stop[u]
                         pk = f_peaks[w]
@@ -453,9 +460,13 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                         o_peak[k] = pk
                         o_mass[k] = m
                         o_ev[k] = ev
+                        o_add[k] = w != w0
                         k += 1
                         lo = hi
-    return o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k]
+    return (
+        o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k],
+        o_add[:k],
+    )  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
