@@ -38,7 +38,7 @@ def _set(settings: dict) -> None:
     for k, v in settings.items():
         name = KEYS[k]
         cur = getattr(_4_map, name)
-        val = type(cur)(float(v)) if not isinstance(cur, bool) else bool(int(v))
+        val = bool(int(v)) if isinstance(cur, bool) else type(cur)(float(v))
         for mod in (_4_map, _detect):
             if hasattr(mod, name):
                 setattr(mod, name, val)

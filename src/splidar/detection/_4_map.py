@@ -63,7 +63,7 @@ SPLIT_N_LOCAL = False
 #: A return the fine split added is kept only where a 4-neighbour pixel has a kept
 #: candidate within one FWHM of its depth (the map pass only: the null counts every
 #: split part, so its false-alarm rate is an upper bound).
-SPLIT_COHERENT = False
+SPLIT_COHERENT = 0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -440,7 +440,7 @@ def _block(
     )
     del box
     surf["evidence"] = ev
-    if opts["split_coherent"]:
+    if opts["split_coherent"][1]:
         surf["_fine_added"] = added
     if opts["presence"] in ("auto", "adaptive") and keep.any():
         # a pixel's strongest candidate is supported by the scene's continuity; any
@@ -688,7 +688,7 @@ def _threshold(spatial, dev, table, null: NullCalibration, out, store):
     return ThresholdField(spatial, dev, table[0], table[1])
 
 
-def _table(outs, image_shape, coherent_within: float = 0.0) -> CandidateTable:
+def _table(outs, image_shape, coherent=(0.0, 0)) -> CandidateTable:
     keys = list(outs[0].surf.keys())
     # column by column, the blocks' parts released once joined (the calling process
     # holds one column twice at most, not the whole table)
@@ -705,7 +705,7 @@ def _table(outs, image_shape, coherent_within: float = 0.0) -> CandidateTable:
         # candidate within ``coherent_within`` bins of its depth (whole-image, so
         # the same whatever the blocks)
         added = surf.pop("_fine_added").astype(bool)
-        lone = added & ~_coherent(surf, keep, image_shape, added, coherent_within)
+        lone = added & ~_coherent(surf, keep, image_shape, added, *coherent)
         if lone.any():
             ok = ~lone
             surf = {k: v[ok] for k, v in surf.items()}
@@ -726,7 +726,7 @@ def _fwhm_bins(irf) -> float:
     return float(max(np.count_nonzero(r >= 0.5 * r.max()) for r in g))
 
 
-def _coherent(surf, keep, image_shape, query, tol) -> np.ndarray:
+def _coherent(surf, keep, image_shape, query, tol, mode=1) -> np.ndarray:
     """Whether each candidate flagged in ``query`` has a kept candidate within ``tol``
     bins of its depth in a 4-neighbour pixel (bool, length of the table; False
     elsewhere)."""
@@ -747,7 +747,10 @@ def _coherent(surf, keep, image_shape, query, tol) -> np.ndarray:
         hi = np.searchsorted(k, kn, side="right")
         for a, b, i in zip(lo, hi, qi, strict=True):
             if b > a and np.any(np.abs(dk[a:b] - dep[i]) <= tol):
-                out[i] = True
+                # mode 2: the neighbour shows a pair too (another candidate a FWHM
+                # or more from the matching one)
+                if mode < 2 or (b - a >= 2 and np.ptp(dk[a:b]) >= tol):
+                    out[i] = True
     return out
 
 
@@ -775,7 +778,9 @@ def map_plan(
         if null.split is not None
         else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_N_LOCAL),
         # a return the fine split added needs a 4-neighbour's candidate within a FWHM
-        split_coherent=_fwhm_bins(filters.corr.irf) if SPLIT_COHERENT else 0.0,
+        split_coherent=(_fwhm_bins(filters.corr.irf), int(SPLIT_COHERENT))
+        if SPLIT_COHERENT
+        else (0.0, 0),
         presence=options.presence,
         presence_llr=options.presence_llr,
         presence_z=options.presence_z,
