@@ -14,7 +14,7 @@ way) and against the second surfaces of the no-split run.
         --variant z3:Z=3 --variant reach3:Z=3,REACH=3
 
 A variant is ``name:KEY=VALUE,...`` with keys Z (``SPLIT_Z``), REACH
-(``SPLIT_REACH``), NLOCAL (``SPLIT_N_LOCAL``, 0/1), COH (``SPLIT_COHERENT``, 0/1).
+(``SPLIT_REACH``, FWHMs), COH (``SPLIT_COHERENT``, 0 / 1 / 2).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import splidar
 from splidar import detect
 from splidar.detection import _4_map, _detect
 
-KEYS = {"Z": "SPLIT_Z", "REACH": "SPLIT_REACH", "NLOCAL": "SPLIT_N_LOCAL", "COH": "SPLIT_COHERENT"}
+KEYS = {"Z": "SPLIT_Z", "REACH": "SPLIT_REACH", "COH": "SPLIT_COHERENT"}
 GAPS = (0, 1, 1.5, 2, 2.5, 3, 4, np.inf)
 
 

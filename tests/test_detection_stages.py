@@ -37,7 +37,7 @@ def _map(counts, irf, *, pfa=1e-3, rng=0, block_rows=None, n_jobs=1):
     fw = irf_fwhm(irf)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical",
-        min_separation=int(np.ceil(fw)), split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH, _4_map.SPLIT_N_LOCAL),
+        min_separation=int(np.ceil(fw)), split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH),
         rng=np.random.default_rng(rng), n_jobs=1,
     )  # fmt: skip
     opts = MapOptions(
@@ -156,7 +156,7 @@ def test_calibrate_null_holds_the_false_alarm_rate_on_fresh_background():
     _, _, filters = _setup(counts, g)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical", min_separation=3,
-        split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH, _4_map.SPLIT_N_LOCAL), rng=np.random.default_rng(0), n_jobs=1,
+        split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH), rng=np.random.default_rng(0), n_jobs=1,
     )  # fmt: skip
     _, sal, _, _, level = block_saliency(rng.poisson(lam), filters)
     rate = float(np.mean(sal > nul.threshold_at(level)))
@@ -376,7 +376,9 @@ def test_rescue_dark_ignores_pools_whose_members_peak_at_their_own_depths():
     assert rescue_dark(surf, np.zeros(n, bool), **kw).sum() == n
 
 
-def _close_pair_segments(second: bool, z: float, n_pix: int = 300, seed: int = 5):
+def _close_pair_segments(
+    second: bool, z: float, n_pix: int = 300, seed: int = 5, sep: float = 7.5, reach=0.0
+):
     """find_segments on pixels whose multiscale response ``d`` is one broad bump (the
     coarse scales fill the dip) over own counts with one return of 16 photons at bin
     30, or two of 8 photons each 2.5 FWHM (7.5 bins) apart; background 0.025 a bin (as
@@ -385,7 +387,7 @@ def _close_pair_segments(second: bool, z: float, n_pix: int = 300, seed: int = 5
     T, fwhm = 80, 3.0
     g = gaussian_irf(fwhm).reshape(1, -1)
     lam = np.full((1, n_pix, 1, T), 0.025)
-    for centre, n in [(30.0, 8.0), (37.5, 8.0)] if second else [(30.0, 16.0)]:
+    for centre, n in [(30.0, 8.0), (30.0 + sep, 8.0)] if second else [(30.0, 16.0)]:
         x = np.arange(T) - centre
         prof = np.exp(-0.5 * (x / (fwhm / 2.3548)) ** 2)
         lam[..., :] += n * prof / prof.sum()
@@ -398,7 +400,7 @@ def _close_pair_segments(second: bool, z: float, n_pix: int = 300, seed: int = 5
     d = np.ascontiguousarray(d, np.float32)
     mask = np.ascontiguousarray(d > 0.05)
     ones = np.ones_like(d)
-    rule = split_rule(g, z)
+    rule = split_rule(g, z, reach=reach)
     no = np.empty((0, 0, 0), np.float32)
     from_c = find_segments(mask, d, ones, ones, 3, 0.5, (c, y, 0, 0, sp, dev, no, no, no), rule)
     pre = tuple(np.empty((1, n_pix, T), np.float32) for _ in range(3))
@@ -441,6 +443,50 @@ def test_find_segments_splits_two_returns_25_fwhm_apart_not_one(second):
     assert np.array_equal(off[1], np.arange(n_pix))
 
 
+def test_find_segments_split_reach_keeps_close_pairs_not_far_bumps():
+    # SPLIT_REACH 3 (FWHMs): a second return 2.5 FWHM behind the first is still split
+    # off (measured 92 % of the pixels); one 4 FWHM behind (inside the same broad
+    # segment of d) is split off without the reach (92 %) and nearly never with it (1 %:
+    # the noisy peaks of the own response come within 3 FWHM)
+    col = _close_pair_segments(True, 3.0, reach=3.0)[0][1]
+    assert np.mean(np.bincount(col, minlength=300) == 2) > 0.85
+    far = _close_pair_segments(True, 3.0, sep=12.0)[0][1]
+    assert np.mean(np.bincount(far, minlength=300) == 2) > 0.85
+    far = _close_pair_segments(True, 3.0, sep=12.0, reach=3.0)[0][1]
+    assert np.mean(np.bincount(far, minlength=300) == 2) < 0.03
+
+
+def test_coherent_keeps_an_added_return_beside_a_neighbours_candidate():
+    # SPLIT_COHERENT: a return the fine split added (depth 58 behind a plane at 50) is
+    # coherent when a 4-neighbour has a kept candidate within the tolerance (3 bins);
+    # mode 2 also asks that neighbour to show a pair
+    from splidar.detection._4_map import _coherent
+
+    def table(extra):
+        r, c = np.mgrid[0:5, 0:5]
+        row = np.r_[r.ravel(), [e[0] for e in extra]]
+        col = np.r_[c.ravel(), [e[1] for e in extra]]
+        dep = np.r_[np.full(25, 50.0), [e[2] for e in extra]]
+        return dict(row=row, col=col, depth_bin=dep), np.ones(row.size, bool)
+
+    surf, keep = table([(2, 2, 58.0), (2, 3, 59.5), (0, 0, 58.0)])
+    q = np.zeros(keep.size, bool)
+    q[25:] = True
+    # (2, 2) beside (2, 3)'s pair; (2, 3) beside (2, 2); (0, 0) alone at 58
+    assert _coherent(surf, keep, (5, 5), q, 3.0).tolist()[25:] == [True, True, False]
+    assert _coherent(surf, keep, (5, 5), q, 3.0, 2).tolist()[25:] == [True, True, False]
+    # a neighbour's single return at that depth (a depth edge): coherent in mode 1 only
+    surf, keep = table([(2, 2, 58.0)])
+    surf["depth_bin"][2 * 5 + 3] = 57.0
+    q = np.zeros(keep.size, bool)
+    q[25] = True
+    assert _coherent(surf, keep, (5, 5), q, 3.0)[25]
+    assert not _coherent(surf, keep, (5, 5), q, 3.0, 2)[25]
+    # a candidate that is not kept does not count
+    keep[2 * 5 + 3] = False
+    assert not _coherent(surf, keep, (5, 5), q, 3.0)[25]
+
+
 def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch):
     # end to end (map pass and the null's candidates split alike): a second surface 2.5
     # FWHM behind a gently tilted plane in every other column (the close-pair case of
@@ -462,16 +508,23 @@ def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch)
     )  # fmt: skip
     cube = simulate(truth, n_bins=T, irf=gaussian_irf(3.0), ppp=10.0, sbr=1.0, rng=0).cube
     both = {}
-    for z in (0.0, 3.0):
+    # (SPLIT_Z, SPLIT_REACH, SPLIT_COHERENT): with the reach and the coherence rules
+    # the pairs (within 3 FWHM, a neighbour showing them too) stay
+    for z, reach, coh in ((0.0, 0.0, 0), (3.0, 0.0, 0), (3.0, 3.0, 1), (3.0, 3.0, 2)):
         monkeypatch.setattr(_4_map, "SPLIT_Z", z)
         monkeypatch.setattr(_detect, "SPLIT_Z", z)
+        monkeypatch.setattr(_4_map, "SPLIT_REACH", reach)
+        monkeypatch.setattr(_detect, "SPLIT_REACH", reach)
+        monkeypatch.setattr(_4_map, "SPLIT_COHERENT", coh)
         p = detect(cube, rng=0).points
         k = p.row * n + p.col
         front = np.bincount(k[np.abs(p.depth_bin - dep[k]) <= 2], minlength=n * n)
         back = np.bincount(k[np.abs(p.depth_bin - dep[k] - 7.5) <= 2], minlength=n * n)
-        both[z] = np.mean(((front > 0) & (back > 0))[even])
-    # measured 0.10 / 0.53 of those pixels (the rest: the second return's few photons)
-    assert both[0.0] < 0.2 and both[3.0] > 0.4, both
+        both[z, reach, coh] = np.mean(((front > 0) & (back > 0))[even])
+    # measured 0.10 / 0.53 / 0.51 / 0.40 of those pixels (the rest: the second return's
+    # few photons; mode 2 also needs a neighbour's pair, only half of them have both)
+    off, split, near, pair = both.values()
+    assert off < 0.2 and split > 0.4 and near > 0.4 and pair > 0.3, both
 
 
 def _tailed_cube(n, T, sep, amp, rng):

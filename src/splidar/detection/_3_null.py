@@ -179,9 +179,8 @@ def _null_samples(
 
 
 def split_rule(
-    irf: np.ndarray, z: float, data: np.ndarray | None = None, reach: float = 0.0,
-    n_local: bool = False,
-) -> tuple:  # fmt: skip
+    irf: np.ndarray, z: float, data: np.ndarray | None = None, reach: float = 0.0
+) -> tuple:
     """The fine split's settings for :func:`~splidar.detection._kernels.find_segments`.
 
     Parameters
@@ -199,18 +198,16 @@ def split_rule(
     reach : float
         A second return is looked for only within ``reach`` FWHMs (the half-peak
         window's width) of a stronger accepted one (0: anywhere in the segment).
-    n_local : bool
-        With ``reach``: the look-elsewhere term counts the segment's bins within reach
-        of its strongest peak rather than all its bins.
 
     Returns
     -------
-    (z, tail, gmin, win, reach, n_local) : (float, ndarray (n_irf,), float, ndarray (L, 2) int64, int, bool)
+    (z, tail, gmin, win, reach) : (float, ndarray (n_irf,), float, ndarray (L, 2), int)
         ``win[l]``: offsets from a response's bin to the first and last bin where the
         IRF of a return peaking there is above half its peak (the half-peak window);
         ``tail[k]``: the fraction of one return's photons in the half-peak window of a
         bin ``k`` bins from its peak (the largest over the wavelengths and both sides);
-        ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response).
+        ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response);
+        ``reach``: in bins (0: anywhere).
     """
     g = np.asarray(irf, np.float64)
     L, n = g.shape
@@ -234,7 +231,7 @@ def split_rule(
         tail = both.max(axis=0)
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     reach_bins = int(np.ceil(reach * fw)) if reach > 0 else 0
-    return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins, bool(n_local)
+    return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins
 
 
 def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_000_000):
@@ -272,7 +269,7 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
     g = np.asarray(irf, np.float64)
     R, C, L, T = counts.shape
     n = g.shape[1]
-    _, _, gmin, win, _, _ = split_rule(g, 0.0)
+    _, _, gmin, win, _ = split_rule(g, 0.0)
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     m = n + 4 * fw
     lo_u, hi_u = -m + int(win[:, 0].min()), m + int(win[:, 1].max())
@@ -407,7 +404,7 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    split_ratio, split_z, split_reach, split_nl = split
+    split_ratio, split_z, split_reach = split
     p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
         counts, null_ctx, n_target, rng, fine=split_z > 0
     )
@@ -434,7 +431,7 @@ def calibrate_null(
     ev_null = []
     # the first return's tail as the data's returns carry it (not only the IRF's)
     tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
-    rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_nl)
+    rule = split_rule(filters.corr.irf, split_z, tail, split_reach)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)

@@ -56,10 +56,9 @@ SPLIT_RATIO = 0.5
 #: chance. Measured: benchmarks/README.md (branches close19, close19b).
 SPLIT_Z = 0.0
 #: The fine split looks for a second return only within this many FWHMs of a stronger
-#: one (0: anywhere in the segment); ``SPLIT_N_LOCAL``: its look-elsewhere term counts
-#: those bins only.
+#: one (0: anywhere in the segment): where the coarse scales merge two returns (3 FWHM
+#: apart they split them already); beyond, its finds were bumps inside long segments.
 SPLIT_REACH = 0.0
-SPLIT_N_LOCAL = False
 #: A return the fine split added is kept only where a 4-neighbour pixel has a kept
 #: candidate within one FWHM of its depth (the map pass only: the null counts every
 #: split part, so its false-alarm rate is an upper bound).
@@ -776,7 +775,7 @@ def map_plan(
         # the null's rule (its tail from the data), else the IRF's
         split=null.split
         if null.split is not None
-        else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_N_LOCAL),
+        else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH),
         # a return the fine split added needs a 4-neighbour's candidate within a FWHM
         split_coherent=(_fwhm_bins(filters.corr.irf), int(SPLIT_COHERENT))
         if SPLIT_COHERENT

@@ -30,7 +30,6 @@ from ._4_map import (
     PRESENCE_Z,
     REFINE,
     SPLIT_RATIO,
-    SPLIT_N_LOCAL,
     SPLIT_REACH,
     SPLIT_Z,
     MapOptions,
@@ -277,7 +276,8 @@ def detect(
     t0 = time.perf_counter()
     nul = calibrate_null(  # 3
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
-        min_separation=o["min_separation"], split=(SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_N_LOCAL), rng=rng, n_jobs=n_jobs,
+        min_separation=o["min_separation"], split=(SPLIT_RATIO, SPLIT_Z, SPLIT_REACH), rng=rng,
+        n_jobs=n_jobs,
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()

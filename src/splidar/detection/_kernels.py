@@ -223,7 +223,7 @@ def _poisson_z(n, mu):
 
 
 @njit(cache=True, nogil=True)
-def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, n_local, peaks, cuts):
+def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts):
     """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
     are separate returns.
 
@@ -254,16 +254,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, n_local, peak
     for i in range(nc):
         vals[i] = -fr[cand[i]]
     order = np.argsort(vals)
-    if reach > 0 and n_local:
-        # the places looked at: the segment's bins within reach of its strongest peak
-        p0 = cand[order[0]]
-        n = 0
-        for t in range(st, en):
-            if min_sep <= abs(t - p0) <= reach:
-                n += 1
-        n = max(n, 1)
-    # the largest of the places looked at: z against the max of that many tested
-    # places (as _window_centre)
+    # the largest of the segment's bins: z against the max of that many tested places
+    # (as _window_centre)
     z_need = np.sqrt(z * z + 2.0 * np.log(n))
     acc = np.empty(nc, np.int64)
     na = 0
@@ -352,7 +344,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
         ``added``: a part the fine split cut off a stronger return's segment.
     """
     c, y, row0, col0, sp, dev, f_in, n_in, mu_in = fine
-    split_z, tail, gmin, win, reach, n_local = split
+    split_z, tail, gmin, win, reach = split
     from_c = c.shape[0] > 0
     R, C, T = mask.shape
     nmax = 0  # runs of the mask along t
@@ -429,7 +421,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     if split_z > 0:
                         nf = _fine_split(
                             fr, nr, mr, seg_start[u], seg_stop[u], min_sep, split_z, tail, gmin,
-                            reach, n_local, f_peaks, f_cuts,
+                            reach, f_peaks, f_cuts,
                         )  # fmt: skip
                     if nf == 1:
                         o_row[k] = i
