@@ -49,20 +49,24 @@ SPLIT_RATIO = 0.5
 #: half-peak window exceed what the background and the stronger return's tail bring
 #: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched); the
 #: null's candidates are then split the same way (``_kernels._fine_split``). The tail:
-#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0):
-#: with 3, two returns 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.861 and
-#: the face and 21 km data keep their counts (+0.02 %), but the tower gains 3.1 %
-#: surfaces, second ones 1-4 FWHM behind, barely more coherent across pixels than
-#: chance. Measured: benchmarks/README.md (branches close19, close19b).
+#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0),
+#: with ``SPLIT_REACH`` 3 and ``SPLIT_COHERENT`` 1 ready for it: with 3, two returns
+#: 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.856 and the face and 21 km
+#: data keep their counts, but the tower gains 1.1 % surfaces (0.6 % with
+#: ``irf="estimate-shape"``), their coherence across pixels between chance and that of
+#: real second surfaces (target +0.5 %, coherent like real ones). Measured:
+#: benchmarks/README.md (branches close19, close19b, close19c, close20).
 SPLIT_Z = 0.0
 #: The fine split looks for a second return only within this many FWHMs of a stronger
 #: one (0: anywhere in the segment): where the coarse scales merge two returns (3 FWHM
-#: apart they split them already); beyond, its finds were bumps inside long segments.
-SPLIT_REACH = 0.0
+#: apart they split them already); beyond, its finds on the tower were bumps inside
+#: long segments (tower +1.7 -> +0.7 % with the shape IRF, close pairs kept).
+SPLIT_REACH = 3.0
 #: A return the fine split added is kept only where a 4-neighbour pixel has a kept
-#: candidate within one FWHM of its depth (the map pass only: the null counts every
-#: split part, so its false-alarm rate is an upper bound).
-SPLIT_COHERENT = 0
+#: candidate within one FWHM of its depth (1), and that neighbour shows a pair too (2);
+#: 0: always. The map pass only (``_4_map._table``, whole image): the null counts
+#: every split part, so its false-alarm rate stays an upper bound.
+SPLIT_COHERENT = 1
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -766,19 +770,20 @@ def map_plan(
     width = options.width
     store_boxes = _store_boxes(scales, width, T)
     block_rows = _block_rows(block_rows, scales, width, store_boxes, (R, C, L, T))
+    # the null's rule (its tail from the data), else the IRF's
+    split = null.split
+    if split is None:
+        split = split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH)
     opts = dict(
         image_shape=(R, C),
         width=width,
         store_boxes=store_boxes,
         min_separation=options.min_separation,
         split_ratio=options.split_ratio,
-        # the null's rule (its tail from the data), else the IRF's
-        split=null.split
-        if null.split is not None
-        else split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH),
+        split=split,
         # a return the fine split added needs a 4-neighbour's candidate within a FWHM
         split_coherent=(_fwhm_bins(filters.corr.irf), int(SPLIT_COHERENT))
-        if SPLIT_COHERENT
+        if SPLIT_COHERENT and split[0] > 0
         else (0.0, 0),
         presence=options.presence,
         presence_llr=options.presence_llr,
