@@ -14,13 +14,18 @@ way) and against the second surfaces of the no-split run.
         --variant z3:Z=3 --variant reach3:Z=3,REACH=3
 
 A variant is ``name:KEY=VALUE,...`` with keys Z (``SPLIT_Z``), REACH
-(``SPLIT_REACH``, FWHMs), COH (``SPLIT_COHERENT``, 0 / 1 / 2).
+(``SPLIT_REACH``, FWHMs), COH (``SPLIT_COHERENT``, 0 / 1 / 2). Another benchmark
+script with those constants set (the before / after of its figures):
+
+    python benchmarks/bench_fine_split.py --with Z=3,REACH=3,COH=1 \
+        benchmarks/bench_robustness.py --only "two surfaces"
 """
 
 from __future__ import annotations
 
 import argparse
 import runpy
+import sys
 import time
 from pathlib import Path
 
@@ -30,7 +35,7 @@ import splidar
 from splidar import detect
 from splidar.detection import _4_map, _detect
 
-KEYS = {"Z": "SPLIT_Z", "REACH": "SPLIT_REACH", "COH": "SPLIT_COHERENT", "TOL": "_COH_TOL"}
+KEYS = {"Z": "SPLIT_Z", "REACH": "SPLIT_REACH", "COH": "SPLIT_COHERENT"}
 GAPS = (0, 1, 1.5, 2, 2.5, 3, 4, np.inf)
 
 
@@ -111,7 +116,17 @@ def _report(name, base, pts, shape, fw):
     )
 
 
+def _run_with(settings: str, argv: list) -> None:
+    """``argv[0]`` run as ``__main__`` with the constants of ``settings`` set."""
+    _set(dict(kv.split("=") for kv in settings.split(",") if kv))
+    sys.argv = list(argv)
+    runpy.run_path(argv[0], run_name="__main__")
+
+
 def main() -> None:
+    if len(sys.argv) > 3 and sys.argv[1] == "--with":
+        _run_with(sys.argv[2], sys.argv[3:])
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--files", nargs="+", default=["face", "tower", "21km"])
     ap.add_argument("--irf", choices=["default", "shape", "both"], default="both")

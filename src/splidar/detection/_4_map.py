@@ -67,7 +67,6 @@ SPLIT_REACH = 3.0
 #: 0: always. The map pass only (``_4_map._table``, whole image): the null counts
 #: every split part, so its false-alarm rate stays an upper bound.
 SPLIT_COHERENT = 1
-_COH_TOL = 1.0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -783,7 +782,7 @@ def map_plan(
         split_ratio=options.split_ratio,
         split=split,
         # a return the fine split added needs a 4-neighbour's candidate within a FWHM
-        split_coherent=(_COH_TOL * _fwhm_bins(filters.corr.irf), int(SPLIT_COHERENT))
+        split_coherent=(_fwhm_bins(filters.corr.irf), int(SPLIT_COHERENT))
         if SPLIT_COHERENT and split[0] > 0
         else (0.0, 0),
         presence=options.presence,
