@@ -264,8 +264,7 @@ def detect(
     cube = _without_hot_pixels(cube, o)
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
-    # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
-    tiled = o["tiled"] = is_dask(cube.counts)
+    tiled = o["tiled"] = is_dask(cube.counts)  # a Dask cube: Dask tasks (_tiled.py)
     t0 = time.perf_counter()
     bg = estimate_temporal_background(  # 1
         cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs,
@@ -274,10 +273,10 @@ def detect(
     filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH)
     nul = calibrate_null(  # 3
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
-        min_separation=o["min_separation"], split=(SPLIT_RATIO, SPLIT_Z, SPLIT_REACH), rng=rng,
-        n_jobs=n_jobs,
+        min_separation=o["min_separation"], split=split, rng=rng, n_jobs=n_jobs,
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()

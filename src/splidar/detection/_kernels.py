@@ -356,8 +356,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     total += 1
                     if t == 0 or not mask[i, j, t - 1]:
                         nmax += 1
-    # each segment holds a voxel of the mask; the resolved peaks of a run are min_sep
-    # apart in d and again within each of d's segments: bound generously
+    # segments: min_sep apart in d, again within d's segments (bound generously)
     cap = min(total, nmax * 2 * (T // max(min_sep, 1) + 1)) + 1
     o_row = np.empty(cap, np.int64)
     o_col = np.empty(cap, np.int64)
