@@ -35,7 +35,12 @@ import splidar
 from splidar import detect
 from splidar.detection import _4_map, _detect
 
-KEYS = {"Z": "SPLIT_Z", "REACH": "SPLIT_REACH", "COH": "SPLIT_COHERENT"}
+KEYS = {
+    "Z": "SPLIT_Z",
+    "REACH": "SPLIT_REACH",
+    "COH": "SPLIT_COHERENT",
+    "SLACK": "SPLIT_TAIL_SLACK",
+}
 GAPS = (0, 1, 1.5, 2, 2.5, 3, 4, np.inf)
 
 

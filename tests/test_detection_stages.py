@@ -37,7 +37,7 @@ def _map(counts, irf, *, pfa=1e-3, rng=0, block_rows=None, n_jobs=1):
     fw = irf_fwhm(irf)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical",
-        min_separation=int(np.ceil(fw)), split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH),
+        min_separation=int(np.ceil(fw)), split=(0.5, _4_map.SPLIT_Z, 3.0, 0.0),
         rng=np.random.default_rng(rng), n_jobs=1,
     )  # fmt: skip
     opts = MapOptions(
@@ -156,7 +156,7 @@ def test_calibrate_null_holds_the_false_alarm_rate_on_fresh_background():
     _, _, filters = _setup(counts, g)
     nul = calibrate_null(
         counts, filters, pfa=pfa, surface_pfa=0.01, null="empirical", min_separation=3,
-        split=(0.5, _4_map.SPLIT_Z, _4_map.SPLIT_REACH), rng=np.random.default_rng(0), n_jobs=1,
+        split=(0.5, _4_map.SPLIT_Z, 3.0, 0.0), rng=np.random.default_rng(0), n_jobs=1,
     )  # fmt: skip
     _, sal, _, _, level = block_saliency(rng.poisson(lam), filters)
     rate = float(np.mean(sal > nul.threshold_at(level)))

@@ -179,8 +179,9 @@ def _null_samples(
 
 
 def split_rule(
-    irf: np.ndarray, z: float, data: np.ndarray | None = None, reach: float = 0.0
-) -> tuple:
+    irf: np.ndarray, z: float, data: np.ndarray | None = None, reach: float = 0.0,
+    slack: float = 0.0,
+) -> tuple:  # fmt: skip
     """The fine split's settings for :func:`~splidar.detection._kernels.find_segments`.
 
     Parameters
@@ -208,6 +209,10 @@ def split_rule(
         bin ``k`` bins from its peak (the largest over the wavelengths and both sides);
         ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response);
         ``reach``: in bins (0: anywhere).
+    slack : float
+        The first return's tail may be ``1 + slack`` times the one measured (pixels'
+        tails vary about the pooled one): ``tail`` scaled so. Matters only beside
+        bright returns; a weak return's tail is a fraction of a photon either way.
     """
     g = np.asarray(irf, np.float64)
     L, n = g.shape
@@ -231,6 +236,7 @@ def split_rule(
         tail = both.max(axis=0)
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     reach_bins = int(np.ceil(reach * fw)) if reach > 0 else 0
+    tail = tail * (1.0 + slack)
     return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins
 
 
@@ -404,7 +410,7 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    split_ratio, split_z, split_reach = split
+    split_ratio, split_z, split_reach, split_slack = split
     p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
         counts, null_ctx, n_target, rng, fine=split_z > 0
     )
@@ -431,7 +437,7 @@ def calibrate_null(
     ev_null = []
     # the first return's tail as the data's returns carry it (not only the IRF's)
     tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
-    rule = split_rule(filters.corr.irf, split_z, tail, split_reach)
+    rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_slack)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)

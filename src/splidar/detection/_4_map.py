@@ -62,6 +62,9 @@ SPLIT_Z = 0.0
 #: apart they split them already); beyond, its finds on the tower were bumps inside
 #: long segments (tower +1.7 -> +0.7 % with the shape IRF, close pairs kept).
 SPLIT_REACH = 3.0
+#: The fine split takes the first return's tail as up to ``1 + SPLIT_TAIL_SLACK`` times
+#: the measured one (``split_rule(slack=)``).
+SPLIT_TAIL_SLACK = 0.0
 #: A return the fine split added is kept only where a 4-neighbour pixel has a kept
 #: candidate within one FWHM of its depth (1), and that neighbour shows a pair too (2);
 #: 0: always. The map pass only (``_4_map._table``, whole image): the null counts
@@ -773,7 +776,7 @@ def map_plan(
     # the null's rule (its tail from the data), else the IRF's
     split = null.split
     if split is None:
-        split = split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH)
+        split = split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_TAIL_SLACK)
     opts = dict(
         image_shape=(R, C),
         width=width,

@@ -31,6 +31,7 @@ from ._4_map import (
     REFINE,
     SPLIT_RATIO,
     SPLIT_REACH,
+    SPLIT_TAIL_SLACK,
     SPLIT_Z,
     MapOptions,
     map_candidates,
@@ -273,7 +274,7 @@ def detect(
     filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH)
+    split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
     nul = calibrate_null(  # 3
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
         min_separation=o["min_separation"], split=split, rng=rng, n_jobs=n_jobs,
