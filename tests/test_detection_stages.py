@@ -491,8 +491,8 @@ def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch)
     # end to end (map pass and the null's candidates split alike): a second surface 2.5
     # FWHM behind a gently tilted plane in every other column (the close-pair case of
     # bench_robustness, PPP 10, SBR 1): the coarse boxes halve it and fill the dip, so
-    # with SPLIT_Z = 0 (the default) most of those pixels keep one merged surface; at 3
-    # five times as many get both
+    # with SPLIT_Z = 0 (off) most of those pixels keep one merged surface; at 3 (the
+    # default) five times as many get both
     from splidar import PointSet
     from splidar.detection import _detect
     from splidar.simulation import simulate
@@ -508,21 +508,24 @@ def test_detect_fine_split_resolves_returns_the_coarse_scales_merge(monkeypatch)
     )  # fmt: skip
     cube = simulate(truth, n_bins=T, irf=gaussian_irf(3.0), ppp=10.0, sbr=1.0, rng=0).cube
     both = {}
-    # (SPLIT_Z, SPLIT_REACH, SPLIT_COHERENT): with the reach and the coherence rules
-    # the pairs (within 3 FWHM, a neighbour showing them too) stay
-    for z, reach, coh in ((0.0, 0.0, 0), (3.0, 0.0, 0), (3.0, 3.0, 1), (3.0, 3.0, 2)):
-        monkeypatch.setattr(_4_map, "SPLIT_Z", z)
-        monkeypatch.setattr(_detect, "SPLIT_Z", z)
-        monkeypatch.setattr(_4_map, "SPLIT_REACH", reach)
-        monkeypatch.setattr(_detect, "SPLIT_REACH", reach)
+    # (SPLIT_Z, SPLIT_REACH, SPLIT_COHERENT, SPLIT_TAIL_SLACK): with the reach, the
+    # coherence and the slack rules the pairs (within 3 FWHM, a neighbour showing them
+    # too, weak returns' tails a fraction of a photon) stay
+    runs = ((0.0, 0.0, 0, 0.0), (3.0, 0.0, 0, 0.0), (3.0, 3.0, 1, 3.0), (3.0, 3.0, 2, 0.0))
+    for z, reach, coh, slack in runs:
+        for mod in (_4_map, _detect):
+            monkeypatch.setattr(mod, "SPLIT_Z", z)
+            monkeypatch.setattr(mod, "SPLIT_REACH", reach)
+            monkeypatch.setattr(mod, "SPLIT_TAIL_SLACK", slack)
         monkeypatch.setattr(_4_map, "SPLIT_COHERENT", coh)
         p = detect(cube, rng=0).points
         k = p.row * n + p.col
         front = np.bincount(k[np.abs(p.depth_bin - dep[k]) <= 2], minlength=n * n)
         back = np.bincount(k[np.abs(p.depth_bin - dep[k] - 7.5) <= 2], minlength=n * n)
-        both[z, reach, coh] = np.mean(((front > 0) & (back > 0))[even])
-    # measured 0.10 / 0.53 / 0.51 / 0.40 of those pixels (the rest: the second return's
-    # few photons; mode 2 also needs a neighbour's pair, only half of them have both)
+        both[z, reach, coh, slack] = np.mean(((front > 0) & (back > 0))[even])
+    # measured 0.10 / 0.53 / 0.51 (the defaults) / 0.40 of those pixels (the rest: the
+    # second return's few photons; mode 2 also needs a neighbour's pair, only half of
+    # them have both)
     off, split, near, pair = both.values()
     assert off < 0.2 and split > 0.4 and near > 0.4 and pair > 0.3, both
 
@@ -573,14 +576,14 @@ def test_data_tail_measures_a_tail_the_irf_lacks_not_a_second_return():
 
 def test_detect_fine_split_leaves_a_tail_the_irf_lacks(monkeypatch):
     # end to end, SPLIT_Z = 3: returns with a tail the IRF lacks. With the default
-    # reach and coherence rules a second surface in 3 % of the pixels (measured
+    # rules (reach, coherence, slack) a second surface in 3 % of the pixels (measured
     # 0.028); two such returns 4 FWHM apart are both found in nearly every pixel
     # (0.986). Without those rules (the data's tail alone), 3 % with the data's tail
-    # and 7 % with the IRF's alone (measured 0.030 / 0.071)
+    # and 7 % with the IRF's alone (measured 0.028 / 0.069)
     from splidar.detection import _3_null, _detect
 
-    monkeypatch.setattr(_4_map, "SPLIT_Z", 3.0)
-    monkeypatch.setattr(_detect, "SPLIT_Z", 3.0)
+    for mod in (_4_map, _detect):
+        monkeypatch.setattr(mod, "SPLIT_Z", 3.0)
     n = 24
 
     def twice(cube):
@@ -591,9 +594,10 @@ def test_detect_fine_split_leaves_a_tail_the_irf_lacks(monkeypatch):
     two = _tailed_cube(n, 160, 12, 40.0, np.random.default_rng(2))
     dflt, both = twice(one), twice(two)
     assert dflt < 0.045 and both > 0.95, (dflt, both)
-    for name in ("SPLIT_REACH", "SPLIT_COHERENT"):
-        monkeypatch.setattr(_4_map, name, 0)
-    monkeypatch.setattr(_detect, "SPLIT_REACH", 0)
+    for mod in (_4_map, _detect):
+        monkeypatch.setattr(mod, "SPLIT_REACH", 0.0)
+        monkeypatch.setattr(mod, "SPLIT_TAIL_SLACK", 0.0)
+    monkeypatch.setattr(_4_map, "SPLIT_COHERENT", 0)
     data = twice(one)
     monkeypatch.setattr(_3_null, "data_tail", lambda *a, **k: np.zeros(0))
     irf_only = twice(one)

@@ -49,22 +49,24 @@ SPLIT_RATIO = 0.5
 #: half-peak window exceed what the background and the stronger return's tail bring
 #: there by a Poisson z of ``sqrt(SPLIT_Z^2 + 2 ln n)`` (``n`` bins searched); the
 #: null's candidates are then split the same way (``_kernels._fine_split``). The tail:
-#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). Off (0),
-#: with ``SPLIT_REACH`` 3 and ``SPLIT_COHERENT`` 1 ready for it: with 3, two returns
-#: 2.5 FWHM apart (PPP 10, SBR 1) go from F_true 0.684 to 0.856 and the face and 21 km
-#: data keep their counts, but the tower gains 1.1 % surfaces (0.6 % with
-#: ``irf="estimate-shape"``), their coherence across pixels between chance and that of
-#: real second surfaces (target +0.5 %, coherent like real ones). Measured:
-#: benchmarks/README.md (branches close19, close19b, close19c, close20).
-SPLIT_Z = 0.0
+#: the larger of the IRF's and the data's own returns' (``_3_null.data_tail``). On
+#: (3) with the three rules below: two returns 2.5 FWHM apart (PPP 10, SBR 1) go from
+#: F_true 0.684 to 0.855; the face, tower and 21 km data keep their counts (+0.05 % at
+#: most, default IRF or ``irf="estimate-shape"``). 0: off (session 13's segments, bit
+#: for bit). Measured: benchmarks/README.md (branches close19, close19b, close19c,
+#: close20).
+SPLIT_Z = 3.0
 #: The fine split looks for a second return only within this many FWHMs of a stronger
 #: one (0: anywhere in the segment): where the coarse scales merge two returns (3 FWHM
 #: apart they split them already); beyond, its finds on the tower were bumps inside
 #: long segments (tower +1.7 -> +0.7 % with the shape IRF, close pairs kept).
 SPLIT_REACH = 3.0
 #: The fine split takes the first return's tail as up to ``1 + SPLIT_TAIL_SLACK`` times
-#: the measured one (``split_rule(slack=)``).
-SPLIT_TAIL_SLACK = 0.0
+#: the measured one (``split_rule(slack=)``): the pooled tail is an average and real
+#: pixels' tails vary about it (the tower's), which matters beside bright returns
+#: only (a weak return's tail is a fraction of a photon either way). 3: tower +1.1 ->
+#: +0.03 % with the default IRF, close pairs 0.856 -> 0.855; 1: +0.31 %, 2: +0.27 %.
+SPLIT_TAIL_SLACK = 3.0
 #: A return the fine split added is kept only where a 4-neighbour pixel has a kept
 #: candidate within one FWHM of its depth (1), and that neighbour shows a pair too (2);
 #: 0: always. The map pass only (``_4_map._table``, whole image): the null counts
