@@ -399,9 +399,10 @@ def calibrate_null(
         False alarms per voxel; false surfaces per background-only pixel.
     null : {"empirical", "gamma"}
     min_separation : int
-    split : (float, float)
-        ``(split_ratio, split_z)``: how runs of the map split into candidates (as in the
-        map pass: ``SPLIT_RATIO``, ``SPLIT_Z``).
+    split : (float, float, float, float)
+        ``(split_ratio, split_z, split_reach, split_slack)``: how runs of the map split
+        into candidates (as in the map pass: ``SPLIT_RATIO``, ``SPLIT_Z``,
+        ``SPLIT_REACH``, ``SPLIT_TAIL_SLACK``; :func:`split_rule`).
     rng : Generator
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
     n_jobs : int
