@@ -21,6 +21,7 @@ from .._validation import (
     describe,
 )
 from ..cube import Cube
+from . import _4_map
 from ._1_background import estimate_temporal_background
 from ._2_saliency import saliency_filters
 from ._3_null import calibrate_null
@@ -528,6 +529,9 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             min_separation=o["min_separation"],
             split_ratio=SPLIT_RATIO,
             split_z=SPLIT_Z,
+            split_reach=SPLIT_REACH,
+            split_tail_slack=SPLIT_TAIL_SLACK,
+            split_coherent=_4_map.SPLIT_COHERENT,
             refine=REFINE,
             block_rows=mp.block_rows,
             n_jobs=o["n_jobs"],
