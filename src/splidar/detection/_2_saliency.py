@@ -60,7 +60,7 @@ def saliency_filters(
 
 def block_saliency(
     y, ctx: SaliencyFilters, spatial=None, keep=None, c=None, sal_out=None, work=None, box=None,
-    cols=None, with_level=True, threshold=None,
+    cols=None, with_level=True,
 ):  # fmt: skip
     """Correlated cube, saliency and signed response of a block of pixels.
 
@@ -87,10 +87,6 @@ def block_saliency(
     with_level : bool
         Return ``level``; False: None (not accumulated; ``sum_l bhat`` follows from
         ``spatial`` and ``ctx.dev``, as the threshold pass computes it).
-    threshold : FusedThreshold, optional
-        The threshold pass, run by the last wavelength's kernel on each pixel as soon
-        as its saliency is complete (:class:`~splidar.detection._fast.FusedThreshold`;
-        its ``spatial`` must be the returned ``spatial``, estimated here).
 
     Returns
     -------
@@ -115,12 +111,7 @@ def block_saliency(
     else:  # reused buffers of a run of blocks (no fresh pages per block)
         d = work["d"].reshape(-1)[: r * cc * T].reshape(r, cc, T)
         level = np.empty((r, cc, T), np.float32) if with_level else None
-    if threshold is not None:
-        if spatial is not None or threshold.spatial.shape != (r, cc, L):
-            raise ValueError("the fused threshold needs estimated levels of the kept pixels")
-        sp_out = threshold.spatial
-    else:
-        sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
+    sp_out = np.empty((r, cc, L), np.float32) if spatial is None else spatial
     for l in range(L):
         # fused numba kernel (_fast.py): box filters of every scale, sum_q lambda_q Box_q,
         # robust level (eq:background_2), bhat (eq:background_3) and |.| (eq:4.s1)
@@ -143,7 +134,6 @@ def block_saliency(
             keep_cols=keep_cols,
             strip=strip,
             carry=None if carry is None else carry[l],
-            threshold=threshold if l == L - 1 else None,
         )
         if spatial is None:
             sp_out[:, :, l] = sp_l

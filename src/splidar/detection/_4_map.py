@@ -21,8 +21,7 @@ import numpy as np
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration
-from ._fast import FusedThreshold
-from ._kernels import ORDER_BAND, extract_surfaces, find_segments
+from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pass
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
@@ -355,6 +354,11 @@ def _block(
     else:
         box = None
     k_cols = None if cols is None else (slice(j0, j1), STRIP_COLS, carry)
+    # sum_l bhat is recomputed by the threshold pass from sp and dev (not stored)
+    _, sal, d, sp, _ = block_saliency(
+        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box, cols=k_cols,
+        with_level=False,
+    )  # fmt: skip
     xs, ys, store_thr = table
     cand = _buffer(work, "cand", (r, C, T), bool)
     ev_vox = _buffer(work, "ev", (r, C, T), np.float32)
@@ -366,18 +370,23 @@ def _block(
         else np.empty((1, 1, 1), np.float32)
     )
     mask = out["mask"][r0:r1] if in_ram else _buffer(work, "mask", (r, C, T), bool)
-    # threshold, M, candidate voxels, evidence and photon counts of each pixel, computed
-    # by the saliency kernel as soon as the pixel's saliency is complete (in cache)
-    fused = FusedThreshold(
-        np.empty((r, C, L), np.float32), L - 1, ctx.dev, xs, ys, y, thr, store_thr, mask, cand,
-        ev_vox, np.zeros(2, np.int64),
-    )  # fmt: skip
-    # sum_l bhat is recomputed by the threshold pass from sp and dev (not stored)
-    _, sal, d, sp, _ = block_saliency(
-        y, ctx, keep=slice(i0, i1), c=c_ext, sal_out=sal_out, work=work, box=box, cols=k_cols,
-        with_level=False, threshold=fused,
-    )  # fmt: skip
-    n_ph, kept = int(fused.totals[0]), int(fused.totals[1])
+    # threshold, M, candidate voxels, evidence and photon counts in one pass
+    n_ph, kept = threshold_pass(
+        sal,
+        d,
+        sp,
+        np.ascontiguousarray(ctx.dev, np.float32),
+        xs,
+        ys,
+        y,
+        i0,
+        j0,
+        thr,
+        store_thr,
+        mask,
+        cand,
+        ev_vox,
+    )
     n_vox = int(np.count_nonzero(mask))
     if not in_ram:
         _put(out["saliency"], r0, c0, sal)

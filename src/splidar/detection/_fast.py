@@ -27,7 +27,6 @@ to strip and from tile to tile, so every value is the one of a pass over the who
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -375,120 +374,10 @@ def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
 
 
 @njit(cache=True, nogil=True)
-def _table_slopes(xs, ys):
-    """Slope of each interval of the threshold table, as
-    :func:`~splidar.detection._kernels._interp_table` computes it (the same float64
-    value, computed once instead of once per voxel)."""
-    G = xs.size
-    slope = np.zeros(max(G - 1, 1), np.float64)
-    for k in range(G - 1):
-        slope[k] = (ys[k + 1] - ys[k]) / (xs[k + 1] - xs[k])
-    return slope
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _thresholds(lv, xs, ys, slope, x64, idx, th):
-    """``th[t] = float32(interp(lv[t], xs, ys))`` for one pixel (T,), as
-    :func:`~splidar.detection._kernels._interp_table` gives it bit for bit, in loops
-    over t that vectorise.
-
-    The interval of ``x`` strictly inside the table is the number of inner table
-    points ``xs[1:G-1]`` at or below it (the ``lo`` with ``xs[lo] <= x < xs[lo + 1]``
-    of the bisection, ``xs`` ascending); the value is the bisection's formula on it,
-    and the ends are the table's end values.
-    """
-    T = lv.size
-    G = xs.size
-    y0 = ys[0]
-    if G == 1:
-        for t in range(T):
-            th[t] = np.float32(y0)
-        return
-    x0 = xs[0]
-    xe = xs[G - 1]
-    ye = ys[G - 1]
-    for t in range(T):
-        x64[t] = np.float64(lv[t])
-        idx[t] = 0
-    for k in range(1, G - 1):
-        xk = xs[k]
-        for t in range(T):
-            idx[t] += xk <= x64[t]
-    for t in range(T):
-        x = x64[t]
-        lo = idx[t]
-        v = slope[lo] * (x - xs[lo]) + ys[lo]
-        v = y0 if x <= x0 else v
-        v = ye if x >= xe else v
-        th[t] = np.float32(v)
-
-
-@njit(cache=True, nogil=True)
-def _pixel_level(spx, dev, lv):
-    """``sum_l bhat`` (``eq:background_3``) of one pixel into ``lv`` (T,) float32,
-    wavelengths in order, each ``bhat`` clipped at 0: the saliency kernel's
-    accumulation, bit for bit."""
-    T = lv.size
-    for l in range(spx.size):
-        s = spx[l]
-        dl = dev[l]
-        if l == 0:
-            for t in range(T):
-                bh = s + dl[t]
-                lv[t] = bh if not bh < 0 else np.float32(0.0)
-        else:
-            for t in range(T):
-                bh = s + dl[t]
-                lv[t] += bh if not bh < 0 else np.float32(0.0)
-
-
-@njit(cache=True, nogil=True)
-def threshold_pixel(
-    sr, dr, spx, dev, xs, ys, slope, yp, lv, th, x64, idx, thr_r, store_thr, mr, cr, er
-):  # fmt: skip
-    """Threshold, map, candidate voxels and evidence of one pixel (T,) (the body of
-    :func:`~splidar.detection._kernels.threshold_pass`, also run by the saliency kernel
-    on a pixel it has just finished).
-
-    ``sr``, ``dr``: the pixel's saliency and signed response; ``spx`` (L,) its levels;
-    ``dev`` (L, T); ``xs``, ``ys``, ``slope``: the threshold table and its interval
-    slopes (:func:`_table_slopes`); ``yp`` (L, T) its raw counts; ``lv``, ``th``,
-    ``x64``, ``idx`` (T,) scratch. Writes ``thr_r`` (when ``store_thr``), ``mr =
-    sr > th``, ``cr = mr & (dr > 0)`` and ``er = max(sr / th - 1, 0)``. Returns the
-    pixel's photons and those in voxels of the map.
-    """
-    T = sr.size
-    _pixel_level(spx, dev, lv)
-    # the pixel's thresholds first, then the voxels in loops that vectorise
-    # (a table walk per voxel inside the loop kept it scalar: 36 % slower)
-    _thresholds(lv, xs, ys, slope, x64, idx, th)
-    if store_thr:
-        for t in range(T):
-            thr_r[t] = th[t]
-    for t in range(T):
-        s = sr[t]
-        h = th[t]
-        m = s > h
-        mr[t] = m
-        cr[t] = m and dr[t] > 0
-        e = s / max(h, np.float32(1e-12)) - np.float32(1.0)
-        er[t] = e if e > 0 else np.float32(0.0)
-    n_ph = 0
-    n_kept = 0
-    for l in range(yp.shape[0]):
-        yr = yp[l]
-        for t in range(T):  # integer sums, branch-free (vectorised)
-            v = np.int64(yr[t])
-            n_ph += v
-            n_kept += v * np.int64(mr[t])
-    return n_ph, n_kept
-
-
-@njit(cache=True, nogil=True)
 def _rows_kernel(
     cf, R, C, T, sr, sc, i_start, i_stop, keep0, jk0, jk1, strip, carry_in, carry_out, scales,
     weights, sp, estimate, dev, var_factor, quantum, clip, n_iter, step, sal, d, level, box,
-    bidx, overwrite, fuse, spa, lcur, dev_all, xs, ys, yb, thr_out, store_thr, mask, cand, ev,
+    bidx, overwrite,
 ):  # fmt: skip
     """Output rows ``[i_start, i_stop)`` and columns ``[jk0, jk1)`` (block coordinates)
     of one wavelength, in strips of ``strip`` columns (each strip's rows one after the
@@ -502,14 +391,6 @@ def _rows_kernel(
     ``cf`` is the correlated block as a flat contiguous float32 buffer: element
     ``(i, j, t)`` at ``i * sr + j * sc + t``. Contiguous 1-d slices of it (rather than
     a strided 3-d view) let the row pass vectorise.
-
-    ``fuse`` (the last wavelength): each pixel's threshold, map, candidate voxels and
-    evidence (:func:`threshold_pixel`) are computed as soon as its saliency is complete,
-    while its series are in cache; ``spa`` (r, C, L) holds the other wavelengths' levels
-    (this one's, wavelength ``lcur``, is written there), ``yb`` the raw counts of the
-    block (indexed as ``cf``), ``thr_out``, ``mask``, ``cand``, ``ev`` are indexed as
-    ``sal``. Returns the photons of the output pixels and those in voxels of the map
-    (0, 0 without ``fuse``).
     """
     Q = scales.size
     tile = min(_T_TILE, T)
@@ -524,14 +405,6 @@ def _rows_kernel(
         for i in range(i_start, i_stop):
             carry[i - i_start] = carry_in[i - keep0]
     hint = np.nan  # the previous pixel's median (speed only)
-    n_ph = 0
-    n_kept = 0
-    if fuse:
-        lv = np.empty(T, np.float32)
-        th = np.empty(T, np.float32)
-        x64 = np.empty(T, np.float64)
-        idx = np.empty(T, np.int64)
-        slope = _table_slopes(xs, ys)
     for s0 in range(jk0, jk1, strip):
         s1 = min(jk1, s0 + strip)
         for i in range(i_start, i_stop):
@@ -548,19 +421,9 @@ def _rows_kernel(
                         coarse[j], step, var_factor, quantum, clip, n_iter, scratch, hint
                     )
                 _bhat_saliency(sp[o, jo], dev, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite)
-                if fuse:
-                    spa[o, jo, lcur] = sp[o, jo]
-                    a, b = threshold_pixel(
-                        sal[o, jo], d[o, jo], spa[o, jo], dev_all, xs, ys, slope, yb[i, j], lv,
-                        th, x64, idx, thr_out[o, jo] if store_thr else thr_out[0, 0],
-                        store_thr, mask[o, jo], cand[o, jo], ev[o, jo],
-                    )  # fmt: skip
-                    n_ph += a
-                    n_kept += b
     if carry_out.shape[0] > 0:
         for i in range(i_start, i_stop):
             carry_out[i - keep0] = carry[i - i_start]
-    return n_ph, n_kept
 
 
 def _kept_span(shape, keep: slice, keep_cols, Q: int, carry) -> tuple:
@@ -598,70 +461,6 @@ def _flat_rows(c: np.ndarray):
     return flat, sr, sc
 
 
-@dataclass(frozen=True)
-class FusedThreshold:
-    """The threshold pass run inside the saliency kernel's last wavelength (see
-    :func:`~splidar.detection._kernels.threshold_pass` for the arrays' meaning).
-
-    Attributes
-    ----------
-    spatial : ndarray (r, C, L) float32
-        Levels of the output pixels: the other wavelengths' are read, this one's written.
-    wavelength : int
-        The wavelength of the call that fuses (the last one).
-    dev : ndarray (L, T) float32
-    xs, ys : ndarray (G,) float64
-        Threshold table.
-    y : ndarray (R, C, L, T) integer
-        Raw counts of the block (rows and columns as the correlated block's).
-    thr : ndarray (r, C, T) float32
-        Threshold per voxel, written when ``store_thr`` (else any float32 (1, 1, 1)).
-    store_thr : bool
-    mask, cand : ndarray (r, C, T) bool
-    ev : ndarray (r, C, T) float32
-    totals : ndarray (2,) int64
-        Written: photons of the output pixels and photons in voxels of the map.
-    """
-
-    spatial: np.ndarray
-    wavelength: int
-    dev: np.ndarray
-    xs: np.ndarray
-    ys: np.ndarray
-    y: np.ndarray
-    thr: np.ndarray
-    store_thr: bool
-    mask: np.ndarray
-    cand: np.ndarray
-    ev: np.ndarray
-    totals: np.ndarray
-
-
-def _fused_args(threshold: FusedThreshold | None, y_dtype) -> tuple:
-    """The fused threshold's arguments of :func:`_rows_kernel` (placeholders without)."""
-    if threshold is None:
-        f3 = np.empty((0, 0, 0), np.float32)
-        b3 = np.empty((0, 0, 0), np.bool_)
-        one = np.zeros(1, np.float64)
-        y = np.empty((0, 0, 0, 0), y_dtype)
-        return (False, f3, 0, np.empty((0, 0), np.float32), one, one, y, f3, False, b3, b3, f3)
-    t = threshold
-    return (
-        True,
-        t.spatial,
-        int(t.wavelength),
-        np.ascontiguousarray(t.dev, np.float32),
-        np.ascontiguousarray(t.xs, np.float64),
-        np.ascontiguousarray(t.ys, np.float64),
-        t.y,
-        t.thr,
-        bool(t.store_thr),
-        t.mask,
-        t.cand,
-        t.ev,
-    )
-
-
 def saliency_wavelength(
     c,
     keep: slice,
@@ -683,7 +482,6 @@ def saliency_wavelength(
     keep_cols: slice | None = None,
     strip: int | None = None,
     carry: np.ndarray | None = None,
-    threshold: FusedThreshold | None = None,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -732,11 +530,6 @@ def saliency_wavelength(
         column 0 (a block to the left wrote them; required then), overwritten with
         those at the last kept column. Passing them on makes every value the one a pass
         over the whole row gives, bit for bit.
-    threshold : FusedThreshold, optional
-        Given to the last wavelength's call: each output pixel's threshold pass
-        (:func:`threshold_pixel`) runs as soon as its saliency is complete, while its
-        series are in cache (the same values as
-        :func:`~splidar.detection._kernels.threshold_pass` after the kernel).
 
     Returns
     -------
@@ -787,11 +580,8 @@ def saliency_wavelength(
         box,
         bidx,
         bool(overwrite),
-        *_fused_args(threshold, np.uint16),
     )
     n = i1 - i0
-    if threshold is not None:
-        threshold.totals[:] = 0
     if n <= 0 or nc <= 0 or T == 0:
         return sp
     n_threads = max(1, min(int(n_threads), n))
@@ -800,19 +590,16 @@ def saliency_wavelength(
     none = np.empty((0, Q, T), np.float64)
     cols = (j0, j1, strip, none if carry is None else carry, none if carry is None else carry)
     if n_threads == 1:
-        tot = [_rows_kernel(*head, i0, i1, i0, *cols, *args)]
+        _rows_kernel(*head, i0, i1, i0, *cols, *args)
     else:
         cuts = np.linspace(i0, i1, n_threads + 1).round().astype(int)
         with ThreadPoolExecutor(n_threads) as ex:
-            tot = list(
+            list(
                 ex.map(
                     lambda ab: _rows_kernel(*head, ab[0], ab[1], i0, *cols, *args),
                     zip(cuts[:-1], cuts[1:], strict=True),
                 )
             )
-    if threshold is not None:
-        threshold.totals[0] = sum(int(a) for a, _ in tot)
-        threshold.totals[1] = sum(int(b) for _, b in tot)
     return sp
 
 

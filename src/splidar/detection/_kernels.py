@@ -8,9 +8,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-# one reflect rule for every kernel; the threshold pass's pixel shared with the fused
-# saliency kernel
-from ._fast import _refl, _table_slopes, threshold_pixel
+from ._fast import _refl  # one reflect rule for every kernel
 
 __all__ = [
     "ORDER_BAND",
@@ -826,6 +824,72 @@ def _interp_table(x, xs, ys):
 
 
 @njit(cache=True, nogil=True)
+def _table_slopes(xs, ys):
+    """Slope of each interval of the threshold table, as :func:`_interp_table` computes
+    it (the same float64 value, computed once instead of once per voxel)."""
+    G = xs.size
+    slope = np.zeros(max(G - 1, 1), np.float64)
+    for k in range(G - 1):
+        slope[k] = (ys[k + 1] - ys[k]) / (xs[k + 1] - xs[k])
+    return slope
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _thresholds(lv, xs, ys, slope, x64, idx, th):
+    """``th[t] = float32(interp(lv[t], xs, ys))`` for one pixel (T,), as
+    :func:`_interp_table` gives it bit for bit, in loops over t that vectorise.
+
+    The interval of ``x`` strictly inside the table is the number of inner table
+    points ``xs[1:G-1]`` at or below it (the ``lo`` with ``xs[lo] <= x < xs[lo + 1]``
+    of the bisection, ``xs`` ascending); the value is the bisection's formula on it,
+    and the ends are the table's end values.
+    """
+    T = lv.size
+    G = xs.size
+    y0 = ys[0]
+    if G == 1:
+        for t in range(T):
+            th[t] = np.float32(y0)
+        return
+    x0 = xs[0]
+    xe = xs[G - 1]
+    ye = ys[G - 1]
+    for t in range(T):
+        x64[t] = np.float64(lv[t])
+        idx[t] = 0
+    for k in range(1, G - 1):
+        xk = xs[k]
+        for t in range(T):
+            idx[t] += xk <= x64[t]
+    for t in range(T):
+        x = x64[t]
+        lo = idx[t]
+        v = slope[lo] * (x - xs[lo]) + ys[lo]
+        v = y0 if x <= x0 else v
+        v = ye if x >= xe else v
+        th[t] = np.float32(v)
+
+
+@njit(cache=True, nogil=True)
+def _pixel_level(spx, dev, lv):
+    """``sum_l bhat`` (``eq:background_3``) of one pixel into ``lv`` (T,) float32,
+    wavelengths in order, each ``bhat`` clipped at 0: the saliency kernel's
+    accumulation, bit for bit."""
+    T = lv.size
+    for l in range(spx.size):
+        s = spx[l]
+        dl = dev[l]
+        if l == 0:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] = bh if not bh < 0 else np.float32(0.0)
+        else:
+            for t in range(T):
+                bh = s + dl[t]
+                lv[t] += bh if not bh < 0 else np.float32(0.0)
+
+
+@njit(cache=True, nogil=True)
 def threshold_pass(sal, d, sp, dev, xs, ys, y, y_row0, y_col0, thr_out, store_thr, mask, cand, ev):
     """Threshold, binary map, candidate voxels and evidence of a block, in one pass.
 
@@ -857,6 +921,7 @@ def threshold_pass(sal, d, sp, dev, xs, ys, y, y_row0, y_col0, thr_out, store_th
         Photons of the block and photons in voxels of ``M`` (summed over wavelengths).
     """
     r, C, T = sal.shape
+    L = y.shape[2]
     n_ph = 0
     n_kept = 0
     lv = np.empty(T, np.float32)
@@ -866,13 +931,31 @@ def threshold_pass(sal, d, sp, dev, xs, ys, y, y_row0, y_col0, thr_out, store_th
     slope = _table_slopes(xs, ys)
     for i in range(r):
         for j in range(C):
-            a, b = threshold_pixel(
-                sal[i, j], d[i, j], sp[i, j], dev, xs, ys, slope, y[y_row0 + i, y_col0 + j],
-                lv, th, x64, idx, thr_out[i, j] if store_thr else thr_out[0, 0], store_thr,
-                mask[i, j], cand[i, j], ev[i, j],
-            )  # fmt: skip
-            n_ph += a
-            n_kept += b
+            _pixel_level(sp[i, j], dev, lv)
+            # the pixel's thresholds first, then the voxels in loops that vectorise
+            # (a table walk per voxel inside the loop kept it scalar: 36 % slower)
+            _thresholds(lv, xs, ys, slope, x64, idx, th)
+            if store_thr:
+                thr_out[i, j] = th
+            sr = sal[i, j]
+            dr = d[i, j]
+            mr = mask[i, j]
+            cr = cand[i, j]
+            er = ev[i, j]
+            for t in range(T):
+                s = sr[t]
+                h = th[t]
+                m = s > h
+                mr[t] = m
+                cr[t] = m and dr[t] > 0
+                e = s / max(h, np.float32(1e-12)) - np.float32(1.0)
+                er[t] = e if e > 0 else np.float32(0.0)
+            for l in range(L):
+                yr = y[y_row0 + i, y_col0 + j, l]
+                for t in range(T):  # integer sums, branch-free (vectorised)
+                    v = np.int64(yr[t])
+                    n_ph += v
+                    n_kept += v * np.int64(mr[t])
     return n_ph, n_kept
 
 
