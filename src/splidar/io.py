@@ -333,6 +333,18 @@ def bin_photons(
     return _dense(*_bin_sparse(times, pixel_index, shape, window, bin_width))
 
 
+def _bin_width_hint(span: float, bin_width: float, nbytes: int) -> str:
+    """A round bin width (1, 2 or 5 x 10^k) that brings the binned cube under 1 GiB."""
+    if not np.isfinite(span):
+        return ""
+    need = bin_width * nbytes / 2**30
+    exponent = math.floor(math.log10(need))
+    width = next(m * 10.0**exponent for m in (1, 2, 5, 10) if m * 10.0**exponent >= need)
+    n_bins = max(math.ceil(span / width - 1e-12), 1)
+    mib = nbytes / math.ceil(span / bin_width - 1e-12) * n_bins / 2**20
+    return f"; e.g. `bin_width` {width:g} gives T = {n_bins} bins ({mib:.0f} MiB)"
+
+
 def _bin_sparse(times, pixel_index, shape, window, bin_width):
     """Non-empty voxels of the binned cube: (flat index, count, rows, cols, T)."""
     start, stop, bw = _check_window(window, bin_width)
@@ -360,10 +372,11 @@ def _bin_sparse(times, pixel_index, shape, window, bin_width):
     n_bins = max(n_bins, 1)
     nbytes = n_pix * n_bins * 2
     if nbytes > _MAX_CUBE_BYTES:
+        hint = _bin_width_hint(stop - start, bw, nbytes)
         raise SplidarError(
             f"binning into T = {n_bins} bins of width {bw:g} over {(rows, cols)} pixels would "
             f"allocate {nbytes / 2**30:.1f} GiB; pass a larger `bin_width` or a narrower "
-            "`window` (both in the data's time unit)."
+            f"`window` (both in the data's time unit){hint}."
         )
     if t.dtype.kind in "ui" and float(start).is_integer() and float(bw).is_integer():
         b = (t.astype(np.int64) - int(start)) // int(bw)
