@@ -18,7 +18,7 @@ estimate and with the shape: surfaces, pixels with >= 2 surfaces (no truth there
 
 Usage::
 
-    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--real] [--data DIR]
+    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--real] [--art] [--no-sim] [--data DIR]
 """
 
 from __future__ import annotations
@@ -88,6 +88,22 @@ def depth_offset(points, truth) -> float:
     return float(np.median(d)) if d else 0.0
 
 
+def depth_bias(points, truth, tau: float) -> float:
+    """Mean signed depth error (bins) of the estimated points within ``tau`` of a true
+    depth of their pixel (the nearest one): the depth bias of the detected surfaces."""
+    n = truth.image_shape[1]
+    t_key = truth.row * n + truth.col
+    e_key = points.row * n + points.col
+    d = []
+    for k, z in zip(e_key, points.depth_bin, strict=True):
+        tz = truth.depth_bin[t_key == k]
+        if tz.size:
+            e = z - tz[np.argmin(np.abs(tz - z))]
+            if abs(e) <= tau:
+                d.append(e)
+    return float(np.mean(d)) if d else 0.0
+
+
 def sim_cases():
     cases = [
         ("exp tail 3/6", basic(irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
@@ -105,9 +121,19 @@ def sim_cases():
             exp_tail_irf(3.0, 6.0),
         ),
     ]
+    cases.append(
+        (
+            "exp tail 2/25, PPP 2 (T 400)",
+            basic(T=400, ppp=2.0, irf=exp_tail_irf(2.0, 25.0)),
+            exp_tail_irf(2.0, 25.0),
+        )
+    )
     w = measured_irf()
     if w is not None:
         cases.append(("measured pulse, T 300", basic(T=300, irf=w[230:300]), w[230:300]))
+        cases.append(
+            ("measured pulse, PPP 2, T 300", basic(T=300, ppp=2.0, irf=w[230:300]), w[230:300])
+        )
     return cases
 
 
@@ -115,9 +141,9 @@ def run_sim(seeds):
     print("## simulated, 32 x 32, PPP 10, SBR 1; process(rng=0)")
     print(
         "| case | seed | IRF | L1 | FWHM | tail > 1 FWHM | tail > 2 FWHM | F_true | false "
-        "| DAE | offset | F_true / DAE after offset | estimate s |"
+        "| DAE | offset | bias | F_true / DAE after offset | estimate s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, build, true in sim_cases():
         true = np.asarray(true, float) / np.sum(true)
         fw = float(irf_fwhm(true))
@@ -127,9 +153,17 @@ def run_sim(seeds):
             t0 = time.perf_counter()
             shape = estimate_irf(cube.counts)
             t_est = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            hard = estimate_irf(cube.counts, refine=False)
+            t_hard = time.perf_counter() - t0
             g = gaussian_irf(estimate_irf_fwhm(cube.counts))
-            rows = [("true", true), ("gaussian est.", g), ("shape est.", shape[0])]
-            for label, irf in rows:
+            rows = [
+                ("true", true, 0.0),
+                ("gaussian est.", g, 0.0),
+                ("shape est. hard (refine=False)", hard[0], t_hard),
+                ("shape est. soft", shape[0], t_est),
+            ]
+            for label, irf, te in rows:
                 s = shape_row(true, irf, fw)
                 c = dataclasses.replace(cube, irf=np.asarray(irf, float)[None, :])
                 with warnings.catch_warnings():
@@ -137,13 +171,14 @@ def run_sim(seeds):
                     rec = splidar.process(c, rng=0)
                 m = evaluate(rec.points, truth, tau=tau)
                 off = depth_offset(rec.points, truth)
+                bias = depth_bias(rec.points, truth, tau)
                 moved = dataclasses.replace(rec.points, depth_bin=rec.points.depth_bin - off)
                 m2 = evaluate(moved, truth, tau=tau)
                 print(
                     f"| {name} | {seed} | {label} | {s['l1']:.3f} | {s['fwhm']:.2f} | "
                     f"{s['tail1']:.3f} | {s['tail2']:.3f} | {m.f_true:.3f} | {m.f_false} | "
-                    f"{m.dae:.2f} | {off:+.1f} | {m2.f_true:.3f} / {m2.dae:.2f} | "
-                    f"{t_est if label == 'shape est.' else 0:.2f} |"
+                    f"{m.dae:.2f} | {off:+.1f} | {bias:+.2f} | {m2.f_true:.3f} / {m2.dae:.2f} | "
+                    f"{te:.2f} |"
                 )
 
 
@@ -163,9 +198,9 @@ def run_real(data: Path):
     print("\n## real photon lists; detect(rng=0, pfa=1e-4)")
     print(
         "| data | IRF | samples | FWHM | tail > 1 FWHM | tail > 2 FWHM | estimate s | surfaces "
-        "| pixels >= 2 | detect s |"
+        "| pixels >= 2 | depth shift vs gaussian (one-surface pixels, median) | detect s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, (rel, kw, _) in REAL.items():
         path = data / rel
         if not path.is_file():
@@ -175,7 +210,15 @@ def run_real(data: Path):
         t0 = time.perf_counter()
         shape = estimate_irf(cube.counts)
         t_est = time.perf_counter() - t0
-        for label, irf, te in (("gaussian est.", cube.irf, 0.0), ("shape est.", shape, t_est)):
+        t0 = time.perf_counter()
+        hard = estimate_irf(cube.counts, refine=False)
+        t_hard = time.perf_counter() - t0
+        ref = None
+        for label, irf, te in (
+            ("gaussian est.", cube.irf, 0.0),
+            ("shape est. hard", hard, t_hard),
+            ("shape est. soft", shape, t_est),
+        ):
             g = np.asarray(irf, float)[0]
             fw = float(irf_fwhm(g))
             c = dataclasses.replace(cube, irf=np.asarray(irf, float))
@@ -184,16 +227,75 @@ def run_real(data: Path):
             t_det = time.perf_counter() - t0
             pts = det.points
             per = np.bincount(pts.row * c.n_cols + pts.col, minlength=c.n_pixels)
+            one = np.full(c.n_pixels, np.nan)
+            k1 = per[pts.row * c.n_cols + pts.col] == 1
+            one[(pts.row * c.n_cols + pts.col)[k1]] = pts.depth_bin[k1]
+            if ref is None:
+                ref = one
+            both = np.isfinite(one) & np.isfinite(ref)
+            shift = float(np.median(one[both] - ref[both])) if both.any() else float("nan")
             print(
                 f"| {name} | {label} | {g.size} | {fw:.2f} | {tail_mass(g, fw):.3f} | "
                 f"{tail_mass(g, 2 * fw):.3f} | {te:.2f} | {len(pts):,} | "
-                f"{np.mean(per > 1):.1%} | {t_det:.1f} |"
+                f"{np.mean(per > 1):.1%} | {shift:+.1f} | {t_det:.1f} |"
             )
-            if label == "shape est.":
+            if label != "gaussian est.":
                 p = int(np.argmax(g))
-                rel_ = [g[p + k] / g[p] if p + k < g.size else 0.0 for k in (4, 8, 12, 16, 24)]
+                rel_ = [
+                    g[p + k] / g[p] if p + k < g.size else 0.0 for k in (-4, -2, 4, 8, 12, 16, 24)
+                ]
                 txt = " / ".join(f"{v:.3f}" for v in rel_)
-                print(f"|  | shape at +4/+8/+12/+16/+24 bins: {txt} |")
+                print(f"|  | shape at -4/-2/+4/+8/+12/+16/+24 bins: {txt} |")
+
+
+def run_art(data: Path, cells):
+    """The Art scene (185 x 232, two surfaces per pixel, RGB: L = 3) simulated with a
+    Gaussian (the scene's, FWHM 3) and an exp-tail 3/6 IRF; ``process`` with the true IRF,
+    the Gaussian estimate, the hard and the soft shape."""
+    from splidar.scenes import art_scene
+
+    print("\n## Art (185 x 232 x 3 wavelengths, two surfaces per pixel); process(rng=0)")
+    print(
+        "| IRF of the simulation | PPP / SBR | IRF used | samples | FWHM | F_true | false "
+        "| DAE | bias | estimate s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for label, irf_spec, T in (
+        ("gaussian 3", ("gaussian", 3.0), 164),
+        ("exp tail 3/6", ("exp_tail", 3.0, 6.0), 300),
+    ):
+        scene = art_scene(data / "middlebury-art", irf=irf_spec, n_bins=T)
+        true = scene.irf_array()
+        fw = float(np.max(irf_fwhm(true)))
+        tau = max(2.0, fw / 2.0)
+        for ppp, sbr in cells:
+            sim = scene.simulate(ppp=ppp, sbr=sbr, rng=0)
+            cube, truth = sim.cube, sim.truth
+            t0 = time.perf_counter()
+            soft = estimate_irf(cube.counts)
+            t_soft = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            hard = estimate_irf(cube.counts, refine=False)
+            t_hard = time.perf_counter() - t0
+            g = gaussian_irf(estimate_irf_fwhm(cube.counts))[None, :]
+            for name, irf, te in (
+                ("true", true, 0.0),
+                ("gaussian est.", g, 0.0),
+                ("shape est. hard", hard, t_hard),
+                ("shape est. soft", soft, t_soft),
+            ):
+                c = dataclasses.replace(cube, irf=np.asarray(irf, float))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    rec = splidar.process(c, library=scene.library, rng=0)
+                m = evaluate(rec.points, truth, tau=tau)
+                bias = depth_bias(rec.points, truth, tau)
+                fwe = float(np.max(irf_fwhm(np.asarray(irf, float))))
+                print(
+                    f"| {label} | {ppp:g} / {sbr:g} | {name} | {np.shape(irf)[-1]} | {fwe:.2f} "
+                    f"| {m.f_true:.3f} | {m.f_false} | {m.dae:.2f} | {bias:+.2f} | {te:.1f} |",
+                    flush=True,
+                )
 
 
 def main(argv=None):
@@ -201,6 +303,7 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
     ap.add_argument("--real", action="store_true", help="also the three real photon lists")
     ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4 and 16, SBR 1)")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -208,6 +311,8 @@ def main(argv=None):
         run_sim(args.seeds)
     if args.real:
         run_real(Path(args.data))
+    if args.art:
+        run_art(Path(args.data), [(4.0, 1.0), (16.0, 1.0)])
     print(f"\nwall {time.perf_counter() - t0:.0f} s")
 
 
