@@ -184,6 +184,13 @@ def gaussian_test(r: np.ndarray, sig: np.ndarray) -> tuple[float, int, float]:
     return c2, k, float(chi2.sf(c2, k))
 
 
+def _peak_move(h: np.ndarray, h0: np.ndarray) -> int:
+    """Distance (samples) between the peaks of ``h`` and ``h0`` once ``h`` is placed where
+    it best correlates with ``h0``."""
+    lag = int(np.argmax(np.correlate(h, h0, mode="full"))) - (h0.size - 1)
+    return abs(int(np.argmax(h)) - lag - int(np.argmax(h0)))
+
+
 def pooled_shape(
     a: np.ndarray,
     fwhm: float,
@@ -234,7 +241,21 @@ def pooled_shape(
         # the jitter of the hard alignment is within about a FWHM of the template
         reach = max(2, int(np.count_nonzero(kernel > kernel.max() / 2.0)))
         h, _ = soft_align(a, kept, h0, support, k_left, reach)
-        rows = [h[l, a_ : b_ + 1] for l, (a_, b_) in enumerate(spans)]
+        # the soft peak corrects the jitter's shift of the hard one (measured: at most a
+        # quarter of the FWHM); a move beyond half the FWHM, the two shapes placed where
+        # they best correlate (the EM may shift the whole shape: its shifts absorb it),
+        # is a flat top's other end (a measured pulse whose plateau is within a few %
+        # of its peak), which the photons do not tell apart: the hard shape is kept
+        move = np.array([_peak_move(h[l], h0[l]) for l in range(h.shape[0])])
+        if np.all(move <= reach / 2.0):
+            rows = [h[l, a_ : b_ + 1] for l, (a_, b_) in enumerate(spans)]
+        else:
+            log.info(
+                "IRF shape: the soft alignment moves the peak by %d bins (more than half the "
+                "FWHM, %d bins): the hard-aligned shape is kept",
+                int(move.max()),
+                reach,
+            )
     width = max(row.size for row in rows)
     out = np.zeros((len(rows), width))
     for l, row in enumerate(rows):
