@@ -9,12 +9,16 @@ known non-Gaussian IRF: exponential tails 3/6 and 2/25 (``exp_tail_irf``) and, w
   estimated shape (``estimate_irf``) and the Gaussian of the width ``estimate_irf_fwhm``
   gives (what ``load`` uses today when a file has no IRF);
 * ``splidar.process(cube, rng=0)`` with (a) the true IRF, (b) the Gaussian estimate,
-  (c) the estimated shape: F_true, false surfaces, DAE (``splidar.metrics.evaluate``,
-  tau = max(2, FWHM / 2) bins as in bench_robustness).
+  (c) the estimated shape with the hard alignment only (``refine=False``), (d) with the
+  soft alignment (the default): F_true, false surfaces, DAE (``splidar.metrics.evaluate``,
+  tau = max(2, FWHM / 2) bins as in bench_robustness), the median depth offset and the
+  depth bias (mean signed error of the points within tau of a true depth).
 
 Then, with ``--real``, the three photon-list files (loaded as in ``real_data.py``): the
 estimated FWHM, tail mass and time, and ``detect(rng=0, pfa=1e-4)`` with the Gaussian
-estimate and with the shape: surfaces, pixels with >= 2 surfaces (no truth there).
+estimate and with the shapes: surfaces, pixels with >= 2 surfaces, the median depth
+shift against the Gaussian estimate (no truth there). With ``--art``, the Art scene
+(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs.
 
 Usage::
 

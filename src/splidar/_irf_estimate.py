@@ -3,6 +3,9 @@
 Bright pixels are aligned at their own return (the peak of their correlation with a
 template), their background is subtracted, and the aligned histograms are pooled per
 wavelength; the pooled curve is cut where it reaches the noise floor or rises again.
+Then (:func:`soft_align`) expectation-maximisation over each pixel's return position
+removes the hard alignment's jitter from the shape, so its peak (the depth reference)
+does not slide into a slowly decaying tail.
 """
 
 from __future__ import annotations
@@ -314,8 +317,11 @@ def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarra
     pulse; 2-fold cross-validation stops them after 1-5 steps, before the rise is
     back), so each M-step is smoothed by ``[1, 2, 1] / 4`` inside ``support`` (EMS: a
     fixed point, adding 0.7 bin of Gaussian spread). Stops when the shape changes by
-    less than ``_EM_TOL`` (L1) or after ``_EM_MAX_ITER`` steps. Returns the shape (L, K)
-    and the steps taken."""
+    less than ``_EM_TOL`` (L1) or after ``_EM_MAX_ITER`` steps. Beyond ``_EM_PAIRS``
+    photon-shift pairs per step every k-th pixel is used. ``_EM_UP`` > 1 runs it on a
+    grid of ``1 / _EM_UP`` bin (measured with 2: sharper on fast pulses, but the peak of
+    a flat-topped one jumps; benchmarks/README.md, irf20). Returns the shape (L, K) and
+    the steps taken."""
     n_l, n_lag = h0.shape
     up = _EM_UP
     n_f = up * n_lag
