@@ -22,7 +22,8 @@ shift against the Gaussian estimate (no truth there). With ``--art``, the Art sc
 
 Usage::
 
-    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--real] [--art] [--no-sim] [--data DIR]
+    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--no-sim]
+        [--data DIR]
 """
 
 from __future__ import annotations
@@ -108,6 +109,24 @@ def depth_bias(points, truth, tau: float) -> float:
     return float(np.mean(d)) if d else 0.0
 
 
+def ppp4_cases():
+    """``--ppp4``: exp tail 3/6, 2/25 and the measured pulse at PPP 4."""
+    cases = [
+        ("exp tail 3/6, PPP 4", basic(ppp=4.0, irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
+        (
+            "exp tail 2/25, PPP 4 (T 400)",
+            basic(T=400, ppp=4.0, irf=exp_tail_irf(2.0, 25.0)),
+            exp_tail_irf(2.0, 25.0),
+        ),
+    ]
+    w = measured_irf()
+    if w is not None:
+        cases.append(
+            ("measured pulse, PPP 4, T 300", basic(T=300, ppp=4.0, irf=w[230:300]), w[230:300])
+        )
+    return cases
+
+
 def sim_cases():
     cases = [
         ("exp tail 3/6", basic(irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
@@ -141,14 +160,14 @@ def sim_cases():
     return cases
 
 
-def run_sim(seeds):
-    print("## simulated, 32 x 32, PPP 10, SBR 1; process(rng=0)")
+def run_sim(seeds, cases=None):
+    print("## simulated, 32 x 32, SBR 1, PPP 10 unless said; process(rng=0)")
     print(
         "| case | seed | IRF | L1 | FWHM | tail > 1 FWHM | tail > 2 FWHM | F_true | false "
         "| DAE | offset | bias | F_true / DAE after offset | estimate s |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, build, true in sim_cases():
+    for name, build, true in sim_cases() if cases is None else cases:
         true = np.asarray(true, float) / np.sum(true)
         fw = float(irf_fwhm(true))
         tau = max(2.0, fw / 2.0)
@@ -314,12 +333,13 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
     ap.add_argument("--real", action="store_true", help="also the three real photon lists")
     ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--ppp4", action="store_true", help="only the PPP 4 cases (simulated)")
     ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if not args.no_sim:
-        run_sim(args.seeds)
+        run_sim(args.seeds, ppp4_cases() if args.ppp4 else None)
     if args.real:
         run_real(Path(args.data))
     if args.art:
