@@ -9,16 +9,21 @@ known non-Gaussian IRF: exponential tails 3/6 and 2/25 (``exp_tail_irf``) and, w
   estimated shape (``estimate_irf``) and the Gaussian of the width ``estimate_irf_fwhm``
   gives (what ``load`` uses today when a file has no IRF);
 * ``splidar.process(cube, rng=0)`` with (a) the true IRF, (b) the Gaussian estimate,
-  (c) the estimated shape: F_true, false surfaces, DAE (``splidar.metrics.evaluate``,
-  tau = max(2, FWHM / 2) bins as in bench_robustness).
+  (c) the estimated shape with the hard alignment only (``refine=False``), (d) with the
+  soft alignment (the default): F_true, false surfaces, DAE (``splidar.metrics.evaluate``,
+  tau = max(2, FWHM / 2) bins as in bench_robustness), the median depth offset and the
+  depth bias (mean signed error of the points within tau of a true depth).
 
 Then, with ``--real``, the three photon-list files (loaded as in ``real_data.py``): the
 estimated FWHM, tail mass and time, and ``detect(rng=0, pfa=1e-4)`` with the Gaussian
-estimate and with the shape: surfaces, pixels with >= 2 surfaces (no truth there).
+estimate and with the shapes: surfaces, pixels with >= 2 surfaces, the median depth
+shift against the Gaussian estimate (no truth there). With ``--art``, the Art scene
+(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs.
 
 Usage::
 
-    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--real] [--data DIR]
+    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--no-sim]
+        [--data DIR]
 """
 
 from __future__ import annotations
@@ -88,6 +93,40 @@ def depth_offset(points, truth) -> float:
     return float(np.median(d)) if d else 0.0
 
 
+def depth_bias(points, truth, tau: float) -> float:
+    """Mean signed depth error (bins) of the estimated points within ``tau`` of a true
+    depth of their pixel (the nearest one): the depth bias of the detected surfaces."""
+    n = truth.image_shape[1]
+    t_key = truth.row * n + truth.col
+    e_key = points.row * n + points.col
+    d = []
+    for k, z in zip(e_key, points.depth_bin, strict=True):
+        tz = truth.depth_bin[t_key == k]
+        if tz.size:
+            e = z - tz[np.argmin(np.abs(tz - z))]
+            if abs(e) <= tau:
+                d.append(e)
+    return float(np.mean(d)) if d else 0.0
+
+
+def ppp4_cases():
+    """``--ppp4``: exp tail 3/6, 2/25 and the measured pulse at PPP 4."""
+    cases = [
+        ("exp tail 3/6, PPP 4", basic(ppp=4.0, irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
+        (
+            "exp tail 2/25, PPP 4 (T 400)",
+            basic(T=400, ppp=4.0, irf=exp_tail_irf(2.0, 25.0)),
+            exp_tail_irf(2.0, 25.0),
+        ),
+    ]
+    w = measured_irf()
+    if w is not None:
+        cases.append(
+            ("measured pulse, PPP 4, T 300", basic(T=300, ppp=4.0, irf=w[230:300]), w[230:300])
+        )
+    return cases
+
+
 def sim_cases():
     cases = [
         ("exp tail 3/6", basic(irf=exp_tail_irf(3.0, 6.0)), exp_tail_irf(3.0, 6.0)),
@@ -105,20 +144,30 @@ def sim_cases():
             exp_tail_irf(3.0, 6.0),
         ),
     ]
+    cases.append(
+        (
+            "exp tail 2/25, PPP 2 (T 400)",
+            basic(T=400, ppp=2.0, irf=exp_tail_irf(2.0, 25.0)),
+            exp_tail_irf(2.0, 25.0),
+        )
+    )
     w = measured_irf()
     if w is not None:
         cases.append(("measured pulse, T 300", basic(T=300, irf=w[230:300]), w[230:300]))
+        cases.append(
+            ("measured pulse, PPP 2, T 300", basic(T=300, ppp=2.0, irf=w[230:300]), w[230:300])
+        )
     return cases
 
 
-def run_sim(seeds):
-    print("## simulated, 32 x 32, PPP 10, SBR 1; process(rng=0)")
+def run_sim(seeds, cases=None):
+    print("## simulated, 32 x 32, SBR 1, PPP 10 unless said; process(rng=0)")
     print(
         "| case | seed | IRF | L1 | FWHM | tail > 1 FWHM | tail > 2 FWHM | F_true | false "
-        "| DAE | offset | F_true / DAE after offset | estimate s |"
+        "| DAE | offset | bias | F_true / DAE after offset | estimate s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, build, true in sim_cases():
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, build, true in sim_cases() if cases is None else cases:
         true = np.asarray(true, float) / np.sum(true)
         fw = float(irf_fwhm(true))
         tau = max(2.0, fw / 2.0)
@@ -127,9 +176,17 @@ def run_sim(seeds):
             t0 = time.perf_counter()
             shape = estimate_irf(cube.counts)
             t_est = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            hard = estimate_irf(cube.counts, refine=False)
+            t_hard = time.perf_counter() - t0
             g = gaussian_irf(estimate_irf_fwhm(cube.counts))
-            rows = [("true", true), ("gaussian est.", g), ("shape est.", shape[0])]
-            for label, irf in rows:
+            rows = [
+                ("true", true, 0.0),
+                ("gaussian est.", g, 0.0),
+                ("shape est. hard (refine=False)", hard[0], t_hard),
+                ("shape est. soft", shape[0], t_est),
+            ]
+            for label, irf, te in rows:
                 s = shape_row(true, irf, fw)
                 c = dataclasses.replace(cube, irf=np.asarray(irf, float)[None, :])
                 with warnings.catch_warnings():
@@ -137,13 +194,14 @@ def run_sim(seeds):
                     rec = splidar.process(c, rng=0)
                 m = evaluate(rec.points, truth, tau=tau)
                 off = depth_offset(rec.points, truth)
+                bias = depth_bias(rec.points, truth, tau)
                 moved = dataclasses.replace(rec.points, depth_bin=rec.points.depth_bin - off)
                 m2 = evaluate(moved, truth, tau=tau)
                 print(
                     f"| {name} | {seed} | {label} | {s['l1']:.3f} | {s['fwhm']:.2f} | "
                     f"{s['tail1']:.3f} | {s['tail2']:.3f} | {m.f_true:.3f} | {m.f_false} | "
-                    f"{m.dae:.2f} | {off:+.1f} | {m2.f_true:.3f} / {m2.dae:.2f} | "
-                    f"{t_est if label == 'shape est.' else 0:.2f} |"
+                    f"{m.dae:.2f} | {off:+.1f} | {bias:+.2f} | {m2.f_true:.3f} / {m2.dae:.2f} | "
+                    f"{te:.2f} |"
                 )
 
 
@@ -163,9 +221,9 @@ def run_real(data: Path):
     print("\n## real photon lists; detect(rng=0, pfa=1e-4)")
     print(
         "| data | IRF | samples | FWHM | tail > 1 FWHM | tail > 2 FWHM | estimate s | surfaces "
-        "| pixels >= 2 | detect s |"
+        "| pixels >= 2 | depth shift vs gaussian (one-surface pixels, median) | detect s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, (rel, kw, _) in REAL.items():
         path = data / rel
         if not path.is_file():
@@ -175,7 +233,15 @@ def run_real(data: Path):
         t0 = time.perf_counter()
         shape = estimate_irf(cube.counts)
         t_est = time.perf_counter() - t0
-        for label, irf, te in (("gaussian est.", cube.irf, 0.0), ("shape est.", shape, t_est)):
+        t0 = time.perf_counter()
+        hard = estimate_irf(cube.counts, refine=False)
+        t_hard = time.perf_counter() - t0
+        ref = None
+        for label, irf, te in (
+            ("gaussian est.", cube.irf, 0.0),
+            ("shape est. hard", hard, t_hard),
+            ("shape est. soft", shape, t_est),
+        ):
             g = np.asarray(irf, float)[0]
             fw = float(irf_fwhm(g))
             c = dataclasses.replace(cube, irf=np.asarray(irf, float))
@@ -184,16 +250,82 @@ def run_real(data: Path):
             t_det = time.perf_counter() - t0
             pts = det.points
             per = np.bincount(pts.row * c.n_cols + pts.col, minlength=c.n_pixels)
+            one = np.full(c.n_pixels, np.nan)
+            k1 = per[pts.row * c.n_cols + pts.col] == 1
+            one[(pts.row * c.n_cols + pts.col)[k1]] = pts.depth_bin[k1]
+            if ref is None:
+                ref = one
+            both = np.isfinite(one) & np.isfinite(ref)
+            shift = float(np.median(one[both] - ref[both])) if both.any() else float("nan")
             print(
                 f"| {name} | {label} | {g.size} | {fw:.2f} | {tail_mass(g, fw):.3f} | "
                 f"{tail_mass(g, 2 * fw):.3f} | {te:.2f} | {len(pts):,} | "
-                f"{np.mean(per > 1):.1%} | {t_det:.1f} |"
+                f"{np.mean(per > 1):.1%} | {shift:+.1f} | {t_det:.1f} |"
             )
-            if label == "shape est.":
+            if label != "gaussian est.":
                 p = int(np.argmax(g))
-                rel_ = [g[p + k] / g[p] if p + k < g.size else 0.0 for k in (4, 8, 12, 16, 24)]
+                rel_ = [
+                    g[p + k] / g[p] if p + k < g.size else 0.0 for k in (-4, -2, 4, 8, 12, 16, 24)
+                ]
                 txt = " / ".join(f"{v:.3f}" for v in rel_)
-                print(f"|  | shape at +4/+8/+12/+16/+24 bins: {txt} |")
+                print(f"|  | shape at -4/-2/+4/+8/+12/+16/+24 bins: {txt} |")
+
+
+def run_art(data: Path, cells):
+    """The Art scene (185 x 232, two surfaces per pixel, RGB: L = 3) simulated with a
+    Gaussian (the scene's, FWHM 3) and an exp-tail 3/6 IRF; ``process`` with the true IRF,
+    the Gaussian estimate, the hard and the soft shape."""
+    from splidar.scenes import art_scene
+
+    print("\n## Art (185 x 232 x 3 wavelengths, two surfaces per pixel); process(rng=0)")
+    print(
+        "| IRF of the simulation | PPP / SBR | IRF used | samples | FWHM | F_true | false "
+        "| DAE | bias | estimate s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for label, irf_spec, T in (
+        ("exp tail 3/6", ("exp_tail", 3.0, 6.0), 300),
+        ("gaussian 3", ("gaussian", 3.0), 164),
+    ):
+        scene = art_scene(data / "middlebury-art", irf=irf_spec, n_bins=T)
+        true = scene.irf_array
+        fw = float(np.max(irf_fwhm(true)))
+        tau = max(2.0, fw / 2.0)
+        for ppp, sbr in cells:
+            sim = scene.simulate(ppp=ppp, sbr=sbr, rng=0)
+            cube, truth = sim.cube, sim.truth
+            note = ""
+            try:
+                fw0 = estimate_irf_fwhm(cube.counts)
+            except splidar.SplidarError as exc:  # the pair-lag width: the true FWHM given
+                fw0 = fw
+                note = f" (pair-lag width fails: {str(exc)[:40]}...; fwhm={fw:.2f} given)"
+            t0 = time.perf_counter()
+            soft = estimate_irf(cube.counts, fwhm=fw0)
+            t_soft = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            hard = estimate_irf(cube.counts, fwhm=fw0, refine=False)
+            t_hard = time.perf_counter() - t0
+            g = gaussian_irf(fw0)[None, :]
+            for name, irf, te in (
+                ("true", true, 0.0),
+                ("gaussian est.", g, 0.0),
+                ("shape est. hard", hard, t_hard),
+                ("shape est. soft", soft, t_soft),
+            ):
+                c = dataclasses.replace(cube, irf=np.asarray(irf, float))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    rec = splidar.process(c, library=scene.library, rng=0)
+                m = evaluate(rec.points, truth, tau=tau)
+                bias = depth_bias(rec.points, truth, tau)
+                fwe = float(np.max(irf_fwhm(np.asarray(irf, float))))
+                print(
+                    f"| {label} | {ppp:g} / {sbr:g} | {name}{note if name != 'true' else ''} "
+                    f"| {np.shape(irf)[-1]} | {fwe:.2f} "
+                    f"| {m.f_true:.3f} | {m.f_false} | {m.dae:.2f} | {bias:+.2f} | {te:.1f} |",
+                    flush=True,
+                )
 
 
 def main(argv=None):
@@ -201,13 +333,17 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
     ap.add_argument("--real", action="store_true", help="also the three real photon lists")
     ap.add_argument("--no-sim", action="store_true")
+    ap.add_argument("--ppp4", action="store_true", help="only the PPP 4 cases (simulated)")
+    ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if not args.no_sim:
-        run_sim(args.seeds)
+        run_sim(args.seeds, ppp4_cases() if args.ppp4 else None)
     if args.real:
         run_real(Path(args.data))
+    if args.art:
+        run_art(Path(args.data), [(4.0, 1.0), (16.0, 1.0), (64.0, 1.0)])
     print(f"\nwall {time.perf_counter() - t0:.0f} s")
 
 

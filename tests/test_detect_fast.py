@@ -510,6 +510,32 @@ def test_threshold_pass_equals_bisection(G):
     assert n_kept == int((y[1:4].astype(np.int64) * mask[:, :, None, :]).sum())
 
 
+def test_threshold_pass_table_points_between_float32_values():
+    # the table interval is counted in float32 against each point rounded up to a
+    # float32: a level equal to a float32 table point, or to the float32 just above or
+    # below a point that no float32 represents, falls in the bisection's interval
+    from splidar.detection._kernels import _interp_table, _table_ceil32, threshold_pass
+
+    f = np.float32([0.5, 0.75, 1.0, 1.25, 1.5, 2.0])
+    up = np.nextafter(f, np.float32(np.inf))
+    xs = f.astype(np.float64)
+    xs[[1, 3]] += 1e-12  # not float32: between f and the next float32 up
+    xs[4] -= 1e-12  # just below a float32
+    ys = np.array([1.0, 1.5, 1.2, 2.0, 2.5, 3.0])
+    assert np.array_equal(_table_ceil32(xs), np.where(xs > f, up, f))
+    levels = np.concatenate([f, up, np.nextafter(f, np.float32(-np.inf)), [0.1, 3.0]])
+    T, L = levels.size, 1
+    sp = np.zeros((1, 1, L), np.float32)
+    dev = levels.astype(np.float32)[None, :]  # the level sum_l max(sp + dev, 0) = levels
+    sal = np.full((1, 1, T), 2.0, np.float32)
+    y = np.zeros((1, 1, L, T), np.uint16)
+    thr, mask = np.empty((1, 1, T), np.float32), np.empty((1, 1, T), bool)
+    cand, ev = np.empty_like(mask), np.empty((1, 1, T), np.float32)
+    threshold_pass(sal, sal, sp, dev, xs, ys, y, 0, 0, thr, True, mask, cand, ev)
+    ref = [np.float32(_interp_table(np.float64(np.float32(v)), xs, ys)) for v in levels]
+    np.testing.assert_array_equal(thr[0, 0], np.array(ref, np.float32))
+
+
 def test_threshold_pass_level_is_the_saliency_kernels_level():
     # the threshold pass recomputes sum_l bhat from the levels and dev: the same bits
     # as the saliency kernel's accumulated level (which the map pass no longer stores)

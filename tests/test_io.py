@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import h5py
@@ -236,6 +237,19 @@ def test_bin_photons_errors():
         bin_photons([1], [4], shape=(1, 2), window=(0, 5))
     with pytest.raises(SplidarError, match="GiB"):
         bin_photons([1], [0], shape=(1000, 1000), window=(0, 1e7), bin_width=1)
+
+
+def test_bin_photons_too_large_suggests_a_bin_width_that_fits():
+    # 1000 x 1000 pixels x 1e7 bins of 2 bytes: the suggestion must be a round width
+    # whose cube fits under 1 GiB (and the next round width down must not)
+    with pytest.raises(SplidarError, match="GiB") as err:
+        bin_photons([1], [0], shape=(1000, 1000), window=(0, 1e7), bin_width=1)
+    m = re.search(r"`bin_width` (\S+) gives T = (\d+) bins \((\d+) MiB\)", str(err.value))
+    assert m is not None, str(err.value)
+    width, n_bins, mib = float(m[1]), int(m[2]), int(m[3])
+    assert width == 20000.0 and n_bins == 500
+    assert mib == round(1000 * 1000 * n_bins * 2 / 2**20) and mib <= 1024
+    assert 1000 * 1000 * (1e7 / 10000) * 2 > 2**30  # 10000 would not fit
 
 
 def test_photon_lists_from_cells_and_read(tmp_path):

@@ -36,32 +36,76 @@ def _on_common_grid(a, b):
     return x, y, o
 
 
+def _best_offset(true, est):
+    """Where ``est`` (1-D) best correlates with ``true``: ``est[k]`` on ``true[k + shift]``."""
+    c = np.correlate(np.pad(true, (est.size, est.size)), est, mode="valid")
+    return int(np.argmax(c)) - est.size
+
+
+def _peak_offset(true, est):
+    """Depth offset the estimate's reference (argmax) puts on a return of the true pulse:
+    the estimate placed where it best correlates with the true pulse, read at its argmax."""
+    return _best_offset(true, est) + int(np.argmax(est)) - int(np.argmax(true))
+
+
 def test_estimate_irf_recovers_exp_tail_shape():
     true = exp_tail_irf(2.0, 6.0)
+    true = true / true.sum()
     cube = _cube(true)
     est = estimate_irf(cube.counts)
     assert est.shape[0] == 1 and np.isclose(est.sum(), 1.0) and np.all(est >= 0)
-    t, e, o = _on_common_grid(true / true.sum(), est[0])
-    # measured on this seed: L1 0.10, FWHM 7.5 vs 6.2 bins (whole-bin alignment of
-    # sub-bin depths and the alignment's own jitter widen it), tail mass beyond +5 bins
-    # 0.37 vs 0.38; a Gaussian of the true FWHM is at L1 0.72 and tail mass 0.04
-    assert np.abs(t - e).sum() < 0.2
+    # the shapes placed where they best correlate (the reference, the argmax, is tested
+    # below: on this pulse the sample after the peak is 0.9 of it, and the estimate's
+    # argmax may sit on either). Measured on this seed: L1 0.074 (refine=False 0.098),
+    # FWHM 7.1 vs 6.2 bins, tail mass beyond +5 bins of the true peak 0.36 vs 0.38; a
+    # Gaussian of the true FWHM is at L1 0.72 and tail mass 0.04
+    sh = _best_offset(true, est[0])
+    t = np.pad(true, (est.shape[1], est.shape[1]))
+    e = np.zeros_like(t)
+    e[est.shape[1] + sh : 2 * est.shape[1] + sh] = est[0]
+    o = est.shape[1] + int(np.argmax(true))
+    assert np.abs(t - e).sum() < 0.15
     assert abs(irf_fwhm(e) / irf_fwhm(t) - 1.0) < 0.3
     assert abs(e[o + 5 :].sum() - t[o + 5 :].sum()) < 0.08
 
 
 def test_estimate_irf_reference_offset_within_one_bin_on_exp_tail():
-    # depth offset the estimate's reference (argmax) puts on a return of the true pulse:
-    # the estimate placed where it best correlates with the true pulse, then read at its
-    # argmax. Measured on seeds 0-3: 0 / 1 / 1 / 0 bins (exp tail 2/6, PPP 20). A slowly
-    # decaying pulse (exp tail 2/25) is not within it: +1 to +6.5 bins
-    # (benchmarks/README.md, irf19b)
+    # exp tail 2/6, PPP 20: offsets measured on seeds 0-5: 1 / 1 / 0 / 1 / 0 / 1 bins
+    # (refine=False: 0 / 1 / 1 / 0 / 1 / 1): the sample after this pulse's peak is 0.9
+    # of it, and whole-bin alignment of sub-bin depths flattens the top by half a bin
     true = exp_tail_irf(2.0, 6.0)
     true = true / true.sum()
     est = estimate_irf(_cube(true, seed=1).counts)[0]
-    c = np.correlate(np.pad(true, (est.size, est.size)), est, mode="valid")
-    offset = int(np.argmax(c)) - est.size + int(np.argmax(est)) - int(np.argmax(true))
-    assert abs(offset) <= 1
+    assert abs(_peak_offset(true, est)) <= 1
+
+
+def test_estimate_irf_soft_alignment_keeps_peak_of_tailed_pulse():
+    # exp tail 3/6, PPP 20, sub-bin depths: the hard alignment's jitter moves the peak of
+    # its pooled curve one bin into the tail on seeds 2-5 of 0-5 (offsets 0 0 1 1 1 1);
+    # the soft alignment (EM over each pixel's shift) keeps it on the true peak on all six
+    true = exp_tail_irf(3.0, 6.0)
+    true = true / true.sum()
+    for seed in (2, 3):
+        counts = _cube(true, seed=seed).counts
+        hard = estimate_irf(counts, refine=False)[0]
+        soft = estimate_irf(counts)[0]
+        assert _peak_offset(true, hard) >= 1
+        assert abs(_peak_offset(true, soft)) <= 0.5
+
+
+def test_estimate_irf_soft_alignment_subsamples_large_scenes(monkeypatch):
+    # the EM's cost bound: with a budget of a few thousand photon-shift pairs it uses
+    # every k-th bright pixel, and the shape stays a unit-sum pulse on the true peak
+    import splidar._irf_estimate as ie
+
+    true = exp_tail_irf(3.0, 6.0)
+    true = true / true.sum()
+    counts = _cube(true, seed=2).counts
+    full = estimate_irf(counts)
+    monkeypatch.setattr(ie, "_EM_PAIRS", 100_000)
+    sub = estimate_irf(counts)
+    assert np.isclose(sub.sum(), 1.0) and not np.allclose(sub, full)
+    assert abs(_peak_offset(true, sub[0])) <= 1
 
 
 def test_estimate_irf_does_not_take_a_second_surface_for_tail():
@@ -136,3 +180,25 @@ def test_estimate_irf_bad_input_names_parameter(kwargs, name):
     counts = kwargs.pop("counts")
     with pytest.raises(SplidarError, match=name):
         estimate_irf(counts, **kwargs)
+
+
+def test_estimate_irf_keeps_hard_shape_when_soft_peak_jumps(monkeypatch):
+    # a flat-topped pulse whose plateau is within a few % of its peak: the soft peak may
+    # land on the plateau's other end (measured pulse, PPP 4, seed 0: 10 bins, F_true
+    # 0.98 -> 0.28). A soft peak more than half the FWHM from the hard one is not taken:
+    # the soft result is given such a jump (a spike at the front of its support) and the
+    # estimate must be the hard-aligned shape
+    import splidar._irf_estimate as ie
+
+    real = ie.soft_align
+
+    def jumped(a, kept, h0, support, k_left, reach):
+        h, it = real(a, kept, h0, support, k_left, reach)
+        first = np.argmax(support, axis=1)
+        h[np.arange(h.shape[0]), first] = 2.0 * h.max()
+        return h, it
+
+    true = exp_tail_irf(3.0, 6.0)
+    counts = _cube(true / true.sum(), seed=2).counts
+    monkeypatch.setattr(ie, "soft_align", jumped)
+    np.testing.assert_allclose(estimate_irf(counts), estimate_irf(counts, refine=False))
