@@ -259,20 +259,11 @@ def detect(
     o = _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence)
     check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
-    # a Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums in one
-    # pass over its chunks (detection/_tiled.py); used by stage 1 unless pixels are masked
-    t0 = time.perf_counter()
-    first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
-    cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
-    if first is None:  # stage 1's time alone, as before (the check reads on its own)
-        t0 = time.perf_counter()
+    cube, windows, t0 = _stuck_pixels_first(cube, o)
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
     tiled = o["tiled"] = is_dask(cube.counts)
-    windows = tiled_window_means if tiled else None
-    if first is not None and o["hot_pixels"] == 0:
-        windows = first.windows
     bg = estimate_temporal_background(  # 1
         cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
     )  # fmt: skip
@@ -297,6 +288,25 @@ def detect(
     provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
+
+
+def _stuck_pixels_first(cube: Cube, o: dict):
+    """The cube without its stuck pixels (:func:`_without_hot_pixels`), how stage 1
+    reads its windows (None: in memory), and when stage 1's timing starts.
+
+    A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
+    pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
+    unless pixels were masked; any other Dask cube is reduced to its totals, then read
+    again for the windows (``_tiled.tiled_window_means``)."""
+    t0 = time.perf_counter()
+    first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
+    cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
+    if first is None:  # stage 1's time alone, as before (the check reads on its own)
+        t0 = time.perf_counter()
+    windows = tiled_window_means if is_dask(cube.counts) else None
+    if first is not None and o["hot_pixels"] == 0:
+        windows = first.windows
+    return cube, windows, t0
 
 
 def _without_hot_pixels(cube: Cube, o: dict, totals=None) -> Cube:

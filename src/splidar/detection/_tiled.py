@@ -11,7 +11,9 @@ chunks and do the work; only small results travel back).
    largest box); each task reads a band of rows and returns its window means, about
    2000 pixels' worth in all. The null model (stage 3) reads a bounded number of
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
-   and is simulated in the calling process, seeded as in memory.
+   and is simulated in the calling process, seeded as in memory. A cube read from Zarr
+   as it is (``dask.array.from_zarr``) takes one pass for the stuck-pixel check's
+   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once).
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
    sides (no padding at the image edge, which is handled as in memory, like
@@ -23,7 +25,10 @@ chunks and do the work; only small results travel back).
    share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
    100 x 100 tile 1.2x). A tile returns its candidates (a few numbers per surface) and
    its pixels' saliency, mask and background level, or writes them to the Zarr
-   ``store`` itself.
+   ``store`` itself. On a ``dask.distributed`` cluster with a ``store``, a cube read
+   from Zarr as it is runs one task per band of tiles instead (:func:`_map_band`): it
+   reads the band's rows from the Zarr array and runs the tiles left to right, so Dask
+   has no per-tile input, carry or result keys to schedule, move or spill.
 
 The box filters' column sums are float64 running sums along each image row, whose
 rounding depends on where a sum starts: a tile takes them, at the column before its
