@@ -490,3 +490,17 @@ def test_read_rows_falls_back_to_the_scheduler_when_files_are_unreachable_here()
     lazy = da.from_array(WorkersOnly(), chunks=(4, 3, 1, 5), meta=np.empty((0,) * 4, x.dtype))
     with dask.config.set(scheduler="threads"):
         np.testing.assert_array_equal(_read_rows(lazy, 3, 11), x[3:11])
+
+
+def test_cli_cluster_starts_with_the_quiet_dask_settings():
+    """The LocalCluster of ``splidar run --workers`` runs with ``CLUSTER_CONFIG`` (the
+    workers' profiler off, slower ticks): Dask's idle CPU per second of a run."""
+    pytest.importorskip("distributed")
+    from splidar._cluster import CLUSTER_CONFIG, dask_session
+
+    def settings():
+        return [dask.config.get(k) for k in CLUSTER_CONFIG]
+
+    with dask_session(workers=1, memory_limit="1GB", progress=False) as client:
+        assert list(client.run(settings).values()) == [list(CLUSTER_CONFIG.values())]
+    assert dask.config.get("distributed.worker.profile.enabled") is True  # restored here
