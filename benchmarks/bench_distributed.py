@@ -237,11 +237,13 @@ def _cluster_run(
     import dask.array
     import distributed
 
-    from splidar._cluster import CLUSTER_CONFIG
+    config = contextlib.nullcontext()
+    if cli_config:  # the Dask settings of the CLI's --workers cluster
+        from splidar._cluster import CLUSTER_CONFIG
 
+        config = dask.config.set(CLUSTER_CONFIG)
     with (
-        # --cli-config: the Dask settings of the CLI's --workers cluster
-        dask.config.set(CLUSTER_CONFIG) if cli_config else contextlib.nullcontext(),
+        config,
         distributed.LocalCluster(
             n_workers=n,
             threads_per_worker=1,
