@@ -224,17 +224,26 @@ def _warm_process(tiny) -> None:
 
 
 def _cluster_run(
-    cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None, process=False
-):
+    cube, n: int, memory_limit: str, store: Path, tiny, block_rows=None, process=False,
+    cli_config=False,
+):  # fmt: skip
     """Detection of ``cube`` on a fresh LocalCluster of ``n`` workers: ``(Detection,
     seconds, worker peaks in bytes, calling process's peak in bytes, restarted workers,
     CPU seconds of the workers and the calling process)``."""
+    import contextlib
     import os
 
+    import dask
     import dask.array
     import distributed
 
+    config = contextlib.nullcontext()
+    if cli_config:  # the Dask settings of the CLI's --workers cluster
+        from splidar._cluster import CLUSTER_CONFIG
+
+        config = dask.config.set(CLUSTER_CONFIG)
     with (
+        config,
         distributed.LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -291,8 +300,9 @@ def large(args) -> int:
             store = base / f"det-{n}.zarr"
             shutil.rmtree(store, ignore_errors=True)
             det, t, peaks, caller, restarted, cpu, cpus = _cluster_run(
-                lazy, n, args.memory_limit, store, tiny, args.block_rows, args.process
-            )
+                lazy, n, args.memory_limit, store, tiny, args.block_rows, args.process,
+                args.cli_config,
+            )  # fmt: skip
             # the surfaces only: a Detection kept here would count in the next run's
             # calling-process peak
             dets[n] = _Digest(det.surfaces.row, det.surfaces.col, det.surfaces.depth_bin)
@@ -532,6 +542,12 @@ def main(argv=None) -> int:
     p.add_argument("--data", default=None, help="--large: folder for the cube (kept)")
     p.add_argument(
         "--process", action="store_true", help="--large: splidar.process on the clusters"
+    )
+    p.add_argument(
+        "--cli-config",
+        action="store_true",
+        help="--large: the clusters with the Dask settings of `splidar run --workers` "
+        "(splidar._cluster.CLUSTER_CONFIG: profiler off, slower ticks); default: Dask's own",
     )
     p.add_argument(
         "--caller", action="store_true", help="the calling process's memory, step by step"

@@ -200,6 +200,72 @@ def test_detect_on_local_cluster_store_keeps_the_histograms_there(local_client, 
     ]  # fmt: skip
 
 
+def test_detect_on_local_cluster_zarr_cube_bands_match_in_memory(
+    local_client, tmp_path, monkeypatch
+):
+    """A Zarr cube on a cluster with ``store=``: one task per band of tiles reads its
+    rows from the Zarr array itself and runs the band's tiles (running sums passed in
+    the task); the Detection is the in-memory one, bit for bit; the scheduler ran the
+    band tasks and the first pass (stuck-pixel totals and stage 1's windows)."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection import _tiled
+
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
+    z = zarr.open_array(
+        str(tmp_path / "c.zarr"), mode="w", shape=counts.shape, chunks=(5, 20, 1, 100),
+        dtype=counts.dtype,
+    )  # fmt: skip
+    z[...] = counts
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band
+    a = splidar.detect(Cube(counts, irf=irf), rng=2)
+    lazy = Cube(da.from_zarr(z), irf=irf)
+    b = splidar.detect(lazy, rng=2, block_rows=6, store=tmp_path / "s")
+    _assert_same_detection(a, b)
+    names = {k[0] if isinstance(k, tuple) else k for k in local_client.run_on_scheduler(
+        lambda dask_scheduler: list(dask_scheduler.task_prefixes)
+    )}  # fmt: skip
+    assert {"splidar-map-band", "splidar-first-pass"} <= names
+
+
+def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):
+    """One read of a Zarr cube's chunks gives the stuck-pixel totals and stage 1's
+    window means, bit for bit the in-memory ones, whatever the bands (windows crossing
+    a band's edge: partial sums of integers, exact); a stuck pixel in a Zarr cube is
+    set aside as in memory."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._background import sample_grid
+    from splidar.detection._fast import window_means
+    from splidar.detection._tiled import first_pass
+
+    y = np.random.default_rng(5).poisson(2.0, (90, 300, 2, 40)).astype(np.uint16)
+    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape, chunks=(13, 300, 2, 40),
+                        dtype=y.dtype)  # fmt: skip
+    z[...] = y
+    lazy = da.from_zarr(z)
+    with dask.config.set(scheduler="threads"):
+        got = first_pass(lazy, 7)
+        assert first_pass(lazy.astype(np.float32), 7) is None  # not integer counts
+        assert first_pass(da.from_array(y), 7) is None  # not read from Zarr
+    np.testing.assert_array_equal(got.totals, y.sum(axis=(2, 3), dtype=np.float64))
+    kr, kc, rows, cols = sample_grid(y.shape, 7)
+    ref = np.stack([window_means(y[a : a + kr], cols, kc) for a in rows])
+    np.testing.assert_array_equal(got.windows(lazy, rows, kr, cols, kc), ref)
+    # another grid than the pass's: read again, the same values as the loop
+    again = got.windows(lazy, rows[::2], kr, cols, kc)
+    np.testing.assert_array_equal(again, ref[::2])
+    # a stuck pixel: the totals find it; the detection equals the in-memory one
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
+    counts = counts.astype(np.uint32)
+    counts[9, 7, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint32)
+    z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=counts.shape,
+                        chunks=(7, 20, 1, 100), dtype=counts.dtype)  # fmt: skip
+    z[...] = counts
+    a = splidar.detect(Cube(counts, irf=irf), rng=3)
+    b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=3, block_rows=6)
+    assert a.options["hot_pixels"] == b.options["hot_pixels"] == 1
+    _assert_same_detection(a, b)
+
+
 def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_client):
     cube, lazy = _cubes(*_border_cube(border=16), (8, 24, 1, 100))
     a = splidar.detect(cube, rng=0)
@@ -424,3 +490,17 @@ def test_read_rows_falls_back_to_the_scheduler_when_files_are_unreachable_here()
     lazy = da.from_array(WorkersOnly(), chunks=(4, 3, 1, 5), meta=np.empty((0,) * 4, x.dtype))
     with dask.config.set(scheduler="threads"):
         np.testing.assert_array_equal(_read_rows(lazy, 3, 11), x[3:11])
+
+
+def test_cli_cluster_starts_with_the_quiet_dask_settings():
+    """The LocalCluster of ``splidar run --workers`` runs with ``CLUSTER_CONFIG`` (the
+    workers' profiler off, slower ticks): Dask's idle CPU per second of a run."""
+    pytest.importorskip("distributed")
+    from splidar._cluster import CLUSTER_CONFIG, dask_session
+
+    def settings():
+        return [dask.config.get(k) for k in CLUSTER_CONFIG]
+
+    with dask_session(workers=1, memory_limit="1GB", progress=False) as client:
+        assert list(client.run(settings).values()) == [list(CLUSTER_CONFIG.values())]
+    assert dask.config.get("distributed.worker.profile.enabled") is True  # restored here

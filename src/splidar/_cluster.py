@@ -19,6 +19,19 @@ log = logging.getLogger(__name__)
 
 _EXTRA = "pip install 'splidar[distributed]'"
 
+#: Dask settings of the LocalCluster that ``--workers`` starts (``dask.config`` keys):
+#: the workers' statistical profiler off (the dashboard's profile page stays empty) and
+#: the event loops' health tick and system monitor less often. Idle, Dask's three
+#: processes of a 2-worker cluster then take 0.02-0.03 s of CPU per second in all
+#: instead of 0.09 (``benchmarks/README.md``, "Branch dist20"): CPU that a long run
+#: pays per second of wall time, whatever its tasks do. A ``--scheduler`` cluster keeps
+#: its own settings.
+CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.admin.system-monitor.interval": "2s",
+}
+
 
 def _distributed():
     try:
@@ -88,6 +101,11 @@ def dask_session(*, workers=None, memory_limit=None, scheduler=None, progress=Tr
                     "--workers N for a local cluster."
                 ) from None
         else:
+            import dask
+
+            # read when the scheduler, nannies and workers start (and in this process,
+            # which hosts the scheduler, for the whole session)
+            stack.enter_context(dask.config.set(CLUSTER_CONFIG))
             cluster = stack.enter_context(
                 distributed.LocalCluster(
                     n_workers=int(workers),

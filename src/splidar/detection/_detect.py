@@ -49,7 +49,7 @@ from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._result import Background, Detection, StageRecord, StoredHistograms
 from ._table import remove_tree, skipped, store_histograms
-from ._tiled import is_dask, map_candidates_tiled, tiled_window_means
+from ._tiled import first_pass, is_dask, map_candidates_tiled, tiled_window_means
 
 __all__ = ["PASSES", "detect"]
 
@@ -263,14 +263,13 @@ def detect(
     o = _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence)
     check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
-    cube = _without_hot_pixels(cube, o)
+    cube, windows, t0 = _stuck_pixels_first(cube, o)
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
     corr = Correlator(irf, T)
-    tiled = o["tiled"] = is_dask(cube.counts)  # a Dask cube: Dask tasks (_tiled.py)
-    t0 = time.perf_counter()
+    # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
+    tiled = o["tiled"] = is_dask(cube.counts)
     bg = estimate_temporal_background(  # 1
-        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs,
-        windows=tiled_window_means if tiled else None,
+        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
     )  # fmt: skip
     filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
     timings["background_temporal"] = time.perf_counter() - t0
@@ -296,13 +295,32 @@ def detect(
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
 
 
-def _without_hot_pixels(cube: Cube, o: dict) -> Cube:
+def _stuck_pixels_first(cube: Cube, o: dict):
+    """The cube without its stuck pixels (:func:`_without_hot_pixels`), how stage 1
+    reads its windows (None: in memory), and when stage 1's timing starts.
+
+    A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
+    pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
+    unless pixels were masked; any other Dask cube is reduced to its totals, then read
+    again for the windows (``_tiled.tiled_window_means``)."""
+    t0 = time.perf_counter()
+    first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
+    cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
+    if first is None:  # stage 1's time alone, as before (the check reads on its own)
+        t0 = time.perf_counter()
+    windows = tiled_window_means if is_dask(cube.counts) else None
+    if first is not None and o["hot_pixels"] == 0:
+        windows = first.windows
+    return cube, windows, t0
+
+
+def _without_hot_pixels(cube: Cube, o: dict, totals=None) -> Cube:
     """The cube with its stuck pixels' counts set to 0 (``_hot_pixels``); logged, and
     counted in ``o["hot_pixels"]``. A Dask cube is checked too (one reduction over its
-    chunks on the active scheduler) and masked lazily, so that it gives the in-memory
-    result."""
+    chunks on the active scheduler, or the ``totals`` of a Zarr cube's first pass) and
+    masked lazily, so that it gives the in-memory result."""
     o["hot_pixels"] = 0
-    hot = hot_pixels(cube.counts)
+    hot = hot_pixels(cube.counts, totals=totals)
     n = int(hot.sum())
     if n == 0:
         return cube

@@ -34,18 +34,22 @@ HOT_RATIO = 1000.0
 HOT_MIN_LEVEL = 5.0
 
 
-def hot_pixels(counts: np.ndarray) -> np.ndarray:
+def hot_pixels(counts: np.ndarray, *, totals: np.ndarray | None = None) -> np.ndarray:
     """Mask ``(rows, cols)`` of the stuck pixels of a cube ``(rows, cols, L, T)``.
 
     Reads the counts once (their totals per pixel; for a Dask array, one reduction on
-    the active scheduler); the median over t is taken only on the few pixels whose
-    total passes the ratio test.
+    the active scheduler), or takes ``totals`` ``(rows, cols)`` float64, the counts
+    summed over wavelengths and bins, when a pass that read them gave them (a Zarr
+    cube's first pass: ``_tiled.first_pass``); the median over t is taken only on the
+    few pixels whose total passes the ratio test.
     """
     R, C, L, T = counts.shape
     hot = np.zeros((R, C), bool)
     if R * C < 2:
         return hot
-    if isinstance(counts, np.ndarray):  # one numba pass, the same values (_fast)
+    if totals is not None:
+        total = np.asarray(totals, np.float64)
+    elif isinstance(counts, np.ndarray):  # one numba pass, the same values (_fast)
         total = pixel_totals(counts)
     else:
         total = counts.sum(axis=(2, 3), dtype=np.float64)

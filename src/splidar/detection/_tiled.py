@@ -11,7 +11,9 @@ chunks and do the work; only small results travel back).
    largest box); each task reads a band of rows and returns its window means, about
    2000 pixels' worth in all. The null model (stage 3) reads a bounded number of
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
-   and is simulated in the calling process, seeded as in memory.
+   and is simulated in the calling process, seeded as in memory. A cube read from Zarr
+   as it is (``dask.array.from_zarr``) takes one pass for the stuck-pixel check's
+   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once).
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
    sides (no padding at the image edge, which is handled as in memory, like
@@ -23,7 +25,10 @@ chunks and do the work; only small results travel back).
    share of a tile (a strip of 10 rows re-filtered 10 halo rows, 2x the work; a
    100 x 100 tile 1.2x). A tile returns its candidates (a few numbers per surface) and
    its pixels' saliency, mask and background level, or writes them to the Zarr
-   ``store`` itself.
+   ``store`` itself. On a ``dask.distributed`` cluster with a ``store``, a cube read
+   from Zarr as it is runs one task per band of tiles instead (:func:`_map_band`): it
+   reads the band's rows from the Zarr array and runs the tiles left to right, so Dask
+   has no per-tile input, carry or result keys to schedule, move or spill.
 
 The box filters' column sums are float64 running sums along each image row, whose
 rounding depends on where a sum starts: a tile takes them, at the column before its
@@ -58,7 +63,9 @@ from ._4_map import (
 from ._fast import window_means
 
 __all__ = [
+    "FirstPass",
     "compute_each",
+    "first_pass",
     "is_dask",
     "map_candidates_tiled",
     "release_work",
@@ -140,6 +147,92 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
         )
     parts = dask.compute(*tasks)
     return np.concatenate(parts, axis=0)
+
+
+def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray):
+    """Rows ``[a0, a1)`` of the Zarr array ``z`` read once: their pixel totals
+    ``(a1 - a0, C)`` float64 (the stuck-pixel check's) and, per row group ``(w0, w1)``
+    of ``groups`` (the rows of one row of stage 1's windows that fall in the band), the
+    counts summed over those rows at the windows' columns ``cols``, ``(len(cols), L,
+    T)`` float64: integer sums, exact, so the windows' partial sums add up to the whole
+    windows' sums whatever the bands."""
+    from ._fast import pixel_totals
+
+    y = np.asarray(z[a0:a1])
+    totals = pixel_totals(y)
+    sums = [y[w0 - a0 : w1 - a0, cols].sum(axis=0, dtype=np.float64) for w0, w1 in groups]
+    return totals, sums
+
+
+class FirstPass:
+    """The stuck-pixel check's totals and stage 1's window sums of a Zarr-backed Dask
+    cube, from one read of its chunks (:func:`first_pass`); :meth:`windows` serves the
+    window means :func:`~splidar.detection._background.temporal_shape` asks for when the
+    grid is the one computed here (else it reads them: :func:`tiled_window_means`)."""
+
+    def __init__(self, totals, grid, means):
+        self.totals, self._grid, self._means = totals, grid, means
+
+    def windows(self, counts, row_starts, kr, col_starts, kc) -> np.ndarray:
+        kr0, kc0, rs0, cs0 = self._grid
+        same = (kr, kc) == (kr0, kc0) and np.array_equal(row_starts, rs0)
+        if same and np.array_equal(col_starts, cs0):
+            return self._means
+        return tiled_window_means(counts, row_starts, kr, col_starts, kc)
+
+
+def first_pass(counts, box: int) -> FirstPass | None:
+    """One pass of Dask tasks over a Zarr-backed cube of integer counts
+    (``dask.array.from_zarr``; None for any other cube): each task reads a band of
+    whole stored chunks of rows from the Zarr array itself (each chunk decoded once)
+    and returns its pixels' totals (:func:`~splidar.detection._hot_pixels.hot_pixels`)
+    and its rows' share of the sums of stage 1's windows (the grid of
+    :func:`~splidar.detection._background.sample_grid` with ``k = box``). The windows'
+    means are then the float32 rounding of the exact sums over ``kr x kc`` pixels, as
+    :func:`~splidar.detection._fast.window_means` gives them, bit for bit."""
+    import dask
+
+    from ._background import sample_grid
+
+    z = _zarr_source(counts)
+    if z is None or np.dtype(counts.dtype).kind not in "ui" or np.dtype(counts.dtype).itemsize > 4:
+        return None
+    R, C, L, T = counts.shape
+    kr, kc, row_starts, col_starts = grid = sample_grid(counts.shape, box)
+    cols = np.unique((col_starts[:, None] + np.arange(kc)).ravel())
+    step = int(z.chunks[0]) * max(1, round(STATS_ROWS / int(z.chunks[0])))
+    src = dask.delayed(z, pure=True)
+    name = "splidar-first-pass-" + dask.base.tokenize(counts.name, box, step)
+    tasks, parts = [], []
+    for i, a0 in enumerate(range(0, R, step)):
+        a1 = min(R, a0 + step)
+        groups, which = [], []
+        for w, r in enumerate(row_starts):
+            w0, w1 = max(int(r), a0), min(int(r) + kr, a1)
+            if w0 < w1:
+                groups.append((w0, w1))
+                which.append(w)
+        tasks.append(
+            dask.delayed(_first_band, pure=True)(src, a0, a1, groups, cols, dask_key_name=(name, i))
+        )
+        parts.append((a0, a1, which))
+    totals = np.empty((R, C), np.float64)
+    sums = np.zeros((row_starts.size, cols.size, L, T), np.float64)
+
+    def take(i, result):
+        a0, a1, which = parts[i]
+        totals[a0:a1], band = result
+        for w, s in zip(which, band, strict=True):
+            sums[w] += s
+
+    compute_each(tasks, take)
+    # each window: its kc columns among the kept ones, summed (integers: exact)
+    at = np.searchsorted(cols, col_starts)
+    means = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
+    norm = np.float64(kr * kc)
+    for u, a in enumerate(at):
+        means[:, u] = sums[:, a : a + kc].sum(axis=1) / norm
+    return FirstPass(totals, grid, means)
 
 
 def _client():
@@ -317,9 +410,9 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         y = work["y"][: int(np.prod(shape))].reshape(shape)
         y = _assemble(pieces, places, y)
         del pieces
-    else:
-        y = np.ascontiguousarray(y)
+    else:  # a view of the band's rows (:func:`_map_band`): copied into the kept buffer
         work, corr = _work(most[0], most[1], y.shape, n_box, bool(table[2]), y.dtype)
+        y = _copy_into(work["y"], y)
     er, ec, L, T = y.shape
     c_ext = ctx.corr(y, workers=ctx.workers, out=corr[: y.size].reshape(y.shape))
     r, c = r1 - r0, c1 - c0
@@ -350,6 +443,57 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
     _compact_result(res, store_path, (r0, c0), opts["image_shape"], T)
     return res, own, None if last else carry
+
+
+def _copy_into(buf: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``y`` copied into the front of the flat kept buffer ``buf`` (same shape)."""
+    out = buf[: y.size].reshape(y.shape)
+    out[...] = y
+    return out
+
+
+def _read_band(z, e0: int, e1: int, most_rows: int) -> np.ndarray:
+    """Rows ``[e0, e1)`` of the Zarr array ``z``, read into this thread's kept band
+    buffer (for up to ``most_rows`` rows) one stored chunk of rows at a time: one chunk
+    decoded at once, into pages touched once per worker thread, not per band."""
+    from zarr.core.buffer import default_buffer_prototype
+
+    row = tuple(int(v) for v in z.shape[1:])
+    dtype = np.dtype(z.dtype)
+    key = ("band", threading.get_ident())
+    with _WORK_LOCK:
+        have = _WORK.get(key)
+    need = most_rows * int(np.prod(row))
+    if have is None or have.size < need or have.dtype != dtype:
+        have = np.empty(need, dtype)
+        with _WORK_LOCK:
+            _WORK[key] = have
+    y = have[: (e1 - e0) * int(np.prod(row))].reshape((e1 - e0,) + row)
+    nd = default_buffer_prototype().nd_buffer
+    step = int(z.chunks[0])
+    for a in range(e0 - e0 % step, e1, step):
+        lo, hi = max(a, e0), min(a + step, e1)
+        z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(y[lo - e0 : hi - e0]))
+    return y
+
+
+def _map_band(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: tuple):
+    """Stage 4 on a band of tiles, in one task: the band's rows with their halo
+    ``band = (e0, e1, most rows)`` read from the Zarr array ``z`` (:func:`_read_band`),
+    then its ``tiles`` (``(e0, r0, r1, ce0, ce1, c0, c1)`` each, left to right) run as
+    :func:`_map_tile` runs them, the running column sums passed from tile to tile in
+    this task (no carry or input keys). Returns ``[(result, own arrays)]`` per tile."""
+    e0, e1, most_rows = band
+    y = _read_band(z, e0, e1, most_rows)
+    carry, done = None, []
+    for j, (t0, r0, r1, ce0, ce1, c0, c1) in enumerate(tiles):
+        tile = (t0, r0, r1, ce0, c0, c1)
+        last = j == len(tiles) - 1
+        res, own, carry = _map_tile(
+            y[:, ce0:ce1], tile, ctx, table, opts, store_path, most, carry, last
+        )
+        done.append((res, own))
+    return done
 
 
 def _carry(out):
@@ -492,9 +636,15 @@ def map_candidates_tiled(
     opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
     n_box = int((filters.scales > 1).sum()) if opts["store_boxes"] else 0
     limit = worker_memory_limit() if given is None else None
+    # on a cluster, with a store, a Zarr cube is read by one task per band of tiles
+    # (:func:`_map_band`), which runs the band's tiles itself: no input, carry or
+    # result keys per tile for Dask to schedule, move and spill
+    zsrc = _zarr_source(counts) if store is not None and _client() is not None else None
     if limit is not None:
         item = np.dtype(counts.dtype).itemsize
         block_rows = _rows_for(limit, counts.shape, item, h, n_box, block_rows)
+        if zsrc is not None:
+            block_rows = _rows_with_band(limit, counts.shape, item, (h, hc), n_box, block_rows)
     block_rows, block_cols = _tile_shape(block_rows, counts.shape, h, hc, given is not None)
     # a store's chunks: the tile's columns and 16 of its rows (a multiple of 16 unless
     # given), so that the slope pass's bands of rows do not decompress a tall chunk once
@@ -510,9 +660,6 @@ def map_candidates_tiled(
         max(b - a for a, b in rows) * max(b - a for a, b in cols),
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
-    # each tile reads the cube's chunks that cover it with its halo and copies their
-    # parts into its thread's kept buffer (no rechunked or overlapped copies in between)
-    inputs = _tile_inputs(counts, ext, ext_c)
     if store is not None:
         out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
         store_path = str(store)
@@ -525,10 +672,60 @@ def map_candidates_tiled(
     # the set-up every tile shares travels once (one key), not once per task
     ctx = dask.delayed(dataclasses.replace(filters, workers=1), pure=True)
     shared = dask.delayed((table, opts), pure=True)
+    if zsrc is not None:
+        tasks, where = _band_tasks(zsrc, counts.name, (rows, ext, cols, ext_c), ctx, shared,
+                                   store_path, most)  # fmt: skip
+        tiles = sum(len(w) for w in where)
+    else:
+        # each tile reads the cube's chunks that cover it with its halo and copies their
+        # parts into its thread's kept buffer (no rechunked or overlapped copies between)
+        inputs = _tile_inputs(counts, ext, ext_c)
+        tasks, where = _tile_tasks(inputs, (rows, ext, cols, ext_c), ctx, shared, store_path,
+                                   most, token_of=counts.name)  # fmt: skip
+        tiles = len(tasks)
+        where = [[w] for w in where]
+    logger.info(
+        "detect: map pass on %d tile(s) of %d x %d pixels (halo %d rows, %d columns) in %d "
+        "task(s)", tiles, block_rows, block_cols, h, hc, len(tasks),
+    )  # fmt: skip
+    if out is None:
+        out = dict(
+            saliency=np.empty((R, C, T), np.float32),
+            mask=np.empty((R, C, T), bool),
+            threshold=None,
+        )
+    out["spatial"] = np.empty((R, C, L), np.float32)
+    outs = [None] * len(tasks)
+
+    def take(i, result):
+        # a task's tiles (one, or a band's): (result, own arrays) each
+        results = result if zsrc is not None else [result]
+        for (_, own), (r0, r1, c0, c1) in zip(results, where[i], strict=True):
+            for k, v in own.items():
+                out[k][r0:r1, c0:c1] = v
+        outs[i] = [res for res, _ in results]
+
+    try:
+        compute_each(tasks, take)
+    finally:
+        client = _client()
+        if client is not None:
+            client.run(release_work)
+        release_work()
+    outs = [res for band in outs for res in band]
+    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)
+
+
+def _tile_tasks(inputs, grid, ctx, shared, store_path, most, *, token_of):
+    """One Dask task per tile, with its running sums and its result as keys of their
+    own: ``(tasks, where)`` (the tiles' ``(r0, r1, c0, c1)``)."""
+    import dask
+
+    rows, ext, cols, ext_c = grid
     # keys named for the dashboard: "splidar-map-tile" computes a tile,
     # "splidar-map-carry" passes its running sums to the tile on its right,
     # "splidar-map-result" is what the calling process fetches (not the sums)
-    token = dask.base.tokenize(counts.name, rows, cols, ctx.key, shared.key, store_path)
+    token = dask.base.tokenize(token_of, rows, cols, ctx.key, shared.key, store_path)
     name = "splidar-map-tile-" + token
     tasks, where = [], []
     for i, ((r0, r1), (e0, _)) in enumerate(zip(rows, ext, strict=True)):
@@ -548,31 +745,60 @@ def map_candidates_tiled(
                 )
             )
             where.append((r0, r1, c0, c1))
-    logger.info(
-        "detect: map pass on %d tile(s) of %d x %d pixels (halo %d rows, %d columns)",
-        len(tasks), block_rows, block_cols, h, hc,
-    )  # fmt: skip
-    if out is None:
-        out = dict(
-            saliency=np.empty((R, C, T), np.float32),
-            mask=np.empty((R, C, T), bool),
-            threshold=None,
-        )
-    out["spatial"] = np.empty((R, C, L), np.float32)
-    outs = [None] * len(tasks)
+    return tasks, where
 
-    def take(i, result):
-        res, own = result
-        r0, r1, c0, c1 = where[i]
-        for k, v in own.items():
-            out[k][r0:r1, c0:c1] = v
-        outs[i] = res
+
+def _band_tasks(z, name, grid, ctx, shared, store_path, most):
+    """One Dask task per band of tiles (:func:`_map_band`) reading the Zarr array ``z``
+    itself: ``(tasks, where)``, ``where[i]`` the band's tiles' ``(r0, r1, c0, c1)``."""
+    import dask
+
+    rows, ext, cols, ext_c = grid
+    most_rows = max(b - a for a, b in ext)
+    src = dask.delayed(z, pure=True)
+    token = dask.base.tokenize(name, rows, cols, ctx.key, shared.key, store_path)
+    tasks, where = [], []
+    for i, ((r0, r1), (e0, e1)) in enumerate(zip(rows, ext, strict=True)):
+        tiles = [
+            (e0, r0, r1, ce0, ce1, c0, c1) for (c0, c1), (ce0, ce1) in zip(cols, ext_c, strict=True)
+        ]
+        tasks.append(
+            dask.delayed(_map_band, pure=True)(
+                src,
+                (e0, e1, most_rows),
+                tiles,
+                ctx,
+                shared[0],
+                shared[1],
+                store_path,
+                most,
+                dask_key_name=("splidar-map-band-" + token, i),
+            )  # fmt: skip
+        )
+        where.append([(r0, r1, c0, c1) for (c0, c1) in cols])
+    return tasks, where
+
+
+def _zarr_source(counts):
+    """The Zarr array ``counts`` reads as it is (``dask.array.from_zarr``), else None."""
+    from ._slopes import _zarr_of
 
     try:
-        compute_each(tasks, take)
-    finally:
-        client = _client()
-        if client is not None:
-            client.run(release_work)
-        release_work()
-    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)
+        return _zarr_of(counts)
+    except Exception:  # any other graph
+        return None
+
+
+def _rows_with_band(limit: int, shape, itemsize: int, halos: tuple, n_box: int, rows: int) -> int:
+    """``rows`` (whole-row equivalents of a tile, from :func:`_rows_for`) lowered until
+    a tile's buffers and its band's rows with their halo (:func:`_read_band`: whole
+    image rows) fit :data:`TILE_SHARE` of a worker's ``limit`` together."""
+    h, hc = halos
+    _, C, L, T = shape
+    while rows > max(h, 1):
+        tr, _ = _tile_shape(rows, shape, h, hc, False)
+        band = (tr + 2 * h) * C * L * T * itemsize
+        if tile_bytes(rows, shape, itemsize, h, n_box) + band <= TILE_SHARE * limit:
+            break
+        rows -= 1
+    return rows
