@@ -344,6 +344,45 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
     _assert_same_detection(a, b)
 
 
+def test_detect_on_local_cluster_recomputes_a_killed_workers_band(tmp_path):
+    """The band path (a Zarr cube with ``store=``): the worker holding the first
+    finished band task is killed (SIGKILL); the scheduler recomputes that band, whose
+    tiles write the store again, and the Detection is the in-memory one."""
+    distributed = pytest.importorskip("distributed")
+    zarr = pytest.importorskip("zarr")
+    import os
+
+    from conftest import kill_first_worker
+
+    counts, irf = _varying_cube(shape=(40, 20), n_bins=100, seed=6)
+    z = zarr.open_array(
+        str(tmp_path / "c.zarr"), mode="w", shape=counts.shape, chunks=(8, 20, 1, 100),
+        dtype=counts.dtype,
+    )  # fmt: skip
+    z[...] = counts
+    a = splidar.detect(Cube(counts, irf=irf), rng=1)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        client.wait_for_workers(2)
+        # the workers load the numba kernels before the measured run
+        small, _ = _cubes(*_varying_cube(shape=(12, 8), n_bins=60, seed=1), (6, 8, 1, 60))
+        splidar.detect(Cube(da.from_array(small.counts, chunks=(6, 8, 1, 60)), irf=small.irf))
+        plugin = kill_first_worker(client.run(os.getpid), "splidar-map-band")
+        cluster.scheduler.add_plugin(plugin, name="kill-first-band-worker")
+        b = splidar.detect(
+            Cube(da.from_zarr(z), irf=irf), rng=1, block_rows=5, store=tmp_path / "s"
+        )  # 8 bands
+        story = cluster.scheduler.story(plugin.key)
+    assert plugin.killed is not None, "no band reached memory on a known worker"
+    finishes = [s[2] for s in story if s[0] == plugin.key]
+    assert finishes.count("memory") >= 2, finishes
+    _assert_same_detection(a, b)
+
+
 @pytest.mark.parametrize(
     ("options", "block_rows", "tile_rows"),
     [(dict(scales=(1,)), 2, 2), (dict(scales=(1, 3)), 1, 1), (dict(), 3, 5)],
