@@ -769,7 +769,11 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
     -----
     The wavelengths of a pixel are pooled (pairs across them count, lag 0 included).
     Dense cubes (more than 50 million pairs of non-empty voxels within the lag window)
-    use every k-th pixel, a deterministic subset: the cost stays bounded.
+    use every k-th pixel, a deterministic subset: the cost stays bounded. When no lag
+    stands 5 standard deviations above the floor (a broad or long-tailed pulse spreads
+    its excess over many lags), sums of 3, 5, 9, ... adjacent lags are tested (7 sd),
+    then wider lag windows; only when none shows a peak does it raise. The route taken
+    is logged (INFO).
 
     Raises
     ------
@@ -819,6 +823,7 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
     w = np.asarray(w, dtype=np.float64)[order]
     top = max(n_bins // 2, 2)
     lag = min(32 if max_lag is None else check_int(max_lag, "max_lag", minimum=2), top)
+    searched = False
     while True:
         # partners j > i with key_j - key_i <= lag share the pixel (pixel stride 2T + 1)
         hi = np.searchsorted(key, key + lag, side="right")
@@ -845,7 +850,21 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
         # a flat background gives pairs in proportion to the T - k bin pairs at lag k:
         # undo that triangle so the floor is flat
         h *= n_bins / (n_bins - np.arange(lag + 1))
-        k_half = _half_max_lag(h)
+        # 5 sd as always; 7 once a window without a peak was passed (more tests made)
+        k_half = _half_max_lag(h, 7.0 if searched else 5.0)
+        if k_half is None:  # no peak at one-lag resolution: pool lags (a broad pulse)
+            k_half = _pooled_half_max_lag(h)
+            if k_half is None:
+                if max_lag is not None or lag >= top:
+                    raise SplidarError(
+                        "no IRF peak stands out of the background in the photon-pair time "
+                        "differences (too little signal per pixel); pass irf= (array or "
+                        "file) or irf_fwhm= (Gaussian FWHM in bins)."
+                    )
+                log.info("IRF width: no pair peak at lags <= %d; widening the window", lag)
+                searched = True
+                lag = min(lag * 2, top)
+                continue
         if max_lag is not None or k_half < lag / 4 or lag >= top:
             break
         lag = min(lag * 2, top)
@@ -853,7 +872,9 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
     return max(2.0 * k_half / math.sqrt(2.0), 0.5)
 
 
-def _half_max_lag(h: np.ndarray) -> float:
+def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
+    """Half-maximum lag of the pair peak above the floor; None when no peak stands out
+    (``z`` floor standard deviations)."""
     lag = h.size - 1
     if h.sum() < 20:
         raise SplidarError(
@@ -862,12 +883,8 @@ def _half_max_lag(h: np.ndarray) -> float:
         )
     floor = float(np.median(h[lag - max(lag // 4, 1) + 1 :]))
     peak = float(h[0]) - floor
-    if peak <= 5.0 * math.sqrt(max(floor, 1.0)):
-        raise SplidarError(
-            "no IRF peak stands out of the background in the photon-pair time differences "
-            "(too little signal per pixel); pass irf= (array or file) or irf_fwhm= (Gaussian "
-            "FWHM in bins)."
-        )
+    if peak <= z * math.sqrt(max(floor, 1.0)):
+        return None
     above = h - floor - peak / 2
     below = np.flatnonzero(above <= 0)
     if below.size == 0:
@@ -875,6 +892,32 @@ def _half_max_lag(h: np.ndarray) -> float:
     k = int(below[0])
     # linear interpolation between lag k-1 (above half) and k (at or below)
     return (k - 1) + above[k - 1] / (above[k - 1] - above[k])
+
+
+def _pooled_half_max_lag(h: np.ndarray) -> float | None:
+    """:func:`_half_max_lag` on sums of ``r`` adjacent lags (r = 3, 5, 9, ...).
+
+    A broad or tailed pulse spreads its pair excess over many lags, each within the
+    floor's noise; summed over ``r`` lags it stands ``sqrt(r)`` times higher. The
+    autocorrelation is even, so the sums are centred on lags ``0, r, 2r, ...``. The
+    peak must stand 7 standard deviations out (5 on single lags): the triangle
+    correction (up to x2 at lag T / 2) inflates the floor's variance, and several ``r``
+    and windows are tried.
+    """
+    lag = h.size - 1
+    cs = np.concatenate([[0.0], np.cumsum(np.concatenate([h[:0:-1], h]))])  # lags -lag..lag
+    r = 3
+    while lag // r >= 8:
+        half = (r - 1) // 2
+        m = (lag - half) // r  # coarse bins whose lags all lie within the window
+        centre = lag + r * np.arange(m + 1)
+        c = cs[centre + half + 1] - cs[centre - half]
+        k = _half_max_lag(c, 7.0)
+        if k is not None:
+            log.info("IRF width: pair peak measured on sums of %d lags", r)
+            return k * r
+        r = 2 * r - 1
+    return None
 
 
 def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, sparse=None):
