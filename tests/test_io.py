@@ -426,8 +426,8 @@ def test_estimate_irf_fwhm_dense_background_raises():
 def test_load_estimates_irf_when_missing(tmp_path):
     y = _simulated(6.0, 3.0, 0.01).astype(np.uint16)
     np.savez(tmp_path / "noirf.npz", counts=y)
-    c = load(tmp_path / "noirf.npz")
-    assert c.metadata["irf_source"].startswith("estimated")
+    c = load(tmp_path / "noirf.npz", irf="estimate")  # the Gaussian (opt-out of the shape)
+    assert c.metadata["irf_source"].startswith("estimated gaussian")
     fwhm = float(c.metadata["irf_source"].split("=")[1].split()[0])
     assert abs(fwhm - 6.0) < 1.2
 
@@ -512,7 +512,7 @@ def test_load_errors(cube, tmp_path):
 def test_load_real_face(shared_data):
     t0 = time.perf_counter()
     # bin_width=4 keeps the cube at 0.4 GB (T = 1751); the default 1-bin cube is 1.6 GB
-    c = load(shared_data / "face" / "data_face.mat", bin_width=4)
+    c = load(shared_data / "face" / "data_face.mat", bin_width=4, irf="estimate")
     elapsed = time.perf_counter() - t0
     assert c.shape == (340, 340, 1, 1751)
     assert c.photons_per_pixel() == pytest.approx(8.267, abs=0.01)  # all photons kept
@@ -540,7 +540,12 @@ def test_load_real_tower(shared_data):
 
 @pytest.mark.realdata
 def test_load_real_21km(shared_data):
-    c = load(shared_data / "longrange-21km" / "21km_K11_night.mat", time_unit="ps", bin_width=100)
+    c = load(
+        shared_data / "longrange-21km" / "21km_K11_night.mat",
+        time_unit="ps",
+        bin_width=100,
+        irf="estimate",
+    )
     assert c.shape[:3] == (256, 256, 1) and c.bin_width_ps == 100.0
     assert c.photons_per_pixel() == pytest.approx(640952 / 65536)
     # estimated IRF: ~10 bins of 100 ps (1.04 ns, the same at 20 ps bins)

@@ -943,7 +943,8 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
         return _estimate_irf(
             counts, fwhm=None, max_length=None, significance=3.0, min_pixels=20, fallback=True
         )
-    if isinstance(irf, str) and irf == "estimate":
+    gaussian_only = isinstance(irf, str) and irf == "estimate"
+    if gaussian_only:
         file_irf = None
         irf = None
     elif isinstance(irf, (str, os.PathLike)):
@@ -963,6 +964,20 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
         fwhm = _pair_lag_fwhm(uniq // n_bins, uniq % n_bins, cnt, n_bins, None)
     else:
         fwhm = estimate_irf_fwhm(counts)
+    if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
+        try:
+            arr, src = _estimate_irf(
+                counts, fwhm=fwhm, max_length=None, significance=3.0, min_pixels=20, fallback=True
+            )
+        except SplidarError as exc:
+            log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
+        else:
+            log.warning(
+                "no IRF given and none in the file: %s (pass irf= or irf_fwhm= to override, "
+                "irf='estimate' for a Gaussian of the estimated width)",
+                src,
+            )
+            return arr, src
     g = gaussian_irf(fwhm)
     log.warning(
         "no IRF given and none in the file: estimated a Gaussian IRF of FWHM %.2f bins from "
@@ -1038,11 +1053,13 @@ def load(
         ``bin_width_ps`` is ``bin_width`` converted to picoseconds. ``"bin"`` (default)
         means time-bin indices of unknown duration.
     irf : array_like (L, n) or (n,), path, "estimate" or "estimate-shape", optional
-        Instrument response. Default: the file's ``irf``; if it has none, a Gaussian
-        whose width is estimated from the data (:func:`estimate_irf_fwhm`; logged as a
-        warning), as with ``"estimate"``. ``"estimate-shape"``: the non-parametric
-        shape pooled from the bright pixels (:func:`estimate_irf`; for a long-tailed
-        pulse), whatever IRF the file holds. A path is read by :func:`load_irf`. An
+        Instrument response. Default: the file's ``irf``; if it has none and the counts
+        are in memory, the non-parametric shape pooled from the bright pixels
+        (:func:`estimate_irf`, seeded by :func:`estimate_irf_fwhm`; logged as a
+        warning), or a Gaussian of the estimated width where the pooled photons do not
+        reject a Gaussian or the shape cannot be estimated (too few bright pixels).
+        ``"estimate"``: always that Gaussian (the opt-out). ``"estimate-shape"``: the
+        shape, whatever IRF the file holds. A path is read by :func:`load_irf`. An
         IRF longer than T - 1 samples is cropped around its peak (logged).
     irf_fwhm : float, optional
         Use a Gaussian IRF of this FWHM in bins instead (data without a measured IRF).
