@@ -229,7 +229,7 @@ def run_real(data: Path):
         if not path.is_file():
             print(f"| {name} | missing: skipped |")
             continue
-        cube = splidar.load(path, **kw)  # the Gaussian estimate (no IRF in the file)
+        cube = splidar.load(path, **kw, irf="estimate")  # the Gaussian estimate
         t0 = time.perf_counter()
         shape = estimate_irf(cube.counts)
         t_est = time.perf_counter() - t0
