@@ -22,8 +22,8 @@ shift against the Gaussian estimate (no truth there). With ``--art``, the Art sc
 
 Usage::
 
-    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--no-sim]
-        [--data DIR]
+    python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--art-widths]
+        [--no-sim] [--data DIR]
 """
 
 from __future__ import annotations
@@ -229,7 +229,7 @@ def run_real(data: Path):
         if not path.is_file():
             print(f"| {name} | missing: skipped |")
             continue
-        cube = splidar.load(path, **kw)  # the Gaussian estimate (no IRF in the file)
+        cube = splidar.load(path, **kw, irf="estimate")  # the Gaussian estimate
         t0 = time.perf_counter()
         shape = estimate_irf(cube.counts)
         t_est = time.perf_counter() - t0
@@ -328,6 +328,31 @@ def run_art(data: Path, cells):
                 )
 
 
+def run_art_widths(data: Path):
+    """The pair-lag width (``estimate_irf_fwhm``, the Gaussian of ``load``) on the Art
+    cubes against the true FWHM, and its CPU time."""
+    from splidar.scenes import art_scene
+
+    print("\n## Art: estimate_irf_fwhm against the true FWHM (SBR 1, rng=0)")
+    print("| IRF of the simulation | true FWHM | PPP | estimate | CPU s |")
+    print("|---|---|---|---|---|")
+    for label, irf_spec, T in (
+        ("gaussian 3", ("gaussian", 3.0), 164),
+        ("exp tail 3/6", ("exp_tail", 3.0, 6.0), 300),
+    ):
+        scene = art_scene(data / "middlebury-art", irf=irf_spec, n_bins=T)
+        fw = float(np.max(irf_fwhm(scene.irf_array)))
+        for ppp in (4.0, 16.0, 64.0):
+            cube = scene.simulate(ppp=ppp, sbr=1.0, rng=0).cube
+            t0 = time.process_time()
+            try:
+                r = f"{estimate_irf_fwhm(cube.counts):.2f}"
+            except splidar.SplidarError as exc:
+                r = f"raises: {str(exc)[:50]}"
+            te = time.process_time() - t0
+            print(f"| {label} | {fw:.2f} | {ppp:g} | {r} | {te:.1f} |", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
@@ -335,6 +360,7 @@ def main(argv=None):
     ap.add_argument("--no-sim", action="store_true")
     ap.add_argument("--ppp4", action="store_true", help="only the PPP 4 cases (simulated)")
     ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
+    ap.add_argument("--art-widths", action="store_true", help="the pair-lag width on the Art cubes")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -342,6 +368,8 @@ def main(argv=None):
         run_sim(args.seeds, ppp4_cases() if args.ppp4 else None)
     if args.real:
         run_real(Path(args.data))
+    if args.art_widths:
+        run_art_widths(Path(args.data))
     if args.art:
         run_art(Path(args.data), [(4.0, 1.0), (16.0, 1.0), (64.0, 1.0)])
     print(f"\nwall {time.perf_counter() - t0:.0f} s")

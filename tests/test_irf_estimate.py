@@ -137,6 +137,32 @@ def test_load_estimate_shape_records_irf_source(tmp_path):
     np.testing.assert_allclose(c.irf, estimate_irf(cube.counts))
 
 
+def test_load_defaults_to_the_shape_estimate_without_an_irf(tmp_path, caplog):
+    # a file without an IRF: load estimates the shape (as irf="estimate-shape" does);
+    # irf="estimate" keeps the Gaussian of the pair-lag width (the opt-out)
+    cube = _cube(exp_tail_irf(2.0, 6.0))
+    f = tmp_path / "c.npz"
+    np.savez(f, counts=cube.counts)
+    with caplog.at_level("WARNING", logger="splidar.io"):
+        c = splidar.load(f)
+    assert c.metadata["irf_source"].startswith("estimated shape")
+    assert "estimated shape" in caplog.text and "irf='estimate'" in caplog.text
+    np.testing.assert_allclose(c.irf, splidar.load(f, irf="estimate-shape").irf)
+    g = splidar.load(f, irf="estimate")
+    assert g.metadata["irf_source"].startswith("estimated gaussian fwhm=")
+    assert g.irf.shape != c.irf.shape or not np.allclose(g.irf, c.irf)
+
+
+def test_load_default_falls_back_to_gaussian_when_shape_cannot_be_estimated(tmp_path):
+    # 4 x 4 pixels: fewer than min_pixels = 20 bright pixels, the shape estimate raises;
+    # load keeps the Gaussian of the pair-lag width
+    cube = _cube(gaussian_irf(4.0), n=4, ppp=40.0)
+    f = tmp_path / "c.npz"
+    np.savez(f, counts=cube.counts)
+    c = splidar.load(f)
+    assert c.metadata["irf_source"].startswith("estimated gaussian fwhm=")
+
+
 def test_estimate_irf_falls_back_to_gaussian_on_few_photons(tmp_path, caplog):
     # 16 x 16 pixels at PPP 3: about 50 bright pixels, whose pooled curve does not
     # reject a Gaussian (measured: chi2 7.0 on 14 dof, p 0.93 against the 3-sigma

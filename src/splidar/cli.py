@@ -428,9 +428,10 @@ def _run_parser(sub, fmt) -> None:
         "--irf",
         metavar="FILE",
         help="instrument response file (.npy, .npz, .mat, .h5, .csv, .txt, a .ptu/.sdt "
-        "measurement summed over its pixels, or a .phu histogram); 'estimate': a Gaussian "
-        "of the width estimated from the data; 'estimate-shape': the pulse shape pooled "
-        "from the bright pixels (long-tailed pulses)",
+        "measurement summed over its pixels, or a .phu histogram). Default: the file's IRF, "
+        "else the pulse shape pooled from the bright pixels (a Gaussian where the photons "
+        "do not support a shape); 'estimate': a Gaussian of the width estimated from the "
+        "data; 'estimate-shape': the pulse shape even when the file holds an IRF",
     )
     irf.add_argument(
         "--irf-fwhm",

@@ -765,6 +765,16 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
         Estimated FWHM in bins (at least 0.5: a pulse narrower than a bin is not
         resolved).
 
+    Notes
+    -----
+    The wavelengths of a pixel are pooled (pairs across them count, lag 0 included).
+    Dense cubes (more than 50 million pairs of non-empty voxels within the lag window)
+    use every k-th pixel, a deterministic subset: the cost stays bounded. When no lag
+    stands 5 standard deviations above the floor (a broad or long-tailed pulse spreads
+    its excess over many lags), sums of 3, 5, 9, ... adjacent lags are tested (7 sd),
+    then wider lag windows; only when none shows a peak does it raise. The route taken
+    is logged (INFO).
+
     Raises
     ------
     SplidarError
@@ -796,34 +806,65 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
     return _pair_lag_fwhm(rowi // n_l, b, w, n_bins, max_lag)
 
 
+_PAIR_BUDGET = 50_000_000  # pairs of non-empty voxels per pass of the pair-lag width
+
+
 def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
-    """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count)."""
-    key = np.asarray(pix, dtype=np.int64) * (2 * n_bins + 1) + np.asarray(b, dtype=np.int64)
+    """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count).
+
+    The voxels of one pixel may repeat a bin (one per wavelength): pairs across them
+    are lag-0 pairs too. Above ``_PAIR_BUDGET`` pairs, every k-th pixel is used
+    (deterministic; the peak and the floor scale alike).
+    """
+    stride = 2 * n_bins + 1
+    key = np.asarray(pix, dtype=np.int64) * stride + np.asarray(b, dtype=np.int64)
     order = np.argsort(key, kind="stable")
     key = key[order]
     w = np.asarray(w, dtype=np.float64)[order]
-    lag0 = float(np.sum(w * (w - 1)) / 2)  # pairs inside one voxel
     top = max(n_bins // 2, 2)
     lag = min(32 if max_lag is None else check_int(max_lag, "max_lag", minimum=2), top)
+    searched = False
     while True:
         # partners j > i with key_j - key_i <= lag share the pixel (pixel stride 2T + 1)
         hi = np.searchsorted(key, key + lag, side="right")
         cnt = hi - np.arange(key.size) - 1
         total = int(cnt.sum())
-        if total > 50_000_000:
-            raise SplidarError(
-                f"too many photon pairs ({total}) to estimate the IRF; pass irf= or irf_fwhm=."
+        if total > _PAIR_BUDGET:
+            k = math.ceil(total / _PAIR_BUDGET)
+            keep = (key // stride) % k == 0
+            log.info(
+                "IRF width: %s voxel pairs at lags <= %d; using every %d-th pixel",
+                f"{total:,}",
+                lag,
+                k,
             )
+            key, w = key[keep], w[keep]
+            continue
         i = np.repeat(np.arange(key.size), cnt)
         j = i + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
         h = np.bincount(key[j] - key[i], weights=w[i] * w[j], minlength=lag + 1)[: lag + 1]
         h = h.astype(np.float64)  # bincount of an empty input is int64 even with weights
-        # two-sided autocorrelation: ordered pairs, so lag 0 counts each pair twice
-        h[0] = 2 * lag0
+        # two-sided autocorrelation: ordered pairs, so lag 0 counts each pair twice;
+        # pairs inside one voxel, plus those across voxels sharing a bin (wavelengths)
+        h[0] = float(np.sum(w * (w - 1))) + 2 * h[0]
         # a flat background gives pairs in proportion to the T - k bin pairs at lag k:
         # undo that triangle so the floor is flat
         h *= n_bins / (n_bins - np.arange(lag + 1))
-        k_half = _half_max_lag(h)
+        # 5 sd as always; 7 once a window without a peak was passed (more tests made)
+        k_half = _half_max_lag(h, 7.0 if searched else 5.0)
+        if k_half is None:  # no peak at one-lag resolution: pool lags (a broad pulse)
+            k_half = _pooled_half_max_lag(h)
+            if k_half is None:
+                if max_lag is not None or lag >= top:
+                    raise SplidarError(
+                        "no IRF peak stands out of the background in the photon-pair time "
+                        "differences (too little signal per pixel); pass irf= (array or "
+                        "file) or irf_fwhm= (Gaussian FWHM in bins)."
+                    )
+                log.info("IRF width: no pair peak at lags <= %d; widening the window", lag)
+                searched = True
+                lag = min(lag * 2, top)
+                continue
         if max_lag is not None or k_half < lag / 4 or lag >= top:
             break
         lag = min(lag * 2, top)
@@ -831,7 +872,9 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
     return max(2.0 * k_half / math.sqrt(2.0), 0.5)
 
 
-def _half_max_lag(h: np.ndarray) -> float:
+def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
+    """Half-maximum lag of the pair peak above the floor; None when no peak stands out
+    (``z`` floor standard deviations)."""
     lag = h.size - 1
     if h.sum() < 20:
         raise SplidarError(
@@ -840,12 +883,8 @@ def _half_max_lag(h: np.ndarray) -> float:
         )
     floor = float(np.median(h[lag - max(lag // 4, 1) + 1 :]))
     peak = float(h[0]) - floor
-    if peak <= 5.0 * math.sqrt(max(floor, 1.0)):
-        raise SplidarError(
-            "no IRF peak stands out of the background in the photon-pair time differences "
-            "(too little signal per pixel); pass irf= (array or file) or irf_fwhm= (Gaussian "
-            "FWHM in bins)."
-        )
+    if peak <= z * math.sqrt(max(floor, 1.0)):
+        return None
     above = h - floor - peak / 2
     below = np.flatnonzero(above <= 0)
     if below.size == 0:
@@ -853,6 +892,32 @@ def _half_max_lag(h: np.ndarray) -> float:
     k = int(below[0])
     # linear interpolation between lag k-1 (above half) and k (at or below)
     return (k - 1) + above[k - 1] / (above[k - 1] - above[k])
+
+
+def _pooled_half_max_lag(h: np.ndarray) -> float | None:
+    """:func:`_half_max_lag` on sums of ``r`` adjacent lags (r = 3, 5, 9, ...).
+
+    A broad or tailed pulse spreads its pair excess over many lags, each within the
+    floor's noise; summed over ``r`` lags it stands ``sqrt(r)`` times higher. The
+    autocorrelation is even, so the sums are centred on lags ``0, r, 2r, ...``. The
+    peak must stand 7 standard deviations out (5 on single lags): the triangle
+    correction (up to x2 at lag T / 2) inflates the floor's variance, and several ``r``
+    and windows are tried.
+    """
+    lag = h.size - 1
+    cs = np.concatenate([[0.0], np.cumsum(np.concatenate([h[:0:-1], h]))])  # lags -lag..lag
+    r = 3
+    while lag // r >= 8:
+        half = (r - 1) // 2
+        m = (lag - half) // r  # coarse bins whose lags all lie within the window
+        centre = lag + r * np.arange(m + 1)
+        c = cs[centre + half + 1] - cs[centre - half]
+        k = _half_max_lag(c, 7.0)
+        if k is not None:
+            log.info("IRF width: pair peak measured on sums of %d lags", r)
+            return k * r
+        r = 2 * r - 1
+    return None
 
 
 def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, sparse=None):
@@ -878,7 +943,8 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
         return _estimate_irf(
             counts, fwhm=None, max_length=None, significance=3.0, min_pixels=20, fallback=True
         )
-    if isinstance(irf, str) and irf == "estimate":
+    gaussian_only = isinstance(irf, str) and irf == "estimate"
+    if gaussian_only:
         file_irf = None
         irf = None
     elif isinstance(irf, (str, os.PathLike)):
@@ -898,6 +964,20 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
         fwhm = _pair_lag_fwhm(uniq // n_bins, uniq % n_bins, cnt, n_bins, None)
     else:
         fwhm = estimate_irf_fwhm(counts)
+    if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
+        try:
+            arr, src = _estimate_irf(
+                counts, fwhm=fwhm, max_length=None, significance=3.0, min_pixels=20, fallback=True
+            )
+        except SplidarError as exc:
+            log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
+        else:
+            log.warning(
+                "no IRF given and none in the file: %s (pass irf= or irf_fwhm= to override, "
+                "irf='estimate' for a Gaussian of the estimated width)",
+                src,
+            )
+            return arr, src
     g = gaussian_irf(fwhm)
     log.warning(
         "no IRF given and none in the file: estimated a Gaussian IRF of FWHM %.2f bins from "
@@ -973,11 +1053,13 @@ def load(
         ``bin_width_ps`` is ``bin_width`` converted to picoseconds. ``"bin"`` (default)
         means time-bin indices of unknown duration.
     irf : array_like (L, n) or (n,), path, "estimate" or "estimate-shape", optional
-        Instrument response. Default: the file's ``irf``; if it has none, a Gaussian
-        whose width is estimated from the data (:func:`estimate_irf_fwhm`; logged as a
-        warning), as with ``"estimate"``. ``"estimate-shape"``: the non-parametric
-        shape pooled from the bright pixels (:func:`estimate_irf`; for a long-tailed
-        pulse), whatever IRF the file holds. A path is read by :func:`load_irf`. An
+        Instrument response. Default: the file's ``irf``; if it has none and the counts
+        are in memory, the non-parametric shape pooled from the bright pixels
+        (:func:`estimate_irf`, seeded by :func:`estimate_irf_fwhm`; logged as a
+        warning), or a Gaussian of the estimated width where the pooled photons do not
+        reject a Gaussian or the shape cannot be estimated (too few bright pixels).
+        ``"estimate"``: always that Gaussian (the opt-out). ``"estimate-shape"``: the
+        shape, whatever IRF the file holds. A path is read by :func:`load_irf`. An
         IRF longer than T - 1 samples is cropped around its peak (logged).
     irf_fwhm : float, optional
         Use a Gaussian IRF of this FWHM in bins instead (data without a measured IRF).
