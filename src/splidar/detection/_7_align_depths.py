@@ -15,10 +15,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ._quality import align_depths
+from numba import njit
+from ._quality import _shifted_irf, align_depths
 from ._result import Surfaces
 
-__all__ = ["DepthAlignment", "align_surface_depths"]
+__all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
 
 #: A pixel whose own counts favour its current depth over the sheared pool's peak by
 #: more than this many standard deviations of the background noise keeps it: the pool
@@ -65,3 +66,163 @@ def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) ->
     )  # fmt: skip
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     return DepthAlignment(out, int(n_moved), time.perf_counter() - t0)
+
+
+#: One-sided alternatives extrapolate a neighbour's surface over two pixels along one of
+#: the four directions; the two pixels must hold the same return within this many FWHM
+#: (the slope the extrapolation trusts: 4.5 bins per pixel at FWHM 3 bins).
+EXTRAPOLATE_FWHM = 1.5
+
+
+@njit(cache=True, nogil=True)
+def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
+    """Depths the neighbours offer a surface that lies far (more than 2 FWHM) from them.
+
+    ``isolated[i]``: no 8-neighbour holds a surface within 2 FWHM of surface ``i``'s
+    depth; then ``alt[i, 0]`` is the plane both opposite pairs of 4-neighbours agree on
+    (pair means within the FWHM; the slots nearest the depth), ``src[i, 0]`` its four
+    surfaces. Otherwise, when no opposite pair of 8-neighbours holds the depth (it does
+    not continue through the pixel: the depth of one side only), ``alt[i, u]`` is the
+    extrapolation ``2 D1 - D2`` of the two pixels along direction ``u`` (north, south,
+    west, east) that hold one return (within ``EXTRAPOLATE_FWHM`` FWHM), ``src[i, u]``
+    those two. Alternatives within 2 FWHM of the depth or of another of the pixel's
+    surfaces are dropped (NaN).
+    """
+    D = np.full((R + 4, C + 4, K), np.nan)
+    index = np.full((R + 4, C + 4, K), -1, np.int64)
+    for i in range(row.size):
+        D[row[i] + 2, col[i] + 2, slot[i]] = depth[i]
+        index[row[i] + 2, col[i] + 2, slot[i]] = i
+    far = 2.0 * fwhm
+    for i in range(row.size):
+        r, c, d = row[i] + 2, col[i] + 2, depth[i]
+        for u in range(4):
+            alt[i, u] = np.nan
+        n8 = 0
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if dr != 0 or dc != 0:
+                    for k in range(K):
+                        if abs(D[r + dr, c + dc, k] - d) <= far:
+                            n8 += 1
+                            break
+        isolated[i] = n8 == 0
+        if isolated[i]:
+            best = np.inf
+            for a in range(K):
+                for b in range(K):
+                    m1 = 0.5 * (D[r - 1, c, a] + D[r + 1, c, b])
+                    if np.isnan(m1):
+                        continue
+                    for e in range(K):
+                        for f in range(K):
+                            m2 = 0.5 * (D[r, c - 1, e] + D[r, c + 1, f])
+                            if np.isnan(m2) or abs(m1 - m2) > fwhm:
+                                continue
+                            p = 0.5 * (m1 + m2)
+                            if abs(p - d) < best:
+                                best = abs(p - d)
+                                alt[i, 0] = p
+                                src[i, 0, 0] = index[r - 1, c, a]
+                                src[i, 0, 1] = index[r + 1, c, b]
+                                src[i, 0, 2] = index[r, c - 1, e]
+                                src[i, 0, 3] = index[r, c + 1, f]
+        else:
+            through = False
+            for dr, dc in ((1, 0), (0, 1), (1, 1), (1, -1)):
+                h1 = False
+                h2 = False
+                for k in range(K):
+                    h1 = h1 or abs(D[r - dr, c - dc, k] - d) <= far
+                    h2 = h2 or abs(D[r + dr, c + dc, k] - d) <= far
+                through = through or (h1 and h2)
+            if through:
+                continue
+            for u in range(4):
+                dr = (-1, 1, 0, 0)[u]
+                dc = (0, 0, -1, 1)[u]
+                best = np.inf
+                for a in range(K):
+                    x = D[r + dr, c + dc, a]
+                    if np.isnan(x) or abs(x - d) <= far:
+                        continue
+                    for b in range(K):
+                        y = D[r + 2 * dr, c + 2 * dc, b]
+                        if abs(x - y) <= EXTRAPOLATE_FWHM * fwhm and abs(x - y) < best:
+                            best = abs(x - y)
+                            alt[i, u] = 2.0 * x - y
+                            src[i, u, 0] = index[r + dr, c + dc, a]
+                            src[i, u, 1] = index[r + 2 * dr, c + 2 * dc, b]
+        for u in range(4):
+            if abs(alt[i, u] - d) <= far:
+                alt[i, u] = np.nan
+            for k in range(K):
+                if abs(D[r, c, k] - alt[i, u]) <= far:
+                    alt[i, u] = np.nan  # the pixel holds that return already
+
+
+def move_far_depths(
+    surfaces: Surfaces, counts, background, *, fwhm: float, irf: np.ndarray
+) -> tuple[Surfaces, int]:
+    """Move surfaces far from what their neighbours hold where the own counts favour it.
+
+    Two configurations (:func:`_far_kernel`). A surface no 8-neighbour continues, in a
+    pixel whose opposite pairs of 4-neighbours agree on a plane, is either an off-plane
+    return of this pixel alone or a background cluster that beat a missed return on the
+    plane; a surface whose depth only the neighbours on one side hold (it does not
+    continue through the pixel) is either that side's return or a neighbour's spread
+    over a missed return of the other side, which two pixels extrapolate. Each
+    hypothesis is a return of the neighbours' intensity ``s`` (their mean selected-scale
+    signal, per wavelength) at one depth; the own raw counts' Poisson log-likelihoods
+    ``L(x) = sum_t y_t log(1 + s g(t - x) / b_t) - s sum_t g(t - x)`` at the surface's
+    depth ``d`` and at the alternative ``a`` decide, against a prior: the plane predicts
+    one depth where an off-plane return could lie at any of ``T / FWHM`` resolvable
+    depths (``log(T / FWHM)``, an Occam factor); the two sides of an edge are equally
+    likely (0). The surface moves to ``a`` (the best-supported alternative) when
+    ``L(d) - L(a) <`` the prior. A bright off-plane pixel (own photons many times the
+    background at its depth) keeps its depth; so does a depth that continues through
+    the pixel (a line: a thin structure, a real layer's edge).
+
+    Returns the surfaces and the number moved.
+    """
+    s = surfaces
+    R, C = s.image_shape
+    S = len(s)
+    alt = np.empty((S, 4))
+    src = np.full((S, 4, 4), -1, np.int64)
+    isolated = np.zeros(S, np.bool_)
+    _far_kernel(
+        s.row, s.col, s.slot, np.asarray(s.depth_bin, np.float64), int(R), int(C),
+        int(s.n_slots), float(fwhm), alt, src, isolated,
+    )  # fmt: skip
+    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
+    if cand.size == 0:
+        return s, 0
+    irf = np.atleast_2d(np.asarray(irf, np.float64))
+    peak = np.argmax(irf, axis=1)
+    T = int(np.shape(counts)[-1])
+    plane_prior = np.log(T / max(float(fwhm), 1.0))
+    photons = s.photons  # (S, L)
+    depth = np.array(s.depth_bin, np.float64)
+    n = 0
+    for i in cand:
+        y = np.asarray(counts[s.row[i], s.col[i]], np.float64)[None]  # (1, L, T)
+        b = np.maximum(background.at([s.row[i]], [s.col[i]]).astype(np.float64), 1e-6)
+        best, to = np.inf, np.nan
+        for u in np.flatnonzero(~np.isnan(alt[i])):
+            j = src[i, u][src[i, u] >= 0]
+            sp = np.maximum(photons[j].mean(axis=0), 1e-9)[None, :, None]  # (1, L, 1)
+            g = _shifted_irf(irf, peak, np.array([depth[i], alt[i, u]]), T)  # (2, L, T)
+            ll = (y * np.log1p(sp * g / b)).sum(axis=(1, 2)) - (sp * g).sum(axis=(1, 2))
+            if ll[0] - ll[1] < best:
+                best, to = ll[0] - ll[1], alt[i, u]
+        if best >= (plane_prior if isolated[i] else 0.0) or not 0.0 <= to <= T - 1:
+            continue
+        same = (s.row == s.row[i]) & (s.col == s.col[i])  # keep the slots' depth order
+        if np.any(depth[same & (s.slot < s.slot[i])] >= to) or np.any(
+            depth[same & (s.slot > s.slot[i])] <= to
+        ):
+            continue
+        depth[i] = to
+        n += 1
+    return replace(s, depth_bin=depth), n
