@@ -14,8 +14,8 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-
 from numba import njit
+
 from ._quality import _shifted_irf, align_depths
 from ._result import Surfaces
 
