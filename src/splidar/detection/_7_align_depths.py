@@ -18,6 +18,7 @@ from numba import njit
 
 from ._quality import _shifted_irf, align_depths
 from ._result import Surfaces
+from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
 
@@ -72,6 +73,8 @@ def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) ->
 #: the four directions; the two pixels must hold the same return within this many FWHM
 #: (the slope the extrapolation trusts: 4.5 bins per pixel at FWHM 3 bins).
 EXTRAPOLATE_FWHM = 1.5
+SIDE_EXCLUSIVE = True
+ONE_PHOTON = True
 
 
 @njit(cache=True, nogil=True)
@@ -142,6 +145,12 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
                 dr = (-1, 1, 0, 0)[u]
                 dc = (0, 0, -1, 1)[u]
                 best = np.inf
+                if SIDE_EXCLUSIVE:
+                    held = False
+                    for k in range(K):  # that side holds the depth too: no side to take
+                        held = held or abs(D[r + dr, c + dc, k] - d) <= far
+                    if held:
+                        continue
                 for a in range(K):
                     x = D[r + dr, c + dc, a]
                     if np.isnan(x) or abs(x - d) <= far:
@@ -159,6 +168,15 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
             for k in range(K):
                 if abs(D[r, c, k] - alt[i, u]) <= far:
                     alt[i, u] = np.nan  # the pixel holds that return already
+
+
+def _pixels(counts, rows, cols) -> np.ndarray:
+    """The raw counts of a few pixels, ``(n, L, T)``: read at once from a Dask array."""
+    if is_dask(counts):
+        return np.asarray(counts.vindex[rows, cols].compute())
+    if isinstance(counts, np.ndarray):
+        return counts[rows, cols]
+    return np.stack([np.asarray(counts[r, c]) for r, c in zip(rows, cols, strict=True)])
 
 
 def move_far_depths(
@@ -205,17 +223,24 @@ def move_far_depths(
     photons = s.photons  # (S, L)
     depth = np.array(s.depth_bin, np.float64)
     n = 0
-    for i in cand:
-        y = np.asarray(counts[s.row[i], s.col[i]], np.float64)[None]  # (1, L, T)
-        b = np.maximum(background.at([s.row[i]], [s.col[i]]).astype(np.float64), 1e-6)
+    rows, cols = s.row[cand], s.col[cand]
+    ys = _pixels(counts, rows, cols)  # (n, L, T), the candidates' pixels only
+    bs = np.maximum(background.at(rows, cols).astype(np.float64), 1e-6)
+    for m, i in enumerate(cand):
+        y, b = ys[m : m + 1].astype(np.float64), bs[m : m + 1]
         best, to = np.inf, np.nan
         for u in np.flatnonzero(~np.isnan(alt[i])):
             j = src[i, u][src[i, u] >= 0]
             sp = np.maximum(photons[j].mean(axis=0), 1e-9)[None, :, None]  # (1, L, 1)
             g = _shifted_irf(irf, peak, np.array([depth[i], alt[i, u]]), T)  # (2, L, T)
             ll = (y * np.log1p(sp * g / b)).sum(axis=(1, 2)) - (sp * g).sum(axis=(1, 2))
-            if ll[0] - ll[1] < best:
-                best, to = ll[0] - ll[1], alt[i, u]
+            v = ll[0] - ll[1]
+            if not isolated[i] and ONE_PHOTON:
+                # more than one background photon at the alternative's peak would give
+                tb = min(max(int(np.rint(alt[i, u])), 0), T - 1)
+                v += np.log1p(np.max(sp[0, :, 0] * irf.max(axis=1) / b[0, :, tb]))
+            if v < best:
+                best, to = v, alt[i, u]
         if best >= (plane_prior if isolated[i] else 0.0) or not 0.0 <= to <= T - 1:
             continue
         same = (s.row == s.row[i]) & (s.col == s.col[i])  # keep the slots' depth order
