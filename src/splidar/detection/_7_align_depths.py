@@ -4,8 +4,9 @@ On a steep slope the 3 x 3 box has a lobe per row and a low-count peak can fall 
 neighbour row's: where the opposite pairs of 4-neighbours place a depth more than half
 the FWHM away, the 3 x 3 box is sheared along their plane and the depth moves to that
 pool's peak near their prediction, unless the own counts favour the current depth
-by more than their noise (:func:`~splidar.detection._quality.align_depths`). Adds or
-removes no surface.
+by more than their noise (:func:`~splidar.detection._quality.align_depths`). Then a
+surface far (more than 2 FWHM) from what its neighbours offer moves there when the own
+counts favour it against a prior (:func:`move_far_depths`). Adds or removes no surface.
 """
 
 from __future__ import annotations
@@ -33,6 +34,12 @@ __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
 #: 3 -> 126.7 / 164.7; 1,338 / 1,104 (F_true at Art PPP 16 below its former figure).
 OWN_Z = 1.0
 
+#: Re-decide the far depths after the sheared pool (:func:`move_far_depths`). Measured
+#: (benchmarks/README.md, "depth21, session 14"): single surface PPP 4, SBR 0.25, seeds
+#: 0-2, F_true / false 0.9674 / 126.7 -> 0.9682 / 120.7 (uniform), 0.9715 / 160.0 ->
+#: 0.9719 / 157.0 (decaying); every layer cell equal or better.
+FAR_DEPTHS = True
+
 
 @dataclass(frozen=True)
 class DepthAlignment:
@@ -43,7 +50,9 @@ class DepthAlignment:
     seconds: float
 
 
-def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) -> DepthAlignment:
+def align_surface_depths(
+    surfaces: Surfaces, *, fwhm: float, irf: np.ndarray, counts=None, background=None
+) -> DepthAlignment:
     """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
 
     Parameters
@@ -54,6 +63,10 @@ def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) ->
     irf : ndarray (L, n_irf)
         The normalised IRF: the background's noise on the clean histograms (the matched
         filter's response) is ``b sum_t g(t)^2`` per bin.
+    counts : array_like (rows, cols, L, T), optional
+        The cube's raw counts; with ``background`` (:class:`Background`), the far depths
+        are re-decided too (:func:`move_far_depths`, when ``FAR_DEPTHS``).
+    background : Background, optional
     """
     t0 = time.perf_counter()
     s = surfaces
@@ -66,6 +79,9 @@ def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) ->
         image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
     )  # fmt: skip
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
+    if FAR_DEPTHS and counts is not None and background is not None:
+        out, n_far = move_far_depths(out, counts, background, fwhm=fwhm, irf=irf)
+        n_moved += n_far
     return DepthAlignment(out, int(n_moved), time.perf_counter() - t0)
 
 
@@ -73,8 +89,6 @@ def align_surface_depths(surfaces: Surfaces, *, fwhm: float, irf: np.ndarray) ->
 #: the four directions; the two pixels must hold the same return within this many FWHM
 #: (the slope the extrapolation trusts: 4.5 bins per pixel at FWHM 3 bins).
 EXTRAPOLATE_FWHM = 1.5
-SIDE_EXCLUSIVE = True
-ONE_PHOTON = True
 
 
 @njit(cache=True, nogil=True)
@@ -145,12 +159,11 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
                 dr = (-1, 1, 0, 0)[u]
                 dc = (0, 0, -1, 1)[u]
                 best = np.inf
-                if SIDE_EXCLUSIVE:
-                    held = False
-                    for k in range(K):  # that side holds the depth too: no side to take
-                        held = held or abs(D[r + dr, c + dc, k] - d) <= far
-                    if held:
-                        continue
+                held = False
+                for k in range(K):  # that side holds the depth too: no side to take
+                    held = held or abs(D[r + dr, c + dc, k] - d) <= far
+                if held:
+                    continue
                 for a in range(K):
                     x = D[r + dr, c + dc, a]
                     if np.isnan(x) or abs(x - d) <= far:
@@ -235,7 +248,7 @@ def move_far_depths(
             g = _shifted_irf(irf, peak, np.array([depth[i], alt[i, u]]), T)  # (2, L, T)
             ll = (y * np.log1p(sp * g / b)).sum(axis=(1, 2)) - (sp * g).sum(axis=(1, 2))
             v = ll[0] - ll[1]
-            if not isolated[i] and ONE_PHOTON:
+            if not isolated[i]:
                 # more than one background photon at the alternative's peak would give
                 tb = min(max(int(np.rint(alt[i, u])), 0), T - 1)
                 v += np.log1p(np.max(sp[0, :, 0] * irf.max(axis=1) / b[0, :, tb]))

@@ -40,7 +40,7 @@ from ._5d_slopes import SLOPE_PIXELS, recover_slope_surfaces
 from ._5e_enclosed import restore_enclosed_holes
 from ._5f_stray_clusters import remove_stray_clusters
 from ._6_select import select_surfaces
-from ._7_align_depths import align_surface_depths, move_far_depths
+from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._result import Background, Detection, StageRecord, StoredHistograms
@@ -345,9 +345,6 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     return o
 
 
-FAR_DEPTHS = os.environ.get("SPLIDAR_FAR", "1") == "1"  # prototype switch
-
-
 def _select_and_align(cube, o, mp, done, t0: float, store, bg):
     """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depth alignment;
     with the selection's own seconds (since ``t0``, less the clean-up passes').
@@ -370,19 +367,11 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
     if o.get("tiled"):  # the table's pages, released
         _give_back()
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
-        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"], irf=o["irf"])
+        background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
+        aligned = align_surface_depths(
+            surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background
+        )
         surfaces = aligned.surfaces
-        if FAR_DEPTHS:
-            surfaces, n_far = move_far_depths(
-                surfaces,
-                cube.counts,
-                Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32)),
-                fwhm=o["fwhm"],
-                irf=o["irf"],
-            )
-            aligned = dataclasses.replace(
-                aligned, surfaces=surfaces, n_moved=aligned.n_moved + n_far
-            )
     return surfaces, aligned, t_sel, n_kept
 
 
