@@ -209,10 +209,13 @@ def move_far_depths(
     depth ``d`` and at the alternative ``a`` decide, against a prior: the plane predicts
     one depth where an off-plane return could lie at any of ``T / FWHM`` resolvable
     depths (``log(T / FWHM)``, an Occam factor); the two sides of an edge are equally
-    likely (0). The surface moves to ``a`` (the best-supported alternative) when
-    ``L(d) - L(a) <`` the prior. A bright off-plane pixel (own photons many times the
-    background at its depth) keeps its depth; so does a depth that continues through
-    the pixel (a line: a thin structure, a real layer's edge).
+    likely, but ``a`` must win by more than one background photon at its peak would
+    give (``log(1 + s g_max / b_a)``: a chance photon near the other side's depth does
+    not move a pixel whose own return is dim). The surface moves to ``a`` (the
+    best-supported alternative) when ``L(d) - L(a) <`` the prior. A bright off-plane
+    pixel (own photons many times the background at its depth) keeps its depth; so does
+    a depth that continues through the pixel (a line: a thin structure, a real layer's
+    edge).
 
     Returns the surfaces and the number moved.
     """
@@ -237,6 +240,10 @@ def move_far_depths(
     depth = np.array(s.depth_bin, np.float64)
     n = 0
     rows, cols = s.row[cand], s.col[cand]
+    pix = s.row * C + s.col
+    others: dict = {}  # the candidates' pixels' surfaces
+    for j in np.flatnonzero(np.isin(pix, pix[cand])):
+        others.setdefault(int(pix[j]), []).append(int(j))
     ys = _pixels(counts, rows, cols)  # (n, L, T), the candidates' pixels only
     bs = np.maximum(background.at(rows, cols).astype(np.float64), 1e-6)
     for m, i in enumerate(cand):
@@ -256,10 +263,8 @@ def move_far_depths(
                 best, to = v, alt[i, u]
         if best >= (plane_prior if isolated[i] else 0.0) or not 0.0 <= to <= T - 1:
             continue
-        same = (s.row == s.row[i]) & (s.col == s.col[i])  # keep the slots' depth order
-        if np.any(depth[same & (s.slot < s.slot[i])] >= to) or np.any(
-            depth[same & (s.slot > s.slot[i])] <= to
-        ):
+        same = others.get(int(pix[i]), ())  # keep the slots' depth order
+        if any((s.slot[j] < s.slot[i]) == (depth[j] >= to) for j in same if j != i):
             continue
         depth[i] = to
         n += 1
