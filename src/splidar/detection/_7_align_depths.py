@@ -37,8 +37,12 @@ OWN_Z = 1.0
 #: Re-decide the far depths after the sheared pool (:func:`move_far_depths`). Measured
 #: (benchmarks/README.md, "depth21, session 14"): single surface PPP 4, SBR 0.25, seeds
 #: 0-2, F_true / false 0.9674 / 126.7 -> 0.9682 / 120.7 (uniform), 0.9715 / 160.0 ->
-#: 0.9719 / 157.0 (decaying); every layer cell equal or better.
-FAR_DEPTHS = True
+#: 0.9719 / 157.0 (decaying); every layer cell equal or better. **Off**: a moved surface
+#: keeps its support (``start``, ``stop``, ``offset``), raw counts, background and clean
+#: histograms at the old depth, so ``reconstruct``'s IRF fraction over the support is
+#: about 0 and its intensity explodes (``tests/test_paper.py``, net scene PPP 4,
+#: decaying: IAE 2.9 -> 257). Turning it on needs those fields recomputed at the new depth.
+FAR_DEPTHS = False
 
 
 @dataclass(frozen=True)
