@@ -43,6 +43,9 @@ def test_move_far_depths_moves_a_far_cluster_whose_own_counts_hold_the_plane():
     out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf)
     assert n == 1
     assert out.depth_bin[12] == PLANE
+    # the support and its raw counts follow (reconstruct's IRF fraction is taken there)
+    assert out.start[12] <= PLANE < out.stop[12]
+    assert out.counts[12, 0] == counts[2, 2, 0, out.start[12] : out.stop[12]].sum() == 1
     assert np.array_equal(np.delete(out.depth_bin, 12), np.delete(surf.depth_bin, 12))
 
 

@@ -37,12 +37,11 @@ OWN_Z = 1.0
 #: Re-decide the far depths after the sheared pool (:func:`move_far_depths`). Measured
 #: (benchmarks/README.md, "depth21, session 14"): single surface PPP 4, SBR 0.25, seeds
 #: 0-2, F_true / false 0.9674 / 126.7 -> 0.9682 / 120.7 (uniform), 0.9715 / 160.0 ->
-#: 0.9719 / 157.0 (decaying); every layer cell equal or better. **Off**: a moved surface
-#: keeps its support (``start``, ``stop``, ``offset``), raw counts, background and clean
-#: histograms at the old depth, so ``reconstruct``'s IRF fraction over the support is
-#: about 0 and its intensity explodes (``tests/test_paper.py``, net scene PPP 4,
-#: decaying: IAE 2.9 -> 257). Turning it on needs those fields recomputed at the new depth.
-FAR_DEPTHS = False
+#: 0.9719 / 157.0 (decaying); every layer cell equal or better. A moved surface's
+#: support, raw counts and background follow it (without, ``reconstruct``'s IRF fraction
+#: over the old support was about 0: ``tests/test_paper.py``, net PPP 4 decaying, IAE 2.9
+#: -> 257); its clean histograms and ``signal`` stay the old window's.
+FAR_DEPTHS = True
 
 
 @dataclass(frozen=True)
@@ -221,7 +220,9 @@ def move_far_depths(
     a depth that continues through the pixel (a line: a thin structure, a real layer's
     edge).
 
-    Returns the surfaces and the number moved.
+    Returns the surfaces and the number moved. A moved surface's ``start`` / ``stop``
+    shift with it and its ``counts`` / ``background`` are summed over the new support;
+    ``offset``, ``histograms`` and ``signal`` stay those of the old window.
     """
     s = surfaces
     R, C = s.image_shape
@@ -243,6 +244,9 @@ def move_far_depths(
     photons = s.photons  # (S, L)
     depth = np.array(s.depth_bin, np.float64)
     n = 0
+    start, stop = np.array(s.start), np.array(s.stop)
+    own_counts = np.array(s.counts, np.float64)
+    own_bg = np.array(s.background, np.float64)
     rows, cols = s.row[cand], s.col[cand]
     pix = s.row * C + s.col
     others: dict = {}  # the candidates' pixels' surfaces
@@ -270,6 +274,18 @@ def move_far_depths(
         same = others.get(int(pix[i]), ())  # keep the slots' depth order
         if any((s.slot[j] < s.slot[i]) == (depth[j] >= to) for j in same if j != i):
             continue
+        # the support, its raw counts and background follow the move (``reconstruct``
+        # takes the IRF's fraction over the support); the clean histograms (``offset``)
+        # and ``signal`` stay the old window's
+        shift = int(np.rint(to - depth[i]))
+        start[i], stop[i] = max(start[i] + shift, 0), min(stop[i] + shift, T)
+        own_counts[i] = y[0, :, start[i] : stop[i]].sum(axis=-1)
+        own_bg[i] = b[0, :, start[i] : stop[i]].sum(axis=-1)
         depth[i] = to
         n += 1
-    return replace(s, depth_bin=depth), n
+    if n == 0:
+        return s, 0
+    out = replace(
+        s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
+    )  # fmt: skip
+    return out, n
