@@ -17,8 +17,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
+from ._4_map import _local_scale
+from ._kernels import _llr_one
 from ._quality import _shifted_irf, align_depths
-from ._result import Surfaces
+from ._result import StoredHistograms, Surfaces
+from ._slopes import _row_bands, surface_fields
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -40,7 +43,8 @@ OWN_Z = 1.0
 #: 0.9719 / 157.0 (decaying); every layer cell equal or better. A moved surface's
 #: support, raw counts and background follow it (without, ``reconstruct``'s IRF fraction
 #: over the old support was about 0: ``tests/test_paper.py``, net PPP 4 decaying, IAE 2.9
-#: -> 257); its clean histograms and ``signal`` stay the old window's.
+#: -> 257); so do its window (``offset``), clean histograms, ``signal`` and
+#: ``presence_llr`` (:func:`_window_fields`).
 FAR_DEPTHS = True
 
 
@@ -54,7 +58,13 @@ class DepthAlignment:
 
 
 def align_surface_depths(
-    surfaces: Surfaces, *, fwhm: float, irf: np.ndarray, counts=None, background=None
+    surfaces: Surfaces,
+    *,
+    fwhm: float,
+    irf: np.ndarray,
+    counts=None,
+    background=None,
+    scales=None,
 ) -> DepthAlignment:
     """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
 
@@ -70,6 +80,9 @@ def align_surface_depths(
         The cube's raw counts; with ``background`` (:class:`Background`), the far depths
         are re-decided too (:func:`move_far_depths`, when ``FAR_DEPTHS``).
     background : Background, optional
+    scales : ndarray (Q,) int, optional
+        The box sizes of the clean histograms (``Detection.scales``): a moved surface's
+        histograms are recomputed at its new depth with them. Required with ``counts``.
     """
     t0 = time.perf_counter()
     s = surfaces
@@ -82,8 +95,8 @@ def align_surface_depths(
         image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
     )  # fmt: skip
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
-    if FAR_DEPTHS and counts is not None and background is not None:
-        out, n_far = move_far_depths(out, counts, background, fwhm=fwhm, irf=irf)
+    if FAR_DEPTHS and counts is not None and background is not None and scales is not None:
+        out, n_far = move_far_depths(out, counts, background, fwhm=fwhm, irf=irf, scales=scales)
         n_moved += n_far
     return DepthAlignment(out, int(n_moved), time.perf_counter() - t0)
 
@@ -196,7 +209,7 @@ def _pixels(counts, rows, cols) -> np.ndarray:
 
 
 def move_far_depths(
-    surfaces: Surfaces, counts, background, *, fwhm: float, irf: np.ndarray
+    surfaces: Surfaces, counts, background, *, fwhm: float, irf: np.ndarray, scales
 ) -> tuple[Surfaces, int]:
     """Move surfaces far from what their neighbours hold where the own counts favour it.
 
@@ -220,9 +233,13 @@ def move_far_depths(
     a depth that continues through the pixel (a line: a thin structure, a real layer's
     edge).
 
-    Returns the surfaces and the number moved. A moved surface's ``start`` / ``stop``
-    shift with it and its ``counts`` / ``background`` are summed over the new support;
-    ``offset``, ``histograms`` and ``signal`` stay those of the old window.
+    Returns the surfaces and the number moved. A moved surface's fields follow it as
+    extraction computes them for a candidate at that depth (:func:`_window_fields`):
+    the window ``offset`` about the new depth, the support ``start`` / ``stop`` shifted
+    with it (cut to the window), the raw ``counts`` / ``background`` summed over it, the
+    clean ``histograms`` of every scale (``scales``) there, zero outside the support,
+    ``signal`` their sums and ``presence_llr``. ``scale_index``, ``presence_z``,
+    ``saliency_mass`` and ``evidence`` stay the old depth's.
     """
     s = surfaces
     R, C = s.image_shape
@@ -243,7 +260,8 @@ def move_far_depths(
     plane_prior = np.log(T / max(float(fwhm), 1.0))
     photons = s.photons  # (S, L)
     depth = np.array(s.depth_bin, np.float64)
-    n = 0
+    W = int(s.histograms.shape[-1])
+    moved: list = []
     start, stop = np.array(s.start), np.array(s.stop)
     own_counts = np.array(s.counts, np.float64)
     own_bg = np.array(s.background, np.float64)
@@ -275,17 +293,91 @@ def move_far_depths(
         if any((s.slot[j] < s.slot[i]) == (depth[j] >= to) for j in same if j != i):
             continue
         # the support, its raw counts and background follow the move (``reconstruct``
-        # takes the IRF's fraction over the support); the clean histograms (``offset``)
-        # and ``signal`` stay the old window's
+        # takes the IRF's fraction over the support), cut to the new window (the
+        # extraction's rule, ``extract_surfaces``: the window about the integer depth)
         shift = int(np.rint(to - depth[i]))
-        start[i], stop[i] = max(start[i] + shift, 0), min(stop[i] + shift, T)
+        off = min(max(int(np.rint(to)) - W // 2, 0), max(T - W, 0))
+        start[i] = max(start[i] + shift, 0, off)
+        stop[i] = max(min(stop[i] + shift, T, off + W), start[i])
         own_counts[i] = y[0, :, start[i] : stop[i]].sum(axis=-1)
         own_bg[i] = b[0, :, start[i] : stop[i]].sum(axis=-1)
         depth[i] = to
-        n += 1
-    if n == 0:
+        moved.append(int(i))
+    if not moved:
         return s, 0
     out = replace(
         s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
     )  # fmt: skip
-    return out, n
+    return _window_fields(out, np.array(moved), counts, background, scales, irf), len(moved)
+
+
+def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surfaces:
+    """``offset``, clean ``histograms``, ``signal`` and ``presence_llr`` of surfaces
+    ``idx`` recomputed at their depths over their supports, as extraction computes them.
+
+    The histograms are :func:`~splidar.detection._slopes.surface_fields`' (the slopes
+    pass's extraction from the raw counts: ``max(Box_q(Y (*) g) - bhat, 0)`` of every
+    scale over the window of ``W`` bins about the integer depth, ``eq:background_final``)
+    set to zero outside the support as in ``extract_surfaces``; ``signal`` their sums
+    over time; ``presence_llr`` the own counts' log-likelihood ratio with the local
+    scale's signal (``_llr_one``, as ``extract_surfaces``). The raw counts are read a
+    band of rows at a time from a lazy cube (``_row_bands``)."""
+    scales = np.asarray(scales, np.int64)
+    irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
+    L, T = background.temporal.shape
+    Q, W = scales.size, int(s.histograms.shape[-1])
+    tm = background.temporal
+    dev = (tm - tm.mean(axis=-1, keepdims=True)).astype(np.float32)  # as stage 1
+    sp = np.ascontiguousarray(background.spatial, np.float32)
+    peak = irf.argmax(axis=1).astype(np.int64)
+    gsq = (irf**2).sum(axis=1)
+    qloc = _local_scale(scales)
+    n = idx.size
+    o = dict(
+        offset=np.empty(n, np.int64), histograms=np.empty((n, Q, L, W), np.float32),
+        signal=np.empty((n, Q, L)), counts=np.empty((n, L)), background=np.empty((n, L)),
+        presence_llr=np.empty(n), presence_z=np.empty(n),
+    )  # fmt: skip
+    raw = np.zeros((n, L, W))
+    rows, cols = s.row[idx], s.col[idx]
+    depth = np.asarray(s.depth_bin, np.float64)[idx]
+    s_pool = np.zeros((n, L))
+    for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2):
+        part = {k: v[sel] for k, v in o.items()}
+        surface_fields(
+            y, int(y0), sp, dev, rows[sel], cols[sel], depth[sel], s_pool[sel], scales, irf,
+            peak, gsq, W, int(qloc), *part.values(),
+        )  # fmt: skip
+        for k, v in part.items():
+            o[k][sel] = v
+        for m in sel:
+            off = int(o["offset"][m])
+            raw[m] = y[rows[m] - y0, cols[m], :, off : off + W]
+    hist, llr = o["histograms"], np.array(s.presence_llr if s.presence_llr is not None else [])
+    for m, i in enumerate(idx):
+        off = int(o["offset"][m])
+        inside = (off + np.arange(W) >= s.start[i]) & (off + np.arange(W) < s.stop[i])
+        hist[m][..., ~inside] = 0.0  # zero outside the support (eq:background_final)
+        raw[m][:, ~inside] = 0.0
+        if llr.size:
+            bh = np.maximum(sp[rows[m], cols[m]][:, None] + dev[:, off : off + W], 0)
+            llr[i] = _llr_one(
+                raw[m], bh.astype(np.float32), inside, depth[m] - off,
+                hist[m, qloc].sum(axis=-1, dtype=np.float64), irf, peak.astype(np.float64),
+                L, W,
+            )  # fmt: skip
+    signal = np.array(s.signal, np.float64)
+    signal[idx] = hist.sum(axis=-1, dtype=np.float64)
+    offset = np.array(s.offset)
+    offset[idx] = o["offset"]
+    if isinstance(s.histograms, StoredHistograms):  # the detection's own store
+        for m, i in enumerate(idx):
+            s.histograms.array[int(i)] = hist[m]
+        histograms = s.histograms
+    else:
+        histograms = np.array(s.histograms)
+        histograms[idx] = hist
+    return replace(
+        s, offset=offset, histograms=histograms, signal=signal,
+        presence_llr=llr if llr.size else s.presence_llr,
+    )  # fmt: skip

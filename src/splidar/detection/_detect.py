@@ -369,8 +369,9 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
         background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
         aligned = align_surface_depths(
-            surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background
-        )
+            surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
+            scales=o["scales"],
+        )  # fmt: skip
         surfaces = aligned.surfaces
     return surfaces, aligned, t_sel, n_kept
 
