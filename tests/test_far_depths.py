@@ -69,7 +69,7 @@ def test_move_far_depths_keeps_a_surface_a_neighbour_continues():
     assert n == 0
 
 
-def _clean_window(counts, bg, irf, scales, r, c, off, W) -> np.ndarray:
+def _clean_window(counts, bg, irf, scales, r, c, off, W, clip=True) -> np.ndarray:
     """``max(Box_q(Y (*) g) - bhat, 0)`` over ``[off, off + W)``, (Q, L, W), by NumPy: the
     matched filter ``sum_j g[j] Y[t - p + j]`` (reflected at the cube's edges)."""
     R, C, L, T = counts.shape
@@ -83,7 +83,7 @@ def _clean_window(counts, bg, irf, scales, r, c, off, W) -> np.ndarray:
     for q in scales:
         h = q // 2
         box = cf[r + 2 - h : r + 3 + h, c + 2 - h : c + 3 + h].mean(axis=(0, 1))
-        out.append(np.maximum(box - bh, 0))
+        out.append(np.maximum(box - bh, 0) if clip else box - bh)
     return np.array(out)
 
 
@@ -104,6 +104,7 @@ def test_move_far_depths_moved_surface_fields_follow_its_depth():
         offset=surf.depth_bin.astype(int) - W // 2,
         signal=np.full((25, 2, 1), 0.8),
         presence_llr=np.zeros(25),
+        presence_z=np.zeros(25),
     )
     out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf, scales=scales)
     assert n == 1 and out.depth_bin[12] == PLANE
@@ -117,6 +118,12 @@ def test_move_far_depths_moved_surface_fields_follow_its_depth():
     np.testing.assert_allclose(out.signal[12], out.histograms[12].sum(axis=-1), rtol=1e-6)
     assert out.counts[12, 0] == counts[2, 2, 0, out.start[12] : out.stop[12]].sum() == 1
     assert np.isfinite(out.presence_llr[12]) and out.presence_llr[12] != 0.0
+    # eq:scale_sel with two scales selects the second; the local scale's (3) z at the depth
+    assert out.scale_index[12] == 1
+    resp = _clean_window(counts, bg, irf, scales, 2, 2, off, W, clip=False)[1, :, W // 2]
+    bh = bg.at([2], [2])[0][:, int(PLANE)]
+    z = resp.sum() / np.sqrt((bh * (irf**2).sum(axis=1)).sum() / 9)
+    np.testing.assert_allclose(out.presence_z[12], z, rtol=1e-5)
     assert 0.25 < out.photons[12, 0] / 0.8 < 4.0  # the neighbours' intensity
     # the other surfaces untouched
     others = np.arange(25) != 12
@@ -130,5 +137,6 @@ def test_move_far_depths_moved_surface_fields_follow_its_depth():
         surf, da.from_array(counts, chunks=(2, 2, 1, T)), bg, fwhm=3.0, irf=irf, scales=scales
     )
     assert n2 == 1
-    for k in ("depth_bin", "offset", "start", "stop", "histograms", "signal", "counts"):
+    keys = ("depth_bin", "offset", "start", "stop", "histograms", "signal", "counts")
+    for k in keys + ("scale_index", "presence_llr", "presence_z"):
         assert np.array_equal(getattr(lazy, k), getattr(out, k)), k

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from ._4_map import _local_scale
-from ._kernels import _llr_one
+from ._kernels import _llr_one, _select_scale
 from ._quality import _shifted_irf, align_depths
 from ._result import StoredHistograms, Surfaces
 from ._slopes import _row_bands, surface_fields
@@ -43,8 +43,8 @@ OWN_Z = 1.0
 #: 0.9719 / 157.0 (decaying); every layer cell equal or better. A moved surface's
 #: support, raw counts and background follow it (without, ``reconstruct``'s IRF fraction
 #: over the old support was about 0: ``tests/test_paper.py``, net PPP 4 decaying, IAE 2.9
-#: -> 257); so do its window (``offset``), clean histograms, ``signal`` and
-#: ``presence_llr`` (:func:`_window_fields`).
+#: -> 257); so do its window (``offset``), clean histograms, ``signal``, selected scale
+#: and presence statistics (:func:`_window_fields`).
 FAR_DEPTHS = True
 
 
@@ -238,8 +238,8 @@ def move_far_depths(
     the window ``offset`` about the new depth, the support ``start`` / ``stop`` shifted
     with it (cut to the window), the raw ``counts`` / ``background`` summed over it, the
     clean ``histograms`` of every scale (``scales``) there, zero outside the support,
-    ``signal`` their sums and ``presence_llr``. ``scale_index``, ``presence_z``,
-    ``saliency_mass`` and ``evidence`` stay the old depth's.
+    ``signal`` their sums, the selected ``scale_index``, ``presence_llr`` and
+    ``presence_z``. ``saliency_mass`` and ``evidence`` stay the old depth's.
     """
     s = surfaces
     R, C = s.image_shape
@@ -312,15 +312,18 @@ def move_far_depths(
 
 
 def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surfaces:
-    """``offset``, clean ``histograms``, ``signal`` and ``presence_llr`` of surfaces
-    ``idx`` recomputed at their depths over their supports, as extraction computes them.
+    """``offset``, clean ``histograms``, ``signal``, ``scale_index``, ``presence_llr``
+    and ``presence_z`` of surfaces ``idx`` recomputed at their depths over their
+    supports, as extraction computes them.
 
     The histograms are :func:`~splidar.detection._slopes.surface_fields`' (the slopes
     pass's extraction from the raw counts: ``max(Box_q(Y (*) g) - bhat, 0)`` of every
     scale over the window of ``W`` bins about the integer depth, ``eq:background_final``)
     set to zero outside the support as in ``extract_surfaces``; ``signal`` their sums
-    over time; ``presence_llr`` the own counts' log-likelihood ratio with the local
-    scale's signal (``_llr_one``, as ``extract_surfaces``). The raw counts are read a
+    over time; ``scale_index`` the selected scale (``_select_scale``, ``eq:scale_sel``);
+    ``presence_llr`` the own counts' log-likelihood ratio with the local scale's signal
+    (``_llr_one``, as ``extract_surfaces``); ``presence_z`` the local scale's z at the
+    depth (``surface_fields``, as ``_local_z``). The raw counts are read a
     band of rows at a time from a lazy cube (``_row_bands``)."""
     scales = np.asarray(scales, np.int64)
     irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
@@ -354,11 +357,15 @@ def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surface
             off = int(o["offset"][m])
             raw[m] = y[rows[m] - y0, cols[m], :, off : off + W]
     hist, llr = o["histograms"], np.array(s.presence_llr if s.presence_llr is not None else [])
+    qbar = np.array(s.scale_index)
+    tot, d_q = np.empty(W, np.float32), np.empty(Q, np.int64)
     for m, i in enumerate(idx):
         off = int(o["offset"][m])
         inside = (off + np.arange(W) >= s.start[i]) & (off + np.arange(W) < s.stop[i])
         hist[m][..., ~inside] = 0.0  # zero outside the support (eq:background_final)
         raw[m][:, ~inside] = 0.0
+        # the selected scale (eq:scale_sel) on the clean responses summed over L
+        qbar[i] = _select_scale(hist[m].sum(axis=1, dtype=np.float32), tot, d_q)
         if llr.size:
             bh = np.maximum(sp[rows[m], cols[m]][:, None] + dev[:, off : off + W], 0)
             llr[i] = _llr_one(
@@ -377,7 +384,11 @@ def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surface
     else:
         histograms = np.array(s.histograms)
         histograms[idx] = hist
+    z = None
+    if s.presence_z is not None:  # the local scale's z at the depth (as _local_z)
+        z = np.array(s.presence_z, np.float64)
+        z[idx] = o["presence_z"]
     return replace(
-        s, offset=offset, histograms=histograms, signal=signal,
-        presence_llr=llr if llr.size else s.presence_llr,
+        s, offset=offset, histograms=histograms, signal=signal, scale_index=qbar,
+        presence_llr=llr if llr.size else s.presence_llr, presence_z=z,
     )  # fmt: skip
