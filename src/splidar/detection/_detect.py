@@ -285,7 +285,7 @@ def detect(
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     done = _clean_up(cube, o, mp, held, bg, corr, rng)  # 5
-    surfaces, aligned, t_sel, n_kept = _select_and_align(cube, o, mp, done, t0, store)  # 6, 7
+    surfaces, aligned, t_sel, n_kept = _select_and_align(cube, o, mp, done, t0, store, bg)  # 6, 7
     mp = dataclasses.replace(mp, histograms=())
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
@@ -367,7 +367,7 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     return o
 
 
-def _select_and_align(cube, o, mp, done, t0: float, store):
+def _select_and_align(cube, o, mp, done, t0: float, store, bg):
     """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depth alignment;
     with the selection's own seconds (since ``t0``, less the clean-up passes').
 
@@ -389,7 +389,11 @@ def _select_and_align(cube, o, mp, done, t0: float, store):
     if o.get("tiled"):  # the table's pages, released
         _give_back()
     if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
-        aligned = align_surface_depths(surfaces, fwhm=o["fwhm"], irf=o["irf"])
+        background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
+        aligned = align_surface_depths(
+            surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
+            scales=o["scales"],
+        )  # fmt: skip
         surfaces = aligned.surfaces
     return surfaces, aligned, t_sel, n_kept
 

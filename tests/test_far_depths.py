@@ -1,0 +1,142 @@
+"""Stage 7's far-depth rule (``move_far_depths``): a plane's pixel holding a far cluster."""
+
+from dataclasses import replace
+
+import numpy as np
+
+from splidar import gaussian_irf
+from splidar.detection._7_align_depths import move_far_depths
+from splidar.detection._result import Background, Surfaces
+
+T = 200
+PLANE, FAR = 100.0, 40.0
+SCALES = np.array([1])
+
+
+def _plane(own_counts: dict) -> tuple:
+    """A 5 x 5 flat plane at bin 100 (0.8 photons each), the centre's surface at bin 40;
+    the centre's raw counts ``{bin: photons}``, a flat background of 0.016 per bin."""
+    rows, cols = np.divmod(np.arange(25), 5)
+    depth = np.full(25, PLANE)
+    depth[12] = FAR
+    n = 25
+    surf = Surfaces(
+        row=rows, col=cols, slot=np.zeros(n, int), depth_bin=depth,
+        start=depth.astype(int) - 2, stop=depth.astype(int) + 3, scale_index=np.zeros(n, int),
+        offset=depth.astype(int) - 2, histograms=np.zeros((n, 1, 1, 5), np.float32),
+        signal=np.full((n, 1, 1), 0.8), counts=np.ones((n, 1)), background=np.zeros((n, 1)),
+        saliency_mass=np.ones(n), image_shape=(5, 5), n_slots=2,
+    )  # fmt: skip
+    counts = np.zeros((5, 5, 1, T), np.uint16)
+    for t, k in own_counts.items():
+        counts[2, 2, 0, t] = k
+    bg = Background(
+        spatial=np.full((5, 5, 1), 0.016, np.float32), temporal=np.full((1, T), 0.016, np.float32)
+    )
+    irf = gaussian_irf(3.0)[None]  # (L, n)
+    return surf, counts, bg, irf
+
+
+def test_move_far_depths_moves_a_far_cluster_whose_own_counts_hold_the_plane():
+    # two background photons at bin 40, one at the plane's bin 100: a cluster that beat
+    # a missed return; the plane predicts 100 and the own counts do not reject it
+    surf, counts, bg, irf = _plane({40: 1, 41: 1, 100: 1})
+    out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf, scales=SCALES)
+    assert n == 1
+    assert out.depth_bin[12] == PLANE
+    # the support and its raw counts follow (reconstruct's IRF fraction is taken there)
+    assert out.start[12] <= PLANE < out.stop[12]
+    assert out.counts[12, 0] == counts[2, 2, 0, out.start[12] : out.stop[12]].sum() == 1
+    assert np.array_equal(np.delete(out.depth_bin, 12), np.delete(surf.depth_bin, 12))
+
+
+def test_move_far_depths_keeps_a_bright_off_plane_pixel():
+    # eight photons at bin 40 and none on the plane: an off-plane return, kept
+    surf, counts, bg, irf = _plane({39: 2, 40: 4, 41: 2})
+    out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf, scales=SCALES)
+    assert n == 0
+    assert out.depth_bin[12] == FAR
+
+
+def test_move_far_depths_keeps_a_surface_a_neighbour_continues():
+    # the north-west neighbour holds bin 41 (a structure, not a cluster; the opposite
+    # pairs still agree on the plane): no move
+    surf, counts, bg, irf = _plane({40: 1, 41: 1, 100: 1})
+    d = surf.depth_bin.copy()
+    d[6] = FAR + 1
+    surf = replace(surf, depth_bin=d)
+    out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf, scales=SCALES)
+    assert n == 0
+
+
+def _clean_window(counts, bg, irf, scales, r, c, off, W, clip=True) -> np.ndarray:
+    """``max(Box_q(Y (*) g) - bhat, 0)`` over ``[off, off + W)``, (Q, L, W), by NumPy: the
+    matched filter ``sum_j g[j] Y[t - p + j]`` (reflected at the cube's edges)."""
+    R, C, L, T = counts.shape
+    p = int(np.argmax(irf[0]))
+    y = np.pad(counts.astype(np.float64), ((2, 2), (2, 2), (0, 0), (0, 0)), mode="reflect")
+    t = off + np.arange(W)[:, None] - p + np.arange(irf.shape[1])[None, :]  # (W, n)
+    t = np.where(t < 0, -t, np.where(t >= T, 2 * (T - 1) - t, t))
+    cf = (y[..., t] * irf[0]).sum(axis=-1)  # (R + 4, C + 4, L, W)
+    bh = np.maximum(bg.at([r], [c])[0][:, off : off + W], 0)
+    out = []
+    for q in scales:
+        h = q // 2
+        box = cf[r + 2 - h : r + 3 + h, c + 2 - h : c + 3 + h].mean(axis=(0, 1))
+        out.append(np.maximum(box - bh, 0) if clip else box - bh)
+    return np.array(out)
+
+
+def test_move_far_depths_moved_surface_fields_follow_its_depth():
+    # every pixel of the plane holds photons at its depth (the centre one): the moved
+    # surface's window, clean histograms (every scale, zero outside the support) and
+    # signal are those of a surface extracted at the new depth, its intensity of the
+    # order of its neighbours'
+    surf, counts, bg, irf = _plane({40: 1, 41: 1})
+    counts[:, :, 0, 100] = 2
+    counts[2, 2, 0, 100] = 1
+    scales = np.array([1, 3])
+    W = 9
+    rows, cols = np.divmod(np.arange(25), 5)
+    surf = replace(
+        surf,
+        histograms=np.zeros((25, 2, 1, W), np.float32),
+        offset=surf.depth_bin.astype(int) - W // 2,
+        signal=np.full((25, 2, 1), 0.8),
+        presence_llr=np.zeros(25),
+        presence_z=np.zeros(25),
+    )
+    out, n = move_far_depths(surf, counts, bg, fwhm=3.0, irf=irf, scales=scales)
+    assert n == 1 and out.depth_bin[12] == PLANE
+    off = int(out.offset[12])
+    assert off == int(PLANE) - W // 2 and off <= out.start[12] <= PLANE < out.stop[12] <= off + W
+    want = _clean_window(counts, bg, irf, scales, 2, 2, off, W)
+    inside = (off + np.arange(W) >= out.start[12]) & (off + np.arange(W) < out.stop[12])
+    want[..., ~inside] = 0.0
+    assert out.histograms.dtype == np.float32
+    np.testing.assert_allclose(out.histograms[12], want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out.signal[12], out.histograms[12].sum(axis=-1), rtol=1e-6)
+    assert out.counts[12, 0] == counts[2, 2, 0, out.start[12] : out.stop[12]].sum() == 1
+    assert np.isfinite(out.presence_llr[12]) and out.presence_llr[12] != 0.0
+    # eq:scale_sel with two scales selects the second; the local scale's (3) z at the depth
+    assert out.scale_index[12] == 1
+    resp = _clean_window(counts, bg, irf, scales, 2, 2, off, W, clip=False)[1, :, W // 2]
+    bh = bg.at([2], [2])[0][:, int(PLANE)]
+    z = resp.sum() / np.sqrt((bh * (irf**2).sum(axis=1)).sum() / 9)
+    np.testing.assert_allclose(out.presence_z[12], z, rtol=1e-5)
+    assert 0.25 < out.photons[12, 0] / 0.8 < 4.0  # the neighbours' intensity
+    # the other surfaces untouched
+    others = np.arange(25) != 12
+    assert np.array_equal(out.offset[others], surf.offset[others])
+    assert not np.asarray(out.histograms)[others].any()
+    assert np.array_equal(out.signal[others], surf.signal[others])
+    # the same from a lazy cube (read a band of rows at a time)
+    import dask.array as da
+
+    lazy, n2 = move_far_depths(
+        surf, da.from_array(counts, chunks=(2, 2, 1, T)), bg, fwhm=3.0, irf=irf, scales=scales
+    )
+    assert n2 == 1
+    keys = ("depth_bin", "offset", "start", "stop", "histograms", "signal", "counts")
+    for k in keys + ("scale_index", "presence_llr", "presence_z"):
+        assert np.array_equal(getattr(lazy, k), getattr(out, k)), k
