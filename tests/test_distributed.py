@@ -312,16 +312,15 @@ def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
     assert main([*run, "--workers", "0"]) == 2
 
 
-def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
-    """Two worker processes; the first to finish a tile is killed (SIGKILL) as it does:
-    the scheduler recomputes that tile elsewhere and the Detection is the same."""
+def _detect_killing_the_first_worker(task: str, detect_lazy):
+    """Run ``detect_lazy()`` on a LocalCluster of two worker processes whose worker
+    holding the first finished task named ``task`` is killed (SIGKILL); assert the
+    scheduler computed that task again after it was in memory; return the Detection."""
     distributed = pytest.importorskip("distributed")
     import os
 
     from conftest import kill_first_worker
 
-    cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
-    a = splidar.detect(cube, rng=1)
     with (
         distributed.LocalCluster(
             n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
@@ -333,14 +332,26 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
         # compiling under load must not be what the test exercises)
         small, _ = _cubes(*_varying_cube(shape=(12, 8), n_bins=60, seed=1), (6, 8, 1, 60))
         splidar.detect(Cube(da.from_array(small.counts, chunks=(6, 8, 1, 60)), irf=small.irf))
-        plugin = kill_first_worker(client.run(os.getpid), "splidar-map-tile")
-        cluster.scheduler.add_plugin(plugin, name="kill-first-tile-worker")
-        b = splidar.detect(lazy, rng=1, block_rows=5)  # 8 tiles
+        plugin = kill_first_worker(client.run(os.getpid), task)
+        cluster.scheduler.add_plugin(plugin, name="kill-first-worker")
+        b = detect_lazy()
         story = cluster.scheduler.story(plugin.key)
-    assert plugin.killed is not None, "no tile reached memory on a known worker"
-    # the killed worker's tile went back to being computed after it was in memory
+    assert plugin.killed is not None, f"no {task} task reached memory on a known worker"
+    # the killed worker's task went back to being computed after it was in memory
     finishes = [s[2] for s in story if s[0] == plugin.key]
     assert finishes.count("memory") >= 2, finishes
+    return b
+
+
+def test_detect_on_local_cluster_recomputes_a_killed_workers_tiles():
+    """Two worker processes; the first to finish a tile is killed (SIGKILL) as it does:
+    the scheduler recomputes that tile elsewhere and the Detection is the same."""
+    cube, lazy = _cubes(*_varying_cube(shape=(40, 20), n_bins=100, seed=6), (8, 20, 1, 100))
+    a = splidar.detect(cube, rng=1)
+    b = _detect_killing_the_first_worker(
+        "splidar-map-tile",
+        lambda: splidar.detect(lazy, rng=1, block_rows=5),  # 8 tiles
+    )
     _assert_same_detection(a, b)
 
 
@@ -348,12 +359,7 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_band(tmp_path):
     """The band path (a Zarr cube with ``store=``): the worker holding the first
     finished band task is killed (SIGKILL); the scheduler recomputes that band, whose
     tiles write the store again, and the Detection is the in-memory one."""
-    distributed = pytest.importorskip("distributed")
     zarr = pytest.importorskip("zarr")
-    import os
-
-    from conftest import kill_first_worker
-
     counts, irf = _varying_cube(shape=(40, 20), n_bins=100, seed=6)
     z = zarr.open_array(
         str(tmp_path / "c.zarr"), mode="w", shape=counts.shape, chunks=(8, 20, 1, 100),
@@ -361,25 +367,12 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_band(tmp_path):
     )  # fmt: skip
     z[...] = counts
     a = splidar.detect(Cube(counts, irf=irf), rng=1)
-    with (
-        distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
-        client.wait_for_workers(2)
-        # the workers load the numba kernels before the measured run
-        small, _ = _cubes(*_varying_cube(shape=(12, 8), n_bins=60, seed=1), (6, 8, 1, 60))
-        splidar.detect(Cube(da.from_array(small.counts, chunks=(6, 8, 1, 60)), irf=small.irf))
-        plugin = kill_first_worker(client.run(os.getpid), "splidar-map-band")
-        cluster.scheduler.add_plugin(plugin, name="kill-first-band-worker")
-        b = splidar.detect(
+    b = _detect_killing_the_first_worker(
+        "splidar-map-band",
+        lambda: splidar.detect(
             Cube(da.from_zarr(z), irf=irf), rng=1, block_rows=5, store=tmp_path / "s"
-        )  # 8 bands
-        story = cluster.scheduler.story(plugin.key)
-    assert plugin.killed is not None, "no band reached memory on a known worker"
-    finishes = [s[2] for s in story if s[0] == plugin.key]
-    assert finishes.count("memory") >= 2, finishes
+        ),  # 8 bands
+    )
     _assert_same_detection(a, b)
 
 
