@@ -78,10 +78,9 @@ def shape_row(true, est, fw_true):
     )
 
 
-def depth_offset(points, truth) -> float:
-    """Median signed depth difference (bins) of each estimated point to the nearest true
-    depth of its pixel: the constant shift an IRF's reference (its argmax) puts on every
-    depth; a flat-topped pulse leaves that reference ill-defined."""
+def _nearest_true_errors(points, truth) -> np.ndarray:
+    """Signed depth difference (bins) of each estimated point to the nearest true depth
+    of its pixel (points in pixels without a true surface left out)."""
     n = truth.image_shape[1]
     t_key = truth.row * n + truth.col
     e_key = points.row * n + points.col
@@ -90,23 +89,23 @@ def depth_offset(points, truth) -> float:
         tz = truth.depth_bin[t_key == k]
         if tz.size:
             d.append(z - tz[np.argmin(np.abs(tz - z))])
-    return float(np.median(d)) if d else 0.0
+    return np.asarray(d, dtype=np.float64)
+
+
+def depth_offset(points, truth) -> float:
+    """Median signed depth difference (bins) of each estimated point to the nearest true
+    depth of its pixel: the constant shift an IRF's reference (its argmax) puts on every
+    depth; a flat-topped pulse leaves that reference ill-defined."""
+    d = _nearest_true_errors(points, truth)
+    return float(np.median(d)) if d.size else 0.0
 
 
 def depth_bias(points, truth, tau: float) -> float:
     """Mean signed depth error (bins) of the estimated points within ``tau`` of a true
     depth of their pixel (the nearest one): the depth bias of the detected surfaces."""
-    n = truth.image_shape[1]
-    t_key = truth.row * n + truth.col
-    e_key = points.row * n + points.col
-    d = []
-    for k, z in zip(e_key, points.depth_bin, strict=True):
-        tz = truth.depth_bin[t_key == k]
-        if tz.size:
-            e = z - tz[np.argmin(np.abs(tz - z))]
-            if abs(e) <= tau:
-                d.append(e)
-    return float(np.mean(d)) if d else 0.0
+    d = _nearest_true_errors(points, truth)
+    d = d[np.abs(d) <= tau]
+    return float(np.mean(d)) if d.size else 0.0
 
 
 def ppp4_cases():
