@@ -211,11 +211,7 @@ def test_detect_on_local_cluster_zarr_cube_bands_match_in_memory(
     from splidar.detection import _tiled
 
     counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
-    z = zarr.open_array(
-        str(tmp_path / "c.zarr"), mode="w", shape=counts.shape, chunks=(5, 20, 1, 100),
-        dtype=counts.dtype,
-    )  # fmt: skip
-    z[...] = counts
+    z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(5, 20, 1, 100))
     monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band
     a = splidar.detect(Cube(counts, irf=irf), rng=2)
     lazy = Cube(da.from_zarr(z), irf=irf)
@@ -312,6 +308,13 @@ def test_cli_run_cluster_options_are_checked(tmp_path, capsys):
     assert main([*run, "--workers", "0"]) == 2
 
 
+def _zarr_of(zarr, path, counts, *, chunks):
+    """``counts`` written to a new Zarr array at ``path`` in ``chunks``; the array."""
+    z = zarr.open_array(str(path), mode="w", shape=counts.shape, chunks=chunks, dtype=counts.dtype)
+    z[...] = counts
+    return z
+
+
 def _detect_killing_the_first_worker(task: str, detect_lazy):
     """Run ``detect_lazy()`` on a LocalCluster of two worker processes whose worker
     holding the first finished task named ``task`` is killed (SIGKILL); assert the
@@ -361,11 +364,7 @@ def test_detect_on_local_cluster_recomputes_a_killed_workers_band(tmp_path):
     tiles write the store again, and the Detection is the in-memory one."""
     zarr = pytest.importorskip("zarr")
     counts, irf = _varying_cube(shape=(40, 20), n_bins=100, seed=6)
-    z = zarr.open_array(
-        str(tmp_path / "c.zarr"), mode="w", shape=counts.shape, chunks=(8, 20, 1, 100),
-        dtype=counts.dtype,
-    )  # fmt: skip
-    z[...] = counts
+    z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(8, 20, 1, 100))
     a = splidar.detect(Cube(counts, irf=irf), rng=1)
     b = _detect_killing_the_first_worker(
         "splidar-map-band",
