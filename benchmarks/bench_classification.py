@@ -32,6 +32,7 @@ Usage::
     python benchmarks/bench_classification.py --quick        # PPP 1 and 10, no Art
     python benchmarks/bench_classification.py --figure rel.png --json rows.json
     # --figure also writes rel_art.png (Art) and, with --art-objects, rel_art_objects.png
+    python benchmarks/bench_classification.py --shares       # + smoothed colour shares (3 min)
 """
 
 from __future__ import annotations
