@@ -959,19 +959,11 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
             "the data hold no IRF and it is not estimated from lazy (Dask/zarr) data; pass "
             "irf= (array or file) or irf_fwhm= (Gaussian FWHM in bins)."
         )
-    if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
-        uniq, cnt = sparse
-        fwhm = _pair_lag_fwhm(uniq // n_bins, uniq % n_bins, cnt, n_bins, None)
-    else:
-        fwhm = estimate_irf_fwhm(counts)
+    fwhm, k = _pooled_fwhm(counts, n_bins, sparse)
     if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
-        try:
-            arr, src = _estimate_irf(
-                counts, fwhm=fwhm, max_length=None, significance=3.0, min_pixels=20, fallback=True
-            )
-        except SplidarError as exc:
-            log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
-        else:
+        shaped = _pooled_shape(counts, fwhm, k)
+        if shaped is not None:
+            arr, src = shaped
             log.warning(
                 "no IRF given and none in the file: %s (pass irf= or irf_fwhm= to override, "
                 "irf='estimate' for a Gaussian of the estimated width)",
@@ -979,12 +971,123 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
             )
             return arr, src
     g = gaussian_irf(fwhm)
+    how = "photon-pair time differences" + _blocks_text(k)
     log.warning(
         "no IRF given and none in the file: estimated a Gaussian IRF of FWHM %.2f bins from "
-        "photon-pair time differences (pass irf= or irf_fwhm= to override)",
+        "%s (pass irf= or irf_fwhm= to override)",
         fwhm,
+        how,
     )
-    return g[None, :], f"estimated gaussian fwhm={fwhm:.3f} bins"
+    return g[None, :], f"estimated gaussian fwhm={fwhm:.3f} bins" + _blocks_text(k)
+
+
+#: fewest pixel blocks the weak-signal pooling keeps (the shape needs 20 bright ones)
+_MIN_BLOCKS = 16
+
+
+def _blocks_text(k: int) -> str:
+    return "" if k == 1 else f" (pooled over {k} x {k} pixel blocks: weak signal)"
+
+
+def _block_index(pix: np.ndarray, n_cols: int, k: int) -> np.ndarray:
+    """Flat index of the ``k x k`` block of each flat pixel index (row-major)."""
+    r, c = np.divmod(np.asarray(pix, dtype=np.int64), n_cols)
+    return (r // k) * (-(-n_cols // k)) + c // k
+
+
+def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
+    """The pair-lag width (:func:`estimate_irf_fwhm`) of ``counts``; when single pixels
+    show no pair peak (weak signal: a few tenths of a signal photon per pixel), on
+    ``k x k`` pixel blocks, ``k = 2, 4, 8, ...`` while at least ``_MIN_BLOCKS`` blocks
+    remain: neighbouring pixels of a real scene share their depth, so a block's
+    photons hold ``k^2`` times the signal pairs (the depth differences within a block
+    widen the width). Returns (FWHM, k); raises naming ``irf=`` when no level shows a
+    return."""
+    n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
+    n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
+    if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
+        uniq, w = sparse
+        pix, b = uniq // n_bins, uniq % n_bins
+    else:
+        flat = np.asarray(counts).reshape(-1, n_bins)
+        rowi, b = np.nonzero(flat)
+        w = flat[rowi, b]
+        pix = rowi // n_l
+    k = 1
+    while True:
+        if k == 1:
+            key_p, key_b, key_w = pix, b, w
+        else:  # one voxel per (block, bin): the pair count stays within blocks x T x lag
+            key = _block_index(pix, n_cols, k) * n_bins + np.asarray(b, dtype=np.int64)
+            u, inv = np.unique(key, return_inverse=True)
+            key_w = np.bincount(inv.ravel(), weights=np.asarray(w, np.float64))
+            key_p, key_b = u // n_bins, u % n_bins
+        try:
+            fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None)
+        except SplidarError as exc:
+            nxt = 2 * k
+            if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
+                n_ph = float(np.sum(w))
+                raise SplidarError(
+                    f"no return found to estimate the IRF from: {exc.args[0].split(';')[0]}, "
+                    f"on single pixels and pooled over pixel blocks up to {k} x {k} "
+                    f"({n_ph:,.0f} photons, {n_ph / max(n_rows * n_cols, 1):.2g} per pixel). "
+                    "If the data do hold a return, pass irf= (array or file) or irf_fwhm= "
+                    "(Gaussian FWHM in bins)."
+                ) from None
+            log.info("IRF width: %s; pooling %d x %d pixel blocks", exc.args[0][:60], nxt, nxt)
+            k = nxt
+            continue
+        if k > 1:
+            log.warning(
+                "IRF width: no photon-pair peak within single pixels (weak signal); "
+                "measured on %d x %d pixel blocks: FWHM %.2f bins (the depth differences "
+                "within a block may widen it)",
+                k,
+                k,
+                fwhm,
+            )
+        return fwhm, k
+
+
+def _block_sum(counts, k: int) -> np.ndarray:
+    """``counts`` (R, C[, L], T) summed over ``k x k`` pixel blocks (edges padded)."""
+    a = np.asarray(counts)
+    if a.ndim == 3:
+        a = a[:, :, None, :]
+    r, c = a.shape[:2]
+    rp, cp = -(-r // k) * k, -(-c // k) * k
+    pad = np.zeros((rp, cp) + a.shape[2:], dtype=np.int64)
+    pad[:r, :c] = a
+    return pad.reshape(rp // k, k, cp // k, k, *a.shape[2:]).sum(axis=(1, 3))
+
+
+def _pooled_shape(counts, fwhm: float, k: int):
+    """The shape (:func:`_estimate_irf`) on single pixels, else (too few bright pixels:
+    weak signal) on ``k x k`` pixel blocks, ``k`` doubling from the width's level while
+    at least ``_MIN_BLOCKS`` remain; None (the caller keeps the Gaussian) when no level
+    gives it. Returns (irf, source) or None."""
+    n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
+    level = 1
+    while True:
+        cube = counts if level == 1 else _block_sum(counts, level)
+        try:
+            arr, src = _estimate_irf(
+                cube, fwhm=fwhm, max_length=None, significance=3.0, min_pixels=20, fallback=True
+            )
+        except SplidarError as exc:
+            nxt = max(2 * level, k)
+            if "pixel(s) with a return" not in str(exc) or (
+                -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS
+            ):
+                log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
+                return None
+            log.info("IRF shape: too few bright pixels; pooling %d x %d pixel blocks", nxt, nxt)
+            level = nxt
+            continue
+        if level == 1 and k > 1:
+            return arr, src + f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
+        return arr, src + _blocks_text(level)
 
 
 # --------------------------------------------------------------------------------------
