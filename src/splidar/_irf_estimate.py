@@ -14,8 +14,8 @@ import logging
 import math
 
 import numpy as np
+from numba import njit
 from scipy.optimize import curve_fit
-from scipy.signal import fftconvolve
 from scipy.stats import chi2, norm, poisson
 
 from ._validation import SplidarError
@@ -49,92 +49,129 @@ def _centred(kernel: np.ndarray) -> tuple[np.ndarray, int, int]:
     return kp, int(big[0]) - m, int(big[-1]) - m
 
 
-def _pool(a: np.ndarray, kernel: np.ndarray, k_left: int, k_right: int, z: float):
-    """Align bright pixels of ``a`` (P, L, T) at the peak of their correlation with
-    ``kernel`` and pool their background-subtracted histograms over lags
-    ``-k_left..k_right``. Returns (sum (L, K), variance (L, K), pixels per lag (K,),
-    number of pixels used)."""
+def _photons(a: np.ndarray):
+    """The non-empty voxels of ``a`` (P, L, T): (pixel, wavelength, bin, count), ordered
+    by pixel, wavelength and bin, and the offset of each pixel's first one (P + 1,)."""
     n_pix, n_l, n_bins = a.shape
+    rowi, t = np.nonzero(a.reshape(n_pix * n_l, n_bins))
+    c = a.reshape(n_pix * n_l, n_bins)[rowi, t].astype(np.float64)
+    pix, l = np.divmod(rowi, n_l)
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pix, minlength=n_pix))])
+    return pix, l, t.astype(np.int64), c, ptr
+
+
+#: relative difference below which two correlation scores are a tie (exact ties are
+#: common with a few integer counts and a symmetric template)
+_TIE = 1e-9
+
+
+@njit(cache=True)
+def _peaks(ptr, t, c, kp, n_bins, reach):  # pragma: no cover - numba
+    """Per pixel: the peak ``p`` of its photons' correlation with ``kp`` (centred:
+    ``score[s] = sum c kp[t - s + h]``); per photon: the peak of the
+    pixel's other photons (its own kernel removed) within ``reach`` bins of ``p``
+    (leave-one-out). Ties (scores within ``_TIE``): the first one for even pixels
+    (photons), the last for odd ones, so neither side is favoured (the FFT of earlier
+    releases broke them by its rounding)."""
+    n_pix = ptr.size - 1
+    n_k = kp.size
+    h = n_k // 2
+    score = np.zeros(n_bins)
+    p = np.zeros(n_pix, np.int64)
+    loo = np.zeros(t.size, np.int64)
+    for i in range(n_pix):
+        a, b = ptr[i], ptr[i + 1]
+        if a == b:
+            continue
+        lo, hi = n_bins, -1
+        for u in range(a, b):
+            for j in range(n_k):
+                s = t[u] - j + h
+                if 0 <= s < n_bins:
+                    score[s] += c[u] * kp[j]
+                    lo = min(lo, s)
+                    hi = max(hi, s)
+        best = 0
+        if lo <= hi:
+            first, last = lo, lo
+            for s in range(lo + 1, hi + 1):
+                if score[s] > score[first] * (1.0 + _TIE):
+                    first, last = s, s
+                elif score[s] >= score[first] * (1.0 - _TIE):
+                    last = s
+            best = first if i % 2 == 0 else last
+            if score[best] <= 0.0:
+                best = 0
+        p[i] = best
+        for u in range(a, b):
+            bv = 0.0
+            first, last = -1, -1
+            for d in range(-reach, reach + 1):
+                s = best + d
+                if s < 0 or s >= n_bins:
+                    continue
+                j = t[u] - s + h
+                own = kp[j] if 0 <= j < n_k else 0.0
+                v = score[s] - own
+                if first < 0 or v > bv + _TIE * abs(bv):
+                    bv = v
+                    first, last = s, s
+                elif v >= bv - _TIE * abs(bv):
+                    last = s
+            loo[u] = first if u % 2 == 0 else last
+        for s in range(max(lo, 0), min(hi, n_bins - 1) + 1):
+            score[s] = 0.0
+    return p, loo
+
+
+def _pool(shape, ph, kernel: np.ndarray, k_left: int, k_right: int, z: float):
+    """Align bright pixels of the cube ``shape`` (P, L, T) whose photons are ``ph``
+    (:func:`_photons`) at the peak of their correlation with ``kernel`` and pool their
+    background-subtracted histograms over lags ``-k_left..k_right``. Returns (sum (L, K),
+    variance (L, K), pixels per lag (K,), number of pixels used, (indices, peaks,
+    backgrounds (Pk, L)) of the pixels used)."""
+    n_pix, n_l, n_bins = shape
+    pix, l, t, c, ptr = ph
     kp, s_lo, s_hi = _centred(np.asarray(kernel, np.float64))
     width = s_hi - s_lo + 1
     # a pixel is bright when its peak window beats the background at the p-value of a
     # one-sided z-sigma Gaussian, Bonferroni-corrected for the T / width windows searched
     alpha = norm.sf(z) / max(n_bins / width, 1.0)
     n_lag = k_left + k_right + 1
-    lags = np.arange(-k_left, k_right + 1)
-    tot = np.zeros((n_l, n_lag))
-    var = np.zeros((n_l, n_lag))
-    cover = np.zeros(n_lag)
-    n_used = 0
-    kept_i, kept_p, kept_b = [], [], []
-    step = max(1, _CHUNK_VOXELS // (n_l * n_bins))
-    for s in range(0, n_pix, step):
-        y = np.asarray(a[s : s + step], dtype=np.float32)
-        ys = y.sum(axis=1)
-        # correlation with the template (FFT: a long-tailed template on thousands of bins)
-        score = fftconvolve(ys, kp[::-1][None, :].astype(np.float32), mode="same", axes=-1)
-        p = np.argmax(score, axis=-1)
-        cs = np.concatenate([np.zeros(y.shape[:2] + (1,), np.float64), np.cumsum(y, -1)], -1)
-        lo = np.clip(p - k_left, 0, n_bins - 1)
-        hi = np.clip(p + k_right, 0, n_bins - 1)
-        r = np.arange(y.shape[0])
-        inside = cs[r, :, hi + 1] - cs[r, :, lo]  # (Pc, L)
-        n_out = n_bins - (hi - lo + 1)
-        # background per bin from the bins away from the return; (outside + 1) / bins
-        # outside is never zero, so a pixel of a few photons in a dark scene is not
-        # taken for significant on its photon count alone
-        b_up = (cs[:, :, -1] - inside + 1.0) / np.maximum(n_out, 1)[:, None]
-        b = np.where(n_out[:, None] > 0, (cs[:, :, -1] - inside) / np.maximum(n_out, 1)[:, None], 0)
-        w_lo = np.clip(p + s_lo, 0, n_bins - 1)
-        w_hi = np.clip(p + s_hi, 0, n_bins - 1)
-        n_sig = (cs[r, :, w_hi + 1] - cs[r, :, w_lo]).sum(axis=1)
-        mu = (w_hi - w_lo + 1) * b_up.sum(axis=1)
-        keep = poisson.sf(n_sig - 1, mu) < alpha
-        if not keep.any():
-            continue
-        kept_i.append(s + np.flatnonzero(keep))
-        kept_p.append(p[keep])
-        kept_b.append(b_up[keep])
-        y, p, b, score = y[keep], p[keep], b[keep], score[keep]
-        idx = p[:, None] + lags[None, :]  # (Pk, K)
-        valid = (idx >= 0) & (idx < n_bins)
-        tot -= (b[:, :, None] * valid[:, None, :]).sum(axis=0)
-        cover += valid.sum(axis=0)
-        n_used += int(keep.sum())
-        i, l, t = np.nonzero(y)
-        c = y[i, l, t]
-        lag = t - _loo_peak(score, p, kp, i, t, width)
-        ok = (lag >= -k_left) & (lag <= k_right)
-        flat = l[ok] * n_lag + lag[ok] + k_left
-        h = np.bincount(flat, weights=c[ok], minlength=n_l * n_lag).reshape(n_l, n_lag)
-        tot += h
-        var += h
-    kept = tuple(
-        np.concatenate(k) if k else np.zeros((0,) + sh)
-        for k, sh in ((kept_i, ()), (kept_p, ()), (kept_b, (n_l,)))
-    )
-    return tot, var, cover, n_used, kept
-
-
-def _loo_peak(score, p, kp, i, t, reach: int) -> np.ndarray:
-    """Return of pixel ``i`` without one photon of bin ``t`` (leave-one-out), searched
-    within ``reach`` bins of its full-data peak ``p[i]``: a photon never aligns its own
-    pixel, so the pooled shape has no spike at the peak."""
-    h = kp.size // 2
-    d = np.arange(-reach, reach + 1)
-    out = np.empty(i.size, np.int64)
-    step = max(1, (1 << 21) // d.size)
-    n_bins = score.shape[1]
-    for s in range(0, i.size, step):
-        ii, tt = i[s : s + step], t[s : s + step]
-        cand = p[ii, None] + d[None, :]
-        inb = (cand >= 0) & (cand < n_bins)
-        cc = np.clip(cand, 0, n_bins - 1)
-        j = tt[:, None] - cc + h
-        own = np.where((j >= 0) & (j < kp.size), kp[np.clip(j, 0, kp.size - 1)], 0.0)
-        sc = np.where(inb, score[ii[:, None], cc] - own, -np.inf)
-        out[s : s + step] = cc[np.arange(ii.size), np.argmax(sc, axis=1)]
-    return out
+    p, loo = _peaks(ptr, t, c, kp, n_bins, width)
+    lo = np.clip(p - k_left, 0, n_bins - 1)
+    hi = np.clip(p + k_right, 0, n_bins - 1)
+    key = pix * n_l + l
+    total = np.bincount(key, c, n_pix * n_l).reshape(n_pix, n_l)
+    inn = (t >= lo[pix]) & (t <= hi[pix])
+    inside = np.bincount(key[inn], c[inn], n_pix * n_l).reshape(n_pix, n_l)
+    n_out = n_bins - (hi - lo + 1)
+    # background per bin from the bins away from the return; (outside + 1) / bins
+    # outside is never zero, so a pixel of a few photons in a dark scene is not
+    # taken for significant on its photon count alone
+    b_up = (total - inside + 1.0) / np.maximum(n_out, 1)[:, None]
+    b = np.where(n_out[:, None] > 0, (total - inside) / np.maximum(n_out, 1)[:, None], 0)
+    w_lo = np.clip(p + s_lo, 0, n_bins - 1)
+    w_hi = np.clip(p + s_hi, 0, n_bins - 1)
+    inw = (t >= w_lo[pix]) & (t <= w_hi[pix])
+    n_sig = np.bincount(pix[inw], c[inw], n_pix)
+    mu = (w_hi - w_lo + 1) * b_up.sum(axis=1)
+    keep = poisson.sf(n_sig - 1, mu) < alpha
+    kept_i = np.flatnonzero(keep)
+    # each kept pixel covers the lags whose bin p + lag is inside the cube: a run
+    first = np.maximum(-k_left, -p[kept_i]) + k_left
+    last = np.minimum(k_right, n_bins - 1 - p[kept_i]) + k_left
+    run = np.zeros((n_l + 1, n_lag + 1))
+    np.add.at(run, (slice(None), first), np.vstack([b[kept_i].T, np.ones(kept_i.size)]))
+    np.add.at(run, (slice(None), last + 1), -np.vstack([b[kept_i].T, np.ones(kept_i.size)]))
+    run = np.cumsum(run, axis=1)[:, :n_lag]
+    cover = run[n_l]
+    sel = keep[pix]
+    lag = t[sel] - loo[sel]
+    ok = (lag >= -k_left) & (lag <= k_right)
+    flat = l[sel][ok] * n_lag + lag[ok] + k_left
+    hist = np.bincount(flat, weights=c[sel][ok], minlength=n_l * n_lag).reshape(n_l, n_lag)
+    return hist - run[:n_l], hist.copy(), cover, int(kept_i.size), (kept_i, p[kept_i], b_up[kept_i])
 
 
 def _support(r: np.ndarray, sig: np.ndarray, z: float, m: int) -> tuple[int, int]:
@@ -213,8 +250,9 @@ def pooled_shape(
     pooled curve (all wavelengths) on its support."""
     kernel = gaussian_irf(fwhm)
     m = 2 * int(fwhm // 4) + 1  # about half the FWHM, odd
+    ph = _photons(a)
     for _ in range(2):
-        tot, var, cover, n_used, kept = _pool(a, kernel, k_left, k_right, z)
+        tot, var, cover, n_used, kept = _pool(a.shape, ph, kernel, k_left, k_right, z)
         if n_used < min_pixels:
             raise SplidarError(
                 f"only {n_used} pixel(s) with a return significant at {z:g} sigma (need "
@@ -243,7 +281,7 @@ def pooled_shape(
             h0[l, a_ : b_ + 1] = rows[l]
         # the jitter of the hard alignment is within about a FWHM of the template
         reach = max(2, int(np.count_nonzero(kernel > kernel.max() / 2.0)))
-        h, _ = soft_align(a, kept, h0, support, k_left, reach)
+        h, _ = soft_align(ph, kept, h0, support, k_left, reach)
         # the soft peak corrects the jitter's shift of the hard one (measured: at most a
         # quarter of the FWHM); a move beyond half the FWHM, the two shapes placed where
         # they best correlate (the EM may shift the whole shape: its shifts absorb it),
@@ -271,20 +309,18 @@ def pooled_shape(
     return out, n_used, test
 
 
-def _photons_near(a, kept, k_left: int, n_lag: int, reach: int):
-    """Photons of the bright pixels within ``reach`` bins of their lag window: (pixel
-    (index into ``kept``), wavelength, lag index ``t - p + k_left``, count)."""
+def _photons_near(ph, kept, k_left: int, n_lag: int, reach: int):
+    """Photons (``ph``, :func:`_photons`) of the bright pixels within ``reach`` bins of
+    their lag window: (pixel (index into ``kept``), wavelength, lag index
+    ``t - p + k_left``, count)."""
     idx, p, _ = kept
-    n_l, n_bins = a.shape[1], a.shape[2]
-    out = []
-    step = max(1, _CHUNK_VOXELS // (n_l * n_bins))
-    for s in range(0, idx.size, step):
-        y = np.asarray(a[idx[s : s + step]])
-        i, l, t = np.nonzero(y)
-        u = t - p[s + i] + k_left
-        ok = (u >= -reach) & (u < n_lag + reach)
-        out.append((s + i[ok], l[ok], u[ok], y[i[ok], l[ok], t[ok]].astype(np.float64)))
-    return tuple(np.concatenate([o[k] for o in out]) for k in range(4))
+    pix, l, t, c, _ = ph
+    pos = np.clip(np.searchsorted(idx, pix), 0, max(idx.size - 1, 0))
+    sel = idx[pos] == pix if idx.size else np.zeros(pix.size, bool)
+    i = pos[sel]
+    u = t[sel] - p[i] + k_left
+    ok = (u >= -reach) & (u < n_lag + reach)
+    return i[ok], l[sel][ok], u[ok], c[sel][ok]
 
 
 def _pairs(hf, ratio, pi, pl, pu, e, up: int, s, step):
@@ -301,7 +337,7 @@ def _pairs(hf, ratio, pi, pl, pu, e, up: int, s, step):
     return j0, parts, ratio[i, l][:, None] * sum(parts)
 
 
-def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarray, int]:
+def soft_align(ph, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarray, int]:
     """Refine the hard-aligned IRF ``h0`` (L, K) by expectation-maximisation over each
     bright pixel's unknown return position (soft alignment), smoothed each step.
 
@@ -326,7 +362,7 @@ def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarra
     up = _EM_UP
     n_f = up * n_lag
     b = np.maximum(kept[2], 1e-12)
-    pi, pl, pu, pc = _photons_near(a, kept, k_left, n_lag, reach)
+    pi, pl, pu, pc = _photons_near(ph, kept, k_left, n_lag, reach)
     e = np.arange(-up * reach, up * reach + 1)
     n_d = e.size
     stride = max(1, math.ceil(pi.size * n_d / _EM_PAIRS))
