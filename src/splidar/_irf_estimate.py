@@ -337,6 +337,73 @@ def _pairs(hf, ratio, pi, pl, pu, e, up: int, s, step):
     return j0, parts, ratio[i, l][:, None] * sum(parts)
 
 
+def _em_step_fine(hf, ratio, pi, pl, pu, pc, e, up: int, n_pix: int):
+    """One E- and M-step of :func:`soft_align` on a grid of ``1 / up`` bin (NumPy): the
+    unsmoothed expected signal photons per fine sample (L, n_f) and per pixel (P, L)."""
+    n_l, n_f = hf.shape
+    n_d = e.size
+    step = max(1, (1 << 21) // n_d)
+    cols = np.arange(n_d)
+    ll = np.zeros(n_pix * n_d)
+    for s in range(0, pi.size, step):
+        _, _, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
+        key = (pi[s : s + step, None] * n_d + cols).ravel()
+        ll += np.bincount(key, (pc[s : s + step, None] * np.log1p(sh)).ravel(), n_pix * n_d)
+    ll = ll.reshape(n_pix, n_d)
+    post = np.exp(ll - ll.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)
+    num = np.zeros(n_l * n_f)
+    amp_new = np.zeros(n_pix * n_l)
+    for s in range(0, pi.size, step):
+        j0, parts, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
+        i, l = pi[s : s + step], pl[s : s + step]
+        w = pc[s : s + step, None] * post[i] * (ratio[i, l][:, None] / (1.0 + sh))
+        for q in range(up):  # each fine sample its share h_f / sum of the bin
+            key = (l[:, None] * n_f + np.clip(j0 + q, 0, n_f - 1)).ravel()
+            num += np.bincount(key, (w * parts[q]).ravel(), n_l * n_f)
+        amp_new += np.bincount(i * n_l + l, (w * (sh / ratio[i, l][:, None])).sum(1), n_pix * n_l)
+    return num.reshape(n_l, n_f), amp_new.reshape(n_pix, n_l)
+
+
+@njit(cache=True)
+def _em_step(hf, ratio, pi, pl, pu, pc, reach):  # pragma: no cover - numba
+    """:func:`_em_step_fine` on whole bins (``up = 1``), compiled: no photon x shift
+    work arrays. Shift ``e = k - reach``; the photon at lag ``pu`` reads ``hf[pu - e]``
+    (0 off the support's grid)."""
+    n_l, n_f = hf.shape
+    n_pix = ratio.shape[0]
+    n_d = 2 * reach + 1
+    ll = np.zeros((n_pix, n_d))
+    for u in range(pi.size):
+        i, l, q, c = pi[u], pl[u], pu[u], pc[u]
+        r = ratio[i, l]
+        for k in range(n_d):
+            j = q - k + reach
+            if 0 <= j < n_f:
+                ll[i, k] += c * math.log1p(r * hf[l, j])
+    for i in range(n_pix):
+        m = ll[i].max()
+        tot = 0.0
+        for k in range(n_d):
+            ll[i, k] = math.exp(ll[i, k] - m)
+            tot += ll[i, k]
+        for k in range(n_d):
+            ll[i, k] /= tot
+    num = np.zeros((n_l, n_f))
+    amp = np.zeros((n_pix, n_l))
+    for u in range(pi.size):
+        i, l, q, c = pi[u], pl[u], pu[u], pc[u]
+        r = ratio[i, l]
+        for k in range(n_d):
+            j = q - k + reach
+            if 0 <= j < n_f:
+                hv = hf[l, j]
+                w = c * ll[i, k] * r / (1.0 + r * hv)
+                num[l, j] += w * hv
+                amp[i, l] += w * hv
+    return num, amp
+
+
 def soft_align(ph, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarray, int]:
     """Refine the hard-aligned IRF ``h0`` (L, K) by expectation-maximisation over each
     bright pixel's unknown return position (soft alignment), smoothed each step.
@@ -377,38 +444,20 @@ def soft_align(ph, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarr
     inside = (pu >= 0) & (pu < n_lag)
     amp = np.bincount(pi[inside] * n_l + pl[inside], pc[inside], n_pix * n_l).reshape(n_pix, n_l)
     amp = np.maximum(amp - b * support.sum(axis=1), 1.0)
-    step = max(1, (1 << 21) // n_d)
-    cols = np.arange(n_d)
     it = 0
     while it < _EM_MAX_ITER:
         it += 1
         ratio = amp / b
-        ll = np.zeros(n_pix * n_d)
-        for s in range(0, pi.size, step):
-            _, _, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
-            key = (pi[s : s + step, None] * n_d + cols).ravel()
-            ll += np.bincount(key, (pc[s : s + step, None] * np.log1p(sh)).ravel(), n_pix * n_d)
-        ll = ll.reshape(n_pix, n_d)
-        post = np.exp(ll - ll.max(axis=1, keepdims=True))
-        post /= post.sum(axis=1, keepdims=True)
-        num = np.zeros(n_l * n_f)
-        amp_new = np.zeros(n_pix * n_l)
-        for s in range(0, pi.size, step):
-            j0, parts, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
-            i, l = pi[s : s + step], pl[s : s + step]
-            w = pc[s : s + step, None] * post[i] * (ratio[i, l][:, None] / (1.0 + sh))
-            for q in range(up):  # each fine sample its share h_f / sum of the bin
-                key = (l[:, None] * n_f + np.clip(j0 + q, 0, n_f - 1)).ravel()
-                num += np.bincount(key, (w * parts[q]).ravel(), n_l * n_f)
-            amp_new += np.bincount(
-                i * n_l + l, (w * (sh / ratio[i, l][:, None])).sum(1), n_pix * n_l
-            )
+        if up == 1:
+            num, amp_new = _em_step(hf, ratio, pi, pl, pu, pc, reach)
+        else:
+            num, amp_new = _em_step_fine(hf, ratio, pi, pl, pu, pc, e, up, n_pix)
         num = num.reshape(n_l, n_f)
         for _ in range(_EM_PASSES):
             pad = np.pad(num, ((0, 0), (1, 1)))
             num = np.where(fsup, pad[:, :-2] + _EM_SMOOTH * num + pad[:, 2:], 0.0)
         new = num / np.maximum(num.sum(axis=1, keepdims=True), 1e-300)
-        amp = np.maximum(amp_new.reshape(n_pix, n_l), 1e-3)
+        amp = np.maximum(amp_new, 1e-3)
         change = float(np.abs(new - hf).sum(axis=1).max())
         hf = new
         if change < _EM_TOL:
