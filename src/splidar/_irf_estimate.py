@@ -65,6 +65,15 @@ def _photons(a: np.ndarray):
 _TIE = 1e-9
 
 
+def _photons_sparse(uniq: np.ndarray, cnt: np.ndarray, shape):
+    """:func:`_photons` of a one-wavelength cube of ``shape`` from its sorted non-empty
+    flat voxel indices ``uniq`` and their counts."""
+    n_pix, _, n_bins = shape
+    pix, t = np.divmod(np.asarray(uniq, dtype=np.int64), n_bins)
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pix, minlength=n_pix))])
+    return pix, np.zeros(pix.size, np.int64), t, np.asarray(cnt, np.float64), ptr
+
+
 @njit(cache=True)
 def _peaks(ptr, t, c, kp, n_bins, reach):  # pragma: no cover - numba
     """Per pixel: the peak ``p`` of its photons' correlation with ``kp`` (centred:
@@ -241,16 +250,19 @@ def pooled_shape(
     *,
     refine: bool = True,
     gaussian_p: float = 2.0,
+    voxels=None,
 ) -> tuple[np.ndarray, int, tuple[float, int, float]]:
     """IRF ``(L, n)`` pooled from ``a`` (P, L, T): two alignment passes (a Gaussian of
     ``fwhm``, then the first pass's shape), cut to its support, then (``refine``) the
     soft alignment (:func:`soft_align`) unless the Gaussian test's p-value is at least
     ``gaussian_p`` (the caller falls back to a Gaussian); unit sum per row. Returns the
     IRF, the number of pixels pooled and :func:`gaussian_test` of the hard-aligned
-    pooled curve (all wavelengths) on its support."""
+    pooled curve (all wavelengths) on its support. ``voxels``: the non-empty voxels of
+    a one-wavelength ``a`` as (sorted flat index ``pixel * T + bin``, count), when at
+    hand (photon lists), to skip the scan of the dense cube."""
     kernel = gaussian_irf(fwhm)
     m = 2 * int(fwhm // 4) + 1  # about half the FWHM, odd
-    ph = _photons(a)
+    ph = _photons(a) if voxels is None else _photons_sparse(*voxels, a.shape)
     for _ in range(2):
         tot, var, cover, n_used, kept = _pool(a.shape, ph, kernel, k_left, k_right, z)
         if n_used < min_pixels:

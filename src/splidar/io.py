@@ -674,8 +674,11 @@ def estimate_irf(
     return irf
 
 
-def _estimate_irf(counts, *, fwhm, max_length, significance, min_pixels, fallback, refine=True):
-    """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``."""
+def _estimate_irf(
+    counts, *, fwhm, max_length, significance, min_pixels, fallback, refine=True, voxels=None
+):
+    """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``. ``voxels``:
+    photon lists' sorted non-empty (flat voxel index, count) of one-wavelength ``counts``."""
     from scipy.stats import norm
 
     from ._irf_estimate import pooled_shape
@@ -715,6 +718,7 @@ def _estimate_irf(counts, *, fwhm, max_length, significance, min_pixels, fallbac
         min_pixels,
         refine=bool(refine),
         gaussian_p=norm.sf(z) if fallback else 2.0,
+        voxels=voxels if a.shape[2] == 1 else None,
     )
     if fallback and p >= norm.sf(z):
         log.warning(
@@ -961,7 +965,7 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
         )
     fwhm, k = _pooled_fwhm(counts, n_bins, sparse)
     if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
-        shaped = _pooled_shape(counts, fwhm, k)
+        shaped = _pooled_shape(counts, fwhm, k, sparse)
         if shaped is not None:
             arr, src = shaped
             log.warning(
@@ -1062,7 +1066,7 @@ def _block_sum(counts, k: int) -> np.ndarray:
     return pad.reshape(rp // k, k, cp // k, k, *a.shape[2:]).sum(axis=(1, 3))
 
 
-def _pooled_shape(counts, fwhm: float, k: int):
+def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
     """The shape (:func:`_estimate_irf`) on single pixels, else (too few bright pixels:
     weak signal) on ``k x k`` pixel blocks, ``k`` doubling from the width's level while
     at least ``_MIN_BLOCKS`` remain; None (the caller keeps the Gaussian) when no level
@@ -1073,7 +1077,13 @@ def _pooled_shape(counts, fwhm: float, k: int):
         cube = counts if level == 1 else _block_sum(counts, level)
         try:
             arr, src = _estimate_irf(
-                cube, fwhm=fwhm, max_length=None, significance=3.0, min_pixels=20, fallback=True
+                cube,
+                fwhm=fwhm,
+                max_length=None,
+                significance=3.0,
+                min_pixels=20,
+                fallback=True,
+                voxels=sparse if level == 1 else None,
             )
         except SplidarError as exc:
             nxt = max(2 * level, k)
