@@ -1067,12 +1067,15 @@ def _block_sum(counts, k: int) -> np.ndarray:
 
 
 def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
-    """The shape (:func:`_estimate_irf`) on single pixels, else (too few bright pixels:
-    weak signal) on ``k x k`` pixel blocks, ``k`` doubling from the width's level while
-    at least ``_MIN_BLOCKS`` remain; None (the caller keeps the Gaussian) when no level
-    gives it. Returns (irf, source) or None."""
+    """The shape (:func:`_estimate_irf`) on single pixels; where they are too few bright
+    ones, or their pooled photons do not reject a Gaussian (the Gaussian fall-back), on
+    ``k x k`` pixel blocks (``k`` doubling from 2, or from the width's level, while at
+    least ``_MIN_BLOCKS`` blocks remain): a block holds ``k^2`` times a pixel's signal
+    (its depth spread widens the shape a little). The first level that gives a shape
+    wins; else the single pixels' Gaussian fall-back, or None (the caller keeps the
+    Gaussian of the width). Returns (irf, source) or None."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
-    level = 1
+    level, gaussian = 1, None
     while True:
         cube = counts if level == 1 else _block_sum(counts, level)
         try:
@@ -1086,18 +1089,23 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 voxels=sparse if level == 1 else None,
             )
         except SplidarError as exc:
-            nxt = max(2 * level, k)
-            if "pixel(s) with a return" not in str(exc) or (
-                -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS
-            ):
+            if "pixel(s) with a return" not in str(exc):
                 log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
-                return None
-            log.info("IRF shape: too few bright pixels; pooling %d x %d pixel blocks", nxt, nxt)
-            level = nxt
-            continue
-        if level == 1 and k > 1:
-            return arr, src + f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
-        return arr, src + _blocks_text(level)
+                return gaussian
+            why = "too few bright pixels"
+        else:
+            if src.startswith("estimated shape"):
+                if level == 1 and k > 1:
+                    src += f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
+                return arr, src + _blocks_text(level)
+            if gaussian is None:
+                gaussian = (arr, src + _blocks_text(k))
+            why = "the pooled photons do not reject a Gaussian"
+        nxt = max(2 * level, k)
+        if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
+            return gaussian
+        log.info("IRF shape: %s; pooling %d x %d pixel blocks", why, nxt, nxt)
+        level = nxt
 
 
 # --------------------------------------------------------------------------------------
