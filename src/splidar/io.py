@@ -647,6 +647,10 @@ def estimate_irf(
     surface at a fixed distance behind the first is cut away; second surfaces at
     depths that vary from pixel to pixel within ``max_length`` average into a pedestal
     that the cut may keep as tail. Needs the counts in memory (not lazy data).
+    It works on the non-empty voxels (compiled loops): about 2-3 s CPU on a 340 x 340 x
+    1750 cube of 8 photons per pixel. Equal correlation scores (frequent with a few
+    integer counts and a symmetric template) go to the earlier bin for even pixels
+    (photons), the later for odd ones, so neither side is favoured.
 
     Examples
     --------
@@ -1179,6 +1183,11 @@ def load(
         (:func:`estimate_irf`, seeded by :func:`estimate_irf_fwhm`; logged as a
         warning), or a Gaussian of the estimated width where the pooled photons do not
         reject a Gaussian or the shape cannot be estimated (too few bright pixels).
+        Weak signal (a few tenths of a signal photon per pixel): where single pixels
+        give no width or no shape, both are measured on 2 x 2, 4 x 4, ... pixel blocks
+        (at least 16 blocks; neighbouring pixels share their depth), logged and
+        recorded in ``metadata["irf_source"]``; when no level shows a return, load
+        raises, naming ``irf=`` / ``irf_fwhm=``.
         ``"estimate"``: always that Gaussian (the opt-out). ``"estimate-shape"``: the
         shape, whatever IRF the file holds. A path is read by :func:`load_irf`. An
         IRF longer than T - 1 samples is cropped around its peak (logged).
