@@ -631,3 +631,25 @@ def test_block_sum_adds_edge_blocks():
     assert s.shape == (3, 2, 1, 4) and s.sum() == y.sum()
     np.testing.assert_array_equal(s[2, 1, 0], y[4, 2])
     np.testing.assert_array_equal(_block_index(np.array([0, 2, 4, 14]), 3, 2), [0, 1, 0, 5])
+
+
+def test_load_weak_signal_rgb_float_counts_pool_blocks():
+    # the pooling keeps float counts (no truncation) and pools the wavelengths of a
+    # pixel (RGB): the weak plane's photons split over three wavelengths
+    from splidar.io import _block_sum, _resolve_irf
+
+    y = _weak_plane(1).astype(np.float64)
+    rgb = np.zeros(y.shape[:2] + (3, y.shape[-1]))
+    for i in range(3):
+        rgb[:, :, i] = np.where(np.arange(y.shape[-1]) % 3 == i, y, 0.0)
+    assert _block_sum(rgb * 0.5, 2).sum() == pytest.approx(0.5 * y.sum())
+    irf, src = _resolve_irf(None, None, None, None, rgb, y.shape[-1])
+    assert "pixel blocks" in src and irf.shape[0] in (1, 3)
+
+
+def test_load_tiny_background_cube_raises_naming_irf():
+    from splidar.io import _resolve_irf
+
+    y = np.random.default_rng(0).poisson(0.01, (3, 3, 100))
+    with pytest.raises(SplidarError, match=r"single pixels \(too few pixels.*irf="):
+        _resolve_irf(None, None, None, None, y, 100)

@@ -1036,10 +1036,15 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
             nxt = 2 * k
             if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
                 n_ph = float(np.sum(w))
+                where = (
+                    f"on single pixels and pooled over pixel blocks up to {k} x {k}"
+                    if k > 1
+                    else "on single pixels (too few pixels to pool blocks)"
+                )
                 raise SplidarError(
                     f"no return found to estimate the IRF from: {exc.args[0].split(';')[0]}, "
-                    f"on single pixels and pooled over pixel blocks up to {k} x {k} "
-                    f"({n_ph:,.0f} photons, {n_ph / max(n_rows * n_cols, 1):.2g} per pixel). "
+                    f"{where} ({n_ph:,.0f} photons, {n_ph / max(n_rows * n_cols, 1):.2g} per "
+                    "pixel). "
                     "If the data do hold a return, pass irf= (array or file) or irf_fwhm= "
                     "(Gaussian FWHM in bins)."
                 ) from None
@@ -1065,7 +1070,8 @@ def _block_sum(counts, k: int) -> np.ndarray:
         a = a[:, :, None, :]
     r, c = a.shape[:2]
     rp, cp = -(-r // k) * k, -(-c // k) * k
-    pad = np.zeros((rp, cp) + a.shape[2:], dtype=np.int64)
+    dt = np.float64 if np.issubdtype(a.dtype, np.floating) else np.int64
+    pad = np.zeros((rp, cp) + a.shape[2:], dtype=dt)
     pad[:r, :c] = a
     return pad.reshape(rp // k, k, cp // k, k, *a.shape[2:]).sum(axis=(1, 3))
 
