@@ -18,12 +18,14 @@ Then, with ``--real``, the three photon-list files (loaded as in ``real_data.py`
 estimated FWHM, tail mass and time, and ``detect(rng=0, pfa=1e-4)`` with the Gaussian
 estimate and with the shapes: surfaces, pixels with >= 2 surfaces, the median depth
 shift against the Gaussian estimate (no truth there). With ``--art``, the Art scene
-(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs.
+(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs. With ``--weak``
+(only), SBR 0.2 at PPP 1 / 2 / 4: the IRF ``load`` builds without one (pooling pixel
+blocks where single pixels show no pulse) against the true IRF.
 
 Usage::
 
     python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--art-widths]
-        [--no-sim] [--data DIR]
+        [--weak] [--no-sim] [--data DIR]
 """
 
 from __future__ import annotations
