@@ -1,0 +1,204 @@
+"""Stage 5, first clean-up: move a candidate to the depth its 4-neighbours agree on
+inside its own run of the map.
+
+A run of the map ``M`` spans several bins (the coarse boxes widen it); the candidate's
+depth is the refined peak of its own response (the own pixel's when significant), which
+a few photons can put at the run's edge, a FWHM or more from where the neighbours' runs
+peak. At that depth the candidate then fails the presence test (the local scale does
+not respond there), or no neighbour shares it and the isolated test (5b) removes it, or
+it stays as a wrong depth: the pixel loses its surface although its own run holds the
+neighbours' depth. Measured on issue #15's cells (single surface, PPP 4, SBR 0.25,
+seeds 0-2): 62 (uniform) and 53 (decaying) of the 240 / 215 missed true surfaces per
+cube were such runs (benchmarks/README.md, "depth22, session 15").
+
+The rule (:func:`recentre_runs`), on the map's table before any other pass: at least
+:data:`MIN_AGREE` of the 4-neighbours hold a kept candidate inside the candidate's
+support ``[start, stop)``, within the FWHM of one another; their mean depth ``a`` lies
+more than the FWHM from the candidate's depth ``d``; the pixel holds no other kept
+candidate near ``a``. The own raw counts' Poisson log-likelihood of a return as bright
+as those neighbours' (``L(x)``, the spill-over pass's statistic) decides:
+
+* a kept candidate moves to ``a`` when its own counts do not favour ``d``
+  (``L(d) <= L(a)``: two depths of one run are equally likely a priori), or when ``d``
+  would be lost anyway (no 8-neighbour shares it and its own counts are not significant
+  alone: the isolated test of 5b);
+* a candidate the presence test rejected is moved and restored (a pixel with room only).
+
+Either way the own counts must not reject the return at ``a`` (``L(a) >= -PRESENCE_LLR``,
+the presence test's own-count veto). The candidate keeps its support, window, clean
+histograms and presence statistics (``a`` lies inside the support, so inside the window);
+its ``depth_bin`` alone changes. No threshold is fitted to a scene: the FWHM, the
+support of the map's run and the presence test's constants decide.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+from numba import njit
+
+from ._quality import _by_pixel, _own_llr, reject_isolated
+from ._table import CandidateTable, PassResult, skipped, with_keep
+
+__all__ = ["MIN_AGREE", "recentre_runs"]
+
+#: 4-neighbours that must hold the agreed depth inside the candidate's run: 3 of 4 (a
+#: plane on at least three sides; 2 would follow a line, a strand or an edge's spread).
+MIN_AGREE = 3
+
+
+@njit(cache=True, nogil=True)
+def _agree_kernel(
+    row, col, depth, start, stop, keep, sig, order, starts, R, C, fwhm, min_agree, alt, s_alt
+):
+    """For each candidate: the mean depth ``alt`` of the 4-neighbours' kept candidates
+    inside its support that agree (within ``fwhm`` of their median, one per neighbour;
+    NaN when fewer than ``min_agree`` do, when it lies within ``fwhm`` of the own depth
+    or of another kept candidate of the pixel) and their mean signal ``s_alt`` (L,)."""
+    L = sig.shape[1]
+    vals = np.empty(16, np.float64)
+    who = np.empty(16, np.int64)
+    for i in range(row.size):
+        alt[i] = np.nan
+        r = row[i]
+        c = col[i]
+        n = 0
+        for dd in range(4):
+            rr = r + (-1, 1, 0, 0)[dd]
+            cc = c + (0, 0, -1, 1)[dd]
+            if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                continue
+            q = rr * C + cc
+            for k in range(starts[q], starts[q + 1]):
+                j = order[k]
+                if keep[j] and start[i] <= depth[j] < stop[i] and n < 16:
+                    vals[n] = depth[j]
+                    who[n] = j
+                    n += 1
+        if n < min_agree:
+            continue
+        med = np.median(vals[:n])
+        # one value per neighbour: the one nearest the median
+        best = np.full(4, -1, np.int64)
+        for m in range(n):
+            j = who[m]
+            if abs(vals[m] - med) > fwhm:
+                continue
+            dd = 0 if row[j] < r else (1 if row[j] > r else (2 if col[j] < c else 3))
+            if best[dd] < 0 or abs(vals[m] - med) < abs(depth[best[dd]] - med):
+                best[dd] = j
+        cnt = 0
+        a = 0.0
+        for dd in range(4):
+            if best[dd] >= 0:
+                cnt += 1
+                a += depth[best[dd]]
+        if cnt < min_agree:
+            continue
+        a /= cnt
+        if abs(a - depth[i]) <= fwhm:
+            continue
+        p = r * C + c
+        taken = False
+        for k in range(starts[p], starts[p + 1]):
+            j = order[k]
+            if j != i and keep[j] and abs(depth[j] - a) <= fwhm:
+                taken = True
+        if taken:
+            continue
+        alt[i] = a
+        for l in range(L):
+            s = 0.0
+            for dd in range(4):
+                if best[dd] >= 0:
+                    s += sig[best[dd], l]
+            s_alt[i, l] = s / cnt
+
+
+def recentre_runs(
+    table: CandidateTable,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    pfa: float,
+    n_bins: int,
+    llr_level: float,
+    max_kept: int,
+) -> PassResult:
+    """Move candidates to the depth their 4-neighbours agree on inside their run (module).
+
+    Parameters
+    ----------
+    table : CandidateTable
+        The map's table (with the presence-rejected candidates of pixels with room and
+        the ``own_counts`` / ``own_background`` windows).
+    irf : ndarray (L, n_irf), float64
+    peak : ndarray (L,)
+        The IRF's peak bin per wavelength.
+    fwhm : float
+        The IRF's FWHM (bins).
+    pfa : float
+        ``surface_pfa``: the isolated test's level (a depth lost anyway).
+    n_bins : int
+        T.
+    llr_level : float
+        The own counts must not reject the return at the new depth beyond this
+        (``PRESENCE_LLR``).
+    max_kept : int
+        ``K_s``: a rejected candidate is restored only in a pixel with room.
+
+    Returns
+    -------
+    PassResult
+        ``added``: rejected candidates restored at the new depth; ``moved``: candidates
+        whose depth changed (restored ones included).
+    """
+    if not table.keep.size or "own_counts" not in table.columns:
+        return skipped("recentre", table)
+    t0 = time.perf_counter()
+    cols = table.columns
+    R, C = table.image_shape
+    row = np.asarray(cols["row"], np.int64)
+    col = np.asarray(cols["col"], np.int64)
+    d = np.asarray(cols["depth_bin"], np.float64)
+    sel = np.asarray(cols["signal"])[np.arange(d.size), np.asarray(cols["scale_index"], np.int64)]
+    order, starts = _by_pixel(row, col, (R, C))
+    alt = np.empty(d.size, np.float64)
+    s_alt = np.zeros((d.size, sel.shape[1]), np.float64)
+    keep = np.asarray(table.keep, bool)
+    _agree_kernel(
+        row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
+        keep, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
+        float(fwhm), int(MIN_AGREE), alt, s_alt,
+    )  # fmt: skip
+    ii = np.flatnonzero(np.isfinite(alt))
+    if ii.size == 0:
+        return replace(with_keep("recentre", table, keep, t0), ran=True)
+    off = np.asarray(cols["offset"], np.float64)[ii]
+    cnt = np.asarray(cols["own_counts"])[ii]
+    bkg = np.asarray(cols["own_background"])[ii]
+    l_d = _own_llr(cnt, bkg, irf, peak, d[ii] - off, s_alt[ii])
+    l_a = _own_llr(cnt, bkg, irf, peak, alt[ii] - off, s_alt[ii])
+    lost = reject_isolated(table.view(), keep, fwhm=fwhm, pfa=pfa, n_bins=n_bins)[ii]
+    move = ((l_d <= l_a) | lost | ~keep[ii]) & (l_a >= -llr_level)
+    new_keep = keep.copy()
+    room = np.bincount(row[keep] * C + col[keep], minlength=R * C)
+    moved = []
+    for k in np.flatnonzero(move):
+        i = ii[k]
+        if not keep[i]:
+            p = row[i] * C + col[i]
+            if room[p] >= max_kept:
+                continue
+            room[p] += 1
+            new_keep[i] = True
+        moved.append(i)
+    new_d = d.copy()
+    new_d[moved] = alt[moved]
+    depth = np.asarray(cols["depth_bin"])
+    moved_table = table.with_columns(depth_bin=new_d.astype(depth.dtype))
+    res = with_keep("recentre", moved_table, new_keep, t0)
+    return replace(res, moved=len(moved))
