@@ -51,12 +51,14 @@ MIN_AGREE = 3
 
 @njit(cache=True, nogil=True)
 def _agree_kernel(
-    row, col, depth, start, stop, keep, sig, order, starts, R, C, fwhm, min_agree, alt, s_alt
+    row, col, depth, start, stop, keep, sig, order, starts, R, C, fwhm, min_agree, near, alt, s_alt
 ):
     """For each candidate: the mean depth ``alt`` of the 4-neighbours' kept candidates
-    inside its support that agree (within ``fwhm`` of their median, one per neighbour;
-    NaN when fewer than ``min_agree`` do, when it lies within ``fwhm`` of the own depth
-    or of another kept candidate of the pixel) and their mean signal ``s_alt`` (L,)."""
+    inside its support that agree (within ``fwhm`` of their median, one per neighbour)
+    and their mean signal ``s_alt`` (L,). NaN when fewer than ``min_agree`` agree, when
+    ``alt`` lies within ``fwhm`` of another kept candidate of the pixel, and by ``near``:
+    0, when it lies within ``fwhm`` of the own depth (the far moves); 2, when it does not,
+    or the candidate is kept (the rejected candidates already at the agreed depth)."""
     L = sig.shape[1]
     vals = np.empty(16, np.float64)
     who = np.empty(16, np.int64)
@@ -98,7 +100,10 @@ def _agree_kernel(
         if cnt < min_agree:
             continue
         a /= cnt
-        if abs(a - depth[i]) <= fwhm:
+        close = abs(a - depth[i]) <= fwhm
+        if close and (keep[i] or near == 0):
+            continue
+        if not close and near == 2:
             continue
         p = r * C + c
         taken = False
@@ -117,6 +122,52 @@ def _agree_kernel(
             s_alt[i, l] = s / cnt
 
 
+def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int):
+    """The neighbours' agreed depth and signal of each candidate (:func:`_agree_kernel`)."""
+    cols = table.columns
+    R, C = table.image_shape
+    row = np.asarray(cols["row"], np.int64)
+    col = np.asarray(cols["col"], np.int64)
+    d = np.asarray(cols["depth_bin"], np.float64)
+    sel = np.asarray(cols["signal"])[np.arange(d.size), np.asarray(cols["scale_index"], np.int64)]
+    order, starts = _by_pixel(row, col, (R, C))
+    alt = np.empty(d.size, np.float64)
+    s_alt = np.zeros((d.size, sel.shape[1]), np.float64)
+    _agree_kernel(
+        row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
+        keep, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
+        float(fwhm), int(MIN_AGREE), int(near), alt, s_alt,
+    )  # fmt: skip
+    return alt, s_alt
+
+
+def _own_llrs(table: CandidateTable, ii, depths, s, irf, peak) -> np.ndarray:
+    """The own counts' log-likelihood ratio of a return ``s`` at each of ``depths``."""
+    cols = table.columns
+    off = np.asarray(cols["offset"], np.float64)[ii]
+    cnt = np.asarray(cols["own_counts"])[ii]
+    bkg = np.asarray(cols["own_background"])[ii]
+    return _own_llr(cnt, bkg, irf, peak, depths - off, s)
+
+
+def _restore(table, keep, ii, l_a, llr_level, secondary_llr, max_kept, restore) -> np.ndarray:
+    """Which of the candidates ``ii`` (``restore``: rejected ones to restore, if they
+    pass) are kept: a pixel with room, the own counts not rejecting the return at the
+    agreed depth (``l_a >= -llr_level``; ``>= secondary_llr`` beside a kept candidate,
+    the presence test's rule for a pixel's further candidates)."""
+    R, C = table.image_shape
+    pix = np.asarray(table.columns["row"], np.int64) * C + np.asarray(table.columns["col"])
+    room = np.bincount(pix[keep], minlength=R * C)
+    ok = np.zeros(ii.size, bool)
+    for k in np.flatnonzero(restore):
+        p = pix[ii[k]]
+        need = -llr_level if room[p] == 0 else secondary_llr
+        if room[p] < max_kept and l_a[k] >= need:
+            room[p] += 1
+            ok[k] = True
+    return ok
+
+
 def recentre_runs(
     table: CandidateTable,
     *,
@@ -126,6 +177,7 @@ def recentre_runs(
     pfa: float,
     n_bins: int,
     llr_level: float,
+    secondary_llr: float,
     max_kept: int,
 ) -> PassResult:
     """Move candidates to the depth their 4-neighbours agree on inside their run (module).
@@ -147,6 +199,9 @@ def recentre_runs(
     llr_level : float
         The own counts must not reject the return at the new depth beyond this
         (``PRESENCE_LLR``).
+    secondary_llr : float
+        A rejected candidate of a pixel holding a kept one is restored only when its own
+        counts give at least this (``PRESENCE_SECONDARY``).
     max_kept : int
         ``K_s``: a rejected candidate is restored only in a pixel with room.
 
@@ -159,46 +214,57 @@ def recentre_runs(
     if not table.keep.size or "own_counts" not in table.columns:
         return skipped("recentre", table)
     t0 = time.perf_counter()
-    cols = table.columns
-    R, C = table.image_shape
-    row = np.asarray(cols["row"], np.int64)
-    col = np.asarray(cols["col"], np.int64)
-    d = np.asarray(cols["depth_bin"], np.float64)
-    sel = np.asarray(cols["signal"])[np.arange(d.size), np.asarray(cols["scale_index"], np.int64)]
-    order, starts = _by_pixel(row, col, (R, C))
-    alt = np.empty(d.size, np.float64)
-    s_alt = np.zeros((d.size, sel.shape[1]), np.float64)
     keep = np.asarray(table.keep, bool)
-    _agree_kernel(
-        row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
-        keep, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
-        float(fwhm), int(MIN_AGREE), alt, s_alt,
-    )  # fmt: skip
+    d = np.asarray(table.columns["depth_bin"], np.float64)
+    alt, s_alt = _agreed(table, keep, fwhm, near=0)
     ii = np.flatnonzero(np.isfinite(alt))
     if ii.size == 0:
-        return replace(with_keep("recentre", table, keep, t0), ran=True)
-    off = np.asarray(cols["offset"], np.float64)[ii]
-    cnt = np.asarray(cols["own_counts"])[ii]
-    bkg = np.asarray(cols["own_background"])[ii]
-    l_d = _own_llr(cnt, bkg, irf, peak, d[ii] - off, s_alt[ii])
-    l_a = _own_llr(cnt, bkg, irf, peak, alt[ii] - off, s_alt[ii])
+        return with_keep("recentre", table, keep, t0)
+    l_d = _own_llrs(table, ii, d[ii], s_alt[ii], irf, peak)
+    l_a = _own_llrs(table, ii, alt[ii], s_alt[ii], irf, peak)
     lost = reject_isolated(table.view(), keep, fwhm=fwhm, pfa=pfa, n_bins=n_bins)[ii]
-    move = ((l_d <= l_a) | lost | ~keep[ii]) & (l_a >= -llr_level)
+    move = keep[ii] & ((l_d <= l_a) | lost) & (l_a >= -llr_level)
+    move |= _restore(table, keep, ii, l_a, llr_level, secondary_llr, max_kept, ~keep[ii])
+    moved = ii[move]
     new_keep = keep.copy()
-    room = np.bincount(row[keep] * C + col[keep], minlength=R * C)
-    moved = []
-    for k in np.flatnonzero(move):
-        i = ii[k]
-        if not keep[i]:
-            p = row[i] * C + col[i]
-            if room[p] >= max_kept:
-                continue
-            room[p] += 1
-            new_keep[i] = True
-        moved.append(i)
+    new_keep[moved] = True
     new_d = d.copy()
     new_d[moved] = alt[moved]
-    depth = np.asarray(cols["depth_bin"])
-    moved_table = table.with_columns(depth_bin=new_d.astype(depth.dtype))
-    res = with_keep("recentre", moved_table, new_keep, t0)
-    return replace(res, moved=len(moved))
+    depth = np.asarray(table.columns["depth_bin"])
+    res = with_keep(
+        "recentre", table.with_columns(depth_bin=new_d.astype(depth.dtype)), new_keep, t0
+    )
+    return replace(res, moved=int(moved.size))
+
+
+def restore_agreed(
+    table: CandidateTable,
+    keep: np.ndarray,
+    *,
+    irf: np.ndarray,
+    peak: np.ndarray,
+    fwhm: float,
+    llr_level: float,
+    secondary_llr: float,
+    max_kept: int,
+) -> np.ndarray:
+    """Rejected candidates at the depth :data:`MIN_AGREE` of their 4-neighbours agree on
+    (within the FWHM, inside the candidate's run) whose own counts do not reject the
+    return there: (n,) bool, True for those to restore (stage 5c, after the pooled
+    dark-region test; ``keep`` the candidates kept so far).
+
+    The pooled neighbours stand for the local scale's response the presence test asked
+    for; the own counts' veto is the presence test's (``llr_level``, ``secondary_llr``
+    beside a kept candidate). The candidate keeps its own depth.
+    """
+    out = np.zeros(keep.size, bool)
+    if not keep.size or "own_counts" not in table.columns:
+        return out
+    d = np.asarray(table.columns["depth_bin"], np.float64)
+    alt, s_alt = _agreed(table, np.asarray(keep, bool), fwhm, near=2)
+    ii = np.flatnonzero(np.isfinite(alt))
+    if ii.size:
+        l_a = _own_llrs(table, ii, d[ii], s_alt[ii], irf, peak)
+        ok = _restore(table, keep, ii, l_a, llr_level, secondary_llr, max_kept, ~keep[ii])
+        out[ii[ok]] = True
+    return out
