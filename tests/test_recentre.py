@@ -4,7 +4,7 @@ import numpy as np
 
 from splidar import gaussian_irf
 from splidar.detection import STAGES
-from splidar.detection._5_recentre import recentre_runs
+from splidar.detection._5_recentre import recentre_runs, restore_agreed
 from splidar.detection._filters import irf_fwhm
 from splidar.detection._table import CandidateTable
 
@@ -45,7 +45,7 @@ def _run(table):
     irf = gaussian_irf(3.0).reshape(1, -1)
     return recentre_runs(
         table, irf=irf, peak=irf.argmax(axis=1), fwhm=irf_fwhm(irf), pfa=0.01, n_bins=200,
-        llr_level=3.0, max_kept=2,
+        llr_level=3.0, secondary_llr=0.0, max_kept=2,
     )  # fmt: skip
 
 
@@ -82,3 +82,22 @@ def test_recentre_runs_leaves_a_rejected_candidate_whose_counts_reject_the_plane
     # the same pixel with one photon on the plane is restored
     res = _run(_table({50: 1, 56: 1}, own_kept=False, signal=5.0))
     assert res.moved == 1 and res.table.keep[-1]
+
+
+def test_restore_agreed_restores_a_rejected_candidate_its_neighbours_hold():
+    # rejected at 50.5 (the plane's depth, within the FWHM): restored at its own depth
+    # when its own counts do not reject the return, left when they do (no photon near
+    # a bright plane) or when fewer than 3 neighbours hold the depth
+    irf = gaussian_irf(3.0).reshape(1, -1)
+    kw = dict(irf=irf, peak=irf.argmax(axis=1), fwhm=irf_fwhm(irf), llr_level=3.0)
+    kw.update(secondary_llr=0.0, max_kept=2)
+    t = _table({50: 1}, own_depth=50.5, own_kept=False)
+    out = restore_agreed(t, t.keep, **kw)
+    assert out.tolist() == [False] * 4 + [True]
+    assert t.columns["depth_bin"][-1] == 50.5
+    t = _table({56: 1}, own_depth=50.5, own_kept=False, signal=5.0)
+    assert not restore_agreed(t, t.keep, **kw).any()
+    t = _table({50: 1}, own_depth=50.5, own_kept=False)
+    two = t.keep.copy()
+    two[:2] = False  # the north and south neighbours lose their surface
+    assert not restore_agreed(t, two, **kw).any()
