@@ -89,8 +89,7 @@ def test_restore_agreed_restores_a_rejected_candidate_its_neighbours_hold():
     # when its own counts do not reject the return, left when they do (no photon near
     # a bright plane) or when fewer than 3 neighbours hold the depth
     irf = gaussian_irf(3.0).reshape(1, -1)
-    kw = dict(irf=irf, peak=irf.argmax(axis=1), fwhm=irf_fwhm(irf), llr_level=3.0)
-    kw.update(secondary_llr=0.0, max_kept=2)
+    kw = dict(irf=irf, peak=irf.argmax(axis=1), fwhm=irf_fwhm(irf), llr_level=3.0, max_kept=2)
     t = _table({50: 1}, own_depth=50.5, own_kept=False)
     out = restore_agreed(t, t.keep, **kw)
     assert out.tolist() == [False] * 4 + [True]

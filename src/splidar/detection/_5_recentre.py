@@ -51,7 +51,23 @@ MIN_AGREE = 3
 
 @njit(cache=True, nogil=True)
 def _agree_kernel(
-    row, col, depth, start, stop, keep, sig, order, starts, R, C, fwhm, min_agree, near, alt, s_alt
+    row,
+    col,
+    depth,
+    start,
+    stop,
+    keep,
+    solo,
+    sig,
+    order,
+    starts,
+    R,
+    C,
+    fwhm,
+    min_agree,
+    near,
+    alt,
+    s_alt,
 ):
     """For each candidate: the mean depth ``alt`` of the 4-neighbours' kept candidates
     inside its support that agree (within ``fwhm`` of their median, one per neighbour)
@@ -75,7 +91,7 @@ def _agree_kernel(
             q = rr * C + cc
             for k in range(starts[q], starts[q + 1]):
                 j = order[k]
-                if keep[j] and start[i] <= depth[j] < stop[i] and n < 16:
+                if keep[j] and solo[j] and start[i] <= depth[j] < stop[i] and n < 16:
                     vals[n] = depth[j]
                     who[n] = j
                     n += 1
@@ -133,9 +149,15 @@ def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int):
     order, starts = _by_pixel(row, col, (R, C))
     alt = np.empty(d.size, np.float64)
     s_alt = np.zeros((d.size, sel.shape[1]), np.float64)
+    if near == 2:  # the restoration: neighbours holding that surface alone
+        pix = row * C + col
+        n_kept = np.bincount(pix[keep], minlength=R * C)
+        solo = keep & (n_kept[pix] == 1)
+    else:
+        solo = keep
     _agree_kernel(
         row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
-        keep, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
+        keep, solo, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
         float(fwhm), int(MIN_AGREE), int(near), alt, s_alt,
     )  # fmt: skip
     return alt, s_alt
@@ -245,17 +267,19 @@ def restore_agreed(
     peak: np.ndarray,
     fwhm: float,
     llr_level: float,
-    secondary_llr: float,
     max_kept: int,
 ) -> np.ndarray:
-    """Rejected candidates at the depth :data:`MIN_AGREE` of their 4-neighbours agree on
-    (within the FWHM, inside the candidate's run) whose own counts do not reject the
-    return there: (n,) bool, True for those to restore (stage 5c, after the pooled
-    dark-region test; ``keep`` the candidates kept so far).
+    """Rejected candidates of pixels with no kept surface, at the depth :data:`MIN_AGREE`
+    of their 4-neighbours agree on (within the FWHM, inside the candidate's run; each
+    neighbour holding that surface alone), whose own counts do not reject the return
+    there (log-ratio >= ``-llr_level``, the presence test's veto): (n,) bool, True for
+    those to restore (stage 5c, after the pooled dark-region test; ``keep`` the
+    candidates kept so far). The pooled neighbours stand for the local scale's response
+    the presence test asked for. The candidate keeps its own depth.
 
-    The pooled neighbours stand for the local scale's response the presence test asked
-    for; the own counts' veto is the presence test's (``llr_level``, ``secondary_llr``
-    beside a kept candidate). The candidate keeps its own depth.
+    Not beside a kept surface, and not from neighbours holding two: on the net (strands
+    in front of an object) the strands' spread into the open pixels agrees with itself
+    (``benchmarks/README.md``, "depth22, session 15").
     """
     out = np.zeros(keep.size, bool)
     if not keep.size or "own_counts" not in table.columns:
@@ -265,6 +289,7 @@ def restore_agreed(
     ii = np.flatnonzero(np.isfinite(alt))
     if ii.size:
         l_a = _own_llrs(table, ii, d[ii], s_alt[ii], irf, peak)
-        ok = _restore(table, keep, ii, l_a, llr_level, secondary_llr, max_kept, ~keep[ii])
+        # a pixel with no kept surface only (a further surface's level: infinite)
+        ok = _restore(table, keep, ii, l_a, llr_level, np.inf, max_kept, ~keep[ii])
         out[ii[ok]] = True
     return out

@@ -5,9 +5,10 @@ pixels at the same depth, looks like their spread. The rejected candidates of pi
 left empty are pooled with the weak kept ones at the same depth; a candidate is restored
 when the pool's own counts together are significant
 (:func:`~splidar.detection._quality.rescue_dark`). Then a rejected candidate at the
-depth 3 of its 4-neighbours agree on inside its run, whose own counts do not reject the
-return there, is restored: the neighbours pool for it what the local scale could not
-show (:func:`~splidar.detection._5_recentre.restore_agreed`; issue #15's cells,
+depth 3 of its 4-neighbours agree on inside its run (each holding that surface alone), in
+a pixel with no surface, whose own counts do not reject the return there, is restored:
+the neighbours pool for it what the local scale could not show
+(:func:`~splidar.detection._5_recentre.restore_agreed`; issue #15's cells,
 benchmarks/README.md "depth22, session 15").
 """
 
@@ -33,7 +34,7 @@ def restore_dark_regions(
     half: int,
     pfa: float,
     llr_level: float,
-    secondary_llr: float | None = None,
+    agreed: bool = False,
     max_kept: int = 2,
 ) -> PassResult:
     """Restore rejected candidates of pixels with no surface whose pool is significant.
@@ -49,10 +50,9 @@ def restore_dark_regions(
         ``surface_pfa``.
     llr_level : float
         The own counts must not reject the pool's return beyond this (``-presence_llr``).
-    secondary_llr : float, optional
-        With it, the candidates its 4-neighbours agree on are restored too
-        (:func:`~splidar.detection._5_recentre.restore_agreed`); beside a kept candidate
-        the own counts must give at least this (``presence_secondary``). None: not.
+    agreed : bool
+        Restore too the candidates of empty pixels that 3 of their 4-neighbours agree on
+        (:func:`~splidar.detection._5_recentre.restore_agreed`).
     max_kept : int
         ``K_s``: those are restored in pixels with room only.
     """
@@ -70,9 +70,8 @@ def restore_dark_regions(
         llr_level=llr_level,
     )
     keep = table.keep | res
-    if secondary_llr is not None:
+    if agreed:
         keep |= restore_agreed(
-            table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level,
-            secondary_llr=secondary_llr, max_kept=max_kept,
-        )  # fmt: skip
+            table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level, max_kept=max_kept
+        )
     return with_keep("dark_regions", table, keep, t0)

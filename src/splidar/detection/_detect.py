@@ -506,8 +506,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
         t, irf=irf, peak=peak, fwhm=fwhm, half=half, pfa=surface_pfa,
-        llr_level=-PRESENCE_LLR, secondary_llr=PRESENCE_SECONDARY,
-        max_kept=o["max_surfaces"]))  # fmt: skip
+        llr_level=-PRESENCE_LLR, agreed=True, max_kept=o["max_surfaces"]))  # fmt: skip
     table = table.without("own_counts", "own_background", "line_support")
     done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
     table = run("slopes", lambda t: recover_slope_surfaces(
