@@ -7,7 +7,8 @@ when the pool's own counts together are significant
 (:func:`~splidar.detection._quality.rescue_dark`). Then a rejected candidate at the
 depth 3 of its 4-neighbours agree on inside its run (each holding that surface alone), in
 a pixel with no surface, whose own counts do not reject the return there, is restored:
-the neighbours pool for it what the local scale could not show
+the neighbours pool for it what the local scale could not show; repeated while it
+restores any
 (:func:`~splidar.detection._5_recentre.restore_agreed`; issue #15's cells,
 benchmarks/README.md "depth22, session 15").
 """
@@ -52,7 +53,8 @@ def restore_dark_regions(
         The own counts must not reject the pool's return beyond this (``-presence_llr``).
     agreed : bool
         Restore too the candidates of empty pixels that 3 of their 4-neighbours agree on
-        (:func:`~splidar.detection._5_recentre.restore_agreed`).
+        (:func:`~splidar.detection._5_recentre.restore_agreed`), repeated while it
+        restores any.
     max_kept : int
         ``K_s``: those are restored in pixels with room only.
     """
@@ -70,8 +72,11 @@ def restore_dark_regions(
         llr_level=llr_level,
     )
     keep = table.keep | res
-    if agreed:
-        keep |= restore_agreed(
+    while agreed:  # repeated while it restores (a restored pixel is a neighbour too)
+        more = restore_agreed(
             table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level, max_kept=max_kept
         )
+        if not more.any():
+            break
+        keep = keep | more
     return with_keep("dark_regions", table, keep, t0)
