@@ -10,6 +10,7 @@ flows (one way, see ``docs/detection.md`` for the diagram)::
      |  _3_null.py           calibrate_null                -> NullCalibration (thresholds)
      |  _4_map.py            map_candidates                -> CandidateMap (S, M, candidates)
      |  clean-up passes over the candidate table, each a PassResult (added / removed):
+     |  _5_recentre.py       recentre_runs           depths the neighbours agree on in the run
      |  _5a_spill_over.py    remove_spill_over       the spread of a neighbour's return
      |  _5b_isolated.py      remove_isolated         lone candidates own counts do not show
      |  _5c_dark_regions.py  restore_dark_regions    dim patches, pooled

@@ -37,6 +37,7 @@ from ._4_map import (
     MapOptions,
     map_candidates,
 )
+from ._5_recentre import recentre_runs
 from ._5a_spill_over import SPILL_LLR, remove_spill_over
 from ._5b_isolated import remove_isolated
 from ._5c_dark_regions import restore_dark_regions
@@ -139,7 +140,7 @@ def _give_back() -> None:
 
 #: The clean-up passes :func:`detect` can run, in the order they run (``passes``).
 PASSES = (
-    "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
+    "recentre", "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
     "align_depths",
 )  # fmt: skip
 
@@ -206,9 +207,9 @@ def detect(
         test. The clean-up passes run with ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
-        ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``, ``"enclosed"``,
-        ``"stray_clusters"``, ``"align_depths"``. What each does and its measured gain:
-        ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
+        ``"recentre"``, ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
+        ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``. What each does and its
+        measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
         per tile (Dask task) of whole rows (default: square tiles of that many pixels).
@@ -450,7 +451,7 @@ def _check_resources(passes, block_rows, n_jobs, presence: str) -> dict:
     # the clean-up passes work on the presence test's statistics
     o["checks"] = presence in ("auto", "adaptive")
     # rejected candidates stay in the table for the passes that may restore them
-    o["keep_suspects"] = o["checks"] and bool({"dark_regions", "enclosed"} & set(names))
+    o["keep_suspects"] = o["checks"] and bool({"recentre", "dark_regions", "enclosed"} & set(names))
     o["n_jobs"] = (
         min(os.cpu_count() or 1, 4) if n_jobs is None else check_int(n_jobs, "n_jobs", minimum=1)
     )
@@ -494,6 +495,10 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
         return res.table
 
     half = int(o["scales"].max()) // 2
+    table = run("recentre", lambda t: recentre_runs(
+        t, irf=irf, peak=peak, fwhm=fwhm, pfa=surface_pfa, n_bins=T,
+        llr_level=PRESENCE_LLR, secondary_llr=PRESENCE_SECONDARY,
+        max_kept=o["max_surfaces"]))  # fmt: skip
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
         vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,
@@ -501,7 +506,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
         t, irf=irf, peak=peak, fwhm=fwhm, half=half, pfa=surface_pfa,
-        llr_level=-PRESENCE_LLR))  # fmt: skip
+        llr_level=-PRESENCE_LLR, agreed=True, max_kept=o["max_surfaces"]))  # fmt: skip
     table = table.without("own_counts", "own_background", "line_support")
     done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
     table = run("slopes", lambda t: recover_slope_surfaces(
@@ -522,7 +527,7 @@ def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, aligned, timings) ->
             "map", True, n_map, mp.n_rejected,
             seconds=timings["saliency_and_surfaces"],
         ),
-        *(StageRecord(p.name, p.ran, p.added, p.removed, seconds=p.seconds) for p in done),
+        *(StageRecord(p.name, p.ran, p.added, p.removed, p.moved, p.seconds) for p in done),
         StageRecord("select", True, 0, n_kept - n_surfaces, seconds=max(t_sel, 0.0)),
         StageRecord(
             "align_depths", aligned is not None, 0, 0,

@@ -31,6 +31,7 @@ __all__ = [
 #: ``origin`` / ``Surfaces.stage`` hold indices into this tuple.
 STAGES = (
     "map",  # 4: a candidate of the 3D map that passed the evidence and presence tests
+    "recentre",  # 5: moves a candidate to its 4-neighbours' depth inside its own run
     "spill_over",  # 5a: removes the spread of a neighbour's return
     "isolated",  # 5b: removes candidates that no neighbour shares and own counts do not show
     "dark_regions",  # 5c: restores candidates of dim patches, pooled
@@ -293,7 +294,7 @@ class StageRecord:
         Kept candidates it rejected (``"map"``: the runs of the map dropped by the
         evidence or presence tests; ``"select"``: those beyond ``K_s`` per pixel).
     moved : int
-        Surfaces whose depth it changed (``"align_depths"``).
+        Surfaces (candidates) whose depth it changed (``"recentre"``, ``"align_depths"``).
     seconds : float
     """
 

@@ -111,6 +111,8 @@ class PassResult:
         Time spent in the pass.
     ran : bool
         False when the pass was switched off or had nothing to do.
+    moved : int
+        Candidates whose depth the pass changed (``"recentre"``).
     """
 
     name: str
@@ -119,6 +121,7 @@ class PassResult:
     removed: int
     seconds: float
     ran: bool = True
+    moved: int = 0
 
 
 def skipped(name: str, table: CandidateTable) -> PassResult:
