@@ -401,7 +401,20 @@ def _run_parser(sub, fmt) -> None:
     )
     p.add_argument("input", metavar="INPUT", help="file to process")
     g = p.add_argument_group("input (splidar.load)")
-    g.add_argument("--variable", metavar="NAME", help="variable holding the data")
+    g.add_argument(
+        "--variable",
+        metavar="NAME",
+        help="variable (array) holding the data, e.g. scan/histograms in an HDF5 group "
+        "(default: counts, else the only cell array or 3-D/4-D array; an error lists them)",
+    )
+    g.add_argument(
+        "--time-axis",
+        type=int,
+        metavar="AXIS",
+        help="cubes: axis of the stored array holding the time bins, moved last, e.g. 0 "
+        "for (T, rows, cols) (default -1: (rows, cols[, L], T), with a warning when the "
+        "shape suggests time first)",
+    )
     g.add_argument(
         "--window",
         nargs=2,
@@ -1054,7 +1067,8 @@ def _cmd_run(args) -> int:
         args.quiet,
     )
     load_kw = _given(
-        args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels")
+        args,
+        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
     )
     if args.window is not None:
         load_kw["window"] = tuple(args.window)
@@ -1413,6 +1427,7 @@ _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
     + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
+    + ("time_axis",)
 )
 _NAME_RE = re.compile(
     r"`("

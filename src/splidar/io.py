@@ -41,7 +41,7 @@ from ._containers import (
 from ._files import savez
 from ._memory import check_memory
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
-from .cube import Cube
+from .cube import Cube, as_counts
 from .irf import gaussian_irf
 from .library import SpectralLibrary, load_library
 
@@ -1026,6 +1026,7 @@ def load(
     wavelengths_nm=None,
     library=None,
     channels=None,
+    time_axis: int | None = None,
 ) -> Cube:
     """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
 
@@ -1073,6 +1074,13 @@ def load(
         Overrides the file's spectral library.
     channels : {"wavelengths", "detectors"}, int or sequence of int, optional
         Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
+    time_axis : int, optional
+        Histogram files: the axis of the stored array that holds the time bins, e.g. ``0``
+        for a ``(T, rows, cols)`` array (common in HDF5 files written frame by frame); it
+        is moved last and the other axes keep their order, ``(rows, cols[, L])``.
+        Default: the last axis, with a warning when the array's shape suggests the time
+        axis is first (its first axis longer than twice the others, its last the
+        shortest); pass ``time_axis=-1`` to confirm the default and silence it.
 
     Returns
     -------
@@ -1098,7 +1106,10 @@ def load(
     check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
     p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
-        cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
+        cube = _load_zarr(
+            p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable, variable=variable,
+            time_axis=time_axis,
+        )  # fmt: skip
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
@@ -1122,7 +1133,11 @@ def load(
                 "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
                 "already binned cube (use bin_width_ps= to set its bin width)."
             )
-        counts, meta, from_save = _binned_cube(d, p, name, window, meta)
+        counts, meta, from_save = _binned_cube(d, p, name, window, meta, time_axis)
+        try:  # before any IRF work: a bad cube gets its one message, not IRF warnings first
+            counts = as_counts(counts, name)
+        except SplidarError as exc:
+            raise SplidarError(f"'{p.name}': {exc}") from None
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
         file_irf = d.get("irf")
         wl = d.get("wavelengths_nm")
@@ -1148,9 +1163,34 @@ def load(
     return _override(cube, bin_width_ps, wavelengths_nm, library)
 
 
-def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
-    """The count cube ``(rows, cols, L, T)`` of variable ``name``, cropped to ``window``
-    (a bin range), with its metadata; ``from_save`` when :func:`save` wrote the file."""
+def _time_last(v, name: str, p: Path, time_axis: int | None):
+    """Move the time axis of a stored count array last (``time_axis``); by default keep
+    it last, warning when the shape suggests ``(T, rows, cols)``."""
+    if time_axis is None:
+        s = v.shape
+        if v.ndim == 3 and s[0] > 2 * max(s[1], s[2]) and s[2] <= s[1]:
+            log.warning(
+                "variable '%s' of '%s' has shape %s, read as (rows, cols, T) = %d x %d pixels "
+                "of %d bins. If its first axis holds the time bins, pass time_axis=0 (CLI "
+                "--time-axis 0); time_axis=-1 confirms the time axis is last.",
+                name, p.name, s, *s,
+            )  # fmt: skip
+        return v
+    ax = check_int(time_axis, "time_axis", minimum=-v.ndim)
+    if ax >= v.ndim:
+        raise SplidarError(
+            f"`time_axis` must be an axis of variable '{name}' of '{p.name}', shape {v.shape}: "
+            f"-{v.ndim} to {v.ndim - 1}; got {time_axis}."
+        )
+    if ax % v.ndim != v.ndim - 1:
+        log.info("variable '%s' of '%s': time axis %d moved last", name, p.name, ax)
+    return np.moveaxis(v, ax, -1)
+
+
+def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time_axis=None):
+    """The count cube ``(rows, cols, L, T)`` of variable ``name`` (its ``time_axis``
+    moved last), cropped to ``window`` (a bin range), with its metadata; ``from_save``
+    when :func:`save` wrote the file."""
     v = d[name]
     if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
         raise SplidarError(
@@ -1162,6 +1202,7 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
             f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
             f"(rows, cols, L, T); got shape {v.shape}."
         )
+    v = _time_last(v, name, p, time_axis)
     counts = v if v.ndim == 4 else v[:, :, None, :]
     md0 = _metadata_from(d.get("metadata"))
     from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
@@ -1378,18 +1419,49 @@ def _save_zarr(cube: Cube, p: Path, chunks, meta: str) -> None:
     g.attrs["kind"] = "Cube"
 
 
-def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable) -> Cube:
+def _open_zarr(p: Path, zarr):
+    """A zarr group, or a bare zarr array as a group-like ``{"counts": array}``."""
+    try:
+        return zarr.open_group(str(p), mode="r")
+    except Exception as exc:
+        try:
+            arr = zarr.open_array(str(p), mode="r")
+        except Exception:
+            raise SplidarError(f"cannot open '{p}' as a zarr group: {exc}") from None
+    log.info("'%s' is a single zarr array: read as the counts", p.name)
+    return _BareZarr(arr)
+
+
+class _BareZarr(dict):
+    """A bare zarr array seen as a group holding only ``counts``, without attributes."""
+
+    def __init__(self, arr):
+        super().__init__(counts=arr)
+        self.attrs: dict = {}
+
+    def array_keys(self):
+        return self.keys()
+
+
+def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable, variable=None, time_axis=None) -> Cube:
     zarr = _zarr()
     import dask.array as da
 
-    try:
-        g = zarr.open_group(str(p), mode="r")
-    except Exception as exc:
-        raise SplidarError(f"cannot open '{p}' as a zarr group: {exc}") from None
+    g = _open_zarr(p, zarr)
     names = sorted(g.array_keys())
-    if "counts" not in names:
-        raise SplidarError(f"the zarr group '{p}' has no `counts` array; it holds arrays {names}.")
-    counts = da.from_zarr(g["counts"])
+    name = "counts" if variable is None or isinstance(g, _BareZarr) else variable
+    if name not in names:
+        hint = "; pass the one holding the counts as variable=" if names else ""
+        raise SplidarError(
+            f"the zarr group '{p}' has no `{name}` array; it holds arrays {names}{hint}."
+        )
+    counts = da.from_zarr(g[name])
+    if time_axis is not None and int(time_axis) % max(counts.ndim, 1) != counts.ndim - 1:
+        raise SplidarError(
+            f"`time_axis` {time_axis} is not supported for Zarr input ('{p.name}', shape "
+            f"{counts.shape}): the time axis must be last, each chunk holding whole "
+            "histograms. Rewrite the array time-last (splidar.save(cube, 'x.zarr'))."
+        )
     if counts.ndim == 3:
         counts = counts[:, :, None, :]
     if counts.ndim != 4:

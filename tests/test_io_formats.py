@@ -1,0 +1,130 @@
+"""Files as a lab has them: other axis orders, bare Zarr arrays, bad counts, photon tables.
+
+Each file is written by the format's own library (NumPy, h5py, SciPy, zarr) and read
+back through :func:`splidar.load` or ``splidar run``; a file splidar cannot read must
+stop with one message naming the option that fixes it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from splidar import SplidarError, load
+from splidar.cli import main
+
+
+@pytest.fixture(scope="module")
+def counts():
+    """A small (rows, cols, T) cube: one return per pixel over a weak background."""
+    rng = np.random.default_rng(3)
+    lam = np.full((9, 7, 40), 0.05)
+    for r in range(9):
+        for c in range(7):
+            lam[r, c, 12 + r + c - 2 : 12 + r + c + 3] += [1, 3, 5, 3, 1]
+    return rng.poisson(lam).astype(np.uint16)
+
+
+def _warnings(caplog):
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+# --------------------------------------------------------------------------------------
+# axis order
+# --------------------------------------------------------------------------------------
+def test_load_time_axis_moves_time_last(counts, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    p = tmp_path / "tfirst.h5"
+    with h5py.File(p, "w") as f:
+        f.create_dataset("counts", data=np.moveaxis(counts, -1, 0))  # (T, rows, cols)
+    cube = load(p, time_axis=0, irf_fwhm=3)
+    np.testing.assert_array_equal(cube.counts[:, :, 0, :], counts)
+
+
+def test_load_time_first_shape_warns_and_time_axis_silences(counts, tmp_path, caplog):
+    p = tmp_path / "tfirst.npy"
+    np.save(p, np.moveaxis(counts, -1, 0))  # (40, 9, 7): time first
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        cube = load(p, irf_fwhm=3)
+    assert cube.shape == (40, 9, 1, 7)  # the default reads time last, and says so
+    assert any("--time-axis 0" in m and "(40, 9, 7)" in m for m in _warnings(caplog))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        load(p, irf_fwhm=3, time_axis=-1)  # confirmed: no warning about the axes
+    assert not [m for m in _warnings(caplog) if "time_axis" in m]
+
+
+def test_load_time_last_shape_does_not_warn(counts, tmp_path, caplog):
+    p = tmp_path / "c.npy"
+    np.save(p, counts)
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        load(p, irf_fwhm=3)
+    assert not _warnings(caplog)
+
+
+def test_load_time_axis_out_of_range_names_the_shape(counts, tmp_path):
+    p = tmp_path / "c.npy"
+    np.save(p, counts)
+    with pytest.raises(SplidarError, match=r"`time_axis`.*\(9, 7, 40\).*-3 to 2; got 3"):
+        load(p, time_axis=3, irf_fwhm=3)
+
+
+def test_main_run_time_axis_error_names_the_option(counts, tmp_path, capsys):
+    p = tmp_path / "c.npy"
+    np.save(p, counts)
+    rc = main(["run", str(p), "--time-axis", "5", "--irf-fwhm", "3", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc != 0 and "--time-axis must be an axis" in err and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------------------
+# bad counts: one message, before any IRF estimate
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [
+        (lambda c: np.where(c > 3, np.nan, c.astype(float)), "NaN"),
+        (lambda c: c.astype(np.int64) - 1, "negative"),
+        (lambda c: c * 0.5, "non-integer"),
+    ],
+)
+def test_load_bad_counts_refused_before_irf_estimate(counts, tmp_path, caplog, bad, match):
+    p = tmp_path / "bad.npz"
+    np.savez(p, counts=bad(counts))
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        with pytest.raises(SplidarError, match=rf"'bad.npz': `counts` holds .*{match}"):
+            load(p)
+    assert not _warnings(caplog)  # no IRF estimated from data about to be refused
+
+
+def test_load_integer_valued_float_counts_become_integers(counts, tmp_path):
+    p = tmp_path / "f.npz"
+    np.savez(p, counts=counts.astype(np.float64))
+    cube = load(p, irf_fwhm=3)
+    assert cube.counts.dtype.kind == "u"
+    np.testing.assert_array_equal(cube.counts[:, :, 0, :], counts)
+
+
+# --------------------------------------------------------------------------------------
+# Zarr
+# --------------------------------------------------------------------------------------
+def test_load_zarr_bare_array_reads_counts(counts, tmp_path):
+    zarr = pytest.importorskip("zarr")
+    p = tmp_path / "bare.zarr"
+    z = zarr.open_array(str(p), mode="w", shape=counts.shape, dtype=counts.dtype, chunks=(3, 7, 40))
+    z[...] = counts
+    cube = load(p, irf_fwhm=3)
+    np.testing.assert_array_equal(np.asarray(cube.counts)[:, :, 0, :], counts)
+
+
+def test_load_zarr_variable_selects_array(counts, tmp_path):
+    zarr = pytest.importorskip("zarr")
+    p = tmp_path / "g.zarr"
+    g = zarr.open_group(str(p), mode="w")
+    g.create_array("histograms", data=counts, chunks=(3, 7, 40))
+    with pytest.raises(SplidarError, match=r"no `counts` array.*\['histograms'\].*variable="):
+        load(p, irf_fwhm=3)
+    cube = load(p, variable="histograms", irf_fwhm=3)
+    np.testing.assert_array_equal(np.asarray(cube.counts)[:, :, 0, :], counts)
