@@ -128,3 +128,61 @@ def test_load_zarr_variable_selects_array(counts, tmp_path):
         load(p, irf_fwhm=3)
     cube = load(p, variable="histograms", irf_fwhm=3)
     np.testing.assert_array_equal(np.asarray(cube.counts)[:, :, 0, :], counts)
+
+
+# --------------------------------------------------------------------------------------
+# photon tables: one photon per line (CSV, .npz / HDF5 columns)
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def photons():
+    """(row, col, time in ps, wavelength channel) of photons on a 5 x 4 image."""
+    rng = np.random.default_rng(5)
+    n = 400
+    row, col = rng.integers(0, 5, n), rng.integers(0, 4, n)
+    row[0], col[0] = 4, 3  # the image size comes from the largest indices
+    t = rng.integers(1000, 3000, n)
+    wl = rng.integers(0, 2, n)
+    return row, col, t, wl
+
+
+def test_load_photon_table_csv_with_unit_in_header(photons, tmp_path):
+    row, col, t, _ = photons
+    p = tmp_path / "photons.csv"
+    lines = ["row,col,time_ps"] + [f"{r},{c},{x}" for r, c, x in zip(row, col, t, strict=True)]
+    p.write_text("\n".join(lines) + "\n")
+    cube = load(p, window=(1000, 3000), bin_width=100, irf_fwhm=2)
+    assert cube.shape == (5, 4, 1, 20) and cube.bin_width_ps == 100.0  # ps from the header
+    ref = np.zeros((5, 4, 20), int)
+    np.add.at(ref, (row, col, (t - 1000) // 100), 1)
+    np.testing.assert_array_equal(cube.counts[:, :, 0, :], ref)
+
+
+def test_load_photon_table_wavelength_column_gives_wavelength_axis(photons, tmp_path):
+    row, col, t, wl = photons
+    p = tmp_path / "photons.npz"
+    np.savez(p, x=col, y=row, t_ns=t / 1000.0, wavelength=np.where(wl == 0, 532.0, 1550.0))
+    cube = load(p, window=(1.0, 3.0), bin_width=0.1, irf_fwhm=2)
+    assert cube.shape == (5, 4, 2, 20) and cube.bin_width_ps == pytest.approx(100.0)
+    np.testing.assert_array_equal(cube.wavelengths_nm, [532.0, 1550.0])
+    ref = np.zeros((5, 4, 2, 20), int)
+    np.add.at(ref, (row, col, wl, np.floor((t / 1000.0 - 1.0) / 0.1).astype(int)), 1)
+    np.testing.assert_array_equal(cube.counts, ref)
+
+
+def test_load_photon_table_hdf5_group(photons, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    row, col, t, _ = photons
+    p = tmp_path / "photons.h5"
+    with h5py.File(p, "w") as f:
+        g = f.create_group("scan/photons")
+        g["row"], g["col"], g["timestamp"] = row, col, t
+    cube = load(p, window=(1000, 3000), bin_width=100, irf_fwhm=2)
+    assert cube.shape == (5, 4, 1, 20) and cube.bin_width_ps is None  # unit unknown: bins
+    assert int(cube.counts.sum()) == t.size
+
+
+def test_load_photon_table_without_header_names_the_form(tmp_path):
+    p = tmp_path / "photons.csv"
+    p.write_text("0,1,1200\n1,1,1300\n")
+    with pytest.raises(SplidarError, match=r"no header row.*row,col,time_ps"):
+        load(p)

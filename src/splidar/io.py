@@ -40,6 +40,7 @@ from ._containers import (
 )
 from ._files import savez
 from ._memory import check_memory
+from ._photon_table import find_photon_table, table_as_flat
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube, as_counts
 from .irf import gaussian_irf
@@ -1113,6 +1114,11 @@ def load(
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
+    table = None if flat or variable is not None or "counts" in d else find_photon_table(d)
+    n_wl = 1
+    if table is not None:  # one photon per line: row, col, time[, wavelength] columns
+        d, time_unit, n_wl = table_as_flat(d, p, table, time_unit)
+        flat = True
     name = "times" if flat else _pick_variable(d, p, variable, "data")
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
@@ -1122,6 +1128,9 @@ def load(
         src = f"{p.name}:{name}"
         pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
+        if n_wl > 1:  # a photon table's wavelengths were folded into the columns
+            counts = counts.reshape(counts.shape[0], -1, n_wl, counts.shape[-1])
+            sparse = None
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
         file_irf = d.get("irf")
