@@ -457,7 +457,7 @@ def _read_any(p: Path, channels) -> dict[str, Any]:
     ext = _ext(p)
     if ext == ".npy":
         return {"counts": _read_npy(p)}
-    if ext in (".csv", ".tsv", ".txt"):
+    if ext in (".csv", ".tsv"):
         from ._photon_table import read_table
 
         return read_table(p)
