@@ -186,3 +186,10 @@ def test_load_photon_table_without_header_names_the_form(tmp_path):
     p.write_text("0,1,1200\n1,1,1300\n")
     with pytest.raises(SplidarError, match=r"no header row.*row,col,time_ps"):
         load(p)
+
+
+def test_cli_names_quoted_value_becomes_option_and_value():
+    from splidar.cli import _cli_names
+
+    msg = "pass irf= or irf_fwhm= to override, irf='estimate' for a Gaussian"
+    assert _cli_names(msg) == "pass --irf or --irf-fwhm to override, --irf estimate for a Gaussian"
