@@ -487,8 +487,14 @@ def _simulate_parser(sub, fmt) -> None:
     )
     p.add_argument("scene", metavar="SCENE", choices=SCENES, help=f"one of {', '.join(SCENES)}")
     p.add_argument("-o", "--out", metavar="FILE", required=True, help="cube file (.npz or .zarr)")
-    p.add_argument("--ppp", type=_positive(float), default=10.0, help="signal photons per pixel")
-    p.add_argument("--sbr", type=_positive(float), default=1.0, help="signal-to-background ratio")
+    p.add_argument(
+        "--ppp", type=_positive(float), default=10.0,
+        help="signal photons per pixel, summed over wavelengths (default 10)",
+    )
+    p.add_argument(
+        "--sbr", type=_positive(float), default=1.0,
+        help="signal-to-background ratio: signal / background photons (default 1)",
+    )  # fmt: skip
     p.add_argument(
         "--background",
         choices=("uniform", "decaying", "pileup"),
@@ -504,7 +510,10 @@ def _simulate_parser(sub, fmt) -> None:
         help="image size (default 64 64; not for art)",
     )
     p.add_argument("--bins", type=_positive(int), help="time bins T (default: the scene's)")
-    p.add_argument("--irf-fwhm", type=_positive(float), help="Gaussian IRF FWHM in bins (3)")
+    p.add_argument(
+        "--irf-fwhm", type=_positive(float), metavar="BINS",
+        help="Gaussian IRF FWHM in bins (default 3)",
+    )  # fmt: skip
     p.add_argument("--art-folder", metavar="DIR", help="folder of the Middlebury Art files")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--force", action="store_true", help="replace existing files")
