@@ -488,7 +488,9 @@ def _simulate_parser(sub, fmt) -> None:
     p.add_argument("scene", metavar="SCENE", choices=SCENES, help=f"one of {', '.join(SCENES)}")
     p.add_argument("-o", "--out", metavar="FILE", required=True, help="cube file (.npz or .zarr)")
     p.add_argument(
-        "--ppp", type=_positive(float), default=10.0,
+        "--ppp",
+        type=_positive(float),
+        default=10.0,
         help="signal photons per pixel, summed over wavelengths (default 10)",
     )
     p.add_argument(
