@@ -1,4 +1,5 @@
-"""Files as a lab has them: other axis orders, bare Zarr arrays, bad counts, photon tables.
+"""Files as a lab has them: other axis orders, bare Zarr arrays, bad counts, photon tables,
+degenerate cubes (one pixel, too few bins).
 
 Each file is written by the format's own library (NumPy, h5py, SciPy, zarr) and read
 back through :func:`splidar.load` or ``splidar run``; a file splidar cannot read must
@@ -193,3 +194,23 @@ def test_cli_names_quoted_value_becomes_option_and_value():
 
     msg = "pass irf= or irf_fwhm= to override, irf='estimate' for a Gaussian"
     assert _cli_names(msg) == "pass --irf or --irf-fwhm to override, --irf estimate for a Gaussian"
+
+
+# --------------------------------------------------------------------------------------
+# degenerate but valid inputs through `splidar run`
+# --------------------------------------------------------------------------------------
+def test_main_run_single_pixel_writes_figures(counts, tmp_path):
+    p = tmp_path / "small.npz"
+    np.savez(p, counts=counts[:1, :1])  # contours and axis limits of one pixel
+    out = tmp_path / "o"
+    assert main(["run", str(p), "--irf-fwhm", "2", "--no-view", "--out", str(out), "-q"]) == 0
+    assert (out / "figures" / "detection_slice.png").is_file()
+    assert (out / "figures" / "point_cloud.png").is_file()
+
+
+def test_main_run_too_few_bins_names_the_options(counts, tmp_path, capsys):
+    p = tmp_path / "t2.npz"
+    np.savez(p, counts=counts[:, :, 20:22])
+    rc = main(["run", str(p), "--irf-fwhm", "2", "--out", str(tmp_path / "o"), "-q"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "T = 2 time bin(s)" in err and "--time-axis" in err

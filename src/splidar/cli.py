@@ -973,6 +973,12 @@ def _check_detect_memory(cube, det_kw) -> None:
     """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
     from ._memory import check_detect_memory
 
+    if cube.n_bins < 3:
+        raise SplidarError(
+            f"the data ({cube.n_rows} x {cube.n_cols} pixels) have T = {cube.n_bins} time "
+            "bin(s); detection needs at least 3 (a return and its two sides). Check --window, "
+            "--bin-width and --time-axis (is the time axis last?)"
+        )
     if not cube.is_lazy and not cube.counts.any():
         raise SplidarError(
             f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
