@@ -50,7 +50,7 @@ def test_load_time_first_shape_warns_and_time_axis_silences(counts, tmp_path, ca
     with caplog.at_level(logging.WARNING, logger="splidar.io"):
         cube = load(p, irf_fwhm=3)
     assert cube.shape == (40, 9, 1, 7)  # the default reads time last, and says so
-    assert any("--time-axis 0" in m and "(40, 9, 7)" in m for m in _warnings(caplog))
+    assert any("time_axis=0" in m and "(40, 9, 7)" in m for m in _warnings(caplog))
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="splidar.io"):
         load(p, irf_fwhm=3, time_axis=-1)  # confirmed: no warning about the axes
@@ -192,8 +192,10 @@ def test_load_photon_table_without_header_names_the_form(tmp_path):
 def test_cli_names_quoted_value_becomes_option_and_value():
     from splidar.cli import _cli_names
 
-    msg = "pass irf= or irf_fwhm= to override, irf='estimate' for a Gaussian"
-    assert _cli_names(msg) == "pass --irf or --irf-fwhm to override, --irf estimate for a Gaussian"
+    msg = "pass irf= or irf_fwhm= to override, irf='estimate' for a Gaussian, time_axis=-1 or 0"
+    assert _cli_names(msg) == (
+        "pass --irf or --irf-fwhm to override, --irf estimate for a Gaussian, --time-axis -1 or 0"
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -214,3 +216,19 @@ def test_main_run_too_few_bins_names_the_options(counts, tmp_path, capsys):
     rc = main(["run", str(p), "--irf-fwhm", "2", "--out", str(tmp_path / "o"), "-q"])
     err = capsys.readouterr().err
     assert rc == 1 and "T = 2 time bin(s)" in err and "--time-axis" in err
+
+
+@pytest.mark.parametrize(
+    ("bw", "hint"), [(0.016, "bin_width_ps=16 "), (16e6, "bin_width_ps=16000 ")]
+)
+def test_load_implausible_bin_width_warns_with_the_other_unit(counts, tmp_path, caplog, bw, hint):
+    p = tmp_path / "c.npy"
+    np.save(p, counts)
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        cube = load(p, irf_fwhm=3, bin_width_ps=bw)
+    assert cube.bin_width_ps == bw  # used as given, with a warning
+    assert any(hint in m for m in _warnings(caplog))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        load(p, irf_fwhm=3, bin_width_ps=16)
+    assert not _warnings(caplog)

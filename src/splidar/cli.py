@@ -1455,13 +1455,17 @@ _NAME_RE = re.compile(
 )
 
 
-_QUOTED_RE = re.compile(r"\b(" + "|".join(_API_OPTIONS + ("irf", "library")) + r")='([^'\s]*)'")
+_QUOTED_RE = re.compile(
+    r"\b(" + "|".join(_API_OPTIONS + ("irf", "library")) + r")=(?:'([^'\s]*)'|(-?\d[\d.e+-]*))"
+)
 
 
 def _cli_names(msg: str) -> str:
     """Spell the API's parameter names as the command line's options (``irf='estimate'``
-    as ``--irf estimate``)."""
-    msg = _QUOTED_RE.sub(lambda m: f"--{m.group(1).replace('_', '-')} {m.group(2)}", msg)
+    as ``--irf estimate``, ``time_axis=0`` as ``--time-axis 0``)."""
+    msg = _QUOTED_RE.sub(
+        lambda m: f"--{m.group(1).replace('_', '-')} {m.group(2) or m.group(3)}", msg
+    )
     return _NAME_RE.sub(lambda m: "--" + (m.group(1) or m.group(2)).replace("_", "-"), msg)
 
 

@@ -1180,8 +1180,8 @@ def _time_last(v, name: str, p: Path, time_axis: int | None):
         if v.ndim == 3 and s[0] > 2 * max(s[1], s[2]) and s[2] <= s[1]:
             log.warning(
                 "variable '%s' of '%s' has shape %s, read as (rows, cols, T) = %d x %d pixels "
-                "of %d bins. If its first axis holds the time bins, pass time_axis=0 (CLI "
-                "--time-axis 0); time_axis=-1 confirms the time axis is last.",
+                "of %d bins. If its first axis holds the time bins, pass time_axis=0; "
+                "time_axis=-1 confirms the time axis is last.",
                 name, p.name, s, *s,
             )  # fmt: skip
         return v
@@ -1228,7 +1228,26 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time
     return counts, meta, from_save
 
 
+def _check_bin_width_unit(bin_width_ps) -> None:
+    """Warn about a bin width no TCSPC system has: most likely given in another unit."""
+    if bin_width_ps is None or not np.isfinite(bw := float(bin_width_ps)) or bw <= 0:
+        return
+    if bw < 0.5:
+        log.warning(
+            "bin width %g ps is below any TCSPC resolution (1 ps and up): if it is in "
+            "nanoseconds, pass bin_width_ps=%g (picoseconds)",
+            bw, bw * 1e3,
+        )  # fmt: skip
+    elif bw > 1e6:
+        log.warning(
+            "bin width %g ps is %g us (%.0f m of range per bin): if it is in femtoseconds, "
+            "pass bin_width_ps=%g (picoseconds)",
+            bw, bw * 1e-6, bw * 1e-12 * 299_792_458.0 / 2, bw * 1e-3,
+        )  # fmt: skip
+
+
 def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
+    _check_bin_width_unit(cube.bin_width_ps if bin_width_ps is None else bin_width_ps)
     if bin_width_ps is None and wavelengths_nm is None and library is None:
         return cube
     return Cube(
