@@ -232,3 +232,32 @@ def test_load_implausible_bin_width_warns_with_the_other_unit(counts, tmp_path, 
     with caplog.at_level(logging.WARNING, logger="splidar.io"):
         load(p, irf_fwhm=3, bin_width_ps=16)
     assert not _warnings(caplog)
+
+
+# --------------------------------------------------------------------------------------
+# splidar info
+# --------------------------------------------------------------------------------------
+def test_main_info_lists_variables_and_reading(counts, tmp_path, capsys):
+    h5py = pytest.importorskip("h5py")
+    p = tmp_path / "scan.h5"
+    with h5py.File(p, "w") as f:
+        f.create_dataset("measurement/histograms", data=np.moveaxis(counts, -1, 0))
+    args = ["info", str(p), "--variable", "measurement/histograms", "--time-axis", "0"]
+    assert main([*args, "--irf-fwhm", "3", "--bin-width-ps", "16"]) == 0
+    out = capsys.readouterr().out
+    assert "measurement/histograms: (40, 9, 7) uint16" in out
+    assert "read as: 9 x 7 pixels, 1 wavelength(s), 40 time bins" in out
+    assert f"photons: {int(counts.sum())}" in out and "16 ps" in out
+    assert not (tmp_path / "scan-splidar").exists()  # nothing written
+
+
+def test_main_info_json_is_the_only_stdout(photons, tmp_path, capsys):
+    import json
+
+    row, col, t, _ = photons
+    p = tmp_path / "photons.npz"
+    np.savez(p, row=row, col=col, time_ps=t)
+    assert main(["info", str(p), "--irf-fwhm", "2", "--bin-width", "100", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["shape"][:3] == [5, 4, 1] and s["bin_width_ps"] == 100.0
+    assert s["variables"]["time_ps"] == "(400,) int64" and s["photons"] == t.size

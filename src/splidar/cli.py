@@ -177,6 +177,7 @@ examples:
   splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
   splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
   splidar view scene-splidar
+  splidar info scan.h5 --time-axis 0
 
 Run 'splidar COMMAND --help' for the options of a command.
 """
@@ -360,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_parser(sub, fmt)
     _evaluate_parser(sub, fmt)
     _view_parser(sub, fmt)
+    _info_parser(sub, fmt)
     return parser
 
 
@@ -400,6 +402,16 @@ def _run_parser(sub, fmt) -> None:
         formatter_class=fmt,
     )
     p.add_argument("input", metavar="INPUT", help="file to process")
+    _input_options(p)
+    _out_options(p, "INPUT-STEM-splidar beside the input")
+    _pipeline_options(p)
+    _cluster_options(p)
+    _common(p, top=False)
+    _json_flag(p)
+
+
+def _input_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``splidar.load`` (``run`` and ``info``)."""
     g = p.add_argument_group("input (splidar.load)")
     g.add_argument(
         "--variable",
@@ -465,9 +477,24 @@ def _run_parser(sub, fmt) -> None:
         "the default), 'detectors' (channels summed into one wavelength) or channel "
         "numbers 0,2,..",
     )
-    _out_options(p, "INPUT-STEM-splidar beside the input")
-    _pipeline_options(p)
-    _cluster_options(p)
+
+
+def _info_parser(sub, fmt) -> None:
+    """``splidar info``: what a file holds and how splidar reads it."""
+    p = sub.add_parser(
+        "info",
+        help="what a file holds and how splidar reads it (no processing)",
+        description="List the variables of a data file (name, shape, type) and read it as "
+        "'splidar run' would with the same input options: the cube's pixels, wavelengths, "
+        "time bins, bin width, window, photons and the IRF it would use. Nothing is written.",
+        epilog="examples:\n"
+        "  splidar info scan.h5\n"
+        "  splidar info scan.h5 --variable measurement/histograms --time-axis 0\n"
+        "  splidar info photons.csv --window 4000 7000 --bin-width 16\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("input", metavar="INPUT", help="file to inspect")
+    _input_options(p)
     _common(p, top=False)
     _json_flag(p)
 
@@ -1083,16 +1110,7 @@ def _cmd_run(args) -> int:
         + ([] if args.no_figures else ["drawing figures"]),
         args.quiet,
     )
-    load_kw = _given(
-        args,
-        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
-    )
-    if args.window is not None:
-        load_kw["window"] = tuple(args.window)
-    if args.irf is not None:
-        load_kw["irf"] = args.irf
-    if args.library is not None:
-        load_kw["library"] = args.library
+    load_kw = _load_kwargs(args)
     try:
         with stages.stage("loading"):
             cube = load(inp, **load_kw)
@@ -1382,6 +1400,100 @@ def _write_view(rec, folder: Path, args) -> str:
     return "view.html"
 
 
+def _load_kwargs(args) -> dict[str, Any]:
+    """``splidar.load``'s keyword arguments from the input options."""
+    load_kw = _given(
+        args,
+        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
+    )
+    if args.window is not None:
+        load_kw["window"] = tuple(args.window)
+    if args.irf is not None:
+        load_kw["irf"] = args.irf
+    if args.library is not None:
+        load_kw["library"] = args.library
+    return load_kw
+
+
+def _file_variables(path: Path) -> dict[str, str]:
+    """Name -> 'shape dtype' of every variable of a data file (Zarr: its arrays)."""
+    import numpy as np
+
+    from ._containers import _ext, _read_any
+
+    if _ext(path) == ".zarr" or path.is_dir():
+        import zarr
+
+        try:
+            g = zarr.open_group(str(path), mode="r")
+        except Exception:
+            a = zarr.open_array(str(path), mode="r")
+            return {"(array)": f"{a.shape} {a.dtype}"}
+        return {k: f"{g[k].shape} {g[k].dtype}" for k in sorted(g.array_keys())}
+    out = {}
+    for k, v in _read_any(path, None).items():
+        if isinstance(v, np.ndarray):
+            kind = "cell/object" if v.dtype == object else str(v.dtype)
+            out[k] = f"{v.shape} {kind}"
+        else:
+            out[k] = type(v).__name__
+    return out
+
+
+def _cmd_info(args) -> int:
+    import numpy as np
+
+    from .io import load
+
+    inp = Path(args.input)
+    if not inp.exists():
+        raise UsageError(f"no such file: '{inp}'")
+    variables = _file_variables(inp)
+    cube = load(inp, **_load_kwargs(args))
+    md = cube.metadata
+    bw = cube.bin_width_ps
+    info: dict[str, Any] = {
+        "command": "info",
+        "input": str(inp),
+        "variables": variables,
+        "read_as": md.get("variable"),
+        "shape": list(cube.shape),
+        "dtype": str(cube.counts.dtype),
+        "bin_width_ps": bw,
+        "window": md.get("window"),
+        "time_unit": md.get("time_unit"),
+        "irf_samples": int(cube.irf.shape[1]),
+        "irf_source": md.get("irf_source", "file"),
+        "wavelengths_nm": None if cube.wavelengths_nm is None else list(cube.wavelengths_nm),
+        "classes": None if cube.library is None else list(cube.library.class_names),
+    }
+    lines = [f"{inp}: holds"] + [f"  {k}: {v}" for k, v in variables.items()]
+    r, c, n_wl, t = cube.shape
+    if "photon_lists" in md:
+        src = f", binned from the photons of {md['photon_lists']}"
+        info["read_as"] = md["photon_lists"]
+    else:
+        src = f", from '{md['variable']}'" if "variable" in md else ""
+    lines.append(
+        f"read as: {r} x {c} pixels, {n_wl} wavelength(s), {t} time bins (rows, cols, L, T), "
+        f"{cube.counts.dtype} counts{src}"
+    )
+    if not cube.is_lazy:
+        n = int(cube.counts.sum(dtype=np.int64))
+        info["photons"] = n
+        lines.append(f"photons: {n} ({n / (r * c):.3g} per pixel)")
+    if bw is None:
+        lines.append("bin width: unknown (depths in bins; set --bin-width-ps or --time-unit)")
+    else:
+        lines.append(f"bin width: {bw:g} ps = {bw * 1e-12 * 299_792_458.0 / 2:.4g} m of range")
+    if md.get("window") is not None:
+        lines.append(f"window: {md['window']} ({md.get('time_unit', 'bin')})")
+    lines.append(f"IRF: {cube.irf.shape[1]} samples, {info['irf_source']}")
+    args.json_summary = info
+    _say(args, *lines)
+    return EXIT_OK
+
+
 def _cmd_view(args) -> int:
     from .view import is_view_file, load_view_input, write_view
 
@@ -1435,6 +1547,7 @@ _COMMANDS = {
     "simulate": _cmd_simulate,
     "evaluate": _cmd_evaluate,
     "view": _cmd_view,
+    "info": _cmd_info,
 }
 
 
@@ -1530,7 +1643,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_FAILURE
 
 
-_JSON_COMMANDS = ("demo", "run", "simulate", "view")
+_JSON_COMMANDS = ("demo", "run", "simulate", "view", "info")
 
 
 @contextmanager
