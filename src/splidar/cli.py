@@ -177,7 +177,7 @@ examples:
   splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
   splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
   splidar view scene-splidar
-  splidar info scan.h5 --time-axis 0
+  splidar info scan.h5 --variable measurement/histograms --time-axis 0
 
 Run 'splidar COMMAND --help' for the options of a command.
 """
