@@ -1076,12 +1076,9 @@ def load(
     channels : {"wavelengths", "detectors"}, int or sequence of int, optional
         Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
     time_axis : int, optional
-        Histogram files: the axis of the stored array that holds the time bins, e.g. ``0``
-        for a ``(T, rows, cols)`` array (common in HDF5 files written frame by frame); it
-        is moved last and the other axes keep their order, ``(rows, cols[, L])``.
-        Default: the last axis, with a warning when the array's shape suggests the time
-        axis is first (its first axis longer than twice the others, its last the
-        shortest); pass ``time_axis=-1`` to confirm the default and silence it.
+        Histogram files: the stored array's time axis (``0`` for ``(T, rows, cols)``),
+        moved last. Default: the last, with a warning when the shape suggests time first
+        (first axis over twice the others, last the shortest); ``-1`` silences it.
 
     Returns
     -------
@@ -1114,11 +1111,7 @@ def load(
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
-    table = None if flat or variable is not None or "counts" in d else find_photon_table(d)
-    n_wl = 1
-    if table is not None:  # one photon per line: row, col, time[, wavelength] columns
-        d, time_unit, n_wl = table_as_flat(d, p, table, time_unit)
-        flat = True
+    d, time_unit, n_wl, flat = _photon_table(d, p, time_unit, flat, variable)
     name = "times" if flat else _pick_variable(d, p, variable, "data")
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
@@ -1143,10 +1136,6 @@ def load(
                 "already binned cube (use bin_width_ps= to set its bin width)."
             )
         counts, meta, from_save = _binned_cube(d, p, name, window, meta, time_axis)
-        try:  # before any IRF work: a bad cube gets its one message, not IRF warnings first
-            counts = as_counts(counts, name)
-        except SplidarError as exc:
-            raise SplidarError(f"'{p.name}': {exc}") from None
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
         file_irf = d.get("irf")
         wl = d.get("wavelengths_nm")
@@ -1196,6 +1185,16 @@ def _time_last(v, name: str, p: Path, time_axis: int | None):
     return np.moveaxis(v, ax, -1)
 
 
+def _photon_table(d: dict[str, Any], p: Path, time_unit: str, flat: bool, variable):
+    """A photon table (one photon per line: row, col, time[, wavelength] columns) as flat
+    photon lists: (d, time unit, wavelengths folded into the columns, flat)."""
+    table = None if flat or variable is not None or "counts" in d else find_photon_table(d)
+    if table is None:
+        return d, time_unit, 1, flat
+    d, time_unit, n_wl = table_as_flat(d, p, table, time_unit)
+    return d, time_unit, n_wl, True
+
+
 def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time_axis=None):
     """The count cube ``(rows, cols, L, T)`` of variable ``name`` (its ``time_axis``
     moved last), cropped to ``window`` (a bin range), with its metadata; ``from_save``
@@ -1225,6 +1224,10 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time
         meta["window"] = [int(start), int(stop)]
         if counts.shape[-1] == 0:
             raise SplidarError(f"`window` {window} selects no bins of T = {v.shape[-1]}.")
+    try:  # before any IRF work: a bad cube gets its one message, not IRF warnings first
+        counts = as_counts(counts, name)
+    except SplidarError as exc:
+        raise SplidarError(f"'{p.name}': {exc}") from None
     return counts, meta, from_save
 
 
