@@ -261,3 +261,15 @@ def test_main_info_json_is_the_only_stdout(photons, tmp_path, capsys):
     s = json.loads(capsys.readouterr().out)
     assert s["shape"][:3] == [5, 4, 1] and s["bin_width_ps"] == 100.0
     assert s["variables"]["time_ps"] == "(400,) int64" and s["photons"] == t.size
+
+
+def test_load_hdf5_group_irf_beside_the_counts_is_used(counts, tmp_path):
+    h5py = pytest.importorskip("h5py")
+    p = tmp_path / "nested.h5"
+    irf = np.array([1.0, 3.0, 5.0, 3.0, 1.0])
+    with h5py.File(p, "w") as f:
+        f["scan/histograms"], f["scan/irf"], f["scan/bin_width_ps"] = counts, irf, 16.0
+    cube = load(p, variable="scan/histograms")
+    np.testing.assert_allclose(cube.irf[0], irf / irf.sum())  # the group's IRF, not estimated
+    assert cube.bin_width_ps == 16.0 and "irf_source" in cube.metadata
+    assert cube.metadata["irf_source"] == "file"

@@ -1113,6 +1113,7 @@ def load(
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
     d, time_unit, n_wl, flat = _photon_table(d, p, time_unit, flat, variable)
     name = "times" if flat else _pick_variable(d, p, variable, "data")
+    d = _group_siblings(d, p, name)
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
     sparse = None
@@ -1183,6 +1184,21 @@ def _time_last(v, name: str, p: Path, time_axis: int | None):
     if ax % v.ndim != v.ndim - 1:
         log.info("variable '%s' of '%s': time axis %d moved last", name, p.name, ax)
     return np.moveaxis(v, ax, -1)
+
+
+#: variables that describe the counts; in an HDF5 file, looked up beside them in their group
+_SIBLINGS = ("irf", "bin_width_ps", "wavelengths_nm", "library", "class_names", "metadata")
+
+
+def _group_siblings(d: dict[str, Any], p: Path, name: str) -> dict[str, Any]:
+    """``d`` with the ``irf``, ``bin_width_ps``, ... of the counts' own HDF5 group (e.g.
+    ``scan/irf`` beside ``scan/histograms``) as top-level names, where those are absent."""
+    group = name.rpartition("/")[0]
+    found = {k: d[f"{group}/{k}"] for k in _SIBLINGS if k not in d and f"{group}/{k}" in d}
+    if not group or not found:
+        return d
+    log.info("'%s': using %s of group '%s'", p.name, ", ".join(found), group)
+    return {**d, **found}
 
 
 def _photon_table(d: dict[str, Any], p: Path, time_unit: str, flat: bool, variable):
