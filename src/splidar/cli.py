@@ -391,8 +391,10 @@ def _run_parser(sub, fmt) -> None:
         "run",
         help="detect and reconstruct the surfaces of a file",
         description="Process a cube file (.npz, .npy, .mat, .h5, .zarr), a PicoQuant T3 "
-        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]) or photon "
-        "lists (a MATLAB cell array of arrival times) and write points.csv, points.ply, "
+        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]), photon "
+        "lists (a MATLAB cell array of arrival times) or a photon table (one photon per "
+        "line: row, col, time[, wavelength] columns of a .csv, .npz or .h5) and write "
+        "points.csv, points.ply, "
         "points.las (with splidar[las]), result.npz, summary.json and figures/ into the "
         "output folder.",
         epilog="examples:\n"
@@ -417,7 +419,8 @@ def _input_options(p: argparse.ArgumentParser) -> None:
         "--variable",
         metavar="NAME",
         help="variable (array) holding the data, e.g. scan/histograms in an HDF5 group "
-        "(default: counts, else the only cell array or 3-D/4-D array; an error lists them)",
+        "(default: counts, else the only cell array of photon times or the row, col, time "
+        "columns of a photon table; otherwise an error lists the file's variables)",
     )
     g.add_argument(
         "--time-axis",
