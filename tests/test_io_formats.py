@@ -273,3 +273,13 @@ def test_load_hdf5_group_irf_beside_the_counts_is_used(counts, tmp_path):
     np.testing.assert_allclose(cube.irf[0], irf / irf.sum())  # the group's IRF, not estimated
     assert cube.bin_width_ps == 16.0 and "irf_source" in cube.metadata
     assert cube.metadata["irf_source"] == "file"
+
+
+def test_main_info_bin_width_m_is_the_round_trip_time(counts, tmp_path, capsys):
+    import json
+
+    p = tmp_path / "c.npy"
+    np.save(p, counts)
+    assert main(["info", str(p), "--irf-fwhm", "3", "--bin-width-m", "0.0024", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["bin_width_ps"] == pytest.approx(16.011077, rel=1e-6)  # 2 x 2.4 mm / c

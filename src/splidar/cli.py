@@ -448,8 +448,19 @@ def _input_options(p: argparse.ArgumentParser) -> None:
         choices=("bin", "fs", "ps", "ns", "us", "ms", "s"),
         help="photon lists: unit of the arrival times (default bin)",
     )
-    g.add_argument(
-        "--bin-width-ps", type=_positive(float), metavar="PS", help="bin width in picoseconds"
+    bw = g.add_mutually_exclusive_group()
+    bw.add_argument(
+        "--bin-width-ps",
+        type=_positive(float),
+        metavar="PS",
+        help="duration of one time bin of the cube in picoseconds (sets depths in metres)",
+    )
+    bw.add_argument(
+        "--bin-width-m",
+        type=_positive(float),
+        metavar="M",
+        help="the same as a range bin in metres (light travels there and back: "
+        "1 ps = 0.15 mm; --bin-width-m 0.0024 is --bin-width-ps 16.01)",
     )
     irf = g.add_mutually_exclusive_group()
     irf.add_argument(
@@ -1409,6 +1420,8 @@ def _load_kwargs(args) -> dict[str, Any]:
         args,
         ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
     )
+    if getattr(args, "bin_width_m", None) is not None:  # range bin -> round-trip time
+        load_kw["bin_width_ps"] = args.bin_width_m * 2.0 / 299_792_458.0 * 1e12
     if args.window is not None:
         load_kw["window"] = tuple(args.window)
     if args.irf is not None:
