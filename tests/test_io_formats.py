@@ -283,3 +283,18 @@ def test_main_info_bin_width_m_is_the_round_trip_time(counts, tmp_path, capsys):
     assert main(["info", str(p), "--irf-fwhm", "3", "--bin-width-m", "0.0024", "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["bin_width_ps"] == pytest.approx(16.011077, rel=1e-6)  # 2 x 2.4 mm / c
+
+
+def test_load_photon_table_semicolons_read(tmp_path):
+    p = tmp_path / "photons.csv"
+    p.write_text("Row;Col;Time (ns)\n0;1;1.0\n1;0;1.5\n1;1;2.5\n")
+    cube = load(p, window=(1.0, 3.0), bin_width=0.5, irf_fwhm=1)
+    assert cube.shape == (2, 2, 1, 4) and cube.bin_width_ps == 500.0
+    assert cube.counts[0, 1, 0, 0] == cube.counts[1, 0, 0, 1] == cube.counts[1, 1, 0, 3] == 1
+
+
+def test_load_table_without_known_columns_names_the_table_form(tmp_path):
+    p = tmp_path / "other.csv"
+    p.write_text("a,b,c\n0,1,2\n")
+    with pytest.raises(SplidarError, match=r"photon table: 1-D columns named row, col and time"):
+        load(p)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -147,10 +148,11 @@ def table_as_flat(d: dict[str, Any], p: Path, table: PhotonTable, time_unit: str
 
 
 def read_table(p: Path) -> dict[str, np.ndarray]:
-    """The columns of a delimited text file with a header row (``,``, tab or spaces)."""
+    """The columns of a delimited text file with a header row (``,``, tab, ``;`` or
+    spaces)."""
     with open(p, encoding="utf-8", errors="replace") as fp:
         header = fp.readline().strip()
-    delim = "," if "," in header else ("\t" if "\t" in header else None)
+    delim = next((c for c in (",", "\t", ";") if c in header), None)  # else whitespace
     names = [h.strip().strip('"').strip("'") for h in header.split(delim)]
     if not names or all(_is_number(h) for h in names):
         raise SplidarError(
@@ -158,7 +160,9 @@ def read_table(p: Path) -> dict[str, np.ndarray]:
             f"with one, e.g. `{EXAMPLE}` (one photon per line)."
         )
     try:
-        a = np.loadtxt(p, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64)
+        with warnings.catch_warnings():  # "input contained no data": an empty table is fine
+            warnings.simplefilter("ignore", UserWarning)
+            a = np.loadtxt(p, delimiter=delim, skiprows=1, ndmin=2, dtype=np.float64)
     except ValueError as exc:
         raise SplidarError(f"cannot read '{p.name}' as a numeric table: {exc}") from None
     if a.size and a.shape[1] != len(names):

@@ -212,7 +212,8 @@ def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) 
     if not cands:
         raise SplidarError(
             f"'{p.name}' holds no {what} variable; it holds: {_summary(d)}. A histogram file "
-            "needs `counts` (rows, cols[, L], T); a photon-list file a rows x cols cell array."
+            "needs `counts` (rows, cols[, L], T); a photon-list file a rows x cols cell array "
+            "or a photon table: 1-D columns named row, col and time (e.g. row,col,time_ps)."
         )
     raise SplidarError(
         f"'{p.name}' holds several {what} variables ({', '.join(cands)}); it holds: "
