@@ -1122,10 +1122,7 @@ def load(
     if flat or _is_cell_of_numbers(v):
         src = f"{p.name}:{name}"
         pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
-        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
-        if n_wl > 1:  # a photon table's wavelengths were folded into the columns
-            counts = counts.reshape(counts.shape[0], -1, n_wl, counts.shape[-1])
-            sparse = None
+        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit, n_wl)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
         file_irf = d.get("irf")
@@ -1319,7 +1316,9 @@ def _check_times(pl: PhotonLists) -> None:
         )
 
 
-def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
+def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1):
+    """Bin photon lists: (counts, metadata, sparse voxels). ``n_wl`` > 1: a photon table's
+    wavelengths folded into the columns (``cols x n_wl``), unfolded here."""
     bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
     _check_times(pl)
     if pl.n_photons == 0 and window is None:
@@ -1362,6 +1361,8 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     }
     if factor is not None:
         md["bin_width_ps"] = bw * factor
+    if n_wl > 1:  # the voxels' flat index is of the folded layout: no sparse form
+        return counts.reshape(rows, -1, n_wl, n_bins), md, None
     return counts, md, (uniq, cnt)
 
 
