@@ -81,6 +81,12 @@ def _truncate(p: Path, keep: float = 0.5) -> Path:
     return p
 
 
+def _text(d: Path, name: str, text: str) -> Path:
+    p = d / name
+    p.write_text(text)
+    return p
+
+
 def _garbage(d: Path, name: str) -> Path:
     p = d / name
     p.write_bytes(np.random.default_rng(1).integers(0, 256, 4000, dtype=np.uint8).tobytes())
@@ -353,6 +359,31 @@ CASES = [
         ".zarr with a damaged chunk",
         lambda d: [str(_zarr_bad_chunk(d))],
         r"cannot read the counts of .*a chunk is damaged or missing",
+    ),
+    # ---- photon tables and axes (ux22) -----------------------------------------------
+    C(
+        "table-no-header",
+        "photon table (.csv) without a header row",
+        lambda d: [str(_text(d, "photons.csv", "0,1,1200\n1,1,1300\n"))],
+        r"no header row naming its columns.*row,col,time_ps",
+    ),
+    C(
+        "table-fractional-row",
+        "photon table with a fractional pixel row",
+        lambda d: [str(_text(d, "photons.csv", "row,col,time_ps\n0.5,1,1200\n1,1,1300\n"))],
+        r"column 'row' \(pixel row\) must hold whole numbers",
+    ),
+    C(
+        "time-axis-out-of-range",
+        "--time-axis beyond the array's axes",
+        lambda d: [str(_npz(d, counts=_counts(), irf=IRF)), "--time-axis", "3"],
+        r"--time-axis must be an axis of variable 'counts'.*-3 to 2; got 3",
+    ),
+    C(
+        "too-few-bins",
+        "a cube of 2 time bins",
+        lambda d: [str(_npz(d, counts=_counts()[..., 9:11], irf=IRF))],
+        r"T = 2 time bin\(s\); detection needs at least 3",
     ),
     # ---- counts --------------------------------------------------------------------
     C(

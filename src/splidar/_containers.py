@@ -406,7 +406,8 @@ def _read_container(p: Path) -> dict[str, Any]:
         )
     raise SplidarError(
         f"unknown file extension '{p.suffix}' for '{p}'; splidar reads "
-        f"{', '.join(_CONTAINER_EXTS)}, .npy, .ptu, .sdt and .zarr directories."
+        f"{', '.join(_CONTAINER_EXTS)}, .npy, .ptu, .sdt, .zarr directories and photon "
+        "tables (.csv: row,col,time_ps[,wavelength])."
     )
 
 
@@ -456,6 +457,10 @@ def _read_any(p: Path, channels) -> dict[str, Any]:
     ext = _ext(p)
     if ext == ".npy":
         return {"counts": _read_npy(p)}
+    if ext in (".csv", ".tsv"):
+        from ._photon_table import read_table
+
+        return read_table(p)
     if ext in VENDOR_SUFFIXES:
         from .vendor import read_vendor
 

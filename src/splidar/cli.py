@@ -177,6 +177,7 @@ examples:
   splidar simulate multispectral-two-layer --ppp 10 --sbr 1 --out scene.npz
   splidar evaluate scene-splidar/result.npz scene-truth.npz --tau 2
   splidar view scene-splidar
+  splidar info scan.h5 --variable measurement/histograms --time-axis 0
 
 Run 'splidar COMMAND --help' for the options of a command.
 """
@@ -360,6 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_parser(sub, fmt)
     _evaluate_parser(sub, fmt)
     _view_parser(sub, fmt)
+    _info_parser(sub, fmt)
     return parser
 
 
@@ -389,8 +391,10 @@ def _run_parser(sub, fmt) -> None:
         "run",
         help="detect and reconstruct the surfaces of a file",
         description="Process a cube file (.npz, .npy, .mat, .h5, .zarr), a PicoQuant T3 "
-        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]) or photon "
-        "lists (a MATLAB cell array of arrival times) and write points.csv, points.ply, "
+        ".ptu or Becker & Hickl .sdt file (extras splidar[ptu], splidar[sdt]), photon "
+        "lists (a MATLAB cell array of arrival times) or a photon table (one photon per "
+        "line: row, col, time[, wavelength] columns of a .csv, .npz or .h5) and write "
+        "points.csv, points.ply, "
         "points.las (with splidar[las]), result.npz, summary.json and figures/ into the "
         "output folder.",
         epilog="examples:\n"
@@ -400,8 +404,32 @@ def _run_parser(sub, fmt) -> None:
         formatter_class=fmt,
     )
     p.add_argument("input", metavar="INPUT", help="file to process")
+    _input_options(p)
+    _out_options(p, "INPUT-STEM-splidar beside the input")
+    _pipeline_options(p)
+    _cluster_options(p)
+    _common(p, top=False)
+    _json_flag(p)
+
+
+def _input_options(p: argparse.ArgumentParser) -> None:
+    """The options of ``splidar.load`` (``run`` and ``info``)."""
     g = p.add_argument_group("input (splidar.load)")
-    g.add_argument("--variable", metavar="NAME", help="variable holding the data")
+    g.add_argument(
+        "--variable",
+        metavar="NAME",
+        help="variable (array) holding the data, e.g. scan/histograms in an HDF5 group "
+        "(default: counts, else the only cell array of photon times or the row, col, time "
+        "columns of a photon table; otherwise an error lists the file's variables)",
+    )
+    g.add_argument(
+        "--time-axis",
+        type=int,
+        metavar="AXIS",
+        help="cubes: axis of the stored array holding the time bins, moved last, e.g. 0 "
+        "for (T, rows, cols) (default -1: (rows, cols[, L], T), with a warning when the "
+        "shape suggests time first)",
+    )
     g.add_argument(
         "--window",
         nargs=2,
@@ -420,8 +448,19 @@ def _run_parser(sub, fmt) -> None:
         choices=("bin", "fs", "ps", "ns", "us", "ms", "s"),
         help="photon lists: unit of the arrival times (default bin)",
     )
-    g.add_argument(
-        "--bin-width-ps", type=_positive(float), metavar="PS", help="bin width in picoseconds"
+    bw = g.add_mutually_exclusive_group()
+    bw.add_argument(
+        "--bin-width-ps",
+        type=_positive(float),
+        metavar="PS",
+        help="duration of one time bin of the cube in picoseconds (sets depths in metres)",
+    )
+    bw.add_argument(
+        "--bin-width-m",
+        type=_positive(float),
+        metavar="M",
+        help="the same as a range bin in metres (light travels there and back: "
+        "1 ps = 0.15 mm; --bin-width-m 0.0024 is --bin-width-ps 16.01)",
     )
     irf = g.add_mutually_exclusive_group()
     irf.add_argument(
@@ -452,9 +491,24 @@ def _run_parser(sub, fmt) -> None:
         "the default), 'detectors' (channels summed into one wavelength) or channel "
         "numbers 0,2,..",
     )
-    _out_options(p, "INPUT-STEM-splidar beside the input")
-    _pipeline_options(p)
-    _cluster_options(p)
+
+
+def _info_parser(sub, fmt) -> None:
+    """``splidar info``: what a file holds and how splidar reads it."""
+    p = sub.add_parser(
+        "info",
+        help="what a file holds and how splidar reads it (no processing)",
+        description="List the variables of a data file (name, shape, type) and read it as "
+        "'splidar run' would with the same input options: the cube's pixels, wavelengths, "
+        "time bins, bin width, window, photons and the IRF it would use. Nothing is written.",
+        epilog="examples:\n"
+        "  splidar info scan.h5\n"
+        "  splidar info scan.h5 --variable measurement/histograms --time-axis 0\n"
+        "  splidar info photons.csv --window 4000 7000 --bin-width 16\n",
+        formatter_class=fmt,
+    )
+    p.add_argument("input", metavar="INPUT", help="file to inspect")
+    _input_options(p)
     _common(p, top=False)
     _json_flag(p)
 
@@ -474,8 +528,16 @@ def _simulate_parser(sub, fmt) -> None:
     )
     p.add_argument("scene", metavar="SCENE", choices=SCENES, help=f"one of {', '.join(SCENES)}")
     p.add_argument("-o", "--out", metavar="FILE", required=True, help="cube file (.npz or .zarr)")
-    p.add_argument("--ppp", type=_positive(float), default=10.0, help="signal photons per pixel")
-    p.add_argument("--sbr", type=_positive(float), default=1.0, help="signal-to-background ratio")
+    p.add_argument(
+        "--ppp",
+        type=_positive(float),
+        default=10.0,
+        help="signal photons per pixel, summed over wavelengths (default 10)",
+    )
+    p.add_argument(
+        "--sbr", type=_positive(float), default=1.0,
+        help="signal-to-background ratio: signal / background photons (default 1)",
+    )  # fmt: skip
     p.add_argument(
         "--background",
         choices=("uniform", "decaying", "pileup"),
@@ -491,7 +553,10 @@ def _simulate_parser(sub, fmt) -> None:
         help="image size (default 64 64; not for art)",
     )
     p.add_argument("--bins", type=_positive(int), help="time bins T (default: the scene's)")
-    p.add_argument("--irf-fwhm", type=_positive(float), help="Gaussian IRF FWHM in bins (3)")
+    p.add_argument(
+        "--irf-fwhm", type=_positive(float), metavar="BINS",
+        help="Gaussian IRF FWHM in bins (default 3)",
+    )  # fmt: skip
     p.add_argument("--art-folder", metavar="DIR", help="folder of the Middlebury Art files")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--force", action="store_true", help="replace existing files")
@@ -949,6 +1014,12 @@ def _check_detect_memory(cube, det_kw) -> None:
     """Refuse a cube whose detection cannot fit in memory, or that holds no photon."""
     from ._memory import check_detect_memory
 
+    if cube.n_bins < 3:
+        raise SplidarError(
+            f"the data ({cube.n_rows} x {cube.n_cols} pixels) have T = {cube.n_bins} time "
+            "bin(s); detection needs at least 3 (a return and its two sides). Check --window, "
+            "--bin-width and --time-axis (is the time axis last?)"
+        )
     if not cube.is_lazy and not cube.counts.any():
         raise SplidarError(
             f"the data ({cube.n_rows} x {cube.n_cols} pixels, {cube.n_bins} bins) hold no "
@@ -1053,15 +1124,7 @@ def _cmd_run(args) -> int:
         + ([] if args.no_figures else ["drawing figures"]),
         args.quiet,
     )
-    load_kw = _given(
-        args, ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels")
-    )
-    if args.window is not None:
-        load_kw["window"] = tuple(args.window)
-    if args.irf is not None:
-        load_kw["irf"] = args.irf
-    if args.library is not None:
-        load_kw["library"] = args.library
+    load_kw = _load_kwargs(args)
     try:
         with stages.stage("loading"):
             cube = load(inp, **load_kw)
@@ -1351,6 +1414,102 @@ def _write_view(rec, folder: Path, args) -> str:
     return "view.html"
 
 
+def _load_kwargs(args) -> dict[str, Any]:
+    """``splidar.load``'s keyword arguments from the input options."""
+    load_kw = _given(
+        args,
+        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
+    )
+    if getattr(args, "bin_width_m", None) is not None:  # range bin -> round-trip time
+        load_kw["bin_width_ps"] = args.bin_width_m * 2.0 / 299_792_458.0 * 1e12
+    if args.window is not None:
+        load_kw["window"] = tuple(args.window)
+    if args.irf is not None:
+        load_kw["irf"] = args.irf
+    if args.library is not None:
+        load_kw["library"] = args.library
+    return load_kw
+
+
+def _file_variables(path: Path) -> dict[str, str]:
+    """Name -> 'shape dtype' of every variable of a data file (Zarr: its arrays)."""
+    import numpy as np
+
+    from ._containers import _ext, _read_any
+
+    if _ext(path) == ".zarr" or path.is_dir():
+        import zarr
+
+        try:
+            g = zarr.open_group(str(path), mode="r")
+        except Exception:
+            a = zarr.open_array(str(path), mode="r")
+            return {"(array)": f"{a.shape} {a.dtype}"}
+        return {k: f"{g[k].shape} {g[k].dtype}" for k in sorted(g.array_keys())}
+    out = {}
+    for k, v in _read_any(path, None).items():
+        if isinstance(v, np.ndarray):
+            kind = "cell/object" if v.dtype == object else str(v.dtype)
+            out[k] = f"{v.shape} {kind}"
+        else:
+            out[k] = type(v).__name__
+    return out
+
+
+def _cmd_info(args) -> int:
+    import numpy as np
+
+    from .io import load
+
+    inp = Path(args.input)
+    if not inp.exists():
+        raise UsageError(f"no such file: '{inp}'")
+    variables = _file_variables(inp)
+    cube = load(inp, **_load_kwargs(args))
+    md = cube.metadata
+    bw = cube.bin_width_ps
+    info: dict[str, Any] = {
+        "command": "info",
+        "input": str(inp),
+        "variables": variables,
+        "read_as": md.get("variable"),
+        "shape": list(cube.shape),
+        "dtype": str(cube.counts.dtype),
+        "bin_width_ps": bw,
+        "window": md.get("window"),
+        "time_unit": md.get("time_unit"),
+        "irf_samples": int(cube.irf.shape[1]),
+        "irf_source": md.get("irf_source", "file"),
+        "wavelengths_nm": None if cube.wavelengths_nm is None else list(cube.wavelengths_nm),
+        "classes": None if cube.library is None else list(cube.library.class_names),
+    }
+    lines = [f"{inp}: holds"] + [f"  {k}: {v}" for k, v in variables.items()]
+    r, c, n_wl, t = cube.shape
+    if "photon_lists" in md:
+        src = f", binned from the photons of {md['photon_lists']}"
+        info["read_as"] = md["photon_lists"]
+    else:
+        src = f", from '{md['variable']}'" if "variable" in md else ""
+    lines.append(
+        f"read as: {r} x {c} pixels, {n_wl} wavelength(s), {t} time bins (rows, cols, L, T), "
+        f"{cube.counts.dtype} counts{src}"
+    )
+    if not cube.is_lazy:
+        n = int(cube.counts.sum(dtype=np.int64))
+        info["photons"] = n
+        lines.append(f"photons: {n} ({n / (r * c):.3g} per pixel)")
+    if bw is None:
+        lines.append("bin width: unknown (depths in bins; set --bin-width-ps or --time-unit)")
+    else:
+        lines.append(f"bin width: {bw:g} ps = {bw * 1e-12 * 299_792_458.0 / 2:.4g} m of range")
+    if md.get("window") is not None:
+        lines.append(f"window: {md['window']} ({md.get('time_unit', 'bin')})")
+    lines.append(f"IRF: {cube.irf.shape[1]} samples, {info['irf_source']}")
+    args.json_summary = info
+    _say(args, *lines)
+    return EXIT_OK
+
+
 def _cmd_view(args) -> int:
     from .view import is_view_file, load_view_input, write_view
 
@@ -1404,6 +1563,7 @@ _COMMANDS = {
     "simulate": _cmd_simulate,
     "evaluate": _cmd_evaluate,
     "view": _cmd_view,
+    "info": _cmd_info,
 }
 
 
@@ -1413,6 +1573,7 @@ _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
     + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
+    + ("time_axis",)
 )
 _NAME_RE = re.compile(
     r"`("
@@ -1423,8 +1584,17 @@ _NAME_RE = re.compile(
 )
 
 
+_QUOTED_RE = re.compile(
+    r"\b(" + "|".join(_API_OPTIONS + ("irf", "library")) + r")=(?:'([^'\s]*)'|(-?\d[\d.e+-]*))"
+)
+
+
 def _cli_names(msg: str) -> str:
-    """Spell the API's parameter names as the command line's options."""
+    """Spell the API's parameter names as the command line's options (``irf='estimate'``
+    as ``--irf estimate``, ``time_axis=0`` as ``--time-axis 0``)."""
+    msg = _QUOTED_RE.sub(
+        lambda m: f"--{m.group(1).replace('_', '-')} {m.group(2) or m.group(3)}", msg
+    )
     return _NAME_RE.sub(lambda m: "--" + (m.group(1) or m.group(2)).replace("_", "-"), msg)
 
 
@@ -1489,7 +1659,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_FAILURE
 
 
-_JSON_COMMANDS = ("demo", "run", "simulate", "view")
+_JSON_COMMANDS = ("demo", "run", "simulate", "view", "info")
 
 
 @contextmanager

@@ -40,8 +40,9 @@ from ._containers import (
 )
 from ._files import savez
 from ._memory import check_memory
+from ._photon_table import find_photon_table, table_as_flat
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
-from .cube import Cube
+from .cube import Cube, as_counts
 from .irf import gaussian_irf
 from .library import SpectralLibrary, load_library
 
@@ -211,7 +212,8 @@ def _pick_variable(d: dict[str, Any], p: Path, variable: str | None, want: str) 
     if not cands:
         raise SplidarError(
             f"'{p.name}' holds no {what} variable; it holds: {_summary(d)}. A histogram file "
-            "needs `counts` (rows, cols[, L], T); a photon-list file a rows x cols cell array."
+            "needs `counts` (rows, cols[, L], T); a photon-list file a rows x cols cell array "
+            "or a photon table: 1-D columns named row, col and time (e.g. row,col,time_ps)."
         )
     raise SplidarError(
         f"'{p.name}' holds several {what} variables ({', '.join(cands)}); it holds: "
@@ -1157,6 +1159,7 @@ def load(
     wavelengths_nm=None,
     library=None,
     channels=None,
+    time_axis: int | None = None,
 ) -> Cube:
     """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
 
@@ -1209,6 +1212,10 @@ def load(
         Overrides the file's spectral library.
     channels : {"wavelengths", "detectors"}, int or sequence of int, optional
         Vendor files: channels as wavelengths (default), summed, or a subset (see vendor).
+    time_axis : int, optional
+        Histogram files: the stored array's time axis (``0`` for ``(T, rows, cols)``),
+        moved last. Default: the last, with a warning when the shape suggests time first
+        (first axis over twice the others, last the shortest); ``-1`` silences it.
 
     Returns
     -------
@@ -1234,11 +1241,16 @@ def load(
     check_choice(time_unit, "time_unit", tuple(TIME_UNITS_PS))
     p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
-        cube = _load_zarr(p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable)
+        cube = _load_zarr(
+            p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable, variable=variable,
+            time_axis=time_axis,
+        )  # fmt: skip
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
+    d, time_unit, n_wl, flat = _photon_table(d, p, time_unit, flat, variable)
     name = "times" if flat else _pick_variable(d, p, variable, "data")
+    d = _group_siblings(d, p, name)
     v = d[name]
     meta: dict[str, Any] = {"source": str(p), "variable": name}
     sparse = None
@@ -1246,7 +1258,7 @@ def load(
     if flat or _is_cell_of_numbers(v):
         src = f"{p.name}:{name}"
         pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
-        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit)
+        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit, n_wl)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
         file_irf = d.get("irf")
@@ -1258,7 +1270,7 @@ def load(
                 "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
                 "already binned cube (use bin_width_ps= to set its bin width)."
             )
-        counts, meta, from_save = _binned_cube(d, p, name, window, meta)
+        counts, meta, from_save = _binned_cube(d, p, name, window, meta, time_axis)
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
         file_irf = d.get("irf")
         wl = d.get("wavelengths_nm")
@@ -1284,9 +1296,59 @@ def load(
     return _override(cube, bin_width_ps, wavelengths_nm, library)
 
 
-def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
-    """The count cube ``(rows, cols, L, T)`` of variable ``name``, cropped to ``window``
-    (a bin range), with its metadata; ``from_save`` when :func:`save` wrote the file."""
+def _time_last(v, name: str, p: Path, time_axis: int | None):
+    """Move the time axis of a stored count array last (``time_axis``); by default keep
+    it last, warning when the shape suggests ``(T, rows, cols)``."""
+    if time_axis is None:
+        s = v.shape
+        if v.ndim == 3 and s[0] > 2 * max(s[1], s[2]) and s[2] <= s[1]:
+            log.warning(
+                "variable '%s' of '%s' has shape %s, read as (rows, cols, T) = %d x %d pixels "
+                "of %d bins. If its first axis holds the time bins, pass time_axis=0; "
+                "time_axis=-1 confirms the time axis is last.",
+                name, p.name, s, *s,
+            )  # fmt: skip
+        return v
+    ax = check_int(time_axis, "time_axis", minimum=-v.ndim)
+    if ax >= v.ndim:
+        raise SplidarError(
+            f"`time_axis` must be an axis of variable '{name}' of '{p.name}', shape {v.shape}: "
+            f"-{v.ndim} to {v.ndim - 1}; got {time_axis}."
+        )
+    if ax % v.ndim != v.ndim - 1:
+        log.info("variable '%s' of '%s': time axis %d moved last", name, p.name, ax)
+    return np.moveaxis(v, ax, -1)
+
+
+#: variables that describe the counts; in an HDF5 file, looked up beside them in their group
+_SIBLINGS = ("irf", "bin_width_ps", "wavelengths_nm", "library", "class_names", "metadata")
+
+
+def _group_siblings(d: dict[str, Any], p: Path, name: str) -> dict[str, Any]:
+    """``d`` with the ``irf``, ``bin_width_ps``, ... of the counts' own HDF5 group (e.g.
+    ``scan/irf`` beside ``scan/histograms``) as top-level names, where those are absent."""
+    group = name.rpartition("/")[0]
+    found = {k: d[f"{group}/{k}"] for k in _SIBLINGS if k not in d and f"{group}/{k}" in d}
+    if not group or not found:
+        return d
+    log.info("'%s': using %s of group '%s'", p.name, ", ".join(found), group)
+    return {**d, **found}
+
+
+def _photon_table(d: dict[str, Any], p: Path, time_unit: str, flat: bool, variable):
+    """A photon table (one photon per line: row, col, time[, wavelength] columns) as flat
+    photon lists: (d, time unit, wavelengths folded into the columns, flat)."""
+    table = None if flat or variable is not None or "counts" in d else find_photon_table(d)
+    if table is None:
+        return d, time_unit, 1, flat
+    d, time_unit, n_wl = table_as_flat(d, p, table, time_unit)
+    return d, time_unit, n_wl, True
+
+
+def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time_axis=None):
+    """The count cube ``(rows, cols, L, T)`` of variable ``name`` (its ``time_axis``
+    moved last), cropped to ``window`` (a bin range), with its metadata; ``from_save``
+    when :func:`save` wrote the file."""
     v = d[name]
     if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
         raise SplidarError(
@@ -1298,6 +1360,7 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
             f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
             f"(rows, cols, L, T); got shape {v.shape}."
         )
+    v = _time_last(v, name, p, time_axis)
     counts = v if v.ndim == 4 else v[:, :, None, :]
     md0 = _metadata_from(d.get("metadata"))
     from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
@@ -1311,10 +1374,33 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict):
         meta["window"] = [int(start), int(stop)]
         if counts.shape[-1] == 0:
             raise SplidarError(f"`window` {window} selects no bins of T = {v.shape[-1]}.")
+    try:  # before any IRF work: a bad cube gets its one message, not IRF warnings first
+        counts = as_counts(counts, name)
+    except SplidarError as exc:
+        raise SplidarError(f"'{p.name}': {exc}") from None
     return counts, meta, from_save
 
 
+def _check_bin_width_unit(bin_width_ps) -> None:
+    """Warn about a bin width no TCSPC system has: most likely given in another unit."""
+    if bin_width_ps is None or not np.isfinite(bw := float(bin_width_ps)) or bw <= 0:
+        return
+    if bw < 0.5:
+        log.warning(
+            "bin width %g ps is below any TCSPC resolution (1 ps and up): if it is in "
+            "nanoseconds, pass bin_width_ps=%g (picoseconds)",
+            bw, bw * 1e3,
+        )  # fmt: skip
+    elif bw > 1e6:
+        log.warning(
+            "bin width %g ps is %g us (%.0f m of range per bin): if it is in femtoseconds, "
+            "pass bin_width_ps=%g (picoseconds)",
+            bw, bw * 1e-6, bw * 1e-12 * 299_792_458.0 / 2, bw * 1e-3,
+        )  # fmt: skip
+
+
 def _override(cube: Cube, bin_width_ps, wavelengths_nm, library) -> Cube:
+    _check_bin_width_unit(cube.bin_width_ps if bin_width_ps is None else bin_width_ps)
     if bin_width_ps is None and wavelengths_nm is None and library is None:
         return cube
     return Cube(
@@ -1366,7 +1452,9 @@ def _check_times(pl: PhotonLists) -> None:
         )
 
 
-def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
+def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1):
+    """Bin photon lists: (counts, metadata, sparse voxels). ``n_wl`` > 1: a photon table's
+    wavelengths folded into the columns (``cols x n_wl``), unfolded here."""
     bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
     _check_times(pl)
     if pl.n_photons == 0 and window is None:
@@ -1409,6 +1497,8 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit):
     }
     if factor is not None:
         md["bin_width_ps"] = bw * factor
+    if n_wl > 1:  # the voxels' flat index is of the folded layout: no sparse form
+        return counts.reshape(rows, -1, n_wl, n_bins), md, None
     return counts, md, (uniq, cnt)
 
 
@@ -1514,18 +1604,49 @@ def _save_zarr(cube: Cube, p: Path, chunks, meta: str) -> None:
     g.attrs["kind"] = "Cube"
 
 
-def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable) -> Cube:
+def _open_zarr(p: Path, zarr):
+    """A zarr group, or a bare zarr array as a group-like ``{"counts": array}``."""
+    try:
+        return zarr.open_group(str(p), mode="r")
+    except Exception as exc:
+        try:
+            arr = zarr.open_array(str(p), mode="r")
+        except Exception:
+            raise SplidarError(f"cannot open '{p}' as a zarr group: {exc}") from None
+    log.info("'%s' is a single zarr array: read as the counts", p.name)
+    return _BareZarr(arr)
+
+
+class _BareZarr(dict):
+    """A bare zarr array seen as a group holding only ``counts``, without attributes."""
+
+    def __init__(self, arr):
+        super().__init__(counts=arr)
+        self.attrs: dict = {}
+
+    def array_keys(self):
+        return self.keys()
+
+
+def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable, variable=None, time_axis=None) -> Cube:
     zarr = _zarr()
     import dask.array as da
 
-    try:
-        g = zarr.open_group(str(p), mode="r")
-    except Exception as exc:
-        raise SplidarError(f"cannot open '{p}' as a zarr group: {exc}") from None
+    g = _open_zarr(p, zarr)
     names = sorted(g.array_keys())
-    if "counts" not in names:
-        raise SplidarError(f"the zarr group '{p}' has no `counts` array; it holds arrays {names}.")
-    counts = da.from_zarr(g["counts"])
+    name = "counts" if variable is None or isinstance(g, _BareZarr) else variable
+    if name not in names:
+        hint = "; pass the one holding the counts as variable=" if names else ""
+        raise SplidarError(
+            f"the zarr group '{p}' has no `{name}` array; it holds arrays {names}{hint}."
+        )
+    counts = da.from_zarr(g[name])
+    if time_axis is not None and int(time_axis) % max(counts.ndim, 1) != counts.ndim - 1:
+        raise SplidarError(
+            f"`time_axis` {time_axis} is not supported for Zarr input ('{p.name}', shape "
+            f"{counts.shape}): the time axis must be last, each chunk holding whole "
+            "histograms. Rewrite the array time-last (splidar.save(cube, 'x.zarr'))."
+        )
     if counts.ndim == 3:
         counts = counts[:, :, None, :]
     if counts.ndim != 4:

@@ -485,9 +485,9 @@ def plot_point_cloud(
         cb = plt.colorbar(sc, ax=ax, shrink=0.6, pad=0.1)
         cb.set_label(cl)
     rows, cols = p.image_shape
-    ax.set_xlim(0, cols - 1)
+    ax.set_xlim(0, max(cols - 1, 1))  # a single column or row: a range of one pixel
     ax.set_ylim(d_lo, d_hi)
-    ax.set_zlim(rows - 1, 0)  # row 0 at the top: the image upright
+    ax.set_zlim(max(rows - 1, 1), 0)  # row 0 at the top: the image upright
     ax.set_xlabel("column (pixel)")
     ax.set_ylabel(f"depth ({m.unit})")
     ax.set_zlabel("row (pixel)")
@@ -710,7 +710,7 @@ def plot_detection_slice(
     _, vmax = _robust_limits(ts, 0, 99.5)
     im = ax1.imshow(ts, cmap="gray", vmin=0, vmax=vmax, interpolation="nearest")
     m1 = np.asarray(mask[:, :, lo:hi]).any(axis=-1)
-    if m1.any() and not m1.all():
+    if m1.any() and not m1.all() and min(m1.shape) >= 2:  # contour needs 2 x 2 at least
         ax1.contour(m1.astype(np.float32), levels=[0.5], colors=red, linewidths=0.9)
     ax1.axhline(row, color="#4da6ff", lw=0.9, ls="--")
     span = f"bins {lo}-{hi - 1}" if hi - lo > 1 else f"bin {lo}"
@@ -736,7 +736,7 @@ def plot_detection_slice(
         xt.T, cmap="gray", aspect="auto", interpolation="nearest", vmin=0, vmax=vmax, extent=extent
     )
     m2 = np.asarray(mask[row]).T  # (T, cols)
-    if m2.any():
+    if m2.any() and min(m2.shape) >= 2:
         ax2.contour(
             np.arange(C), tt, m2.astype(np.float32), levels=[0.5], colors=red, linewidths=0.9
         )
