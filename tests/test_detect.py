@@ -512,6 +512,13 @@ def test_detect_rejects_irf_longer_than_t():
         Cube(np.zeros((4, 4, 5), np.uint16), irf=IRF)
 
 
+def test_detect_rejects_fewer_than_three_bins():
+    # T = 2 used to fail inside NumPy's gradient; the message names the fix instead
+    cube = Cube(np.ones((3, 3, 2), np.uint16), irf=np.array([1.0]))
+    with pytest.raises(SplidarError, match="at least 3 time bins.*T = 2"):
+        detect(cube)
+
+
 # ----------------------------------------------------------------------------------------
 # spill-over check (_quality.py)
 # ----------------------------------------------------------------------------------------

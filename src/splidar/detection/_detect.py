@@ -357,6 +357,12 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     o["null"] = check_choice(null, "null", _NULL_METHODS)
     o["presence"] = check_choice(presence, "presence", _PRESENCE)
     T = cube.shape[3]
+    if T < 3:
+        # the background's temporal shape and a return's peak need a bin on each side
+        raise SplidarError(
+            f"`cube` must hold at least 3 time bins to detect returns; got T = {T}. Check the "
+            "time window, the bin width and which axis is time (load's time_axis=)."
+        )
     irf = np.asarray(cube.irf, dtype=np.float64)
     if irf.shape[1] > T:
         raise SplidarError(
