@@ -1099,8 +1099,8 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
     least ``_MIN_BLOCKS`` blocks remain): a block holds ``k^2`` times a pixel's signal
     (its depth spread widens the shape a little). The first level that gives a shape
     from at least ``_PIXELS_PER_SAMPLE`` bright pixels (blocks) per sample of the shape
-    wins; where no level has that many, the level of the most bright pixels per sample
-    (the finer on ties); else the single pixels' Gaussian fall-back, or None (the
+    wins; where no level has that many, the level of the most bright pixels (blocks),
+    the finer on ties; else the single pixels' Gaussian fall-back, or None (the
     caller keeps the Gaussian of the width). Returns (irf, source) or None."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
     level, gaussian, best = 1, None, None
@@ -1128,11 +1128,10 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 if level == 1 and k > 1:
                     src += f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
                 shaped = (arr, src + _blocks_text(level))
-                ratio = stats["n_used"] / arr.shape[1]
-                if ratio >= _PIXELS_PER_SAMPLE:
+                if stats["n_used"] >= _PIXELS_PER_SAMPLE * arr.shape[1]:
                     return shaped
-                if best is None or ratio > best[0]:
-                    best = (ratio, shaped)
+                if best is None or stats["n_used"] > best[0]:
+                    best = (stats["n_used"], shaped)
                 why = (
                     f"{stats['n_used']} bright pixels for a shape of {arr.shape[1]} samples "
                     f"(fewer than {_PIXELS_PER_SAMPLE} per sample)"
