@@ -681,10 +681,20 @@ def estimate_irf(
 
 
 def _estimate_irf(
-    counts, *, fwhm, max_length, significance, min_pixels, fallback, refine=True, voxels=None
+    counts,
+    *,
+    fwhm,
+    max_length,
+    significance,
+    min_pixels,
+    fallback,
+    refine=True,
+    voxels=None,
+    stats=None,
 ):
     """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``. ``voxels``:
-    photon lists' sorted non-empty (flat voxel index, count) of one-wavelength ``counts``."""
+    photon lists' sorted non-empty (flat voxel index, count) of one-wavelength ``counts``.
+    ``stats``: a dict given gets ``"n_used"``, the number of bright pixels pooled."""
     from scipy.stats import norm
 
     from ._irf_estimate import pooled_shape
@@ -726,6 +736,8 @@ def _estimate_irf(
         gaussian_p=norm.sf(z) if fallback else 2.0,
         voxels=voxels if a.shape[2] == 1 else None,
     )
+    if stats is not None:
+        stats["n_used"] = n_used
     if fallback and p >= norm.sf(z):
         log.warning(
             "IRF shape: the pooled curve of %d bright pixels does not reject a Gaussian "
@@ -993,6 +1005,10 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
 
 #: fewest pixel blocks the weak-signal pooling keeps (the shape needs 20 bright ones)
 _MIN_BLOCKS = 16
+#: fewest bright pixels (or blocks) per sample of the estimated shape that the shape
+#: is taken from without trying coarser pixel blocks: the soft alignment fits the
+#: shape's samples and, per pixel, a shift and an amplitude (irf22b)
+_PIXELS_PER_SAMPLE = 2
 
 
 def _blocks_text(k: int) -> str:
@@ -1084,12 +1100,15 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
     ``k x k`` pixel blocks (``k`` doubling from 2, or from the width's level, while at
     least ``_MIN_BLOCKS`` blocks remain): a block holds ``k^2`` times a pixel's signal
     (its depth spread widens the shape a little). The first level that gives a shape
-    wins; else the single pixels' Gaussian fall-back, or None (the caller keeps the
-    Gaussian of the width). Returns (irf, source) or None."""
+    from at least ``_PIXELS_PER_SAMPLE`` bright pixels (blocks) per sample of the shape
+    wins; where no level has that many, the level of the most bright pixels (blocks),
+    the finer on ties; else the single pixels' Gaussian fall-back, or None (the
+    caller keeps the Gaussian of the width). Returns (irf, source) or None."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
-    level, gaussian = 1, None
+    level, gaussian, best = 1, None, None
     while True:
         cube = counts if level == 1 else _block_sum(counts, level)
+        stats: dict = {}
         try:
             arr, src = _estimate_irf(
                 cube,
@@ -1099,23 +1118,33 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 min_pixels=20,
                 fallback=True,
                 voxels=sparse if level == 1 else None,
+                stats=stats,
             )
         except SplidarError as exc:
             if "pixel(s) with a return" not in str(exc):
                 log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
-                return gaussian
+                return best[1] if best is not None else gaussian
             why = "too few bright pixels"
         else:
             if src.startswith("estimated shape"):
                 if level == 1 and k > 1:
                     src += f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
-                return arr, src + _blocks_text(level)
-            if gaussian is None:
-                gaussian = (arr, src + _blocks_text(k))
-            why = "the pooled photons do not reject a Gaussian"
+                shaped = (arr, src + _blocks_text(level))
+                if stats["n_used"] >= _PIXELS_PER_SAMPLE * arr.shape[1]:
+                    return shaped
+                if best is None or stats["n_used"] > best[0]:
+                    best = (stats["n_used"], shaped)
+                why = (
+                    f"{stats['n_used']} bright pixels for a shape of {arr.shape[1]} samples "
+                    f"(fewer than {_PIXELS_PER_SAMPLE} per sample)"
+                )
+            else:
+                if gaussian is None:
+                    gaussian = (arr, src + _blocks_text(k))
+                why = "the pooled photons do not reject a Gaussian"
         nxt = max(2 * level, k)
         if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
-            return gaussian
+            return best[1] if best is not None else gaussian
         log.info("IRF shape: %s; pooling %d x %d pixel blocks", why, nxt, nxt)
         level = nxt
 
