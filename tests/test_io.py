@@ -653,3 +653,11 @@ def test_load_tiny_background_cube_raises_naming_irf():
     y = np.random.default_rng(0).poisson(0.01, (3, 3, 100))
     with pytest.raises(SplidarError, match=r"single pixels \(too few pixels.*irf="):
         _resolve_irf(None, None, None, None, y, 100)
+
+
+def test_load_all_zero_counts_raises_no_photon(tmp_path):
+    # an empty cube used to be reported as "only 0 photon pairs": say what is wrong instead
+    p = tmp_path / "zero.npy"
+    np.save(p, np.zeros((6, 6, 50), np.uint16))
+    with pytest.raises(SplidarError, match="hold no photon.*time window"):
+        load(p)

@@ -981,6 +981,11 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
             "the data hold no IRF and it is not estimated from lazy (Dask/zarr) data; pass "
             "irf= (array or file) or irf_fwhm= (Gaussian FWHM in bins)."
         )
+    if sparse is None and not np.any(counts):
+        raise SplidarError(
+            "the counts hold no photon (every voxel is 0): there is no IRF to estimate and "
+            "nothing to detect. Check the file, its variable and the time window."
+        )
     fwhm, k = _pooled_fwhm(counts, n_bins, sparse)
     if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
         shaped = _pooled_shape(counts, fwhm, k, sparse)
