@@ -429,7 +429,7 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         out = dict(
             saliency=writer(g["saliency"]),
             mask=writer(g["mask"]),
-            threshold=writer(g["threshold"]) if "threshold" in g else None,
+            threshold=None,
             spatial=_Tile(own["spatial"], r0, c0),
         )
     # the running sums are read and rewritten in place: a copy of the neighbour's
@@ -652,7 +652,7 @@ def map_candidates_tiled(
     if given is None and block_rows >= 2 * _CHUNK_ROWS:
         block_rows -= block_rows % _CHUNK_ROWS
     chunk_rows = _CHUNK_ROWS if block_rows % _CHUNK_ROWS == 0 else block_rows
-    table = null.table(per_voxel=store is not None)
+    table = null.table(per_voxel=False)
     rows, cols = tile_bounds(R, block_rows, h), tile_bounds(C, block_cols, hc)
     ext = [(max(0, a - h), min(R, b + h)) for a, b in rows]
     ext_c = [(max(0, a - hc), min(C, b + hc)) for a, b in cols]
@@ -661,7 +661,7 @@ def map_candidates_tiled(
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
     if store is not None:
-        out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
+        out = _open_store(store, (R, C, T), chunk_rows, block_cols=block_cols)
         store_path = str(store)
         import zarr
 
