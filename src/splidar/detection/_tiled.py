@@ -265,14 +265,15 @@ def tile_bytes(rows: int, shape, itemsize: int, halo: int, n_box: int) -> int:
     """Peak bytes of the buffers of one stage-4 tile of ``rows`` image rows.
 
     Per image row of the tile, ``C T`` float32 each: saliency, signed response,
-    evidence, threshold, the copy a compressor makes on writing to a store and one spare
-    (the level buffer the saliency kernel no longer keeps: a margin), plus the
+    evidence, the copy a compressor makes on writing to a store and one spare (the
+    level buffer the saliency kernel no longer keeps: a margin; the threshold is no
+    longer held per voxel, even with a store), plus the
     bool candidates and mask, plus ``n_box`` box means per wavelength (the scales above
     1 pixel when they are kept for extraction); per row with its halo (``rows + 2 halo``),
     ``C L T`` of counts twice (the halo exchange's copy) and of float32 correlated counts.
     """
     _, C, L, T = shape
-    own = C * T * (6 * 4 + 2) + C * L * T * 4 * n_box
+    own = C * T * (5 * 4 + 2) + C * L * T * 4 * n_box
     ext = C * L * T * (2 * itemsize + 4)
     return int(rows * own + (rows + 2 * halo) * ext)
 
