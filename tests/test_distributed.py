@@ -14,6 +14,7 @@ import dask  # noqa: E402
 
 import splidar  # noqa: E402
 from splidar import Cube, gaussian_irf  # noqa: E402
+from splidar.detection import ThresholdField  # noqa: E402
 from splidar.detection._tiled import is_dask, tile_bounds, tiled_window_means  # noqa: E402
 from splidar.scenes import single_surface_scene  # noqa: E402
 
@@ -194,10 +195,12 @@ def test_detect_on_local_cluster_store_keeps_the_histograms_there(local_client, 
     np.testing.assert_array_equal(h[idx], a.surfaces.histograms[idx])
     np.testing.assert_array_equal(h[:, 0], a.surfaces.histograms[:, 0])
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(h)), a.surfaces.histograms)
-    # the candidates' histograms the tiles wrote are gone once the surfaces are selected
+    # the candidates' histograms the tiles wrote are gone once the surfaces are selected;
+    # the threshold is kept as its factors (computed on access), not stored
     assert sorted(p.name for p in (tmp_path / "s").iterdir() if p.is_dir()) == [
-        "mask", "saliency", "surface_histograms", "threshold",
+        "mask", "saliency", "surface_histograms",
     ]  # fmt: skip
+    assert isinstance(b.threshold, ThresholdField)
 
 
 def test_detect_on_local_cluster_zarr_cube_bands_match_in_memory(

@@ -602,9 +602,10 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     )
 
 
-def _open_store(store, shape, block_rows: int, with_threshold: bool, block_cols=None) -> dict:
-    """Chunked Zarr arrays for saliency, mask (and threshold) in a new directory, in
-    chunks of ``block_rows`` rows and ``block_cols`` columns (default all)."""
+def _open_store(store, shape, block_rows: int, block_cols=None) -> dict:
+    """Chunked Zarr arrays for saliency and mask in a new directory, in chunks of
+    ``block_rows`` rows and ``block_cols`` columns (default all). The threshold is not
+    stored: as in memory, it is kept as its factors (:class:`ThresholdField`)."""
     import os as _os
     from pathlib import Path
 
@@ -626,27 +627,20 @@ def _open_store(store, shape, block_rows: int, with_threshold: bool, block_cols=
             f"`store` '{path}' exists and is not an empty directory; name a new directory "
             "(detect does not overwrite files)."
         )
-    from zarr.codecs import BloscCodec
-
     g = zarr.open_group(str(path), mode="w")
     R, C, T = shape
     ch = (min(block_rows, R), C if block_cols is None else min(block_cols, C), T)
     # the saliency's float noise does not compress (zstd: 1.1 x, at a fifth of the disk's
-    # write speed); the threshold, a smooth field, 2.4 x with lz4 at disk speed; the
-    # sparse mask ~150 x with Zarr's default zstd
-    fast = [BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")]
+    # write speed); the sparse mask ~150 x with Zarr's default zstd
     out = dict(
         saliency=g.create_array(
             "saliency", shape=shape, chunks=ch, dtype="float32", compressors=None
         ),
         mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
-        threshold=g.create_array(
-            "threshold", shape=shape, chunks=ch, dtype="float32", compressors=fast
-        )
-        if with_threshold
-        else None,
     )
-    return {k: v if v is None else writer(v) for k, v in out.items()}
+    out = {k: writer(v) for k, v in out.items()}
+    out["threshold"] = None
+    return out
 
 
 def writer(z):
@@ -683,7 +677,7 @@ def _runs(R: int, h_max: int, n_jobs: int, block_rows: int, store) -> list:
     return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
 
 
-def _threshold(spatial, dev, table, null: NullCalibration, out, store):
+def _threshold(spatial, dev, table, null: NullCalibration):
     if table[0].size == 1:
         return float(np.float32(table[1][0]))
     sp_sum = spatial.sum(axis=-1)
@@ -691,8 +685,8 @@ def _threshold(spatial, dev, table, null: NullCalibration, out, store):
         # spatially flat background: the threshold varies with t only
         lev_t = np.maximum(spatial[0, 0][:, None] + dev, 0).sum(axis=0)
         return null.threshold_at(lev_t)[None, None, :]
-    if store is not None:
-        return out["threshold"]
+    # with a store too: the factors are in memory (``spatial``, ``dev``) and any rows
+    # are computed on access, as the map pass computed them (no per-voxel array)
     return ThresholdField(spatial, dev, table[0], table[1])
 
 
@@ -810,9 +804,9 @@ def assemble_map(outs, out, filters, null, store, shape, block_rows, opts) -> Ca
     ``threshold`` in a store)."""
     R, C, L, T = shape
     width = opts["width"]
-    table = null.table(per_voxel=store is not None)
+    table = null.table(per_voxel=False)
     saliency, mask, spatial = out["saliency"], out["mask"], out["spatial"]
-    threshold = _threshold(spatial, filters.dev, table, null, out, store)
+    threshold = _threshold(spatial, filters.dev, table, null)
     out.clear()
     n_ph = sum(o.n_photons for o in outs)
     n_kept = sum(o.n_photons_kept for o in outs)
@@ -873,7 +867,7 @@ def map_candidates(
     R, C, L, T = counts.shape
     h_max = int(filters.scales.max()) // 2
     opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
-    table = null.table(per_voxel=store is not None)
+    table = null.table(per_voxel=False)
     if store is None:
         out = dict(
             saliency=np.empty((R, C, T), np.float32),
@@ -882,7 +876,7 @@ def map_candidates(
             threshold=None,
         )
     else:
-        out = _open_store(store, (R, C, T), block_rows, table[2])
+        out = _open_store(store, (R, C, T), block_rows)
         out["spatial"] = np.empty((R, C, L), np.float32)
     runs = _runs(R, h_max, n_jobs, block_rows, store)
     if len(runs) > 1:

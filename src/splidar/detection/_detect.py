@@ -219,9 +219,10 @@ def detect(
         open: ``docs/distributed.md``); ``n_jobs`` then serves the null and the
         clean-up passes, which run in the calling process.
     store : str or path, optional
-        A new directory for ``saliency``, ``mask`` and a per-voxel threshold as chunked
-        Zarr arrays (cubes whose ``(rows, cols, T)`` arrays do not fit in RAM; needs
-        ``pip install splidar[dask]``). ``block_rows``, ``n_jobs`` and ``store`` never
+        A new directory for ``saliency`` and ``mask`` as chunked Zarr arrays (cubes
+        whose ``(rows, cols, T)`` arrays do not fit in RAM; needs ``pip install
+        splidar[dask]``); the threshold is kept as in memory (its factors,
+        ``ThresholdField``). ``block_rows``, ``n_jobs`` and ``store`` never
         change the result.
     rng : None, int or Generator, default 0
         Seed of the Monte Carlo null and of the slope pass's robust plane fits: the same

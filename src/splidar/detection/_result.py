@@ -333,7 +333,7 @@ class Detection:
         Voxels with ``saliency > threshold`` form ``mask`` (before surface checks). A
         threshold that varies with the pixel is a read-only ``ThresholdField`` (rows
         computed from the background factors on access; ``np.asarray`` gives the
-        (rows, cols, T) float32 cube), or a Zarr array with ``store=``.
+        (rows, cols, T) float32 cube), with or without ``store=``.
     mask : ndarray (rows, cols, T), bool
         The 3D binary map M.
     reduction : DataReduction

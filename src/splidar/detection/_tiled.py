@@ -265,14 +265,15 @@ def tile_bytes(rows: int, shape, itemsize: int, halo: int, n_box: int) -> int:
     """Peak bytes of the buffers of one stage-4 tile of ``rows`` image rows.
 
     Per image row of the tile, ``C T`` float32 each: saliency, signed response,
-    evidence, threshold, the copy a compressor makes on writing to a store and one spare
-    (the level buffer the saliency kernel no longer keeps: a margin), plus the
+    evidence, the copy a compressor makes on writing to a store and one spare (the
+    level buffer the saliency kernel no longer keeps: a margin; the threshold is no
+    longer held per voxel, even with a store), plus the
     bool candidates and mask, plus ``n_box`` box means per wavelength (the scales above
     1 pixel when they are kept for extraction); per row with its halo (``rows + 2 halo``),
     ``C L T`` of counts twice (the halo exchange's copy) and of float32 correlated counts.
     """
     _, C, L, T = shape
-    own = C * T * (6 * 4 + 2) + C * L * T * 4 * n_box
+    own = C * T * (5 * 4 + 2) + C * L * T * 4 * n_box
     ext = C * L * T * (2 * itemsize + 4)
     return int(rows * own + (rows + 2 * halo) * ext)
 
@@ -429,7 +430,7 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         out = dict(
             saliency=writer(g["saliency"]),
             mask=writer(g["mask"]),
-            threshold=writer(g["threshold"]) if "threshold" in g else None,
+            threshold=None,
             spatial=_Tile(own["spatial"], r0, c0),
         )
     # the running sums are read and rewritten in place: a copy of the neighbour's
@@ -652,7 +653,7 @@ def map_candidates_tiled(
     if given is None and block_rows >= 2 * _CHUNK_ROWS:
         block_rows -= block_rows % _CHUNK_ROWS
     chunk_rows = _CHUNK_ROWS if block_rows % _CHUNK_ROWS == 0 else block_rows
-    table = null.table(per_voxel=store is not None)
+    table = null.table(per_voxel=False)
     rows, cols = tile_bounds(R, block_rows, h), tile_bounds(C, block_cols, hc)
     ext = [(max(0, a - h), min(R, b + h)) for a, b in rows]
     ext_c = [(max(0, a - hc), min(C, b + hc)) for a, b in cols]
@@ -661,7 +662,7 @@ def map_candidates_tiled(
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
     if store is not None:
-        out = _open_store(store, (R, C, T), chunk_rows, table[2], block_cols=block_cols)
+        out = _open_store(store, (R, C, T), chunk_rows, block_cols=block_cols)
         store_path = str(store)
         import zarr
 
