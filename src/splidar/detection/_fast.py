@@ -204,165 +204,17 @@ def _level_pixel(x, step, var_factor, quantum, clip, n_iter, scratch, hint):
     return np.float32(level), med
 
 
-#: Largest ``max|c| / min|c| (c != 0)`` over the values a row sum has seen, per number
-#: of rows summed: below it, float64 sums of float32 values are exact (see _row_sums).
-_EXACT_RANGE = 2.0**28
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _exact(mx, mn, n):
-    """Whether float64 sums of up to ``n`` float32 values whose magnitudes are at most
-    ``mx`` and, where not 0, at least ``mn`` are exact (NaN or inf: False)."""
-    return mx <= 3.4028234663852886e38 and mx * (n + 1) <= _EXACT_RANGE * mn
-
-
-@njit(cache=True, nogil=True)
-def _row_sums(cf, base, R, sr, sc, i, ja, jb, t0, tn, scales, V, S, state, u, lanes):
-    """Pass along rows (axis 0) of block row ``i``, columns ``[ja, jb)``, bins
-    ``[t0, t0 + tn)`` of tile ``u``: ``V[q, j, :tn]`` receives the float32 rounding of
-    the float64 sum of the ``k_q`` values ``c[refl(i + di), j, t]`` (``|di| <= k_q //
-    2``) summed in a fixed order (the centre, then pairs ``i - di``, ``i + di`` for
-    ``di = 1, 2, ...``, scale ``q`` continuing scale ``q - 1``'s sum).
-
-    ``S`` (Q, cols, T) float64 holds those sums (column ``j`` at ``j - ja``) from one
-    row to the next, and ``state[u]`` = (valid, max, min): whether they are row
-    ``i - 1``'s and exact, and the largest and the smallest non-zero ``|c|`` they have
-    seen. A float32 value is a multiple of ``2**(e - 23)``, ``2**e <= |c| < 2**(e +
-    1)`` (denormals of ``2**-149``), so when every value seen is a multiple of ``g >
-    min / 2**24`` and at most ``max`` in magnitude, and ``n * max < 2**53 * g`` for the
-    ``n = k`` values summed, every partial sum, difference and running update is an
-    integer multiple of ``g`` below ``2**53 g``: exact in float64, whatever the order
-    (:func:`_exact` asks ``(n + 1) max <= 2**28 min``). Then the running update (the
-    row ``refl(i + h)`` added, ``refl(i - h - 1)`` taken off) gives the same bits as the
-    sum afresh; otherwise (or on the block's first row, a strip's first row, a NaN or
-    an inf) the sum is taken afresh. So every value is the fixed-order sum of its own
-    window, whatever the blocks, threads, strips or tiles. ``lanes`` (2, tile)
-    float32 is work space.
-    """
-    Q = scales.size
-    hmax = scales[Q - 1] // 2
-    n = 2 * hmax + 1
-    lmx = lanes[0, :tn]
-    lmn = lanes[1, :tn]
-    inf32 = np.float32(np.inf)
-    if state[u, 0] > 0:
-        # running update from row i - 1; the largest scale's entering row is the only
-        # row not seen before: its magnitudes are checked as it is added
-        for t in range(tn):
-            lmx[t] = 0.0
-            lmn[t] = inf32
-        for q in range(Q):
-            h = scales[q] // 2
-            if h == 0:
-                for j in range(ja, jb):
-                    vr = V[q, j, :tn]
-                    off = base + i * sr + j * sc + t0
-                    cr = cf[off : off + tn]
-                    for t in range(tn):
-                        vr[t] = cr[t]
-                continue
-            ia = _refl(i + h, R)
-            ib = _refl(i - h - 1, R)
-            for j in range(ja, jb):
-                sq = S[q, j - ja, t0 : t0 + tn]
-                vr = V[q, j, :tn]
-                oa = base + ia * sr + j * sc + t0
-                ob = base + ib * sr + j * sc + t0
-                ca = cf[oa : oa + tn]
-                cb = cf[ob : ob + tn]
-                if q == Q - 1:
-                    for t in range(tn):
-                        a = ca[t]
-                        x = sq[t] + (np.float64(a) - np.float64(cb[t]))
-                        sq[t] = x
-                        vr[t] = np.float32(x)
-                        av = abs(a)
-                        lmx[t] = av if (av > lmx[t]) | (av != av) else lmx[t]
-                        nz = av if av > 0 else inf32
-                        lmn[t] = nz if nz < lmn[t] else lmn[t]
-                else:
-                    for t in range(tn):
-                        x = sq[t] + (np.float64(ca[t]) - np.float64(cb[t]))
-                        sq[t] = x
-                        vr[t] = np.float32(x)
-        mx = state[u, 1]
-        mn = state[u, 2]
-        for t in range(tn):
-            v = np.float64(lmx[t])
-            mx = v if (v > mx) | (v != v) else mx
-            mn = min(mn, np.float64(lmn[t]))
-        if _exact(mx, mn, n):
-            state[u, 1] = mx
-            state[u, 2] = mn
-            return
-    # afresh: the window's magnitudes, then the fixed-order sums
-    for t in range(tn):
-        lmx[t] = 0.0
-        lmn[t] = inf32
-    for di in range(-hmax, hmax + 1):
-        r = _refl(i + di, R)
-        for j in range(ja, jb):
-            off = base + r * sr + j * sc + t0
-            cr = cf[off : off + tn]
-            for t in range(tn):
-                av = abs(cr[t])
-                lmx[t] = av if (av > lmx[t]) | (av != av) else lmx[t]
-                nz = av if av > 0 else inf32
-                lmn[t] = nz if nz < lmn[t] else lmn[t]
-    mx = 0.0
-    mn = np.inf
-    for t in range(tn):
-        v = np.float64(lmx[t])
-        mx = v if (v > mx) | (v != v) else mx
-        mn = min(mn, np.float64(lmn[t]))
-    state[u, 0] = 1.0 if _exact(mx, mn, n) else 0.0
-    state[u, 1] = mx
-    state[u, 2] = mn
-    hp = 0
-    for q in range(Q):
-        h = scales[q] // 2
-        for j in range(ja, jb):
-            sq = S[q, j - ja, t0 : t0 + tn]
-            if q == 0:
-                off = base + i * sr + j * sc + t0
-                cr = cf[off : off + tn]
-                for t in range(tn):
-                    sq[t] = np.float64(cr[t])
-            else:
-                sp = S[q - 1, j - ja, t0 : t0 + tn]
-                for t in range(tn):
-                    sq[t] = sp[t]
-        for di in range(hp + 1, h + 1):
-            ia = _refl(i - di, R)
-            ib = _refl(i + di, R)
-            for j in range(ja, jb):
-                sq = S[q, j - ja, t0 : t0 + tn]
-                oa = base + ia * sr + j * sc + t0
-                ob = base + ib * sr + j * sc + t0
-                ca = cf[oa : oa + tn]
-                cb = cf[ob : ob + tn]
-                for t in range(tn):
-                    sq[t] += np.float64(ca[t]) + np.float64(cb[t])
-        for j in range(ja, jb):
-            sq = S[q, j - ja, t0 : t0 + tn]
-            vr = V[q, j, :tn]
-            for t in range(tn):
-                vr[t] = np.float32(sq[t])
-        hp = h
-
-
 @njit(cache=True, nogil=True)
 def _filter_row(
     cf, base, R, C, T, sr, sc, i, s0, s1, scales, weights, dev, estimate, V, acc, m, coarse,
-    box, bidx, o, oc, carry, have_carry, S, state, lanes,
+    box, bidx, o, oc, carry, have_carry,
 ):  # fmt: skip
     """``m = sum_q lambda_q Box_q(c)`` and the coarsest scale (minus ``dev`` when
     ``estimate``) of block row ``i``, block columns ``[s0, s1)``; element ``(i, j, t)``
     of ``c`` is ``cf[base + i * sr + j * sc + t]``. ``V`` (Q, C, tile) and ``acc``
-    (tile,) are work buffers; ``S``, ``state`` and ``lanes`` those of :func:`_row_sums`
-    (its sums of row ``i - 1`` of the same strip, or ``state[:, 0] = 0``); ``m`` and
-    ``coarse`` (C, T) are written at columns ``[s0, s1)``. When ``bidx[q] >= 0`` the box
-    mean of scale ``q`` is also written to ``box[bidx[q], o, j - oc]`` (T,).
+    (tile,) are work buffers; ``m`` and ``coarse`` (C, T) are written at columns
+    ``[s0, s1)``. When ``bidx[q] >= 0`` the box mean of scale ``q`` is also written to
+    ``box[bidx[q], o, j - oc]`` (T,).
 
     The column pass keeps running float64 sums along the image row: ``carry`` (Q, T)
     holds them at column ``s0 - 1`` on entry when ``have_carry`` (a strip or tile to
@@ -381,9 +233,35 @@ def _filter_row(
     for t0 in range(0, T, tile):
         tn = min(tile, T - t0)
         dv = dev[t0 : t0 + tn]
-        # pass along rows (axis 0): float64 sums of each scale, as running sums
-        # from the previous row where that is exact, else summed afresh
-        _row_sums(cf, base, R, sr, sc, i, ja, jb, t0, tn, scales, V, S, state, t0 // tile, lanes)
+        # pass along rows (axis 0): nested, scale q reuses scale q-1's rows
+        for q in range(Q):
+            h = scales[q] // 2
+            if q == 0:
+                for j in range(ja, jb):
+                    vr = V[0, j, :tn]
+                    off = base + i * sr + j * sc + t0
+                    cr = cf[off : off + tn]
+                    for t in range(tn):
+                        vr[t] = cr[t]
+                hp = 0
+            else:
+                for j in range(ja, jb):
+                    vr = V[q, j, :tn]
+                    vp = V[q - 1, j, :tn]
+                    for t in range(tn):
+                        vr[t] = vp[t]
+                hp = scales[q - 1] // 2
+            for di in range(hp + 1, h + 1):
+                ia = _refl(i - di, R)
+                ib = _refl(i + di, R)
+                for j in range(ja, jb):
+                    vr = V[q, j, :tn]
+                    oa = base + ia * sr + j * sc + t0
+                    ob = base + ib * sr + j * sc + t0
+                    ca = cf[oa : oa + tn]
+                    cb = cf[ob : ob + tn]
+                    for t in range(tn):
+                        vr[t] += ca[t] + cb[t]
         # pass along columns (axis 1): running float64 sums of the row-pass results
         # divided by k in float32 (as uniform_filter1d stores them), reflected borders
         for q in range(Q):
@@ -517,11 +395,6 @@ def _rows_kernel(
     Q = scales.size
     tile = min(_T_TILE, T)
     V = np.empty((Q, C, tile), np.float32)  # row-pass sums of each scale (not yet / k)
-    hmax = scales[Q - 1] // 2
-    # the row pass's float64 sums of a strip's columns, from one row to the next
-    S = np.empty((Q, strip + 2 * hmax + 1, T), np.float64)
-    state = np.zeros(((T + tile - 1) // tile, 3), np.float64)
-    lanes = np.empty((2, tile), np.float32)
     acc = np.empty(tile, np.float64)
     m = np.empty((C, T), np.float32)
     coarse = np.empty((C, T), np.float32)  # coarsest scale minus dev (when estimating)
@@ -534,12 +407,11 @@ def _rows_kernel(
     hint = np.nan  # the previous pixel's median (speed only)
     for s0 in range(jk0, jk1, strip):
         s1 = min(jk1, s0 + strip)
-        state[:, 0] = 0.0  # new columns: the first row's sums afresh
         for i in range(i_start, i_stop):
             o = i - keep0
             _filter_row(
                 cf, 0, R, C, T, sr, sc, i, s0, s1, scales, weights, dev, estimate, V, acc, m,
-                coarse, box, bidx, o, jk0, carry[i - i_start], s0 > 0, S, state, lanes,
+                coarse, box, bidx, o, jk0, carry[i - i_start], s0 > 0,
             )  # fmt: skip
             # background level, bhat and saliency of each pixel of the strip's row
             for j in range(s0, s1):
