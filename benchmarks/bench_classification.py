@@ -32,6 +32,7 @@ Usage::
     python benchmarks/bench_classification.py --quick        # PPP 1 and 10, no Art
     python benchmarks/bench_classification.py --figure rel.png --json rows.json
     # --figure also writes rel_art.png (Art) and, with --art-objects, rel_art_objects.png
+    python benchmarks/bench_classification.py --shares       # + smoothed colour shares (3 min)
 """
 
 from __future__ import annotations
@@ -243,6 +244,103 @@ def evidence_budget(rec, truth, est, true_idx, sig, gamma=1.5):
     }
 
 
+#: smoothing steps of :func:`share_smoothing` (lazy averages over the graph; the
+#: effective number of surfaces pooled is about 4.6 / 9 / 17 / 30 / 55 / 100 / 170 /
+#: 280 at 1 / 2 / 4 / ... / 128 steps on Art)
+SHARE_STEPS = (0, 1, 2, 4, 8, 16, 32, 64, 128)
+
+
+def share_smoothing(
+    rec, truth, est, true_idx, sig, steps=SHARE_STEPS, n_splits=4, seed=0, special=None
+):
+    """Classification from spatially smoothed colour shares (session 15, measured, not built).
+
+    The hypothesis: a class map made by k-means of colour shares (Art) is a quantisation
+    of a smooth field, so smoothing the *shares* (not the labels) is the right prior.
+    Each surface's counts, background and IRF fraction are pooled over the label field's
+    graph (depth-gated, one-pixel gaps bridged, as in ``reconstruct``) by ``n`` lazy
+    averaging steps ``x <- (x + sum of the neighbours' x) / (1 + degree)`` (a heat
+    kernel of variance about ``n`` links), scaled to the effective number of surfaces
+    pooled (``1 / sum w**2``, estimated with random signs), and classified by
+    :func:`splidar.reconstruction.class_loglik` of the pooled counts (argmax). Per step
+    count: ``photons`` (that accuracy over the matched surfaces) and ``noise_free`` (the
+    same smoothing applied to the matched surfaces' *true* colour shares, classified by
+    the shares' log-likelihood under the signatures: the ceiling that the smoothing's
+    bias alone leaves, whatever the photons). The bandwidth chosen from the data by
+    photon thinning: each surface's counts split binomially in halves ``n_splits``
+    times, one half smoothed, the multinomial deviance of the other half's colour under
+    the smoothed shares summed; the best step count for half the photons is halved for
+    all of them (``thinned_steps``, ``thinned``). ``choice``: per surface, the label of
+    the more confident of the field (``label_confidence``) and the thinned smoothing
+    (its posterior from the pooled counts), with ``thinned_ece`` the calibration of that
+    posterior. Returns a dict of these (accuracies over the matched surfaces)."""
+    import scipy.sparse as sparse
+
+    det = rec.detection
+    s = det.surfaces
+    L = det.n_wavelengths
+    S = len(s)
+    y = np.asarray(s.counts, np.float64).reshape(S, L)
+    b = np.asarray(s.background, np.float64).reshape(S, L)
+    eta = np.maximum(irf_fraction(np.atleast_2d(det.irf), s.depth_bin, s.start, s.stop), 1e-6)
+    gate = rec.hyperparameters.get("depth_gate", np.inf)
+    links = "all" if not np.isfinite(gate) else "depth"
+    g = build_graph(
+        s.row, s.col, s.slot, s.depth_bin, s.image_shape, int(s.n_slots), links=links,
+        gate=gate, bridge=True,
+    )  # fmt: skip
+    A = sparse.csr_matrix((np.ones(g.indices.size), g.indices, g.indptr), shape=(S, S))
+    P = sparse.diags(1.0 / (1.0 + np.diff(g.indptr))) @ (sparse.eye(S) + A)
+    P = P.tocsr()
+    tl = truth.label[true_idx]
+    logc = np.log(sig / sig.sum(axis=1, keepdims=True))
+    tsh = np.zeros((S, L))
+    ti = np.asarray(truth.intensity, np.float64)[true_idx]
+    tsh[est] = ti / ti.sum(axis=1, keepdims=True)
+    has = np.zeros(S)
+    has[est] = 1.0
+    rng = np.random.default_rng(seed)
+    z = rng.choice([-1.0, 1.0], size=(S, 8))
+    halves = [rng.binomial(y.astype(np.int64), 0.5).astype(np.float64) for _ in range(n_splits)]
+    xs = [y, b, eta, tsh, has, z] + halves
+    out = {"share_steps": list(steps), "share_photons": [], "share_noise_free": []}
+    dev, kept, n = [], {}, 0
+    for st in steps:
+        while n < st:
+            xs = [P @ x for x in xs]
+            n += 1
+        Y, B, E, T, H, Z = xs[:6]
+        neff = 1.0 / np.maximum((Z**2).mean(axis=1), 1e-12)[:, None]
+        ll = class_loglik(Y * neff, B * neff, E * neff, sig)
+        kept[st] = ll
+        out["share_photons"].append(float(np.mean(np.argmax(ll[est], axis=1) == tl)))
+        t = T[est] / np.maximum(H[est], 1e-12)[:, None]
+        out["share_noise_free"].append(float(np.mean(np.argmax(t @ logc.T, axis=1) == tl)))
+        d = 0.0
+        for h, y1 in zip(halves, xs[6:], strict=True):
+            q = (y1 + 1e-6) / (y1 + 1e-6).sum(axis=1, keepdims=True)
+            d -= float(((y - h) * np.log(q)).sum())
+        dev.append(d)
+    pick = steps[int(np.argmin(dev))]
+    full = max((st for st in steps if st <= pick // 2), default=steps[0])
+    ll = kept[full]
+    post = np.exp(ll - ll.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)
+    lab = np.argmax(ll, axis=1)
+    ok = lab[est] == tl
+    conf = rec.points.label_confidence
+    choice = np.where(post.max(axis=1) > conf, lab, rec.points.label)
+    out.update(
+        thinned_steps=int(full),
+        thinned=float(ok.mean()),
+        thinned_ece=ece(post.max(axis=1)[est], ok),
+        choice=float(np.mean(choice[est] == tl)),
+    )
+    if special is not None and np.any(special):
+        out["thinned_special"] = float(ok[special].mean())
+    return out
+
+
 def _segments(img, shape, step):
     """Connected components of the 4-neighbour pixels whose values differ by <= step."""
     from scipy.sparse import coo_matrix
@@ -348,7 +446,9 @@ def art_object_scene(scene, depth_step=0.5):
     return replace(scene, truth=truth, name="art_objects")
 
 
-def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None):
+def run_cell(
+    scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special2=None, shares=False
+):
     sim = scene.simulate(ppp=ppp, sbr=1.0, background=bg, rng=seed)
     truth = sim.truth
     t0 = time.perf_counter()
@@ -384,6 +484,9 @@ def run_cell(scene, ppp, bg, seed, *, tau=4.0, tau_m=None, special=None, special
     if scene.name.startswith("art"):  # both Art variants
         row["oracle_regions"] = oracle_regions(rec.detection, truth, e, t, sig, scene.shape)
     row.update(evidence_budget(rec, truth, e, t, sig))
+    if shares:  # session 15: classification from smoothed colour shares (measured only)
+        sp_m = special[t] if special is not None else None
+        row.update(share_smoothing(rec, truth, e, t, sig, special=sp_m))
     conf = rec.points.label_confidence
     calib = (conf[e], ok) if conf is not None else None
     return row, calib
@@ -420,22 +523,42 @@ def _fmt(r):
     )
 
 
+def _fmt_shares(r) -> str:
+    """The :func:`share_smoothing` figures of a cell, one line (empty without them)."""
+    if "share_steps" not in r:
+        return ""
+    per = ", ".join(
+        f"{n}: {a:.3f}/{b:.3f}"
+        for n, a, b in zip(r["share_steps"], r["share_photons"], r["share_noise_free"], strict=True)
+    )
+    sp = f", on thin/net/boundary {r['thinned_special']:.3f}" if "thinned_special" in r else ""
+    return (
+        f"  smoothed shares, steps: photons/noise-free {per}\n"
+        f"  thinning picks {r['thinned_steps']} steps: {r['thinned']:.3f} (ECE "
+        f"{r['thinned_ece']:.3f}){sp}; more confident of field and smoothed {r['choice']:.3f}"
+    )
+
+
 HEADER = (
     f"{'scene':<24} {'bg':<8} {'PPP':>4} {'n':>6} {'acc':>6} {'pp':>6} {'pp+maj':>6} "
     f"{'common':>6} {'proc_s':>6} {'cls%':>6}"
 )
 
 
-def _art_cells(scene, seed, rows, **extra) -> list:
+def _art_cells(scene, seed, rows, shares=False, **extra) -> list:
     """The Art cells of ``scene`` at ``PPP_ART`` (uniform background), printed and added
     to ``rows`` with ``extra`` and the colour-boundary share; returns the calibration
     pairs ``(confidence, correct)`` of the cells that have them."""
     edge = colour_boundary(scene.truth, scene.shape)
     cals = []
     for ppp in PPP_ART:
-        r, cal = run_cell(scene, ppp, "uniform", seed, tau_m=0.004, special=edge, special2=~edge)
+        r, cal = run_cell(
+            scene, ppp, "uniform", seed, tau_m=0.004, special=edge, special2=~edge, shares=shares
+        )
         r.update(extra, boundary=float(edge.mean()))
         print(_fmt(r), flush=True)
+        if shares:
+            print(_fmt_shares(r), flush=True)
         rows.append(r)
         if cal is not None:
             cals.append(cal)
@@ -471,6 +594,12 @@ def main(argv=None) -> int:
         action="store_true",
         help="also the Art variant with one class per object (art_object_scene)",
     )
+    ap.add_argument(
+        "--shares",
+        action="store_true",
+        help="also classify from spatially smoothed colour shares (share_smoothing; measured, "
+        "not in the library)",
+    )
     args = ap.parse_args(argv)
     ppps = (1.0, 10.0) if args.quick else PPP
     one = multispectral_scene(SHAPE, n_bins=200)
@@ -489,8 +618,12 @@ def main(argv=None) -> int:
     for scene, sp, sp2 in ((one, None, patch), (two, net, None), (thin, thin_mask, None)):
         for bg in ("uniform", "decaying"):
             for ppp in ppps:
-                r, cal = run_cell(scene, ppp, bg, args.seed, special=sp, special2=sp2)
+                r, cal = run_cell(
+                    scene, ppp, bg, args.seed, special=sp, special2=sp2, shares=args.shares
+                )
                 print(_fmt(r), flush=True)
+                if args.shares:
+                    print(_fmt_shares(r), flush=True)
                 rows.append(r)
                 if cal is not None:
                     confs.append(cal[0])
@@ -517,11 +650,11 @@ def main(argv=None) -> int:
             "Art's class map (front layer): " + ", ".join(f"{k} {v:.3g}" for k, v in stats.items())
         )
         print(HEADER)
-        art_cal = _art_cells(art, args.seed, rows, separability=sep)
+        art_cal = _art_cells(art, args.seed, rows, shares=args.shares, separability=sep)
         if args.art_objects:
             obj = art_object_scene(art)
             print("\nArt, one class per object (art_object_scene; not the paper's scene)")
-            obj_cal = _art_cells(obj, args.seed, rows)
+            obj_cal = _art_cells(obj, args.seed, rows, shares=args.shares)
             _save_reliability(obj_cal, "art_objects", args.figure, "_art_objects")
         _save_reliability(art_cal, "Art", args.figure, "_art")
     print(f"total {time.perf_counter() - t_all:.0f} s")

@@ -18,12 +18,14 @@ Then, with ``--real``, the three photon-list files (loaded as in ``real_data.py`
 estimated FWHM, tail mass and time, and ``detect(rng=0, pfa=1e-4)`` with the Gaussian
 estimate and with the shapes: surfaces, pixels with >= 2 surfaces, the median depth
 shift against the Gaussian estimate (no truth there). With ``--art``, the Art scene
-(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs.
+(Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs. With ``--weak``
+(only), SBR 0.2 at PPP 1 / 2 / 4: the IRF ``load`` builds without one (pooling pixel
+blocks where single pixels show no pulse) against the true IRF.
 
 Usage::
 
     python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--art-widths]
-        [--no-sim] [--data DIR]
+        [--weak] [--no-sim] [--data DIR]
 """
 
 from __future__ import annotations
@@ -352,6 +354,90 @@ def run_art_widths(data: Path):
             print(f"| {label} | {fw:.2f} | {ppp:g} | {r} | {te:.1f} |", flush=True)
 
 
+def _random_depths(n, T, seed):
+    """One surface per pixel at uniform random depths (no spatial correlation)."""
+    from splidar.points import PointSet
+
+    rng = np.random.default_rng(100 + seed)
+    rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    return PointSet(
+        row=rr.ravel(),
+        col=cc.ravel(),
+        depth_bin=rng.uniform(10, T - 60, n * n),
+        image_shape=(n, n),
+        intensity=np.ones((n * n, 1)),
+        layer=np.zeros(n * n, int),
+    )
+
+
+def run_weak(seeds):
+    """``--weak``: SBR 0.2 at PPP 1 / 2 / 4 (0.17-0.67 signal photons per pixel), the
+    tilted plane of ``basic`` and one surface per pixel at random depths; the IRF ``load``
+    builds when the file holds none (``io._resolve_irf``: the pair-lag width, pooled over
+    pixel blocks when single pixels show no peak, then the shape) against the true IRF;
+    ``process(rng=0)`` with each."""
+    from bench_robustness import _sim
+
+    from splidar.io import _resolve_irf
+
+    print("\n## weak signal, 32 x 32, SBR 0.2; the IRF load builds without one; process(rng=0)")
+    print(
+        "| scene | IRF | PPP | seed | load's IRF source | L1 | FWHM | F_true (true IRF) "
+        "| false (true) | bias (true) | load s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for irf_name, true, T in (
+        ("exp tail 3/6", exp_tail_irf(3.0, 6.0), 300),
+        ("exp tail 2/25", exp_tail_irf(2.0, 25.0), 400),
+    ):
+        true = np.asarray(true, float) / np.sum(true)
+        fw = float(irf_fwhm(true))
+        tau = max(2.0, fw / 2.0)
+        for scene in ("plane", "random depths"):
+            for ppp in (1.0, 2.0, 4.0):
+                for seed in seeds:
+                    if scene == "plane":
+                        b = basic(T=T, ppp=ppp, sbr=0.2, irf=true)
+                        cube, truth = b(32) if seed == 0 else _reseed(b, seed)
+                    else:
+                        cube, truth = _sim(
+                            _random_depths(32, T, seed), T, true, ppp=ppp, sbr=0.2, seed=seed
+                        )
+                    t0 = time.process_time()
+                    try:
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            est, src = _resolve_irf(None, None, None, None, cube.counts, T)
+                    except splidar.SplidarError as exc:
+                        est, src = None, "raises: " + str(exc)[:70]
+                    t_load = time.process_time() - t0
+                    res = []
+                    for irf in (true[None, :], est):
+                        if irf is None:
+                            res.append(None)
+                            continue
+                        c = dataclasses.replace(cube, irf=np.asarray(irf, float))
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            rec = splidar.process(c, rng=0)
+                        m = evaluate(rec.points, truth, tau=tau)
+                        res.append((m.f_true, m.f_false, depth_bias(rec.points, truth, tau)))
+                    t, e = res
+                    if e is None:
+                        s_txt = "- | - | - | - | -"
+                    else:
+                        s = shape_row(true, est[0], fw)
+                        s_txt = (
+                            f"{s['l1']:.3f} | {s['fwhm']:.2f} | {e[0]:.3f} ({t[0]:.3f}) | "
+                            f"{e[1]} ({t[1]}) | {e[2]:+.2f} ({t[2]:+.2f})"
+                        )
+                    print(
+                        f"| {scene} | {irf_name} | {ppp:g} | {seed} | {src} | {s_txt} "
+                        f"| {t_load:.2f} |",
+                        flush=True,
+                    )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
@@ -360,10 +446,13 @@ def main(argv=None):
     ap.add_argument("--ppp4", action="store_true", help="only the PPP 4 cases (simulated)")
     ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
     ap.add_argument("--art-widths", action="store_true", help="the pair-lag width on the Art cubes")
+    ap.add_argument("--weak", action="store_true", help="only the weak-signal cells (SBR 0.2)")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    if not args.no_sim:
+    if args.weak:
+        run_weak(args.seeds)
+    elif not args.no_sim:
         run_sim(args.seeds, ppp4_cases() if args.ppp4 else None)
     if args.real:
         run_real(Path(args.data))

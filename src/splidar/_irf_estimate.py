@@ -14,8 +14,8 @@ import logging
 import math
 
 import numpy as np
+from numba import njit
 from scipy.optimize import curve_fit
-from scipy.signal import fftconvolve
 from scipy.stats import chi2, norm, poisson
 
 from ._validation import SplidarError
@@ -49,92 +49,138 @@ def _centred(kernel: np.ndarray) -> tuple[np.ndarray, int, int]:
     return kp, int(big[0]) - m, int(big[-1]) - m
 
 
-def _pool(a: np.ndarray, kernel: np.ndarray, k_left: int, k_right: int, z: float):
-    """Align bright pixels of ``a`` (P, L, T) at the peak of their correlation with
-    ``kernel`` and pool their background-subtracted histograms over lags
-    ``-k_left..k_right``. Returns (sum (L, K), variance (L, K), pixels per lag (K,),
-    number of pixels used)."""
+def _photons(a: np.ndarray):
+    """The non-empty voxels of ``a`` (P, L, T): (pixel, wavelength, bin, count), ordered
+    by pixel, wavelength and bin, and the offset of each pixel's first one (P + 1,)."""
     n_pix, n_l, n_bins = a.shape
+    rowi, t = np.nonzero(a.reshape(n_pix * n_l, n_bins))
+    c = a.reshape(n_pix * n_l, n_bins)[rowi, t].astype(np.float64)
+    pix, l = np.divmod(rowi, n_l)
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pix, minlength=n_pix))])
+    return pix, l, t.astype(np.int64), c, ptr
+
+
+#: relative difference below which two correlation scores are a tie (exact ties are
+#: common with a few integer counts and a symmetric template)
+_TIE = 1e-9
+
+
+def _photons_sparse(uniq: np.ndarray, cnt: np.ndarray, shape):
+    """:func:`_photons` of a one-wavelength cube of ``shape`` from its sorted non-empty
+    flat voxel indices ``uniq`` and their counts."""
+    n_pix, _, n_bins = shape
+    pix, t = np.divmod(np.asarray(uniq, dtype=np.int64), n_bins)
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(pix, minlength=n_pix))])
+    return pix, np.zeros(pix.size, np.int64), t, np.asarray(cnt, np.float64), ptr
+
+
+@njit(cache=True)
+def _peaks(ptr, t, c, kp, n_bins, reach):  # pragma: no cover - numba
+    """Per pixel: the peak ``p`` of its photons' correlation with ``kp`` (centred:
+    ``score[s] = sum c kp[t - s + h]``); per photon: the peak of the
+    pixel's other photons (its own kernel removed) within ``reach`` bins of ``p``
+    (leave-one-out). Ties (scores within ``_TIE``): the first one for even pixels
+    (photons), the last for odd ones, so neither side is favoured (the FFT of earlier
+    releases broke them by its rounding)."""
+    n_pix = ptr.size - 1
+    n_k = kp.size
+    h = n_k // 2
+    score = np.zeros(n_bins)
+    p = np.zeros(n_pix, np.int64)
+    loo = np.zeros(t.size, np.int64)
+    for i in range(n_pix):
+        a, b = ptr[i], ptr[i + 1]
+        if a == b:
+            continue
+        lo, hi = n_bins, -1
+        for u in range(a, b):
+            for j in range(n_k):
+                s = t[u] - j + h
+                if 0 <= s < n_bins:
+                    score[s] += c[u] * kp[j]
+                    lo = min(lo, s)
+                    hi = max(hi, s)
+        best = 0
+        if lo <= hi:
+            first, last = lo, lo
+            for s in range(lo + 1, hi + 1):
+                if score[s] > score[first] * (1.0 + _TIE):
+                    first, last = s, s
+                elif score[s] >= score[first] * (1.0 - _TIE):
+                    last = s
+            best = first if i % 2 == 0 else last
+            if score[best] <= 0.0:
+                best = 0
+        p[i] = best
+        for u in range(a, b):
+            bv = 0.0
+            first, last = -1, -1
+            for d in range(-reach, reach + 1):
+                s = best + d
+                if s < 0 or s >= n_bins:
+                    continue
+                j = t[u] - s + h
+                own = kp[j] if 0 <= j < n_k else 0.0
+                v = score[s] - own
+                if first < 0 or v > bv + _TIE * abs(bv):
+                    bv = v
+                    first, last = s, s
+                elif v >= bv - _TIE * abs(bv):
+                    last = s
+            loo[u] = first if u % 2 == 0 else last
+        for s in range(max(lo, 0), min(hi, n_bins - 1) + 1):
+            score[s] = 0.0
+    return p, loo
+
+
+def _pool(shape, ph, kernel: np.ndarray, k_left: int, k_right: int, z: float):
+    """Align bright pixels of the cube ``shape`` (P, L, T) whose photons are ``ph``
+    (:func:`_photons`) at the peak of their correlation with ``kernel`` and pool their
+    background-subtracted histograms over lags ``-k_left..k_right``. Returns (sum (L, K),
+    variance (L, K), pixels per lag (K,), number of pixels used, (indices, peaks,
+    backgrounds (Pk, L)) of the pixels used)."""
+    n_pix, n_l, n_bins = shape
+    pix, l, t, c, ptr = ph
     kp, s_lo, s_hi = _centred(np.asarray(kernel, np.float64))
     width = s_hi - s_lo + 1
     # a pixel is bright when its peak window beats the background at the p-value of a
     # one-sided z-sigma Gaussian, Bonferroni-corrected for the T / width windows searched
     alpha = norm.sf(z) / max(n_bins / width, 1.0)
     n_lag = k_left + k_right + 1
-    lags = np.arange(-k_left, k_right + 1)
-    tot = np.zeros((n_l, n_lag))
-    var = np.zeros((n_l, n_lag))
-    cover = np.zeros(n_lag)
-    n_used = 0
-    kept_i, kept_p, kept_b = [], [], []
-    step = max(1, _CHUNK_VOXELS // (n_l * n_bins))
-    for s in range(0, n_pix, step):
-        y = np.asarray(a[s : s + step], dtype=np.float32)
-        ys = y.sum(axis=1)
-        # correlation with the template (FFT: a long-tailed template on thousands of bins)
-        score = fftconvolve(ys, kp[::-1][None, :].astype(np.float32), mode="same", axes=-1)
-        p = np.argmax(score, axis=-1)
-        cs = np.concatenate([np.zeros(y.shape[:2] + (1,), np.float64), np.cumsum(y, -1)], -1)
-        lo = np.clip(p - k_left, 0, n_bins - 1)
-        hi = np.clip(p + k_right, 0, n_bins - 1)
-        r = np.arange(y.shape[0])
-        inside = cs[r, :, hi + 1] - cs[r, :, lo]  # (Pc, L)
-        n_out = n_bins - (hi - lo + 1)
-        # background per bin from the bins away from the return; (outside + 1) / bins
-        # outside is never zero, so a pixel of a few photons in a dark scene is not
-        # taken for significant on its photon count alone
-        b_up = (cs[:, :, -1] - inside + 1.0) / np.maximum(n_out, 1)[:, None]
-        b = np.where(n_out[:, None] > 0, (cs[:, :, -1] - inside) / np.maximum(n_out, 1)[:, None], 0)
-        w_lo = np.clip(p + s_lo, 0, n_bins - 1)
-        w_hi = np.clip(p + s_hi, 0, n_bins - 1)
-        n_sig = (cs[r, :, w_hi + 1] - cs[r, :, w_lo]).sum(axis=1)
-        mu = (w_hi - w_lo + 1) * b_up.sum(axis=1)
-        keep = poisson.sf(n_sig - 1, mu) < alpha
-        if not keep.any():
-            continue
-        kept_i.append(s + np.flatnonzero(keep))
-        kept_p.append(p[keep])
-        kept_b.append(b_up[keep])
-        y, p, b, score = y[keep], p[keep], b[keep], score[keep]
-        idx = p[:, None] + lags[None, :]  # (Pk, K)
-        valid = (idx >= 0) & (idx < n_bins)
-        tot -= (b[:, :, None] * valid[:, None, :]).sum(axis=0)
-        cover += valid.sum(axis=0)
-        n_used += int(keep.sum())
-        i, l, t = np.nonzero(y)
-        c = y[i, l, t]
-        lag = t - _loo_peak(score, p, kp, i, t, width)
-        ok = (lag >= -k_left) & (lag <= k_right)
-        flat = l[ok] * n_lag + lag[ok] + k_left
-        h = np.bincount(flat, weights=c[ok], minlength=n_l * n_lag).reshape(n_l, n_lag)
-        tot += h
-        var += h
-    kept = tuple(
-        np.concatenate(k) if k else np.zeros((0,) + sh)
-        for k, sh in ((kept_i, ()), (kept_p, ()), (kept_b, (n_l,)))
-    )
-    return tot, var, cover, n_used, kept
-
-
-def _loo_peak(score, p, kp, i, t, reach: int) -> np.ndarray:
-    """Return of pixel ``i`` without one photon of bin ``t`` (leave-one-out), searched
-    within ``reach`` bins of its full-data peak ``p[i]``: a photon never aligns its own
-    pixel, so the pooled shape has no spike at the peak."""
-    h = kp.size // 2
-    d = np.arange(-reach, reach + 1)
-    out = np.empty(i.size, np.int64)
-    step = max(1, (1 << 21) // d.size)
-    n_bins = score.shape[1]
-    for s in range(0, i.size, step):
-        ii, tt = i[s : s + step], t[s : s + step]
-        cand = p[ii, None] + d[None, :]
-        inb = (cand >= 0) & (cand < n_bins)
-        cc = np.clip(cand, 0, n_bins - 1)
-        j = tt[:, None] - cc + h
-        own = np.where((j >= 0) & (j < kp.size), kp[np.clip(j, 0, kp.size - 1)], 0.0)
-        sc = np.where(inb, score[ii[:, None], cc] - own, -np.inf)
-        out[s : s + step] = cc[np.arange(ii.size), np.argmax(sc, axis=1)]
-    return out
+    p, loo = _peaks(ptr, t, c, kp, n_bins, width)
+    lo = np.clip(p - k_left, 0, n_bins - 1)
+    hi = np.clip(p + k_right, 0, n_bins - 1)
+    key = pix * n_l + l
+    total = np.bincount(key, c, n_pix * n_l).reshape(n_pix, n_l)
+    inn = (t >= lo[pix]) & (t <= hi[pix])
+    inside = np.bincount(key[inn], c[inn], n_pix * n_l).reshape(n_pix, n_l)
+    n_out = n_bins - (hi - lo + 1)
+    # background per bin from the bins away from the return; (outside + 1) / bins
+    # outside is never zero, so a pixel of a few photons in a dark scene is not
+    # taken for significant on its photon count alone
+    b_up = (total - inside + 1.0) / np.maximum(n_out, 1)[:, None]
+    b = np.where(n_out[:, None] > 0, (total - inside) / np.maximum(n_out, 1)[:, None], 0)
+    w_lo = np.clip(p + s_lo, 0, n_bins - 1)
+    w_hi = np.clip(p + s_hi, 0, n_bins - 1)
+    inw = (t >= w_lo[pix]) & (t <= w_hi[pix])
+    n_sig = np.bincount(pix[inw], c[inw], n_pix)
+    mu = (w_hi - w_lo + 1) * b_up.sum(axis=1)
+    keep = poisson.sf(n_sig - 1, mu) < alpha
+    kept_i = np.flatnonzero(keep)
+    # each kept pixel covers the lags whose bin p + lag is inside the cube: a run
+    first = np.maximum(-k_left, -p[kept_i]) + k_left
+    last = np.minimum(k_right, n_bins - 1 - p[kept_i]) + k_left
+    run = np.zeros((n_l + 1, n_lag + 1))
+    np.add.at(run, (slice(None), first), np.vstack([b[kept_i].T, np.ones(kept_i.size)]))
+    np.add.at(run, (slice(None), last + 1), -np.vstack([b[kept_i].T, np.ones(kept_i.size)]))
+    run = np.cumsum(run, axis=1)[:, :n_lag]
+    cover = run[n_l]
+    sel = keep[pix]
+    lag = t[sel] - loo[sel]
+    ok = (lag >= -k_left) & (lag <= k_right)
+    flat = l[sel][ok] * n_lag + lag[ok] + k_left
+    hist = np.bincount(flat, weights=c[sel][ok], minlength=n_l * n_lag).reshape(n_l, n_lag)
+    return hist - run[:n_l], hist.copy(), cover, int(kept_i.size), (kept_i, p[kept_i], b_up[kept_i])
 
 
 def _support(r: np.ndarray, sig: np.ndarray, z: float, m: int) -> tuple[int, int]:
@@ -204,17 +250,21 @@ def pooled_shape(
     *,
     refine: bool = True,
     gaussian_p: float = 2.0,
+    voxels=None,
 ) -> tuple[np.ndarray, int, tuple[float, int, float]]:
     """IRF ``(L, n)`` pooled from ``a`` (P, L, T): two alignment passes (a Gaussian of
     ``fwhm``, then the first pass's shape), cut to its support, then (``refine``) the
     soft alignment (:func:`soft_align`) unless the Gaussian test's p-value is at least
     ``gaussian_p`` (the caller falls back to a Gaussian); unit sum per row. Returns the
     IRF, the number of pixels pooled and :func:`gaussian_test` of the hard-aligned
-    pooled curve (all wavelengths) on its support."""
+    pooled curve (all wavelengths) on its support. ``voxels``: the non-empty voxels of
+    a one-wavelength ``a`` as (sorted flat index ``pixel * T + bin``, count), when at
+    hand (photon lists), to skip the scan of the dense cube."""
     kernel = gaussian_irf(fwhm)
     m = 2 * int(fwhm // 4) + 1  # about half the FWHM, odd
+    ph = _photons(a) if voxels is None else _photons_sparse(*voxels, a.shape)
     for _ in range(2):
-        tot, var, cover, n_used, kept = _pool(a, kernel, k_left, k_right, z)
+        tot, var, cover, n_used, kept = _pool(a.shape, ph, kernel, k_left, k_right, z)
         if n_used < min_pixels:
             raise SplidarError(
                 f"only {n_used} pixel(s) with a return significant at {z:g} sigma (need "
@@ -243,7 +293,7 @@ def pooled_shape(
             h0[l, a_ : b_ + 1] = rows[l]
         # the jitter of the hard alignment is within about a FWHM of the template
         reach = max(2, int(np.count_nonzero(kernel > kernel.max() / 2.0)))
-        h, _ = soft_align(a, kept, h0, support, k_left, reach)
+        h, _ = soft_align(ph, kept, h0, support, k_left, reach)
         # the soft peak corrects the jitter's shift of the hard one (measured: at most a
         # quarter of the FWHM); a move beyond half the FWHM, the two shapes placed where
         # they best correlate (the EM may shift the whole shape: its shifts absorb it),
@@ -271,20 +321,18 @@ def pooled_shape(
     return out, n_used, test
 
 
-def _photons_near(a, kept, k_left: int, n_lag: int, reach: int):
-    """Photons of the bright pixels within ``reach`` bins of their lag window: (pixel
-    (index into ``kept``), wavelength, lag index ``t - p + k_left``, count)."""
+def _photons_near(ph, kept, k_left: int, n_lag: int, reach: int):
+    """Photons (``ph``, :func:`_photons`) of the bright pixels within ``reach`` bins of
+    their lag window: (pixel (index into ``kept``), wavelength, lag index
+    ``t - p + k_left``, count)."""
     idx, p, _ = kept
-    n_l, n_bins = a.shape[1], a.shape[2]
-    out = []
-    step = max(1, _CHUNK_VOXELS // (n_l * n_bins))
-    for s in range(0, idx.size, step):
-        y = np.asarray(a[idx[s : s + step]])
-        i, l, t = np.nonzero(y)
-        u = t - p[s + i] + k_left
-        ok = (u >= -reach) & (u < n_lag + reach)
-        out.append((s + i[ok], l[ok], u[ok], y[i[ok], l[ok], t[ok]].astype(np.float64)))
-    return tuple(np.concatenate([o[k] for o in out]) for k in range(4))
+    pix, l, t, c, _ = ph
+    pos = np.clip(np.searchsorted(idx, pix), 0, max(idx.size - 1, 0))
+    sel = idx[pos] == pix if idx.size else np.zeros(pix.size, bool)
+    i = pos[sel]
+    u = t[sel] - p[i] + k_left
+    ok = (u >= -reach) & (u < n_lag + reach)
+    return i[ok], l[sel][ok], u[ok], c[sel][ok]
 
 
 def _pairs(hf, ratio, pi, pl, pu, e, up: int, s, step):
@@ -301,7 +349,74 @@ def _pairs(hf, ratio, pi, pl, pu, e, up: int, s, step):
     return j0, parts, ratio[i, l][:, None] * sum(parts)
 
 
-def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarray, int]:
+def _em_step_fine(hf, ratio, pi, pl, pu, pc, e, up: int, n_pix: int):
+    """One E- and M-step of :func:`soft_align` on a grid of ``1 / up`` bin (NumPy): the
+    unsmoothed expected signal photons per fine sample (L, n_f) and per pixel (P, L)."""
+    n_l, n_f = hf.shape
+    n_d = e.size
+    step = max(1, (1 << 21) // n_d)
+    cols = np.arange(n_d)
+    ll = np.zeros(n_pix * n_d)
+    for s in range(0, pi.size, step):
+        _, _, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
+        key = (pi[s : s + step, None] * n_d + cols).ravel()
+        ll += np.bincount(key, (pc[s : s + step, None] * np.log1p(sh)).ravel(), n_pix * n_d)
+    ll = ll.reshape(n_pix, n_d)
+    post = np.exp(ll - ll.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)
+    num = np.zeros(n_l * n_f)
+    amp_new = np.zeros(n_pix * n_l)
+    for s in range(0, pi.size, step):
+        j0, parts, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
+        i, l = pi[s : s + step], pl[s : s + step]
+        w = pc[s : s + step, None] * post[i] * (ratio[i, l][:, None] / (1.0 + sh))
+        for q in range(up):  # each fine sample its share h_f / sum of the bin
+            key = (l[:, None] * n_f + np.clip(j0 + q, 0, n_f - 1)).ravel()
+            num += np.bincount(key, (w * parts[q]).ravel(), n_l * n_f)
+        amp_new += np.bincount(i * n_l + l, (w * (sh / ratio[i, l][:, None])).sum(1), n_pix * n_l)
+    return num.reshape(n_l, n_f), amp_new.reshape(n_pix, n_l)
+
+
+@njit(cache=True)
+def _em_step(hf, ratio, pi, pl, pu, pc, reach):  # pragma: no cover - numba
+    """:func:`_em_step_fine` on whole bins (``up = 1``), compiled: no photon x shift
+    work arrays. Shift ``e = k - reach``; the photon at lag ``pu`` reads ``hf[pu - e]``
+    (0 off the support's grid)."""
+    n_l, n_f = hf.shape
+    n_pix = ratio.shape[0]
+    n_d = 2 * reach + 1
+    ll = np.zeros((n_pix, n_d))
+    for u in range(pi.size):
+        i, l, q, c = pi[u], pl[u], pu[u], pc[u]
+        r = ratio[i, l]
+        for k in range(n_d):
+            j = q - k + reach
+            if 0 <= j < n_f:
+                ll[i, k] += c * math.log1p(r * hf[l, j])
+    for i in range(n_pix):
+        m = ll[i].max()
+        tot = 0.0
+        for k in range(n_d):
+            ll[i, k] = math.exp(ll[i, k] - m)
+            tot += ll[i, k]
+        for k in range(n_d):
+            ll[i, k] /= tot
+    num = np.zeros((n_l, n_f))
+    amp = np.zeros((n_pix, n_l))
+    for u in range(pi.size):
+        i, l, q, c = pi[u], pl[u], pu[u], pc[u]
+        r = ratio[i, l]
+        for k in range(n_d):
+            j = q - k + reach
+            if 0 <= j < n_f:
+                hv = hf[l, j]
+                w = c * ll[i, k] * r / (1.0 + r * hv)
+                num[l, j] += w * hv
+                amp[i, l] += w * hv
+    return num, amp
+
+
+def soft_align(ph, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarray, int]:
     """Refine the hard-aligned IRF ``h0`` (L, K) by expectation-maximisation over each
     bright pixel's unknown return position (soft alignment), smoothed each step.
 
@@ -326,7 +441,7 @@ def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarra
     up = _EM_UP
     n_f = up * n_lag
     b = np.maximum(kept[2], 1e-12)
-    pi, pl, pu, pc = _photons_near(a, kept, k_left, n_lag, reach)
+    pi, pl, pu, pc = _photons_near(ph, kept, k_left, n_lag, reach)
     e = np.arange(-up * reach, up * reach + 1)
     n_d = e.size
     stride = max(1, math.ceil(pi.size * n_d / _EM_PAIRS))
@@ -341,38 +456,20 @@ def soft_align(a, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarra
     inside = (pu >= 0) & (pu < n_lag)
     amp = np.bincount(pi[inside] * n_l + pl[inside], pc[inside], n_pix * n_l).reshape(n_pix, n_l)
     amp = np.maximum(amp - b * support.sum(axis=1), 1.0)
-    step = max(1, (1 << 21) // n_d)
-    cols = np.arange(n_d)
     it = 0
     while it < _EM_MAX_ITER:
         it += 1
         ratio = amp / b
-        ll = np.zeros(n_pix * n_d)
-        for s in range(0, pi.size, step):
-            _, _, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
-            key = (pi[s : s + step, None] * n_d + cols).ravel()
-            ll += np.bincount(key, (pc[s : s + step, None] * np.log1p(sh)).ravel(), n_pix * n_d)
-        ll = ll.reshape(n_pix, n_d)
-        post = np.exp(ll - ll.max(axis=1, keepdims=True))
-        post /= post.sum(axis=1, keepdims=True)
-        num = np.zeros(n_l * n_f)
-        amp_new = np.zeros(n_pix * n_l)
-        for s in range(0, pi.size, step):
-            j0, parts, sh = _pairs(hf, ratio, pi, pl, pu, e, up, s, step)
-            i, l = pi[s : s + step], pl[s : s + step]
-            w = pc[s : s + step, None] * post[i] * (ratio[i, l][:, None] / (1.0 + sh))
-            for q in range(up):  # each fine sample its share h_f / sum of the bin
-                key = (l[:, None] * n_f + np.clip(j0 + q, 0, n_f - 1)).ravel()
-                num += np.bincount(key, (w * parts[q]).ravel(), n_l * n_f)
-            amp_new += np.bincount(
-                i * n_l + l, (w * (sh / ratio[i, l][:, None])).sum(1), n_pix * n_l
-            )
+        if up == 1:
+            num, amp_new = _em_step(hf, ratio, pi, pl, pu, pc, reach)
+        else:
+            num, amp_new = _em_step_fine(hf, ratio, pi, pl, pu, pc, e, up, n_pix)
         num = num.reshape(n_l, n_f)
         for _ in range(_EM_PASSES):
             pad = np.pad(num, ((0, 0), (1, 1)))
             num = np.where(fsup, pad[:, :-2] + _EM_SMOOTH * num + pad[:, 2:], 0.0)
         new = num / np.maximum(num.sum(axis=1, keepdims=True), 1e-300)
-        amp = np.maximum(amp_new.reshape(n_pix, n_l), 1e-3)
+        amp = np.maximum(amp_new, 1e-3)
         change = float(np.abs(new - hf).sum(axis=1).max())
         hf = new
         if change < _EM_TOL:
