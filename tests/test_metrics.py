@@ -187,10 +187,10 @@ def test_evaluate_fast_on_large_sets():
         image_shape=shape,
         intensity=rng.random((n, 2)),
     )
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     m = evaluate(est, true, tau=2.0)
-    elapsed = time.perf_counter() - t0
-    # ~0.2 s measured on 2 cores; 2 s leaves room for a loaded CI machine
+    elapsed = time.process_time() - t0
+    # ~0.2 s of CPU measured; 2 s (CPU, not wall: a loaded machine does not fail it) guards speed
     assert elapsed < 2.0
     # N(0,1) errors: P(|e| <= 2) = 0.954; crowded pixels change little at 1.7 points/pixel
     assert 0.93 < m.f_true < 0.97
