@@ -558,8 +558,6 @@ def recover_slopes(
     excl = float(nd + max(-lo, hi) + width // 2)
     sp = np.ascontiguousarray(spatial, np.float32)
     dev = np.ascontiguousarray(dev, np.float32)
-    if not isinstance(counts, np.ndarray):
-        counts = _SparseRows(counts)  # each chunk decoded once for all the rounds
     K = max(int(max_surfaces), 1)
     D, Di, n_in = _dense_surfaces(surf, R, C, K)
     weak = _weak_pixels(surf, R, C, presence_llr) if pixels == "weak" else np.zeros((R, C), bool)
@@ -915,71 +913,6 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
 _READ_LAYERS = ("original-", "from-zarr-", "array-", "getitem-")
 
 
-class _SparseRows:
-    """A lazy cube's rows read once and kept sparse, for the passes that read the same
-    bands again (the slope pass: every round and the recovered surfaces' fields).
-
-    Rows are read a chunk of rows at a time (the array's own chunks along the rows) with
-    :func:`_read_rows` and kept as the flat indices and values of their nonzero counts;
-    a band is rebuilt from them bit for bit. Photon counts are sparse (0.6 % of the
-    ``--large`` scene's voxels are nonzero: 32 MB of rows kept in ~1 MB); chunks denser
-    than :data:`SPARSE_MAX_FILL`, or past :data:`SPARSE_MAX_BYTES` kept in all, are not
-    kept and are read again when needed.
-    """
-
-    def __init__(self, counts):
-        self.counts, self.shape, self.dtype = counts, tuple(counts.shape), np.dtype(counts.dtype)
-        chunks = getattr(counts, "chunks", None)
-        step = chunks[0][0] if chunks and isinstance(chunks[0], tuple) else None
-        if not step and chunks:
-            step = chunks[0]
-        self.step = int(step) if step else 32
-        self.row_size = int(np.prod(self.shape[1:]))
-        self.kept: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
-        self.nbytes = 0
-
-    def _chunk(self, i: int):
-        """Chunk ``i``'s rows: ``(flat indices, values)``, or the dense rows when not kept."""
-        got = self.kept.get(i)
-        if got is not None:
-            return got
-        a, b = i * self.step, min(self.shape[0], (i + 1) * self.step)
-        dense = np.ascontiguousarray(_read_rows(self.counts, a, b))
-        if i in self.kept:  # once found too dense or past the budget
-            return dense
-        flat = dense.reshape(-1)
-        idx = np.flatnonzero(flat)
-        nb = idx.size * (4 + self.dtype.itemsize)
-        if idx.size > SPARSE_MAX_FILL * flat.size or self.nbytes + nb > SPARSE_MAX_BYTES:
-            self.kept[i] = None
-            return dense
-        got = (idx.astype(np.int32 if flat.size < 2**31 else np.int64), flat[idx])
-        self.kept[i], self.nbytes = got, self.nbytes + nb
-        return got
-
-    def rows(self, y0: int, y1: int) -> np.ndarray:
-        """Rows ``[y0, y1)``, equal to the array's."""
-        out = np.zeros((y1 - y0,) + self.shape[1:], self.dtype)
-        flat, n = out.reshape(-1), self.row_size
-        for i in range(y0 // self.step, (y1 - 1) // self.step + 1):
-            a = i * self.step
-            lo, hi = max(y0, a), min(y1, a + self.step)
-            got = self._chunk(i)
-            if isinstance(got, np.ndarray):
-                out[lo - y0 : hi - y0] = got[lo - a : hi - a]
-                continue
-            idx, val = got
-            j0, j1 = np.searchsorted(idx, [(lo - a) * n, (hi - a) * n])
-            flat[idx[j0:j1] + (a - y0) * n] = val[j0:j1]
-        return out
-
-
-#: Largest share of nonzero voxels in a chunk of rows that :class:`_SparseRows` keeps.
-SPARSE_MAX_FILL = 0.1
-#: Bytes :class:`_SparseRows` keeps at most (indices and values).
-SPARSE_MAX_BYTES = 256_000_000
-
-
 def _read_rows(counts, y0: int, y1: int) -> np.ndarray:
     """Rows ``[y0, y1)`` of an array in memory in the calling process.
 
@@ -994,8 +927,6 @@ def _read_rows(counts, y0: int, y1: int) -> np.ndarray:
     process cannot open (a cluster's workers may see a path the calling process does
     not).
     """
-    if isinstance(counts, _SparseRows):
-        return counts.rows(y0, y1)
     part = counts[y0:y1]
     layers = getattr(getattr(part, "dask", None), "layers", None)
     if layers is not None and all(str(k).startswith(_READ_LAYERS) for k in layers):
