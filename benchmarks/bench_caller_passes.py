@@ -82,7 +82,7 @@ def replay(base: Path) -> tuple[float, float, bool, dict]:
     o, mp = st["o"], st["mp"]
     done = _detect._clean_up(cube, o, mp, [st["table"]], st["bg"], st["corr"], st["rng"])
     t1 = time.perf_counter()
-    surfaces, _, _, _ = _detect._select_and_align(cube, o, mp, done, t1, store)
+    surfaces, _, _, _ = _detect._select_and_align(cube, o, mp, done, t1, store, st["bg"])
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     ref = np.load(base / "surfaces.npz")
     same = all(

@@ -117,3 +117,25 @@ def test_remove_tree_removes_nested_folders(tmp_path):
     remove_tree(root)
     assert not root.exists() and (tmp_path / "store").exists()
     remove_tree(root)  # nothing to remove: no error
+
+
+def test_pixels_zarr_equals_vindex(tmp_path):
+    """The alignment's pixels read from the Zarr array by chunk of rows equal Dask's
+    ``vindex`` (irregular last chunk, repeated pixels, any order)."""
+    from splidar.detection._7_align_depths import _pixels, _pixels_by_chunk
+    from splidar.detection._slopes import _zarr_of
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 4, (37, 11, 2, 25)).astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 11, 2, 25), dtype=a.dtype
+    )
+    z[:] = a
+    x = da.from_zarr(tmp_path / "c.zarr")
+    assert _zarr_of(x) is not None  # the direct path is the one tested
+    rows = np.r_[rng.integers(0, 37, 60), 36, 0, 36]
+    cols = np.r_[rng.integers(0, 11, 60), 10, 0, 10]
+    got = _pixels(x, rows, cols)
+    assert got.dtype == a.dtype
+    np.testing.assert_array_equal(got, x.vindex[rows, cols].compute())
+    np.testing.assert_array_equal(_pixels_by_chunk(z, x.chunks[0], rows, cols), a[rows, cols])

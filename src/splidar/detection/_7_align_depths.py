@@ -21,7 +21,7 @@ from ._4_map import _local_scale
 from ._kernels import _llr_one, _select_scale
 from ._quality import _shifted_irf, align_depths
 from ._result import StoredHistograms, Surfaces
-from ._slopes import _row_bands, surface_fields
+from ._slopes import _row_bands, _zarr_of, surface_fields
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -200,12 +200,37 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
 
 
 def _pixels(counts, rows, cols) -> np.ndarray:
-    """The raw counts of a few pixels, ``(n, L, T)``: read at once from a Dask array."""
+    """The raw counts of a few pixels, ``(n, L, T)``: read at once from a Dask array.
+
+    A Dask array that only reads a Zarr array (``splidar.load`` of a Zarr cube) is read
+    by this process from the Zarr array itself, a chunk of rows at a time (each chunk
+    holding a pixel decoded once, as Dask's ``vindex`` does), not through the active
+    scheduler: on a cluster the workers' reads were serialised and sent over.
+    """
     if is_dask(counts):
+        z = _zarr_of(counts)
+        if z is not None:
+            try:
+                return _pixels_by_chunk(z, counts.chunks[0], rows, cols)
+            except OSError:  # a path the workers see and this process does not
+                pass
         return np.asarray(counts.vindex[rows, cols].compute())
     if isinstance(counts, np.ndarray):
         return counts[rows, cols]
     return np.stack([np.asarray(counts[r, c]) for r, c in zip(rows, cols, strict=True)])
+
+
+def _pixels_by_chunk(z, row_chunks, rows, cols) -> np.ndarray:
+    """Pixels ``(rows, cols)`` of the Zarr array ``z``, read a chunk of rows at a time."""
+    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    edges = np.cumsum((0,) + tuple(int(n) for n in row_chunks))
+    band = np.searchsorted(edges, rows, side="right") - 1
+    out = np.empty((rows.size,) + tuple(z.shape[2:]), z.dtype)
+    for b in np.unique(band):
+        sel = np.flatnonzero(band == b)
+        y = np.asarray(z[int(edges[b]) : int(edges[b + 1])])
+        out[sel] = y[rows[sel] - edges[b], cols[sel]]
+    return out
 
 
 def move_far_depths(
