@@ -237,6 +237,12 @@ class Surfaces:
         stage whose decision keeps it (``"map"``: a candidate of the 3D map that passed
         the evidence and presence tests; ``"dark_regions"``, ``"slopes"``,
         ``"enclosed"``: restored or added by that clean-up pass). Added field.
+    moved_by : ndarray (S,), int8, optional
+        The index into :data:`splidar.detection.STAGES` of the last stage that moved the
+        surface's depth (``"recentre"``: to the depth its 4-neighbours agree on inside
+        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth),
+        ``-1`` when no stage moved it. Every other field describes the depth it holds
+        now. With ``stage``, what :meth:`Detection.explain` tells. Added field.
     """
 
     row: np.ndarray
@@ -258,6 +264,7 @@ class Surfaces:
     presence_llr: np.ndarray | None = None
     presence_z: np.ndarray | None = None
     stage: np.ndarray | None = None
+    moved_by: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.row.size)
