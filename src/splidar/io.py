@@ -1182,6 +1182,11 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 per = stats["n_used"] / arr.shape[1]
                 if first is not None:  # blocks against the single pixels' shape
                     spread = _split_spread(cube, fwhm)
+                    # neither spread measurable (halves of too few bright pixels): the
+                    # level of the more bright pixels (blocks), as irf22b
+                    blocks = spread < first[0] or (
+                        math.isinf(spread) and math.isinf(first[0]) and stats["n_used"] > first[2]
+                    )
                     log.info(
                         "IRF shape: split-half spread %.3f on %d x %d pixel blocks, %.3f on "
                         "single pixels: the %s taken",
@@ -1189,13 +1194,13 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                         level,
                         level,
                         first[0],
-                        "blocks" if spread < first[0] else "single pixels",
+                        "blocks" if blocks else "single pixels",
                     )
-                    return shaped if spread < first[0] else first[1]
+                    return shaped if blocks else first[1]
                 if level == 1:
                     if per >= _SPLIT_ABOVE:
                         return shaped
-                    first = (_split_spread(cube, fwhm), shaped)
+                    first = (_split_spread(cube, fwhm), shaped, stats["n_used"])
                     why = (
                         f"{stats['n_used']} bright pixels for a shape of {arr.shape[1]} "
                         f"samples, split-half spread {first[0]:.3f}; comparing pixel blocks"
