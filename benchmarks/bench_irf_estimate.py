@@ -20,12 +20,15 @@ estimate and with the shapes: surfaces, pixels with >= 2 surfaces, the median de
 shift against the Gaussian estimate (no truth there). With ``--art``, the Art scene
 (Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs. With ``--weak``
 (only), SBR 0.2 at PPP 1 / 2 / 4: the IRF ``load`` builds without one (pooling pixel
-blocks where single pixels show no pulse) against the true IRF.
+blocks where single pixels show no pulse) against the true IRF. With ``--load-cells``
+(only), the IRF ``load`` builds on 14 cells (exp tails 3/6 and 2/25, the measured pulse and
+a Gaussian control; PPP 1-10, SBR 0.2 and 1; the tilted plane) and ``process`` with it,
+and the split-half spreads of the single pixels' and the 2 x 2 blocks' shapes (irf23).
 
 Usage::
 
     python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--art-widths]
-        [--weak] [--no-sim] [--data DIR]
+        [--weak] [--load-cells] [--no-sim] [--data DIR]
 """
 
 from __future__ import annotations
@@ -438,6 +441,82 @@ def run_weak(seeds):
                     )
 
 
+def load_cells():
+    """``--load-cells``: (name, T, PPP, SBR, true IRF) of the tilted plane of ``basic``."""
+    t25 = exp_tail_irf(2.0, 25.0)
+    t36 = exp_tail_irf(3.0, 6.0)
+    cells = [
+        ("exp tail 2/25, PPP 4, SBR 1", 400, 4.0, 1.0, t25),
+        ("exp tail 2/25, PPP 4, SBR 0.2", 400, 4.0, 0.2, t25),
+        ("exp tail 3/6, PPP 4, SBR 0.2", 300, 4.0, 0.2, t36),
+        ("exp tail 3/6, PPP 4, SBR 1", 300, 4.0, 1.0, t36),
+        ("exp tail 2/25, PPP 10, SBR 1", 400, 10.0, 1.0, t25),
+        ("exp tail 2/25, PPP 1, SBR 0.2", 400, 1.0, 0.2, t25),
+        ("exp tail 2/25, PPP 2, SBR 0.2", 400, 2.0, 0.2, t25),
+        ("exp tail 3/6, PPP 1, SBR 0.2", 300, 1.0, 0.2, t36),
+        ("exp tail 3/6, PPP 2, SBR 0.2", 300, 2.0, 0.2, t36),
+        ("exp tail 3/6, PPP 2, SBR 1", 300, 2.0, 1.0, t36),
+        ("exp tail 3/6, PPP 10, SBR 1", 300, 10.0, 1.0, t36),
+    ]
+    w = measured_irf()
+    if w is not None:
+        cells.append(("measured pulse, PPP 4, SBR 1", 300, 4.0, 1.0, w[230:300]))
+        cells.append(("measured pulse, PPP 2, SBR 1", 300, 2.0, 1.0, w[230:300]))
+    cells.append(("gaussian fwhm 3, PPP 2, SBR 1", 200, 2.0, 1.0, gaussian_irf(3.0)))
+    return cells
+
+
+def run_load_cells(seeds):
+    """``--load-cells``: the IRF ``load`` builds without one (``io._resolve_irf``) on the
+    cells of :func:`load_cells`: its level, L1 to the truth, ``process(rng=0)`` F_true /
+    false / bias with it, CPU seconds; and (where this version has ``io._split_spread``)
+    the split-half spreads of the single pixels' and the 2 x 2 blocks' shapes."""
+    import splidar.io as sio
+
+    print("\n## the IRF load builds without one, 32 x 32 tilted plane; process(rng=0)")
+    print(
+        "| cell | seed | load's IRF | L1 | F_true | false | bias | load CPU s "
+        "| spread pixels / 2 x 2 blocks |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, T, ppp, sbr, true in load_cells():
+        true = np.asarray(true, float) / np.sum(true)
+        fw = float(irf_fwhm(true))
+        tau = max(2.0, fw / 2.0)
+        for seed in seeds:
+            b = basic(T=T, ppp=ppp, sbr=sbr, irf=true)
+            cube, truth = b(32) if seed == 0 else _reseed(b, seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c0 = time.process_time()
+                try:
+                    est, src = sio._resolve_irf(None, None, None, None, cube.counts, T)
+                except splidar.SplidarError as exc:
+                    print(f"| {name} | {seed} | raises: {str(exc)[:60]} |", flush=True)
+                    continue
+                t_load = time.process_time() - c0
+                rec = splidar.process(dataclasses.replace(cube, irf=est), rng=0)
+                spread = "-"
+                if hasattr(sio, "_split_spread"):
+                    fwhm, _ = sio._pooled_fwhm(cube.counts, T, None)
+                    sp = [
+                        sio._split_spread(
+                            cube.counts if q == 1 else sio._block_sum(cube.counts, q), fwhm
+                        )
+                        for q in (1, 2)
+                    ]
+                    spread = f"{sp[0]:.3f} / {sp[1]:.3f}"
+            m = evaluate(rec.points, truth, tau=tau)
+            kind = "shape" if "shape" in src.split("(")[0] else "Gaussian"
+            lvl = src.split("pooled over ")[-1][:5] if "pooled over" in src else "pixels"
+            print(
+                f"| {name} | {seed} | {kind}, {lvl} | {shape_row(true, est[0], fw)['l1']:.3f} | "
+                f"{m.f_true:.3f} | {m.f_false} | {depth_bias(rec.points, truth, tau):+.2f} | "
+                f"{t_load:.2f} | {spread} |",
+                flush=True,
+            )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=[0])
@@ -447,10 +526,13 @@ def main(argv=None):
     ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
     ap.add_argument("--art-widths", action="store_true", help="the pair-lag width on the Art cubes")
     ap.add_argument("--weak", action="store_true", help="only the weak-signal cells (SBR 0.2)")
+    ap.add_argument("--load-cells", action="store_true", help="only load's IRF on 14 cells")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    if args.weak:
+    if args.load_cells:
+        run_load_cells(args.seeds)
+    elif args.weak:
         run_weak(args.seeds)
     elif not args.no_sim:
         run_sim(args.seeds, ppp4_cases() if args.ppp4 else None)

@@ -276,35 +276,66 @@ def test_load_irf_weak_signal_shape_from_pixel_blocks():
     assert k == 1 and np.abs(x - e).sum() < 0.6 * np.abs(xg - g).sum()
 
 
-def test_load_irf_few_bright_pixels_per_sample_takes_pixel_blocks():
-    # irf22b: with fewer than 2 bright pixels per sample of the shape, the single
-    # pixels' shape is unstable (exp tail 2/25, PPP 4: 152 bright pixels for 94 samples,
-    # L1 0.76 to the truth); the 2 x 2 block shape is taken (L1 0.21). Seeds 3-7 fire
-    # the rule, each better on blocks (0.22-0.76 -> 0.16-0.21); seed 0 (211 bright
-    # pixels for 88 samples) keeps its single pixels' shape.
+def _single_and_load(true, T, ppp, sbr, seed):
     from splidar.io import _estimate_irf, _pooled_fwhm, _pooled_shape
 
-    true = exp_tail_irf(2.0, 25.0)
-    true = true / true.sum()
-    for seed, blocks in ((7, True), (0, False)):
-        y = _cube(true, T=400, ppp=4.0, sbr=1.0, seed=seed).counts
-        fw, k = _pooled_fwhm(y, 400, None)
-        stats: dict = {}
-        single, _ = _estimate_irf(
-            y,
-            fwhm=fw,
-            max_length=None,
-            significance=3.0,
-            min_pixels=20,
-            fallback=True,
-            stats=stats,
-        )
-        irf, src = _pooled_shape(y, fw, k)
-        assert (stats["n_used"] < 2 * single.shape[1]) == blocks
+    y = _cube(true, T=T, ppp=ppp, sbr=sbr, seed=seed).counts
+    fw, k = _pooled_fwhm(y, T, None)
+    stats: dict = {}
+    single, _ = _estimate_irf(
+        y, fwhm=fw, max_length=None, significance=3.0, min_pixels=20, fallback=True, stats=stats
+    )
+    irf, src = _pooled_shape(y, fw, k)
+    return y, fw, single, stats["n_used"] / single.shape[1], irf, src
+
+
+def test_load_irf_level_follows_split_half_spread():
+    # irf23: the first level with a shape is compared with 2 x 2 blocks by the split-half
+    # spread of each (the estimate's own noise), the steadier kept. Exp tail 2/25, PPP 4,
+    # seed 7: 1.6 bright pixels per sample, spreads 0.41 (pixels) / 0.20 (blocks): the
+    # blocks, L1 0.21 to the truth against the pixels' 0.76. Exp tail 3/6, PPP 4, seed 0:
+    # 5.8 per sample, spreads 0.112 / 0.125: the single pixels' shape, unchanged.
+    from splidar.io import _block_sum, _split_spread
+
+    t25 = exp_tail_irf(2.0, 25.0)
+    t36 = exp_tail_irf(3.0, 6.0)
+    for true, T, seed, blocks in ((t25, 400, 7, True), (t36, 200, 0, False)):
+        true = true / true.sum()
+        y, fw, single, _, irf, src = _single_and_load(true, T, 4.0, 1.0, seed)
+        s1, s2 = _split_spread(y, fw), _split_spread(_block_sum(y, 2), fw)
+        assert (s2 < s1) == blocks
         assert ("2 x 2 pixel blocks" in src) == blocks
-        x, e, _ = _on_common_grid(true, irf[0])
-        xs, s, _ = _on_common_grid(true, single[0])
         if blocks:
+            x, e, _ = _on_common_grid(true, irf[0])
+            xs, s, _ = _on_common_grid(true, single[0])
             assert np.abs(x - e).sum() < 0.5 * np.abs(xs - s).sum()
         else:
             np.testing.assert_array_equal(irf, single)
+
+
+def test_load_irf_many_bright_pixels_per_sample_keeps_single_pixels():
+    # the cost bound: from _SPLIT_ABOVE (16) bright pixels per sample on (every real
+    # file: 31-750) the single pixels' shape is taken without the spread (exp tail 3/6,
+    # PPP 8, seed 0: 16.1 per sample; its 2 x 2 blocks' spread would be the lower)
+    from splidar.io import _SPLIT_ABOVE
+
+    true = exp_tail_irf(3.0, 6.0)
+    true = true / true.sum()
+    _, _, single, per, irf, src = _single_and_load(true, 200, 8.0, 1.0, 0)
+    assert per >= _SPLIT_ABOVE
+    assert "pixel blocks" not in src
+    np.testing.assert_array_equal(irf, single)
+
+
+def test_shape_distance_and_split_halves():
+    from splidar._irf_estimate import shape_distance, split_halves
+
+    a = np.array([0.0, 1.0, 3.0, 1.0, 0.0])
+    assert shape_distance(a, np.array([2.0, 6.0, 2.0])) == pytest.approx(0.0)
+    assert shape_distance(a, np.array([3.0, 1.0, 1.0])) == pytest.approx(0.4)
+    assert shape_distance(np.array([1.0]), np.array([0.0, 1.0])) == pytest.approx(0.0)
+    for r, c in ((4, 5), (1, 6), (3, 3)):
+        for m in split_halves(r, c):
+            assert m.shape == (r * c,)
+            assert abs(int(m.sum()) - (r * c - int(m.sum()))) <= max(c, 1)
+            assert 0 < m.sum() < r * c

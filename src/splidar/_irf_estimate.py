@@ -489,3 +489,28 @@ def soft_align(ph, kept, h0, support, k_left: int, reach: int) -> tuple[np.ndarr
         h[l, : g.size] = g
     h = np.where(support, h, 0.0)
     return h, it
+
+
+def shape_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """L1 distance between two non-negative shapes (1-D, any lengths), each scaled to unit
+    sum, placed where they best correlate (the smallest L1 over the relative shifts)."""
+    a = np.asarray(a, np.float64) / max(float(np.sum(a)), 1e-300)
+    b = np.asarray(b, np.float64) / max(float(np.sum(b)), 1e-300)
+    n = a.size + 2 * b.size
+    x = np.zeros(n)
+    x[b.size : b.size + a.size] = a
+    best = math.inf
+    for s in range(a.size + b.size - 1):  # b's first sample at x[s + 1]
+        y = np.zeros(n)
+        y[s + 1 : s + 1 + b.size] = b
+        best = min(best, float(np.abs(x - y).sum()))
+    return best
+
+
+def split_halves(n_rows: int, n_cols: int) -> list[np.ndarray]:
+    """Two partitions of the ``n_rows x n_cols`` image into halves, as boolean masks of
+    the first half (flat, row-major): the checkerboard and alternate rows (or columns
+    for a single row). Each half samples the whole image (neighbours in the other)."""
+    rr, cc = np.meshgrid(np.arange(n_rows), np.arange(n_cols), indexing="ij")
+    second = rr % 2 == 0 if n_rows > 1 else cc % 2 == 0
+    return [((rr + cc) % 2 == 0).ravel(), second.ravel()]

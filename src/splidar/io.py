@@ -1010,9 +1010,14 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
 
 #: fewest pixel blocks the weak-signal pooling keeps (the shape needs 20 bright ones)
 _MIN_BLOCKS = 16
-#: fewest bright pixels (or blocks) per sample of the estimated shape that the shape
-#: is taken from without trying coarser pixel blocks: the soft alignment fits the
-#: shape's samples and, per pixel, a shift and an amplitude (irf22b)
+#: bright pixels (or blocks) per sample of the estimated shape from which the shape is
+#: taken without measuring its split-half spread against the next coarser pixel blocks
+#: (a cost bound, not the choice: the spread there is a few hundredths; every real file
+#: of benchmarks/real_data.py holds 31-750 per sample; irf23)
+_SPLIT_ABOVE = 16
+#: fewest bright blocks per sample of the shape that a block level's shape is taken from
+#: without trying coarser blocks (irf22b; the blocks' own rule, the split-half spread
+#: decides between single pixels and blocks)
 _PIXELS_PER_SAMPLE = 2
 
 
@@ -1099,18 +1104,55 @@ def _block_sum(counts, k: int) -> np.ndarray:
     return pad.reshape(rp // k, k, cp // k, k, *a.shape[2:]).sum(axis=(1, 3))
 
 
+def _split_spread(cube, fwhm: float) -> float:
+    """The estimate's own spread on ``cube`` (R, C[, L], T): the shape (no Gaussian
+    fall-back) of each half of its pixels, the halves' L1 distance (at their best
+    correlation, the largest over wavelengths) averaged over two partitions
+    (:func:`splidar._irf_estimate.split_halves`); ``inf`` where a half has fewer than
+    10 bright pixels (half the 20 the shape needs)."""
+    from ._irf_estimate import shape_distance, split_halves
+
+    a = np.asarray(cube)
+    if a.ndim == 3:
+        a = a[:, :, None, :]
+    flat = a.reshape(-1, 1, *a.shape[2:])
+    out = []
+    for first in split_halves(a.shape[0], a.shape[1]):
+        halves = []
+        for m in (first, ~first):
+            try:
+                h, _ = _estimate_irf(
+                    flat[m],
+                    fwhm=fwhm,
+                    max_length=None,
+                    significance=3.0,
+                    min_pixels=10,
+                    fallback=False,
+                )
+            except SplidarError:
+                return math.inf
+            halves.append(h)
+        out.append(max(shape_distance(x, y) for x, y in zip(*halves, strict=True)))
+    return float(np.mean(out))
+
+
 def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
     """The shape (:func:`_estimate_irf`) on single pixels; where they are too few bright
     ones, or their pooled photons do not reject a Gaussian (the Gaussian fall-back), on
     ``k x k`` pixel blocks (``k`` doubling from 2, or from the width's level, while at
     least ``_MIN_BLOCKS`` blocks remain): a block holds ``k^2`` times a pixel's signal
-    (its depth spread widens the shape a little). The first level that gives a shape
-    from at least ``_PIXELS_PER_SAMPLE`` bright pixels (blocks) per sample of the shape
-    wins; where no level has that many, the level of the most bright pixels (blocks),
-    the finer on ties; else the single pixels' Gaussian fall-back, or None (the
-    caller keeps the Gaussian of the width). Returns (irf, source) or None."""
+    (its depth spread widens the shape a little).
+
+    Single pixels' shape against blocks (irf23): below ``_SPLIT_ABOVE`` bright pixels
+    per sample, the next level's shape is estimated too and the one of the lower
+    split-half spread (:func:`_split_spread`, the estimate's own noise) is taken.
+    Block levels (single pixels without a shape): the first one that gives a shape from
+    at least ``_PIXELS_PER_SAMPLE`` bright blocks per sample wins, else the level of the
+    most bright blocks (the finer on ties) (irf22b); else the single pixels' Gaussian
+    fall-back, or None (the caller keeps the Gaussian of the width). Returns (irf,
+    source) or None."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
-    level, gaussian, best = 1, None, None
+    level, gaussian, best, first = 1, None, None, None
     while True:
         cube = counts if level == 1 else _block_sum(counts, level)
         stats: dict = {}
@@ -1126,6 +1168,8 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 stats=stats,
             )
         except SplidarError as exc:
+            if first is not None:  # the blocks have too few bright ones: the pixels' shape
+                return first[1]
             if "pixel(s) with a return" not in str(exc):
                 log.warning("IRF shape not estimated (%s); using the Gaussian", exc)
                 return best[1] if best is not None else gaussian
@@ -1135,20 +1179,51 @@ def _pooled_shape(counts, fwhm: float, k: int, sparse=None):
                 if level == 1 and k > 1:
                     src += f" (its width pooled over {k} x {k} pixel blocks: weak signal)"
                 shaped = (arr, src + _blocks_text(level))
-                if stats["n_used"] >= _PIXELS_PER_SAMPLE * arr.shape[1]:
-                    return shaped
-                if best is None or stats["n_used"] > best[0]:
-                    best = (stats["n_used"], shaped)
-                why = (
-                    f"{stats['n_used']} bright pixels for a shape of {arr.shape[1]} samples "
-                    f"(fewer than {_PIXELS_PER_SAMPLE} per sample)"
-                )
+                per = stats["n_used"] / arr.shape[1]
+                if first is not None:  # blocks against the single pixels' shape
+                    spread = _split_spread(cube, fwhm)
+                    # neither spread measurable (halves of too few bright pixels): the
+                    # level of the more bright pixels (blocks), as irf22b
+                    blocks = spread < first[0] or (
+                        math.isinf(spread) and math.isinf(first[0]) and stats["n_used"] > first[2]
+                    )
+                    log.info(
+                        "IRF shape: split-half spread %.3f on %d x %d pixel blocks, %.3f on "
+                        "single pixels: the %s taken",
+                        spread,
+                        level,
+                        level,
+                        first[0],
+                        "blocks" if blocks else "single pixels",
+                    )
+                    return shaped if blocks else first[1]
+                if level == 1:
+                    if per >= _SPLIT_ABOVE:
+                        return shaped
+                    first = (_split_spread(cube, fwhm), shaped, stats["n_used"])
+                    why = (
+                        f"{stats['n_used']} bright pixels for a shape of {arr.shape[1]} "
+                        f"samples, split-half spread {first[0]:.3f}; comparing pixel blocks"
+                    )
+                else:
+                    if per >= _PIXELS_PER_SAMPLE:
+                        return shaped
+                    if best is None or stats["n_used"] > best[0]:
+                        best = (stats["n_used"], shaped)
+                    why = (
+                        f"{stats['n_used']} bright blocks for a shape of {arr.shape[1]} "
+                        f"samples (fewer than {_PIXELS_PER_SAMPLE} per sample)"
+                    )
             else:
+                if first is not None:  # the blocks fall back to a Gaussian: the pixels' shape
+                    return first[1]
                 if gaussian is None:
                     gaussian = (arr, src + _blocks_text(k))
                 why = "the pooled photons do not reject a Gaussian"
         nxt = max(2 * level, k)
         if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
+            if first is not None:
+                return first[1]
             return best[1] if best is not None else gaussian
         log.info("IRF shape: %s; pooling %d x %d pixel blocks", why, nxt, nxt)
         level = nxt
