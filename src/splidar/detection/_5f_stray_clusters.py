@@ -90,23 +90,48 @@ def _stray_kernel(row, col, depth, keep, R, C, gate, max_size, reach, out):
         if keep[i]:
             root[i] = _find(parent, i)
             size[root[i]] += 1
+    _group_kernel(
+        row, col, depth, keep, head, nxt, count, root, size, R, C, gate, max_size, reach, out
+    )
+
+
+@njit(cache=True, nogil=True)
+def _group_kernel(
+    row, col, depth, keep, head, nxt, count, root, size, R, C, gate, max_size, reach, out
+):
+    """Small clusters within the reach at one depth form a group; a group joins when one
+    of its clusters has a large cluster within the reach, or its members number more
+    than ``max_size``; ``out[i]`` for the crowded pixels' members of the other groups."""
+    n = row.size
+    parent = np.arange(n)
+    big = np.zeros(n, np.bool_)
     for i in range(n):
-        if not keep[i] or count[row[i] * C + col[i]] < 2 or size[root[i]] > max_size:
+        if not keep[i] or size[root[i]] > max_size or big[root[i]]:
             continue
-        joined = False
         for r in range(max(row[i] - reach, 0), min(row[i] + reach + 1, R)):
             for c in range(max(col[i] - reach, 0), min(col[i] + reach + 1, C)):
                 k = head[r * C + c]
                 while k >= 0:
                     if root[k] != root[i] and abs(depth[k] - depth[i]) <= gate:
-                        joined = True
-                        break
+                        if size[root[k]] > max_size:
+                            big[root[i]] = True
+                        else:
+                            a, b = _find(parent, root[i]), _find(parent, root[k])
+                            if a != b:
+                                parent[a] = b
                     k = nxt[k]
-                if joined:
-                    break
-            if joined:
-                break
-        out[i] = not joined
+    total = np.zeros(n, np.int64)
+    joined = np.zeros(n, np.bool_)
+    for i in range(n):
+        if keep[i] and root[i] == i and size[i] <= max_size:
+            g = _find(parent, i)
+            total[g] += size[i]
+            joined[g] |= big[i]
+    for i in range(n):
+        if not keep[i] or count[row[i] * C + col[i]] < 2 or size[root[i]] > max_size:
+            continue
+        g = _find(parent, root[i])
+        out[i] = not (joined[g] or total[g] > max_size)
 
 
 def stray_clusters(row, col, depth, keep, *, image_shape, fwhm: float, half: int) -> np.ndarray:
