@@ -650,9 +650,35 @@ def test_stray_clusters_keeps_lines_and_the_fragments_of_a_thin_structure():
     out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=1)
     assert out[576:].all() and not out[:576].any()
     # a second candidate at another depth beside the fragments does not join them
-    row, col, depth, keep = _plane_with([(3, 3, 20.0), (3, 4, 160.0), (3, 12, 161.0)])
+    frag3 = [(3, 3, 20.0), (3, 4, 160.0), (3, 12, 161.0)] + [(12, j, 160.0) for j in range(8)]
+    row, col, depth, keep = _plane_with(frag3)
     out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
-    assert out[576:].tolist() == [True, False, False]
+    assert out[576:].tolist() == [True] + [False] * 10
+
+
+def test_stray_clusters_small_clusters_vouch_for_each_other_only_as_a_large_group():
+    from splidar.detection._5f_stray_clusters import MAX_CLUSTER, stray_clusters
+
+    # two stray 1- and 2-pixel clusters at one depth, 8 pixels apart (within the reach):
+    # 3 members in all, no more than MAX_CLUSTER, and no large cluster there: stray
+    extra = [(3, 4, 160.0), (3, 12, 161.0), (4, 12, 161.5)]
+    assert len(extra) <= MAX_CLUSTER
+    row, col, depth, keep = _plane_with(extra)
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert out[576:].all() and not out[:576].any()
+    # a third one along the same line makes a group of MAX_CLUSTER + 1 members: kept
+    # (the fragments of a thin structure whose other pixels the map missed)
+    row, col, depth, keep = _plane_with(extra + [(3, 20, 162.0), (4, 20, 162.0)])
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert not out.any()
+    # a large cluster (a region or a line) at that depth within the reach vouches for
+    # a single stray pixel too
+    row, col, depth, keep = _plane_with([(3, 4, 160.0)] + [(12, j, 160.0) for j in range(6)])
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=5)
+    assert not out.any()
+    # beyond the reach (half-width 2: 6 pixels) it does not
+    out = stray_clusters(row, col, depth, keep, image_shape=(24, 24), fwhm=3.0, half=2)
+    assert out[576] and not out[577:].any()
 
 
 def test_detect_stray_clusters_removes_only_candidates_of_crowded_pixels(net_map):

@@ -4,7 +4,10 @@ A pixel that holds two kept candidates, one of them in a small cluster of same-d
 candidates (at most :data:`MAX_CLUSTER`, 8-connected, depths within :data:`GATE_FWHM`
 FWHM of a neighbour's) that nothing else at that depth joins within
 :data:`REACH_BOXES` x the largest box's half-width (15 pixels with the default scales),
-keeps its other candidate only.
+keeps its other candidate only. A large cluster within the reach joins it; small
+clusters within the reach of one another join only as a group of more than
+:data:`MAX_CLUSTER` members (the fragments of a thin structure whose other pixels the
+map missed): two or three stray clusters at one depth do not vouch for one another.
 A true surface continues into its neighbours (a region, a line or the fragments of one
 along a thin structure); the spatial pooling's false alarms behind a pixel's own surface
 (the "background" and "window edge" kinds of issue #15's false surfaces) come in
@@ -16,7 +19,9 @@ Measured (``benchmarks/README.md``, "Issue #15 point 5, session 13"): single sur
 PPP 4, SBR 0.25, 96 x 80, seeds 0-2, false surfaces 147.7 -> 126.7 (uniform), 182.0 ->
 160.0 (decaying; background kind 27.0 -> 13.3 and 31.0 -> 17.7, window edge 12.7 -> 5.3
 and 20.0 -> 11.3) with F_true unchanged in every cube; the sheet and the net (a partly
-transmissive layer) the same F_true in every cube, fewer false surfaces.
+transmissive layer) the same F_true in every cube, fewer false surfaces. The group rule
+(session 16, depth23): 121.7 -> 118.3 / 153.0 -> 149.3 at the later main, background kind
+13.7 -> 11.7 and 17.7 -> 15.0, window edge 5.3 -> 4.0 and 11.3 -> 10.3, F_true the same.
 """
 
 from __future__ import annotations
@@ -90,23 +95,48 @@ def _stray_kernel(row, col, depth, keep, R, C, gate, max_size, reach, out):
         if keep[i]:
             root[i] = _find(parent, i)
             size[root[i]] += 1
+    _group_kernel(
+        row, col, depth, keep, head, nxt, count, root, size, R, C, gate, max_size, reach, out
+    )
+
+
+@njit(cache=True, nogil=True)
+def _group_kernel(
+    row, col, depth, keep, head, nxt, count, root, size, R, C, gate, max_size, reach, out
+):
+    """Small clusters within the reach at one depth form a group; a group joins when one
+    of its clusters has a large cluster within the reach, or its members number more
+    than ``max_size``; ``out[i]`` for the crowded pixels' members of the other groups."""
+    n = row.size
+    parent = np.arange(n)
+    big = np.zeros(n, np.bool_)
     for i in range(n):
-        if not keep[i] or count[row[i] * C + col[i]] < 2 or size[root[i]] > max_size:
+        if not keep[i] or size[root[i]] > max_size or big[root[i]]:
             continue
-        joined = False
         for r in range(max(row[i] - reach, 0), min(row[i] + reach + 1, R)):
             for c in range(max(col[i] - reach, 0), min(col[i] + reach + 1, C)):
                 k = head[r * C + c]
                 while k >= 0:
                     if root[k] != root[i] and abs(depth[k] - depth[i]) <= gate:
-                        joined = True
-                        break
+                        if size[root[k]] > max_size:
+                            big[root[i]] = True
+                        else:
+                            a, b = _find(parent, root[i]), _find(parent, root[k])
+                            if a != b:
+                                parent[a] = b
                     k = nxt[k]
-                if joined:
-                    break
-            if joined:
-                break
-        out[i] = not joined
+    total = np.zeros(n, np.int64)
+    joined = np.zeros(n, np.bool_)
+    for i in range(n):
+        if keep[i] and root[i] == i and size[i] <= max_size:
+            g = _find(parent, i)
+            total[g] += size[i]
+            joined[g] |= big[i]
+    for i in range(n):
+        if not keep[i] or count[row[i] * C + col[i]] < 2 or size[root[i]] > max_size:
+            continue
+        g = _find(parent, root[i])
+        out[i] = not (joined[g] or total[g] > max_size)
 
 
 def stray_clusters(row, col, depth, keep, *, image_shape, fwhm: float, half: int) -> np.ndarray:
