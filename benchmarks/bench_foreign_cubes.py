@@ -86,7 +86,7 @@ def _emg(x, sigma: float, tail: float) -> np.ndarray:
     return exponnorm.pdf(x, tail / sigma, loc=0.0, scale=sigma)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _emg_mode(sigma: float, tail: float) -> tuple[float, float]:
     x = np.arange(-5 * sigma, 5 * sigma + 5 * tail, 0.001)
     v = _emg(x, sigma, tail)
@@ -202,7 +202,7 @@ class Case:
     T: int
     bin_ps: float
     pulse: Pulse
-    write: Callable[[Scene, Path, "Case"], Written]
+    write: Callable[[Scene, Path, Case], Written]
     L: int = 1
     sim: dict = field(default_factory=dict)
 
