@@ -279,7 +279,7 @@ def w_mat_rctl(sc: Scene, d: Path, case: Case) -> Written:
             "irf_variable": "IRF",
             "bin_width_ps": case.bin_ps,
         },
-        ["--variable", "Y", "--time-axis", "2", "--irf", str(p),
+        ["--variable", "Y", "--time-axis", "2", "--irf", str(p), "--irf-variable", "IRF",
          "--bin-width-ps", str(case.bin_ps)],
     )  # fmt: skip
 
@@ -428,6 +428,24 @@ def w_irf_finer(sc: Scene, d: Path, case: Case) -> Written:
     )
 
 
+def w_irf_finer_csv(sc: Scene, d: Path, case: Case) -> Written:
+    """As :func:`w_irf_finer`, the IRF written as ``time_ps,counts`` (.csv with a header)."""
+    w = w_irf_finer(sc, d, case)
+    g = np.load(d / "irf_2ps.npy")
+    with open(d / "irf_2ps.csv", "w", newline="") as fp:
+        out = csv.writer(fp)
+        out.writerow(["time_ps", "counts"])
+        for k, v in enumerate(g):
+            out.writerow([f"{2 * k}", f"{v:.6g}"])
+    irf = str(d / "irf_2ps.csv")
+    return Written(
+        w.path,
+        {"irf": irf, "bin_width_ps": case.bin_ps},
+        ["--irf", irf, "--bin-width-ps", str(case.bin_ps)],
+        note="IRF csv with its time column, 8x finer than the cube",
+    )
+
+
 def _cases() -> list[Case]:
     return [
         Case("npy (R,C,T) u16, T1024 16ps, IRF peak 30/100", 1024, 16.0,
@@ -446,6 +464,8 @@ def _cases() -> list[Case]:
         Case("photons npz pixel+t_ps, IRF csv", 1000, 8.0, Pulse(6.0, 4.0), w_photons_flat),
         Case("photons h5 x/y/toa_ns table", 600, 20.0, Pulse(3.5), w_photons_h5_table),
         Case("IRF at 2 ps, cube at 16 ps", 600, 16.0, Pulse(4.0, 3.0), w_irf_finer),
+        Case("IRF csv time_ps at 2 ps, cube at 16 ps", 600, 16.0, Pulse(4.0, 3.0),
+             w_irf_finer_csv),
     ]  # fmt: skip
 
 
@@ -470,7 +490,7 @@ def _score(points, truth, tau):
     return {"f_true": m.f_true, "false": m.f_false, "dae": m.dae, "bias": bias}
 
 
-def _cli(w: Written, out: Path) -> dict:
+def _cli(w: Written, out: Path, truth, tau: float) -> dict:
     cmd = [sys.executable, "-m", "splidar", "run", str(w.path), *w.cli_args, "-o", str(out),
            "--no-figures", "--no-view", "--force", "-q"]  # fmt: skip
     t0 = time.perf_counter()
@@ -481,8 +501,15 @@ def _cli(w: Written, out: Path) -> dict:
         return res
     with open(out / "points.csv") as fp:
         rows = list(csv.DictReader(fp))
+    from splidar import PointSet
+
     res["cli_points"] = len(rows)
     res["cli_depth_m"] = bool(rows) and "depth_m" in rows[0]
+    pts = PointSet(
+        row=[int(r["row"]) for r in rows], col=[int(r["col"]) for r in rows],
+        depth_bin=[float(r["depth_bin"]) for r in rows], image_shape=truth.image_shape,
+    )  # fmt: skip
+    res["cli_f_true"] = _score(pts, truth, tau)["f_true"]
     summary = json.loads((out / "summary.json").read_text())
     res["cli_bin_width_ps"] = summary.get("cube", {}).get("bin_width_ps")
     return res
@@ -527,7 +554,7 @@ def run_case(case: Case, base: Path, cli: bool) -> dict:
         b = per_pixel_detect(cube)
         out.update({"b_" + k: v for k, v in _score(b.points, truth, tau).items()})
     if cli:
-        out.update(_cli(w, d / "out"))
+        out.update(_cli(w, d / "out", truth, tau))
     return out
 
 
@@ -565,7 +592,7 @@ def main() -> None:
     if args.only:
         cases = [c for c in cases if any(s in c.name for s in args.only)]
     print(
-        "| case | cube read as | bin ps | IRF FWHM (bins), source | load | CLI | "
+        "| case | cube read as | bin ps | IRF FWHM (bins), source | load | CLI (F_true, depths) | "
         "wall s / cpu s | n true | F_true | false | DAE | bias | "
         "baseline F_true / false / DAE |"
     )
@@ -577,6 +604,9 @@ def main() -> None:
             r = run_case(case, base, not args.no_cli)
             ok = r["load"] == "ok"
             cli = "-" if args.no_cli or not ok else ("yes" if r.get("cli_rc") == 0 else "NO")
+            if r.get("cli_rc") == 0:
+                m = "m" if r.get("cli_depth_m") else "bins"
+                cli = f"yes ({_f(r.get('cli_f_true'), '.3f')}, {m})"
             if not ok or "process" in r:
                 notes.append(f"{case.name}: {r['load'] if not ok else r['process']}")
             if r.get("cli_err"):
