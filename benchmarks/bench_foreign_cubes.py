@@ -363,7 +363,7 @@ def _photons(sc: Scene, case: Case, gate_ps: float, rng):
     pix, b = np.divmod(idx, case.T)
     t = gate_ps + (b + rng.random(b.size)) * case.bin_ps
     order = rng.permutation(t.size)  # time-tagged order, not pixel order
-    return pix[order].astype(np.int32), np.round(t[order]).astype(np.int64)
+    return pix[order].astype(np.int32), np.floor(t[order]).astype(np.int64)
 
 
 def w_photons_flat(sc: Scene, d: Path, case: Case) -> Written:

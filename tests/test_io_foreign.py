@@ -138,10 +138,12 @@ def test_load_resamples_an_irf_text_file_to_the_cube_bin_width(tmp_path):
     c = tmp_path / "scan.npy"
     np.save(c, np.ones((4, 4, 100), np.uint16))
     cube = load(c, irf=str(p), bin_width_ps=16.0)
-    assert cube.irf.shape == (1, 20)  # 160 samples of 2 ps = 20 bins of 16 ps
-    # each bin sums its 8 samples; atol: differences of cumulative sums (rounding 1e-16)
-    want = fine.reshape(20, 8).sum(1) / fine.sum()
-    np.testing.assert_allclose(cube.irf[0], want, rtol=1e-9, atol=1e-14)
+    g = cube.irf[0]
+    # 160 samples of 2 ps in bins of 16 ps, the peak sample (64) centred in its bin:
+    # [60.5, 68.5) samples; partial end bins [0, 4.5) and [156.5, 160)
+    assert g.size == 21 and int(np.argmax(g)) == 8
+    np.testing.assert_allclose(g.sum(), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(g[1:8], g[9:16][::-1], rtol=1e-6)  # symmetric stays so (full bins)
     assert "resampled from 2 ps to 16 ps" in cube.metadata["irf_source"]
     same = load(c, irf=str(p), bin_width_ps=2.0)  # same grid: as written (cropped to T)
     assert same.irf.shape[1] == 99 and "resampled" not in same.metadata["irf_source"]

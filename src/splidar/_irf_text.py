@@ -94,8 +94,8 @@ def irf_on_bins(irf, bin_width_ps: float | None):
     """``irf`` (a path or anything else) and a note; a ``.csv``/``.txt`` path whose time
     column names its unit and whose step differs from ``bin_width_ps`` by more than
     0.1 % comes back as an array resampled onto the cube's bins (the IRF integrated over
-    each bin: its cumulative sum interpolated at the bin edges, edges aligned with the
-    first sample's start), with a note for ``metadata["irf_source"]``."""
+    each bin: its cumulative sum interpolated at the bin edges; the peak sample centred
+    in its bin, the end bins partial), with a note for ``metadata["irf_source"]``."""
     if not isinstance(irf, (str, os.PathLike)) or Path(irf).suffix.lower() not in (
         ".csv",
         ".txt",
@@ -130,9 +130,14 @@ def irf_on_bins(irf, bin_width_ps: float | None):
         a = a.T
     n = a.shape[0]
     ratio = float(bin_width_ps) / step_ps  # samples per cube bin
-    n_out = max(int(math.ceil(n / ratio)), 1)
+    # bin edges placed so that the peak sample's centre is a bin's centre: the depth
+    # reference (the IRF's maximum) stays where the pulse peaks, not up to half a bin off
+    peak = int(np.argmax(a.sum(axis=1)))
+    first = ((peak + 0.5) - ratio / 2) % ratio
+    inner = first + ratio * np.arange(int(math.ceil((n - first) / ratio)))
+    edges = np.unique(np.concatenate([[0.0], inner[(inner > 0) & (inner < n)], [float(n)]]))
+    n_out = edges.size - 1
     cum = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a, axis=0)])
-    edges = np.minimum(np.arange(n_out + 1) * ratio, n)
     out = np.diff(
         np.column_stack([np.interp(edges, np.arange(n + 1), cum[:, j]) for j in range(a.shape[1])]),
         axis=0,
