@@ -19,8 +19,9 @@ For each case it records what ``splidar.load`` needs (the arguments the document
 gives), whether ``splidar run FILE`` runs from the command line with the matching
 options, and the quality of ``splidar.process(cube, rng=0)`` against the simulator's own
 truth (``splidar.metrics.evaluate``, tau = max(2, FWHM / 2) bins; bias = mean signed
-depth error of the matched points, bins), beside the per-pixel matched-filter baseline
-(``splidar.baselines.per_pixel_detect``).
+depth error of the matched points, bins; "net": F_true of the net's surfaces, the weaker
+of two returns in a pixel; "end": of the surfaces within one FWHM of the window's last
+bin), beside the per-pixel matched-filter baseline (``splidar.baselines.per_pixel_detect``).
 
 Depths: the truth is the bin where the pulse's maximum lands, counted from the first
 stored bin (splidar's convention, docs/usage.md "Your own files"); a group that refers
@@ -105,6 +106,7 @@ class Scene:
     intensity: np.ndarray  # (n, L)
     counts: np.ndarray  # (R, C, L, T) integer-valued float64 before the group's dtype
     excluded: np.ndarray  # (R, C) bool: pixels whose surfaces are not in the truth
+    region: np.ndarray  # per surface: 0 wall, 1 box, 2 net (the front one), 3 wall behind the net
 
 
 def simulate_scene(
@@ -138,19 +140,20 @@ def simulate_scene(
     net = (rr >= ROWS // 2 + 4) & (cc >= COLS // 2 + 4) & (cc < COLS - 4)
     shade = 0.6 + 0.8 * rng.random((ROWS, COLS))
     spectrum = np.array([1.0, 0.6, 0.35, 0.8, 0.5, 0.9][:L])
-    surf = []  # (row, col, depth, weight)
+    surf = []  # (row, col, depth, weight, region)
     for r in range(ROWS):
         for c in range(COLS):
             if box[r, c]:
-                surf.append((r, c, wall[r, c] - 5 * f - 10, 1.0))
+                surf.append((r, c, wall[r, c] - 5 * f - 10, 1.0, 1))
                 continue
             w = 1.0
             if net[r, c]:
-                surf.append((r, c, wall[r, c] - 3 * f - 6, 0.4))
+                surf.append((r, c, wall[r, c] - 3 * f - 6, 0.4, 2))
                 w = 0.6
-            surf.append((r, c, wall[r, c], w))
+            surf.append((r, c, wall[r, c], w, 3 if net[r, c] else 0))
     s = np.array(surf)
     row, col, dep, wgt = s[:, 0].astype(int), s[:, 1].astype(int), s[:, 2], s[:, 3]
+    region = s[:, 4].astype(int)
     inten = (ppp * wgt * shade[row, col])[:, None] * spectrum[None, :]
     t = np.arange(T, dtype=np.float64)
     # the pulse sampled at bin centres and normalised to unit sum (eq:4.1's g)
@@ -174,7 +177,7 @@ def simulate_scene(
         y[r, c] += rng.poisson(300.0, (L, T))
         excluded[r, c] = True
     keep = (dep >= 0) & (dep <= T - 1) & ~excluded[row, col]
-    return Scene(row[keep], col[keep], dep[keep], inten[keep], y, excluded)
+    return Scene(row[keep], col[keep], dep[keep], inten[keep], y, excluded, region[keep])
 
 
 def irf_record(pulse: Pulse, n: int, peak_at: int, *, to_peak: bool, L: int = 1) -> np.ndarray:
@@ -481,13 +484,20 @@ def _truth(sc: Scene):
     )  # fmt: skip
 
 
-def _score(points, truth, tau):
+def _score(points, truth, tau, parts=None):
+    """evaluate's F_true / false / DAE, the mean signed depth error of the matched points
+    and, with ``parts`` (name -> mask over the true points), F_true on each part."""
     from splidar.metrics import evaluate, match_points
 
     m = evaluate(points, truth, tau=tau)
     mt = match_points(points, truth, tau=tau)
     bias = float(np.mean(points.depth_bin[mt.est_index] - truth.depth_bin[mt.true_index]))
-    return {"f_true": m.f_true, "false": m.f_false, "dae": m.dae, "bias": bias}
+    out = {"f_true": m.f_true, "false": m.f_false, "dae": m.dae, "bias": bias}
+    hit = np.zeros(len(truth.row), bool)
+    hit[mt.true_index] = True
+    for name, mask in (parts or {}).items():
+        out[name] = float(hit[mask].mean()) if mask.any() else float("nan")
+    return out
 
 
 def _cli(w: Written, out: Path, truth, tau: float) -> dict:
@@ -550,9 +560,11 @@ def run_case(case: Case, base: Path, cli: bool) -> dict:
             return out
         out["wall"], out["cpu"] = time.perf_counter() - t0, time.process_time() - c0
         out["n_true"] = len(truth.row)
-        out.update(_score(rec.points, truth, tau))
+        fw = case.pulse.fwhm()
+        parts = {"net": sc.region == 2, "end": sc.depth > case.T - 1 - fw}
+        out.update(_score(rec.points, truth, tau, parts))
         b = per_pixel_detect(cube)
-        out.update({"b_" + k: v for k, v in _score(b.points, truth, tau).items()})
+        out.update({"b_" + k: v for k, v in _score(b.points, truth, tau, parts).items()})
     if cli:
         out.update(_cli(w, d / "out", truth, tau))
     return out
@@ -593,10 +605,10 @@ def main() -> None:
         cases = [c for c in cases if any(s in c.name for s in args.only)]
     print(
         "| case | cube read as | bin ps | IRF FWHM (bins), source | load | CLI (F_true, depths) | "
-        "wall s / cpu s | n true | F_true | false | DAE | bias | "
-        "baseline F_true / false / DAE |"
+        "wall s / cpu s | n true | F_true | false | DAE | bias | net / end | "
+        "baseline F_true / false / DAE | baseline net / end |"
     )
-    print("|" + "---|" * 13)
+    print("|" + "---|" * 15)
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(args.keep) if args.keep else Path(tmp)
         notes = []
@@ -620,8 +632,11 @@ def main() -> None:
                 f"{_f(r.get('wall'), '.2f')} / {_f(r.get('cpu'), '.2f')} | "
                 f"{r.get('n_true', '-')} | {_f(r.get('f_true'), '.3f')} | "
                 f"{r.get('false', '-')} | {_f(r.get('dae'), '.2f')} | "
-                f"{_f(r.get('bias'), '+.2f')} | {_f(r.get('b_f_true'), '.3f')} / "
-                f"{r.get('b_false', '-')} / {_f(r.get('b_dae'), '.2f')} |",
+                f"{_f(r.get('bias'), '+.2f')} | "
+                f"{_f(r.get('net'), '.2f')} / {_f(r.get('end'), '.2f')} | "
+                f"{_f(r.get('b_f_true'), '.3f')} / "
+                f"{r.get('b_false', '-')} / {_f(r.get('b_dae'), '.2f')} | "
+                f"{_f(r.get('b_net'), '.2f')} / {_f(r.get('b_end'), '.2f')} |",
                 flush=True,
             )
             print(f"    load({r['kwargs']}); splidar run FILE {' '.join(r['cli_args'])}",
