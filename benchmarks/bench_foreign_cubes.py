@@ -594,11 +594,12 @@ def _f(x, spec):
     return format(x, spec)
 
 
-def window_end(lo: float, hi: float, *, seed: int = 0) -> None:
-    """The minimal reproducer of the window's-end loss (README): one surface per pixel of
-    24 x 24, depths uniform in ``[lo, hi]`` bins of T = 300, the tailed pulse of the
+def window_end(lo: float, hi: float, *, seed: int = 0, pulse: Pulse | None = None) -> None:
+    """The minimal reproducer of the window's-end loss (README): one surface in every
+    pixel of 24 x 24, depths uniform in ``[lo, hi]`` bins of T = 300, the tailed pulse of the
     photon-list case (Gaussian FWHM 6 + exp tail 4 bins: FWHM 8.4), 12 signal photons,
-    SBR 1; ``detect`` (all passes, and none) beside ``per_pixel_detect``, tau 4.2 bins."""
+    SBR 1; ``detect`` (all passes, and none) beside ``per_pixel_detect``, tau 4.2 bins.
+    ``pulse``: another pulse (e.g. ``Pulse(8.4)``, the Gaussian of the same FWHM)."""
     import splidar
     from splidar import Cube, PointSet
     from splidar.baselines import per_pixel_detect
@@ -606,7 +607,7 @@ def window_end(lo: float, hi: float, *, seed: int = 0) -> None:
 
     rng = np.random.default_rng(seed)
     n, T = 24, 300
-    pulse = Pulse(6.0, 4.0)
+    pulse = Pulse(6.0, 4.0) if pulse is None else pulse
     norm = pulse(np.arange(-200.0, 200.0)).sum()
     d = lo + (hi - lo) * rng.random((n, n))
     lam = 12.0 * pulse(np.arange(T) - d[..., None]) / norm
@@ -639,9 +640,17 @@ def main() -> None:
         metavar=("LO", "HI"),
         help="run only the window's-end reproducer, depths in [LO, HI] bins",
     )
+    ap.add_argument(
+        "--pulse",
+        nargs=2,
+        type=float,
+        default=(6.0, 4.0),
+        metavar=("FWHM", "TAIL"),
+        help="--window-end's pulse: Gaussian FWHM and exponential tail, bins (default 6 4)",
+    )
     args = ap.parse_args()
     if args.window_end:
-        window_end(*args.window_end)
+        window_end(*args.window_end, pulse=Pulse(*args.pulse))
         return
     cases = _cases()
     if args.only:
