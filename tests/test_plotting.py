@@ -127,6 +127,18 @@ def test_plot_saliency_histogram_null_and_threshold(rec):
     assert vlines and vlines[0].get_xdata()[0] == pytest.approx(6.0)
 
 
+def test_plot_saliency_histogram_all_zero_saliency():
+    # a detection whose saliency is 0 everywhere (no photon above the background level)
+    # drew NaN axis limits in the zoom inset and raised inside matplotlib
+    from splidar.reconstruction import synthetic_detection
+
+    det, _ = synthetic_detection(shape=(6, 6), rng=0)
+    assert not np.asarray(det.saliency).any()
+    ax = plot_saliency_histogram(det)
+    assert not ax.child_axes  # no zoom on a degenerate histogram
+    assert all(np.isfinite(ax.get_ylim()))
+
+
 def test_plot_saliency_histogram_needs_detection():
     r = make_reconstruction(with_detection=False)
     with pytest.raises(SplidarError, match="Detection"):

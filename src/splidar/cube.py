@@ -40,6 +40,13 @@ def as_counts(counts, name: str = "counts"):
     ------
     SplidarError
         Wrong number of dimensions, NaN/inf, negative or non-integer values.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> c = as_counts(np.array([[[0.0, 2.0, 1.0]]]))
+    >>> c.shape, c.dtype.name
+    ((1, 1, 1, 3), 'uint16')
     """
     lazy = _is_lazy(counts)
     if np.ma.isMaskedArray(counts):
@@ -176,7 +183,7 @@ class Cube:
     >>> cube = Cube(np.zeros((4, 5, 100), np.uint16), irf=[0.25, 0.5, 0.25], bin_width_ps=250)
     >>> cube.shape, cube.irf.shape, cube.irf_peak.tolist()
     ((4, 5, 1, 100), (1, 3), [1])
-    >>> round(cube.depth_to_m(10.0), 6)  # 10 bins x 250 ps x c / 2
+    >>> round(float(cube.depth_to_m(10.0)), 6)  # 10 bins x 250 ps x c / 2
     0.374741
     """
 

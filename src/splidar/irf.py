@@ -93,6 +93,12 @@ def normalise_irf(irf, *, n_wavelengths: int | None = None, name: str = "irf") -
     SplidarError
         Wrong number of dimensions, NaN/inf, negative values, an all-zero row, or L
         different from ``n_wavelengths``.
+
+    Examples
+    --------
+    >>> g = normalise_irf([1.0, 2.0, 1.0], n_wavelengths=2)
+    >>> g.shape, g[0].tolist()
+    ((2, 3), [0.25, 0.5, 0.25])
     """
     try:
         a = np.array(irf, dtype=np.float64, copy=True)
@@ -131,7 +137,13 @@ def normalise_irf(irf, *, n_wavelengths: int | None = None, name: str = "irf") -
 
 
 def irf_peak(irf: np.ndarray) -> np.ndarray:
-    """Index of each wavelength's IRF peak (the depth reference), shape ``(L,)`` int."""
+    """Index of each wavelength's IRF peak (the depth reference), shape ``(L,)`` int.
+
+    Examples
+    --------
+    >>> irf_peak(np.array([[0.1, 0.6, 0.3], [0.2, 0.3, 0.5]])).tolist()
+    [1, 2]
+    """
     a = np.asarray(irf)
     if a.ndim == 1:
         a = a[None, :]
@@ -535,6 +547,12 @@ def sample_irf_models(models) -> np.ndarray:
     """Sample models into one ``(L, n)`` array (rows right-padded with zeros).
 
     Each row's argmax is its model's mode (the depth reference).
+
+    Examples
+    --------
+    >>> g = sample_irf_models([GaussianIRF(2.0), GaussianIRF(4.0)])
+    >>> g.shape[0], bool(g[0, g[0].argmax() + 1 :].sum() < g[1, g[1].argmax() + 1 :].sum())
+    (2, True)
     """
     rows = [m.sample() for m in models]
     n = max(r.size for r in rows)

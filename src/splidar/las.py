@@ -29,7 +29,13 @@ VLR_USER_ID = "splidar"
 
 
 def las_available() -> bool:
-    """True when laspy (the ``splidar[las]`` extra) is installed."""
+    """True when laspy (the ``splidar[las]`` extra) is installed.
+
+    Examples
+    --------
+    >>> las_available() in (True, False)
+    True
+    """
     try:
         import laspy  # noqa: F401
     except ImportError:

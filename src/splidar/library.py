@@ -95,6 +95,12 @@ def as_library(library, *, n_wavelengths: int | None = None, name: str = "librar
     Accepts ``None``, a :class:`SpectralLibrary`, an array ``(K, L)``, or a path to a
     file that :func:`load_library` reads (also :func:`splidar.io.load_library`). Checks L
     against ``n_wavelengths``.
+
+    Examples
+    --------
+    >>> lib = as_library([[1.0, 0.2], [0.3, 1.0]], n_wavelengths=2)
+    >>> lib.n_wavelengths, as_library(None) is None
+    (2, True)
     """
     if library is None:
         return None

@@ -206,7 +206,13 @@ def plot_depth(
 
     Examples
     --------
-    >>> ax = plot_depth(reconstruction, layer=1)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_depth(rec, layer=0)
+    >>> ax.get_title() != ''
+    True
     """
     m = _Maps(result, bin_width_ps)
     k = m.layer(layer)
@@ -257,7 +263,11 @@ def plot_intensity(
 
     Examples
     --------
-    >>> ax = plot_intensity(reconstruction, layer=0, wavelength=2)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_intensity(rec, layer=0, wavelength=2)
     """
     m = _Maps(result)
     k = m.layer(layer)
@@ -350,7 +360,11 @@ def plot_labels(result, *, layer: int = 0, ax=None, class_names=None):
 
     Examples
     --------
-    >>> ax = plot_labels(reconstruction)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_labels(rec)
     """
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
@@ -430,7 +444,13 @@ def plot_point_cloud(
 
     Examples
     --------
-    >>> ax = plot_point_cloud(reconstruction, color_by="depth")  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_point_cloud(rec, color_by="depth")
+    >>> ax.name
+    '3d'
     """
     from ._validation import check_choice
 
@@ -543,7 +563,11 @@ def plot_saliency_histogram(
 
     Examples
     --------
-    >>> ax = plot_saliency_histogram(reconstruction.detection)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_saliency_histogram(rec.detection)
     """
     from scipy import stats
 
@@ -581,7 +605,7 @@ def plot_saliency_histogram(
             a.axvspan(t_lo, t_hi, color="k", alpha=0.12, label="threshold range over voxels")
         pos = dens[dens > 0]
         a.set_yscale("log")
-        if pos.size:
+        if pos.size and np.isfinite(dens).all():
             a.set_ylim(float(pos.min()) / 3, float(dens.max()) * 3)
         a.set_xlim(0, hi)
         return dens
@@ -598,7 +622,7 @@ def plot_saliency_histogram(
     )
     ax.legend(fontsize=8, loc="upper right")
     zoom = min(max(4.0 * t_hi, 3.0 * t_med), hi)
-    if zoom < 0.5 * hi:
+    if 0 < zoom < 0.5 * hi:  # no zoom on a degenerate (all-zero) saliency
         ins = ax.inset_axes([0.42, 0.22, 0.36, 0.36])
         draw(ins, zoom, 60, False)
         ins.set_title("zoom on the background part", fontsize=8)
@@ -676,7 +700,13 @@ def plot_detection_slice(
 
     Examples
     --------
-    >>> fig = plot_detection_slice(rec.detection, cube)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> fig = plot_detection_slice(rec.detection, sim.cube)
+    >>> len(fig.axes) >= 2
+    True
     """
     det = _detection(detection)
     mask = det.mask
@@ -801,7 +831,13 @@ def save_figures(
 
     Examples
     --------
-    >>> paths = save_figures(rec, "out/figures", cube=cube)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> paths = save_figures(rec, "figures", cube=sim.cube)
+    >>> sorted(paths)[:3]
+    ['depth', 'detection_slice', 'intensity']
     """
     import matplotlib
 
@@ -919,7 +955,14 @@ def reliability_diagram(confidence, correct, *, n_bins: int = 10, ax=None, title
 
     Examples
     --------
-    >>> fig = reliability_diagram(rec.points.label_confidence, ok)  # doctest: +SKIP
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> from splidar.metrics import match_points
+    >>> m = match_points(rec.points, sim.truth, tau=2.0)
+    >>> ok = rec.points.label[m.est_index] == sim.truth.label[m.true_index]
+    >>> fig = reliability_diagram(rec.points.label_confidence[m.est_index], ok)
     """
     edges, n, acc, mean_conf, ece = _calibration_bins(confidence, correct, n_bins)
     ax = _new_ax(ax, figsize=(4.8, 4.4))
@@ -956,6 +999,14 @@ def plot_label_confidence(result, *, layer: int = 0, ax=None):
     ------
     SplidarError
         No label confidence in ``result`` or ``layer`` out of range.
+
+    Examples
+    --------
+    >>> import splidar
+    >>> from splidar.scenes import multispectral_scene
+    >>> sim = multispectral_scene((16, 16), n_bins=120).simulate(ppp=10, sbr=1, rng=0)
+    >>> rec = splidar.process(sim.cube, rng=0)
+    >>> ax = plot_label_confidence(rec)
     """
     p = getattr(result, "points", result)
     if getattr(p, "label_confidence", None) is None:

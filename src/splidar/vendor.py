@@ -397,6 +397,13 @@ def read_vendor(path: str | os.PathLike, *, channels="wavelengths") -> VendorHis
     SplidarError
         A suffix other than ``.ptu``/``.sdt`` (``.spc`` and ``.phu`` are refused with the
         reason), or what the reader raises.
+
+    Examples
+    --------
+    >>> import splidar
+    >>> h = read_vendor("scan.ptu")  # doctest: +SKIP
+    >>> cube = splidar.Cube(h.counts, irf=read_vendor_irf("irf.ptu"),
+    ...                     bin_width_ps=h.bin_width_ps)  # doctest: +SKIP
     """
     p = Path(path)
     _refuse(p)
@@ -426,6 +433,12 @@ def read_vendor_irf(path: str | os.PathLike) -> np.ndarray:
     SplidarError
         Reader missing (names the extra), unreadable file, SDT blocks of different
         lengths.
+
+    Examples
+    --------
+    >>> irf = read_vendor_irf("irf_reference.ptu")  # doctest: +SKIP
+    >>> irf.shape  # one row per channel  # doctest: +SKIP
+    (4, 4096)
     """
     p = Path(path)
     ext = p.suffix.lower()

@@ -87,6 +87,14 @@ def load_view_input(result: Any, *, title: str | None = None) -> ViewInput:
     ------
     SplidarError
         A missing file, or one that holds no points.
+
+    Examples
+    --------
+    >>> import splidar
+    >>> p = splidar.PointSet(row=[0, 1], col=[0, 1], depth_bin=[10.0, 12.0], image_shape=(2, 2))
+    >>> v = load_view_input(p)
+    >>> len(v.points), v.title
+    (2, 'splidar points')
     """
     if isinstance(result, ViewInput):
         return result if title is None else ViewInput(**{**result.__dict__, "title": title})
@@ -319,7 +327,16 @@ def view_html(
     color: str = "depth",
     compress: bool = True,
 ) -> str:
-    """The HTML text of the interactive 3D view (see :func:`write_view`)."""
+    """The HTML text of the interactive 3D view (see :func:`write_view`).
+
+    Examples
+    --------
+    >>> import splidar
+    >>> p = splidar.PointSet(row=[0, 1], col=[0, 1], depth_bin=[10.0, 12.0], image_shape=(2, 2))
+    >>> html = view_html(p, title="two points")
+    >>> html.startswith("<!DOCTYPE html>"), "two points" in html
+    (True, True)
+    """
     v = load_view_input(result, title=title)
     p = v.points
     n = len(p)
@@ -483,7 +500,16 @@ def write_view(
 
 
 def is_view_file(path: str | os.PathLike) -> bool:
-    """True when ``path`` is an HTML view written by splidar (safe to replace)."""
+    """True when ``path`` is an HTML view written by splidar (safe to replace).
+
+    Examples
+    --------
+    >>> import splidar
+    >>> p = splidar.PointSet(row=[0, 1], col=[0, 1], depth_bin=[10.0, 12.0], image_shape=(2, 2))
+    >>> f = write_view(p, "view.html")
+    >>> is_view_file(f), is_view_file("no-such-file.html")
+    (True, False)
+    """
     try:
         with open(path, "rb") as fh:
             head = fh.read(512)

@@ -26,8 +26,10 @@ as those neighbours' (``L(x)``, the spill-over pass's statistic) decides:
 
 Either way the own counts must not reject the return at ``a`` (``L(a) >= -PRESENCE_LLR``,
 the presence test's own-count veto). The candidate keeps its support, window, clean
-histograms and presence statistics (``a`` lies inside the support, so inside the window);
-its ``depth_bin`` alone changes. No threshold is fitted to a scene: the FWHM, the
+histograms, signal, saliency mass and evidence (sums over the support: ``a`` lies
+inside the support, so inside the window); its ``depth_bin`` changes and its presence
+statistics (``presence_llr``, ``presence_z``) are recomputed there
+(:func:`moved_presence`). No threshold is fitted to a scene: the FWHM, the
 support of the map's run and the presence test's constants decide.
 """
 
@@ -39,10 +41,13 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
+from ._4_map import _local_scale
+from ._6_select import _gather
+from ._kernels import _llr_one, _local_z
 from ._quality import _by_pixel, _own_llr, reject_isolated
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
-__all__ = ["MIN_AGREE", "recentre_runs"]
+__all__ = ["MIN_AGREE", "moved_presence", "recentre_runs"]
 
 #: 4-neighbours that must hold the agreed depth inside the candidate's run: 3 of 4 (a
 #: plane on at least three sides; 2 would follow a line, a strand or an edge's spread).
@@ -201,6 +206,8 @@ def recentre_runs(
     llr_level: float,
     secondary_llr: float,
     max_kept: int,
+    histograms=None,
+    scales=None,
 ) -> PassResult:
     """Move candidates to the depth their 4-neighbours agree on inside their run (module).
 
@@ -226,12 +233,18 @@ def recentre_runs(
         counts give at least this (``PRESENCE_SECONDARY``).
     max_kept : int
         ``K_s``: a rejected candidate is restored only in a pixel with room.
+    histograms : tuple of ndarray, optional
+        The map's per-block histogram arrays (``CandidateMap.histograms``); with
+        ``scales`` (the box sizes), a moved candidate's ``presence_llr`` and
+        ``presence_z`` are recomputed at its new depth (:func:`moved_presence`).
+    scales : ndarray (Q,) int, optional
 
     Returns
     -------
     PassResult
         ``added``: rejected candidates restored at the new depth; ``moved``: candidates
-        whose depth changed (restored ones included).
+        whose depth changed (restored ones included; the table's ``moved_by`` names
+        this pass for them).
     """
     if not table.keep.size or "own_counts" not in table.columns:
         return skipped("recentre", table)
@@ -253,10 +266,51 @@ def recentre_runs(
     new_d = d.copy()
     new_d[moved] = alt[moved]
     depth = np.asarray(table.columns["depth_bin"])
-    res = with_keep(
-        "recentre", table.with_columns(depth_bin=new_d.astype(depth.dtype)), new_keep, t0
-    )
-    return replace(res, moved=int(moved.size))
+    new = {"depth_bin": new_d.astype(depth.dtype)}
+    if histograms is not None and scales is not None and moved.size:
+        new.update(moved_presence(table, moved, new_d[moved], histograms, scales, irf, peak))
+    res = with_keep("recentre", table.with_columns(**new), new_keep, t0)
+    return replace(res, table=res.table.with_moved(moved, "recentre"), moved=int(moved.size))
+
+
+def moved_presence(table, ii, depths, histograms, scales, irf, peak) -> dict:
+    """The ``presence_llr`` and ``presence_z`` columns with candidates ``ii`` moved to
+    ``depths`` inside their supports (their windows, supports, histograms and signal
+    unchanged), as the map computes them (``extract_surfaces``): the own counts'
+    log-likelihood ratio of a return with the local scale's signal over the support
+    (``_llr_one``) and the local scale's z at the depth (``_local_z``). The local
+    scale's response is read from the candidate's clean histogram (``histograms``: the
+    map's per-block arrays): it equals the map's where positive; a response that is
+    not positive there gives ``z = 0`` (the clean histogram keeps positive parts)."""
+    cols = table.columns
+    scales = np.asarray(scales, np.int64)
+    q = _local_scale(scales)
+    irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
+    pk = np.asarray(peak, np.float64)
+    gsq = (irf**2).sum(axis=1)
+    L = irf.shape[0]
+    hist = _gather(table, np.asarray(ii, np.int64), histograms)  # (n, Q, L, W)
+    W = hist.shape[-1]
+    llr = np.array(cols["presence_llr"], np.float64)
+    z = np.array(cols["presence_z"], np.float64)
+    off = np.asarray(cols["offset"], np.int64)[ii]
+    lo = np.asarray(cols["start"], np.int64)[ii]
+    hi = np.asarray(cols["stop"], np.int64)[ii]
+    qbar = np.asarray(cols["scale_index"], np.int64)[ii]
+    sig = np.asarray(cols["signal"], np.float64)[ii]
+    cnt = np.asarray(cols["own_counts"])[ii]
+    bkg = np.asarray(cols["own_background"], np.float32)[ii]
+    for m, i in enumerate(ii):
+        w = off[m] + np.arange(W)
+        inside = (w >= lo[m]) & (w < hi[m])
+        dw = float(depths[m]) - off[m]
+        raw = cnt[m].astype(np.float64)
+        llr[i] = _llr_one(raw, bkg[m], inside, dw, np.ascontiguousarray(sig[m, q]), irf, pk, L, W)
+        z[i] = _local_z(
+            np.ascontiguousarray(hist[m, q]), bkg[m], gsq, np.ascontiguousarray(sig[m, qbar[m]]),
+            int(scales[q]), dw,
+        )[0]  # fmt: skip
+    return {"presence_llr": llr, "presence_z": z}
 
 
 def restore_agreed(

@@ -162,4 +162,5 @@ def select_surfaces(
         image_shape=(R, C),
         n_slots=max_surfaces,
         stage=table.origin[idx].astype(np.int8, copy=False),
+        moved_by=table.moved_codes()[idx],
     )

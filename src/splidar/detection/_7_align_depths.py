@@ -20,8 +20,8 @@ from numba import njit
 from ._4_map import _local_scale
 from ._kernels import _llr_one, _select_scale
 from ._quality import _shifted_irf, align_depths
-from ._result import StoredHistograms, Surfaces
-from ._slopes import _row_bands, _zarr_of, surface_fields
+from ._result import STAGES, StoredHistograms, Surfaces
+from ._slopes import _row_bands, _zarr_of, support_sums, surface_fields
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -65,6 +65,8 @@ def align_surface_depths(
     counts=None,
     background=None,
     scales=None,
+    saliency=None,
+    threshold=None,
 ) -> DepthAlignment:
     """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
 
@@ -78,11 +80,21 @@ def align_surface_depths(
         filter's response) is ``b sum_t g(t)^2`` per bin.
     counts : array_like (rows, cols, L, T), optional
         The cube's raw counts; with ``background`` (:class:`Background`), the far depths
-        are re-decided too (:func:`move_far_depths`, when ``FAR_DEPTHS``).
+        are re-decided too (:func:`move_far_depths`, when ``FAR_DEPTHS``) and every
+        moved surface's fields follow its depth (:func:`_moved_fields`).
     background : Background, optional
     scales : ndarray (Q,) int, optional
         The box sizes of the clean histograms (``Detection.scales``): a moved surface's
         histograms are recomputed at its new depth with them. Required with ``counts``.
+    saliency, threshold : optional
+        ``Detection.saliency`` and ``.threshold``: the ``saliency_mass`` and ``evidence``
+        of a surface whose support moved are summed over the new support.
+
+    Returns
+    -------
+    DepthAlignment
+        ``surfaces.moved_by`` holds ``"align_depths"``'s index in ``STAGES`` for the
+        surfaces it moved.
     """
     t0 = time.perf_counter()
     s = surfaces
@@ -90,15 +102,50 @@ def align_surface_depths(
     width = np.maximum(s.stop - s.start, 1).astype(np.float64)
     b = np.asarray(s.background, np.float64) / width[:, None]  # per bin, (S, L)
     noise = np.sqrt(2.0 * np.maximum(b, 0.0) @ g2)
-    depth, n_moved = align_depths(
+    depth, _ = align_depths(
         s.row, s.col, s.slot, s.depth_bin, s.offset, s.histograms[:, 0].sum(axis=1),
         image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
     )  # fmt: skip
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
+    far = np.zeros(0, np.int64)
     if FAR_DEPTHS and counts is not None and background is not None and scales is not None:
-        out, n_far = move_far_depths(out, counts, background, fwhm=fwhm, irf=irf, scales=scales)
-        n_moved += n_far
-    return DepthAlignment(out, int(n_moved), time.perf_counter() - t0)
+        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf)
+        out, refit = _moved_fields(out, s.depth_bin, far, counts, background, scales, irf)
+        out = _support_fields(out, refit, saliency, threshold)
+    moved = np.flatnonzero(out.depth_bin != np.asarray(s.depth_bin, np.float64))
+    code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
+    code[moved] = STAGES.index("align_depths")
+    out = replace(out, moved_by=code)
+    return DepthAlignment(out, int(moved.size), time.perf_counter() - t0)
+
+
+def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf) -> tuple:
+    """Every field of the surfaces stage 7 moved at their new depths (``old``: the
+    depths before it; ``far``: those :func:`_far_moves` moved, whose supports and own
+    counts followed already). A depth the sheared pool moved inside its support keeps
+    its window and support; only the presence statistics follow it. One it moved out
+    of its support is treated as a far move: its support (shifted with the depth, cut
+    to the new window), own counts and window follow it. Returns the surfaces and the
+    indices of those whose support moved (``far`` and the latter: their
+    ``saliency_mass`` and ``evidence`` are recomputed by :func:`_support_fields`)."""
+    d = np.asarray(s.depth_bin, np.float64)
+    sheared = np.setdiff1d(np.flatnonzero(d != np.asarray(old, np.float64)), far)
+    out_of = sheared[(d[sheared] < s.start[sheared]) | (d[sheared] >= s.stop[sheared])]
+    if out_of.size:
+        start, stop = np.array(s.start), np.array(s.stop)
+        own_counts = np.array(s.counts, np.float64)
+        own_bg = np.array(s.background, np.float64)
+        ys = _pixels(counts, s.row[out_of], s.col[out_of]).astype(np.float64)
+        bs = np.maximum(background.at(s.row[out_of], s.col[out_of]).astype(np.float64), 1e-6)
+        W, T = int(s.histograms.shape[-1]), int(np.shape(counts)[-1])
+        for m, i in enumerate(out_of):
+            _follow(start, stop, own_counts, own_bg, i, old[i], d[i], ys[m], bs[m], W, T)
+        s = replace(s, start=start, stop=stop, counts=own_counts, background=own_bg)
+    refit = np.union1d(far, out_of)
+    idx = np.union1d(refit, sheared)
+    if not idx.size:
+        return s, refit
+    return _window_fields(s, idx, np.isin(idx, refit), counts, background, scales, irf), refit
 
 
 #: One-sided alternatives extrapolate a neighbour's surface over two pixels along one of
@@ -234,7 +281,15 @@ def _pixels_by_chunk(z, row_chunks, rows, cols) -> np.ndarray:
 
 
 def move_far_depths(
-    surfaces: Surfaces, counts, background, *, fwhm: float, irf: np.ndarray, scales
+    surfaces: Surfaces,
+    counts,
+    background,
+    *,
+    fwhm: float,
+    irf: np.ndarray,
+    scales,
+    saliency=None,
+    threshold=None,
 ) -> tuple[Surfaces, int]:
     """Move surfaces far from what their neighbours hold where the own counts favour it.
 
@@ -264,8 +319,21 @@ def move_far_depths(
     with it (cut to the window), the raw ``counts`` / ``background`` summed over it, the
     clean ``histograms`` of every scale (``scales``) there, zero outside the support,
     ``signal`` their sums, the selected ``scale_index``, ``presence_llr`` and
-    ``presence_z``. ``saliency_mass`` and ``evidence`` stay the old depth's.
+    ``presence_z``; with ``saliency`` and ``threshold`` (``Detection.saliency`` and
+    ``.threshold``) their ``saliency_mass`` and ``evidence`` too, summed over the new
+    support (:func:`~splidar.detection._slopes.support_sums`; without, the old depth's).
     """
+    out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf)
+    if moved.size == 0:
+        return surfaces, 0
+    out = _window_fields(out, moved, np.ones(moved.size, bool), counts, background, scales, irf)
+    return _support_fields(out, moved, saliency, threshold), int(moved.size)
+
+
+def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> tuple:
+    """The far-depth rule of :func:`move_far_depths`: the surfaces with the moved ones'
+    ``depth_bin``, ``start``, ``stop``, ``counts`` and ``background`` changed (the other
+    fields not yet), and the moved surfaces' indices."""
     s = surfaces
     R, C = s.image_shape
     S = len(s)
@@ -278,7 +346,7 @@ def move_far_depths(
     )  # fmt: skip
     cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
     if cand.size == 0:
-        return s, 0
+        return s, np.zeros(0, np.int64)
     irf = np.atleast_2d(np.asarray(irf, np.float64))
     peak = np.argmax(irf, axis=1)
     T = int(np.shape(counts)[-1])
@@ -317,29 +385,38 @@ def move_far_depths(
         same = others.get(int(pix[i]), ())  # keep the slots' depth order
         if any((s.slot[j] < s.slot[i]) == (depth[j] >= to) for j in same if j != i):
             continue
-        # the support, its raw counts and background follow the move (``reconstruct``
-        # takes the IRF's fraction over the support), cut to the new window (the
-        # extraction's rule, ``extract_surfaces``: the window about the integer depth)
-        shift = int(np.rint(to - depth[i]))
-        off = min(max(int(np.rint(to)) - W // 2, 0), max(T - W, 0))
-        start[i] = max(start[i] + shift, 0, off)
-        stop[i] = max(min(stop[i] + shift, T, off + W), start[i])
-        own_counts[i] = y[0, :, start[i] : stop[i]].sum(axis=-1)
-        own_bg[i] = b[0, :, start[i] : stop[i]].sum(axis=-1)
+        _follow(start, stop, own_counts, own_bg, i, depth[i], to, y[0], b[0], W, T)
         depth[i] = to
         moved.append(int(i))
     if not moved:
-        return s, 0
+        return s, np.zeros(0, np.int64)
     out = replace(
         s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
     )  # fmt: skip
-    return _window_fields(out, np.array(moved), counts, background, scales, irf), len(moved)
+    return out, np.array(moved, np.int64)
 
 
-def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surfaces:
+def _follow(start, stop, own_counts, own_bg, i, old, to, y, b, W, T) -> None:
+    """The support of surface ``i`` moved from depth ``old`` to ``to``, in place: shifted
+    with the depth and cut to the new window (the extraction's rule,
+    ``extract_surfaces``: the window about the integer depth), its raw counts and
+    background (``y``, ``b``: the pixel's (L, T)) summed over it (``reconstruct`` takes
+    the IRF's fraction over the support)."""
+    shift = int(np.rint(to - old))
+    off = min(max(int(np.rint(to)) - W // 2, 0), max(T - W, 0))
+    start[i] = max(start[i] + shift, 0, off)
+    stop[i] = max(min(stop[i] + shift, T, off + W), start[i])
+    own_counts[i] = y[:, start[i] : stop[i]].sum(axis=-1)
+    own_bg[i] = b[:, start[i] : stop[i]].sum(axis=-1)
+
+
+def _window_fields(s: Surfaces, idx, refit, counts, background, scales, irf) -> Surfaces:
     """``offset``, clean ``histograms``, ``signal``, ``scale_index``, ``presence_llr``
     and ``presence_z`` of surfaces ``idx`` recomputed at their depths over their
-    supports, as extraction computes them.
+    supports, as extraction computes them; where ``refit`` (``idx.size``, bool) is
+    False, the surface keeps its window (``offset``, histograms, ``signal``,
+    ``scale_index``: its depth moved inside its support) and only the presence
+    statistics, which depend on the depth, are recomputed.
 
     The histograms are :func:`~splidar.detection._slopes.surface_fields`' (the slopes
     pass's extraction from the raw counts: ``max(Box_q(Y (*) g) - bhat, 0)`` of every
@@ -347,10 +424,11 @@ def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surface
     set to zero outside the support as in ``extract_surfaces``; ``signal`` their sums
     over time; ``scale_index`` the selected scale (``_select_scale``, ``eq:scale_sel``);
     ``presence_llr`` the own counts' log-likelihood ratio with the local scale's signal
-    (``_llr_one``, as ``extract_surfaces``); ``presence_z`` the local scale's z at the
-    depth (``surface_fields``, as ``_local_z``). The raw counts are read a
-    band of rows at a time from a lazy cube (``_row_bands``)."""
+    (``_llr_one``, as ``extract_surfaces``) over the surface's window; ``presence_z``
+    the local scale's z at the depth (``surface_fields``, as ``_local_z``). The raw
+    counts are read a band of rows at a time from a lazy cube (``_row_bands``)."""
     scales = np.asarray(scales, np.int64)
+    refit = np.asarray(refit, bool)
     irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
     L, T = background.temporal.shape
     Q, W = scales.size, int(s.histograms.shape[-1])
@@ -369,6 +447,8 @@ def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surface
     raw = np.zeros((n, L, W))
     rows, cols = s.row[idx], s.col[idx]
     depth = np.asarray(s.depth_bin, np.float64)[idx]
+    # the window the presence test reads: the new one, or the surface's own (kept)
+    win = np.asarray(s.offset, np.int64)[idx].copy()
     s_pool = np.zeros((n, L))
     for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2):
         part = {k: v[sel] for k, v in o.items()}
@@ -379,41 +459,64 @@ def _window_fields(s: Surfaces, idx, counts, background, scales, irf) -> Surface
         for k, v in part.items():
             o[k][sel] = v
         for m in sel:
-            off = int(o["offset"][m])
-            raw[m] = y[rows[m] - y0, cols[m], :, off : off + W]
-    hist, llr = o["histograms"], np.array(s.presence_llr if s.presence_llr is not None else [])
+            if refit[m]:
+                win[m] = o["offset"][m]
+            raw[m] = y[rows[m] - y0, cols[m], :, win[m] : win[m] + W]
+    hist = o["histograms"]
     qbar = np.array(s.scale_index)
+    signal = np.array(s.signal, np.float64)
     tot, d_q = np.empty(W, np.float32), np.empty(Q, np.int64)
     for m, i in enumerate(idx):
-        off = int(o["offset"][m])
-        inside = (off + np.arange(W) >= s.start[i]) & (off + np.arange(W) < s.stop[i])
-        hist[m][..., ~inside] = 0.0  # zero outside the support (eq:background_final)
+        inside = (win[m] + np.arange(W) >= s.start[i]) & (win[m] + np.arange(W) < s.stop[i])
         raw[m][:, ~inside] = 0.0
-        # the selected scale (eq:scale_sel) on the clean responses summed over L
-        qbar[i] = _select_scale(hist[m].sum(axis=1, dtype=np.float32), tot, d_q)
-        if llr.size:
-            bh = np.maximum(sp[rows[m], cols[m]][:, None] + dev[:, off : off + W], 0)
-            llr[i] = _llr_one(
-                raw[m], bh.astype(np.float32), inside, depth[m] - off,
-                hist[m, qloc].sum(axis=-1, dtype=np.float64), irf, peak.astype(np.float64),
-                L, W,
-            )  # fmt: skip
-    signal = np.array(s.signal, np.float64)
-    signal[idx] = hist.sum(axis=-1, dtype=np.float64)
+        if refit[m]:
+            hist[m][..., ~inside] = 0.0  # zero outside the support (eq:background_final)
+            # the selected scale (eq:scale_sel) on the clean responses summed over L
+            qbar[i] = _select_scale(hist[m].sum(axis=1, dtype=np.float32), tot, d_q)
+            signal[i] = hist[m].sum(axis=-1, dtype=np.float64)
+        bh = np.maximum(sp[rows[m], cols[m]][:, None] + dev[:, win[m] : win[m] + W], 0)
+        o["presence_llr"][m] = _llr_one(
+            raw[m], bh.astype(np.float32), inside, depth[m] - win[m],
+            np.ascontiguousarray(signal[i, qloc], np.float64), irf, peak.astype(np.float64),
+            L, W,
+        )  # fmt: skip
+    new = idx[refit]
     offset = np.array(s.offset)
-    offset[idx] = o["offset"]
-    if isinstance(s.histograms, StoredHistograms):  # the detection's own store
-        for m, i in enumerate(idx):
-            s.histograms.array[int(i)] = hist[m]
+    offset[new] = o["offset"][refit]
+    if not new.size:
+        histograms = s.histograms
+    elif isinstance(s.histograms, StoredHistograms):  # the detection's own store
+        for m in np.flatnonzero(refit):
+            s.histograms.array[int(idx[m])] = hist[m]
         histograms = s.histograms
     else:
         histograms = np.array(s.histograms)
-        histograms[idx] = hist
-    z = None
+        histograms[new] = hist[refit]
+    llr = z = None
+    if s.presence_llr is not None:
+        llr = np.array(s.presence_llr, np.float64)
+        llr[idx] = o["presence_llr"]
     if s.presence_z is not None:  # the local scale's z at the depth (as _local_z)
         z = np.array(s.presence_z, np.float64)
         z[idx] = o["presence_z"]
     return replace(
         s, offset=offset, histograms=histograms, signal=signal, scale_index=qbar,
-        presence_llr=llr if llr.size else s.presence_llr, presence_z=z,
+        presence_llr=llr, presence_z=z,
     )  # fmt: skip
+
+
+def _support_fields(s: Surfaces, idx, saliency, threshold) -> Surfaces:
+    """``saliency_mass`` and ``evidence`` of surfaces ``idx`` summed over their supports
+    (:func:`~splidar.detection._slopes.support_sums`, as the slope pass computes its
+    surfaces': the map's run at a depth a surface moved to may not exist); unchanged
+    without ``saliency``."""
+    if saliency is None or threshold is None or not np.size(idx):
+        return s
+    mass, ev = support_sums(saliency, threshold, s.row[idx], s.col[idx], s.start[idx], s.stop[idx])
+    new_mass = np.array(s.saliency_mass, np.float64)
+    new_mass[idx] = mass
+    new_ev = None
+    if s.evidence is not None:
+        new_ev = np.array(s.evidence, np.float64)
+        new_ev[idx] = ev
+    return replace(s, saliency_mass=new_mass, evidence=new_ev)

@@ -34,9 +34,11 @@ from ._result import (
     DataReduction,
     Detection,
     NullModel,
+    PixelStory,
     StageRecord,
     StoredHistograms,
     Surfaces,
+    SurfaceStory,
 )
 from ._threshold import ThresholdField
 
@@ -47,8 +49,10 @@ __all__ = [
     "DataReduction",
     "Detection",
     "NullModel",
+    "PixelStory",
     "StageRecord",
     "StoredHistograms",
+    "SurfaceStory",
     "Surfaces",
     "ThresholdField",
     "detect",

@@ -400,7 +400,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
         background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
         aligned = align_surface_depths(
             surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
-            scales=o["scales"],
+            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
         )  # fmt: skip
         surfaces = aligned.surfaces
     return surfaces, aligned, t_sel, n_kept
@@ -505,7 +505,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("recentre", lambda t: recentre_runs(
         t, irf=irf, peak=peak, fwhm=fwhm, pfa=surface_pfa, n_bins=T,
         llr_level=PRESENCE_LLR, secondary_llr=PRESENCE_SECONDARY,
-        max_kept=o["max_surfaces"]))  # fmt: skip
+        max_kept=o["max_surfaces"], histograms=mp.histograms, scales=o["scales"]))  # fmt: skip
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
         vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,

@@ -22,8 +22,10 @@ __all__ = [
     "DataReduction",
     "Detection",
     "NullModel",
+    "PixelStory",
     "StageRecord",
     "StoredHistograms",
+    "SurfaceStory",
     "Surfaces",
 ]
 
@@ -41,6 +43,83 @@ STAGES = (
     "select",  # 6: keeps at most K_s candidates per pixel
     "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
 )
+
+#: What a stage's code in ``Surfaces.stage`` (added) or ``Surfaces.moved_by`` (moved)
+#: says about a surface (:meth:`Detection.explain`).
+STAGE_REASONS = {
+    "map": "a candidate of the 3D map whose evidence beat the null and whose own pixel "
+    "shows it (presence test)",
+    "recentre": "its 4-neighbours agree on a depth inside its own run of the map",
+    "dark_regions": "restored: the pooled counts of a dim patch, or its 4-neighbours' "
+    "agreed depth, show it",
+    "slopes": "added on a steep slope by the sheared pooled test",
+    "enclosed": "restored in a hole that the surface encloses on both axes",
+    "align_depths": "its 4-neighbours' plane (or the depth they offer a far surface) "
+    "places it there",
+}
+
+
+@dataclass(frozen=True)
+class SurfaceStory:
+    """Why one surface exists and where its depth comes from (:meth:`Detection.explain`).
+
+    Attributes
+    ----------
+    index : int
+        Row of the surface in ``Detection.surfaces``.
+    slot : int
+    depth_bin : float
+    added_by : str
+        The stage whose decision keeps it (``Surfaces.stage``; ``"map"`` when unknown).
+    moved_by : str or None
+        The last stage that moved its depth (``Surfaces.moved_by``), None if none did.
+    evidence, presence_llr, presence_z : float or None
+        Its statistics (at its current depth).
+    """
+
+    index: int
+    slot: int
+    depth_bin: float
+    added_by: str
+    moved_by: str | None
+    evidence: float | None
+    presence_llr: float | None
+    presence_z: float | None
+
+    def __str__(self) -> str:
+        stats = ", ".join(
+            f"{k} {v:.3g}"
+            for k, v in (
+                ("evidence", self.evidence),
+                ("presence_llr", self.presence_llr),
+                ("presence_z", self.presence_z),
+            )
+            if v is not None
+        )
+        text = (
+            f"slot {self.slot}, depth {self.depth_bin:.2f} bins: added by {self.added_by!r} "
+            f"({STAGE_REASONS.get(self.added_by, self.added_by)})"
+        )
+        if self.moved_by is not None:
+            text += f"; depth moved by {self.moved_by!r} ({STAGE_REASONS[self.moved_by]})"
+        return text + (f"; {stats}" if stats else "")
+
+
+@dataclass(frozen=True)
+class PixelStory:
+    """The surfaces of one pixel and why each exists (:meth:`Detection.explain`);
+    ``str()`` gives it as text."""
+
+    row: int
+    col: int
+    surfaces: tuple[SurfaceStory, ...]
+
+    def __str__(self) -> str:
+        n = len(self.surfaces)
+        head = f"pixel ({self.row}, {self.col}): {n} surface{'' if n == 1 else 's'}"
+        if n == 0:
+            head += " (no candidate kept by the map or restored by a clean-up pass)"
+        return "\n".join([head] + [f"  {s}" for s in self.surfaces])
 
 
 @dataclass(frozen=True)
@@ -237,6 +316,12 @@ class Surfaces:
         stage whose decision keeps it (``"map"``: a candidate of the 3D map that passed
         the evidence and presence tests; ``"dark_regions"``, ``"slopes"``,
         ``"enclosed"``: restored or added by that clean-up pass). Added field.
+    moved_by : ndarray (S,), int8, optional
+        The index into :data:`splidar.detection.STAGES` of the last stage that moved the
+        surface's depth (``"recentre"``: to the depth its 4-neighbours agree on inside
+        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth),
+        ``-1`` when no stage moved it. Every other field describes the depth it holds
+        now. With ``stage``, what :meth:`Detection.explain` tells. Added field.
     """
 
     row: np.ndarray
@@ -258,6 +343,7 @@ class Surfaces:
     presence_llr: np.ndarray | None = None
     presence_z: np.ndarray | None = None
     stage: np.ndarray | None = None
+    moved_by: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.row.size)
@@ -343,9 +429,10 @@ class Detection:
     options : mapping
         The options the detection ran with (for reports and reproducibility).
     provenance : tuple of StageRecord
-        Per stage, in the order they ran, the candidates it added and removed; with
-        ``surfaces.stage`` it tells why each surface exists (see
-        :meth:`provenance_table`).
+        Per stage, in the order they ran, the candidates it added, removed and moved;
+        with ``surfaces.stage`` and ``surfaces.moved_by`` it tells why each surface
+        exists and where its depth comes from (see :meth:`provenance_table`, and
+        :meth:`explain` for one pixel).
     """
 
     cube_shape: tuple[int, int, int, int]
@@ -368,23 +455,77 @@ class Detection:
     provenance: tuple[StageRecord, ...] = ()
 
     def provenance_table(self) -> str:
-        """The provenance as a text table: stage, ran, added, removed, moved, surfaces kept.
+        """The provenance as a text table: stage, ran, added, removed, moved, surfaces
+        kept, surfaces whose depth it placed.
 
-        The last column counts the final surfaces that each stage's decision keeps
-        (``surfaces.stage``).
+        ``kept`` counts the final surfaces that each stage's decision keeps
+        (``surfaces.stage``); ``placed`` those whose depth it moved last
+        (``surfaces.moved_by``: a candidate ``recentre`` moved may be removed later, or
+        moved again by ``align_depths``).
         """
         kept = np.zeros(len(STAGES), np.int64)
-        if self.surfaces.stage is not None:
-            kept = np.bincount(self.surfaces.stage, minlength=len(STAGES))
-        head = f"{'stage':14s} {'ran':>4s} {'added':>7s} {'removed':>8s} {'moved':>6s} {'kept':>6s}"
+        placed = np.zeros(len(STAGES), np.int64)
+        s = self.surfaces
+        if s.stage is not None:
+            kept = np.bincount(s.stage, minlength=len(STAGES))
+        if s.moved_by is not None:
+            m = np.asarray(s.moved_by, np.int64)
+            placed = np.bincount(m[m >= 0], minlength=len(STAGES))
+        head = (
+            f"{'stage':14s} {'ran':>4s} {'added':>7s} {'removed':>8s} {'moved':>6s} "
+            f"{'kept':>6s} {'placed':>7s}"
+        )
         rows = [head]
         for r in self.provenance:
-            k = int(kept[STAGES.index(r.stage)]) if r.stage in STAGES else 0
+            j = STAGES.index(r.stage) if r.stage in STAGES else None
+            k, p = (0, 0) if j is None else (int(kept[j]), int(placed[j]))
             rows.append(
                 f"{r.stage:14s} {'yes' if r.ran else 'no':>4s} {r.added:7d} {r.removed:8d} "
-                f"{r.moved:6d} {k:6d}"
+                f"{r.moved:6d} {k:6d} {p:7d}"
             )
         return "\n".join(rows)
+
+    def explain(self, row: int, col: int) -> PixelStory:
+        """Why each surface of pixel ``(row, col)`` exists: the stage that added (or
+        restored) it, the last stage that moved its depth and its statistics.
+
+        Examples
+        --------
+        >>> story = det.explain(12, 30)  # doctest: +SKIP
+        >>> print(story)  # doctest: +SKIP
+        pixel (12, 30): 1 surface
+          slot 0, depth 57.31 bins: added by 'map' (...); depth moved by 'align_depths' ...
+        """
+        from .._validation import SplidarError, check_int
+
+        R, C = self.image_shape
+        r, c = check_int(row, "row"), check_int(col, "col")
+        if not (0 <= r < R and 0 <= c < C):
+            raise SplidarError(
+                f"pixel (row, col) must lie in the image of {R} x {C} pixels; got ({r}, {c})."
+            )
+        s = self.surfaces
+        out = []
+        for i in np.flatnonzero((s.row == r) & (s.col == c)):
+            moved = -1 if s.moved_by is None else int(s.moved_by[i])
+
+            def stat(a, i=i):
+                return None if a is None else float(a[i])
+
+            out.append(
+                SurfaceStory(
+                    index=int(i),
+                    slot=int(s.slot[i]),
+                    depth_bin=float(s.depth_bin[i]),
+                    added_by=STAGES[int(s.stage[i])] if s.stage is not None else "map",
+                    moved_by=STAGES[moved] if moved >= 0 else None,
+                    evidence=stat(s.evidence),
+                    presence_llr=stat(s.presence_llr),
+                    presence_z=stat(s.presence_z),
+                )
+            )
+        out.sort(key=lambda t: t.slot)
+        return PixelStory(r, c, tuple(out))
 
     def __repr__(self) -> str:
         return (

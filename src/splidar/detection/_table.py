@@ -57,6 +57,9 @@ class CandidateTable:
     image_shape : (rows, cols)
     extra_histograms : ndarray (m, Q, L, W), float32, optional
         Histograms of the candidates a pass appended (``hist_block == -1``).
+    moved_by : ndarray (n,), int8, optional
+        Index into :data:`STAGES` of the last pass that moved the candidate's depth,
+        ``-1`` for none (``None``: no pass moved any; :meth:`moved_codes`).
     """
 
     columns: Mapping[str, np.ndarray]
@@ -66,6 +69,7 @@ class CandidateTable:
     hist_row: np.ndarray
     image_shape: tuple[int, int]
     extra_histograms: np.ndarray | None = None
+    moved_by: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.keep.size)
@@ -85,6 +89,22 @@ class CandidateTable:
                 small[k] = v.astype(np.int32)
         cols = compact_columns(self.columns, self.image_shape, n_bins)
         return replace(self, columns=cols, **small)
+
+    def moved_codes(self) -> np.ndarray:
+        """``moved_by`` for every candidate, (n,) int8 (``-1``: not moved; rows a pass
+        appended after the table's ``moved_by`` was made were not moved)."""
+        out = np.full(len(self), -1, np.int8)
+        if self.moved_by is not None:
+            out[: self.moved_by.size] = self.moved_by
+        return out
+
+    def with_moved(self, idx: np.ndarray, name: str) -> CandidateTable:
+        """The table with candidates ``idx`` recorded as moved by the pass ``name``."""
+        if not np.size(idx):
+            return self
+        code = self.moved_codes()
+        code[np.asarray(idx, np.int64)] = stage_code(name)
+        return replace(self, moved_by=code)
 
     def with_columns(self, **new: np.ndarray) -> CandidateTable:
         """The table with the named (n, ...) columns added or replaced."""
