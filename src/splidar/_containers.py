@@ -74,6 +74,11 @@ def _h5_to_numpy(f, obj, matlab: bool):
     return data
 
 
+#: attributes of HDF5 datasets and groups read as values (``"path/name"``): those that
+#: describe a count array (splidar.io looks them up beside it)
+_H5_ATTRS = frozenset(("irf", "bin_width_ps", "wavelengths_nm", "class_names", "metadata"))
+
+
 def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
     import h5py
 
@@ -83,11 +88,20 @@ def _read_hdf5(p: Path, matlab: bool) -> dict[str, Any]:
         with h5py.File(p, "r") as f:
             _check_hdf5_sizes(f, p)
 
+            attrs: dict[str, Any] = {}
+
             def visit(name, obj):
-                if isinstance(obj, h5py.Dataset) and not name.startswith("#"):  # #refs#
+                if name.startswith("#"):  # #refs#
+                    return
+                if isinstance(obj, h5py.Dataset):
                     out[name] = _h5_to_numpy(f, obj, matlab)
+                for k in _H5_ATTRS.intersection(obj.attrs.keys()):  # e.g. bin_width_ps
+                    v = obj.attrs[k]
+                    attrs[f"{name}/{k}"] = v.decode() if isinstance(v, bytes) else v
 
             f.visititems(visit)
+            for k, v in attrs.items():  # a dataset of that name wins
+                out.setdefault(k, v)
             for k, v in f.attrs.items():
                 if k not in out and not k.startswith("MATLAB"):
                     out[k] = v.decode() if isinstance(v, bytes) else v

@@ -26,6 +26,7 @@ log = logging.getLogger("splidar.io")
 ROLES = {
     "row": ("row", "rows", "y", "iy", "line", "pixel_row"),
     "col": ("col", "cols", "column", "x", "ix", "pixel_col", "pixel_column"),
+    "pixel": ("pixel", "pixels", "pixel_index", "pixel_id", "pixel_idx", "pix", "pixel_number"),
     "time": (
         "time", "times", "t", "timestamp", "timestamps", "arrival_time", "arrival_times",
         "arrival", "toa", "tof", "dtime", "delay", "macrotime", "microtime",
@@ -35,6 +36,11 @@ ROLES = {
     ),
 }  # fmt: skip
 TIME_UNITS = ("fs", "ps", "ns", "us", "ms", "s")
+#: names of single numbers giving the image size of a table with a flat pixel column
+SIZE_NAMES = {
+    "rows": ("n_rows", "nrows", "num_rows", "rows", "height", "ny", "n_y", "n_lines"),
+    "cols": ("n_cols", "ncols", "num_cols", "cols", "width", "nx", "n_x", "n_columns"),
+}
 _UNIT_RE = re.compile(r"^(.*?)(?:[ _]*[\(\[]\s*([a-z]+)\s*[\)\]]|_([a-z]+))?$")
 EXAMPLE = "row,col,time_ps[,wavelength]"
 
@@ -74,8 +80,13 @@ def find_photon_table(d: dict[str, Any]) -> PhotonTable | None:
             role, unit = _role_and_unit(k)
             if role is not None:
                 found.setdefault(role, []).append((k, unit))
-    if not {"row", "col", "time"} <= found.keys():
+    if "time" not in found or not ({"row", "col"} <= found.keys() or "pixel" in found):
         return None
+    if {"row", "col"} <= found.keys():
+        found.pop("pixel", None)  # row and column given: a pixel column is a label
+    else:
+        found.pop("row", None)
+        found.pop("col", None)
     for role, cands in found.items():
         if len(cands) > 1:
             names = ", ".join(f"'{k}'" for k, _ in cands)
@@ -106,9 +117,14 @@ def table_as_flat(d: dict[str, Any], p: Path, table: PhotonTable, time_unit: str
     """``d`` as flat photon lists (``times``, ``pixel_index``, ``shape``; the wavelengths
     folded into the columns: ``cols x L``), the time unit to use and L."""
     c = table.columns
-    row = _indices(np.asarray(d[c["row"]]), c["row"], "pixel row")
-    col = _indices(np.asarray(d[c["col"]]), c["col"], "pixel column")
-    if "shape" in d:
+    if "pixel" in c:
+        row, col, rows, cols = _flat_pixels(d, p, c["pixel"])
+    else:
+        row = _indices(np.asarray(d[c["row"]]), c["row"], "pixel row")
+        col = _indices(np.asarray(d[c["col"]]), c["col"], "pixel column")
+    if "pixel" in c:
+        pass  # the size is given
+    elif "shape" in d:
         rows, cols = (int(s) for s in np.asarray(d["shape"]).reshape(-1)[:2])
     else:
         rows = int(row.max()) + 1 if row.size else 1
@@ -131,11 +147,14 @@ def table_as_flat(d: dict[str, Any], p: Path, table: PhotonTable, time_unit: str
         if not is_channel and values.size and values.min() > 100:  # nm, not channel numbers
             wl_nm = values.astype(np.float64)
     log.info(
-        "'%s' read as a photon table: row '%s', column '%s', time '%s' (%s)%s; %d x %d pixels "
-        "(%s)",
-        p.name, c["row"], c["col"], c["time"], unit,
+        "'%s' read as a photon table: %s, time '%s' (%s)%s; %d x %d pixels (%s)",
+        p.name,
+        f"pixel '{c['pixel']}' (row * cols + col)" if "pixel" in c
+        else f"row '{c['row']}', column '{c['col']}'",
+        c["time"], unit,
         f", wavelength '{c['wavelength']}' ({n_wl} values)" if "wavelength" in c else "",
-        rows, cols, "from `shape`" if "shape" in d else "from the largest indices",
+        rows, cols,
+        "from `shape`" if "shape" in d else "given" if "pixel" in c else "from the largest indices",
     )  # fmt: skip
     pix = row * cols + col
     if l_idx is not None:
@@ -145,6 +164,54 @@ def table_as_flat(d: dict[str, Any], p: Path, table: PhotonTable, time_unit: str
     if wl_nm is not None:
         out["wavelengths_nm"] = wl_nm
     return out, unit, n_wl
+
+
+def _image_size(d: dict[str, Any], p: Path, pixel: str) -> tuple[int, int]:
+    """(rows, cols) of a table with a flat pixel column: a ``shape`` array, or two single
+    numbers named as in :data:`SIZE_NAMES` (``n_rows`` / ``n_cols``, ``height`` /
+    ``width``, ...)."""
+    if "shape" in d:
+        a = np.asarray(d["shape"]).reshape(-1)
+        if a.size == 2 and a.dtype.kind in "uif" and np.all(a >= 1) and np.all(a == np.round(a)):
+            return int(a[0]), int(a[1])
+        raise SplidarError(
+            f"`shape` in '{p.name}' must be two positive integers (rows, cols); got {a[:4]}."
+        )
+    size = []
+    for names in SIZE_NAMES.values():
+        hit = [k for k in d if k.rsplit("/", 1)[-1].lower() in names and np.size(d[k]) == 1]
+        if len(hit) != 1:
+            break
+        v = float(np.asarray(d[hit[0]]).reshape(-1)[0])
+        if not (v >= 1 and v == round(v)):
+            break
+        size.append(int(v))
+    if len(size) == 2:
+        return size[0], size[1]
+    raise SplidarError(
+        f"'{p.name}' is a photon table with a flat pixel column '{pixel}' (row * cols + col) "
+        "but no image size: add a `shape` array (rows, cols), or two numbers named n_rows "
+        "and n_cols (or height and width)."
+    )
+
+
+def _flat_pixels(d: dict[str, Any], p: Path, pixel: str):
+    """Row and column of each photon of a flat pixel column, and the image size."""
+    rows, cols = _image_size(d, p, pixel)
+    pix = _indices(np.asarray(d[pixel]), pixel, "flat pixel index")
+    n = rows * cols
+    if pix.size and pix.max() >= n:
+        hint = (
+            " The largest index equals rows x cols: 1-based (MATLAB) indices? Subtract 1."
+            if pix.max() == n and pix.min() >= 1
+            else ""
+        )
+        raise SplidarError(
+            f"column '{pixel}' of '{p.name}' holds pixel indices up to {pix.max()}, beyond the "
+            f"{rows} x {cols} image (0-based row * cols + col, below {n}).{hint}"
+        )
+    row, col = np.divmod(pix, cols)
+    return row, col, rows, cols
 
 
 def read_table(p: Path) -> dict[str, np.ndarray]:

@@ -431,6 +431,13 @@ def _input_options(p: argparse.ArgumentParser) -> None:
         "shape suggests time first)",
     )
     g.add_argument(
+        "--wavelength-axis",
+        type=int,
+        metavar="AXIS",
+        help="4-D cubes: axis of the stored array holding the wavelengths, e.g. 0 for "
+        "(L, rows, cols, T) (default: the one before time)",
+    )
+    g.add_argument(
         "--window",
         nargs=2,
         type=float,
@@ -471,6 +478,12 @@ def _input_options(p: argparse.ArgumentParser) -> None:
         "else the pulse shape pooled from the bright pixels (a Gaussian where the photons "
         "do not support a shape); 'estimate': a Gaussian of the width estimated from the "
         "data; 'estimate-shape': the pulse shape even when the file holds an IRF",
+    )
+    g.add_argument(
+        "--irf-variable",
+        metavar="NAME",
+        help="variable of the --irf file holding the IRF when it holds several arrays "
+        "(e.g. IRF in a .mat file beside the counts)",
     )
     irf.add_argument(
         "--irf-fwhm",
@@ -1418,7 +1431,8 @@ def _load_kwargs(args) -> dict[str, Any]:
     """``splidar.load``'s keyword arguments from the input options."""
     load_kw = _given(
         args,
-        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis"),
+        ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis")
+        + ("wavelength_axis", "irf_variable"),
     )
     if getattr(args, "bin_width_m", None) is not None:  # range bin -> round-trip time
         load_kw["bin_width_ps"] = args.bin_width_m * 2.0 / 299_792_458.0 * 1e12
@@ -1573,7 +1587,7 @@ _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
     + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
-    + ("time_axis",)
+    + ("time_axis", "wavelength_axis", "irf_variable")
 )
 _NAME_RE = re.compile(
     r"`("

@@ -39,6 +39,7 @@ from ._containers import (
     _summary,
 )
 from ._files import savez
+from ._irf_text import irf_on_bins, read_irf_text
 from ._memory import check_memory
 from ._photon_table import find_photon_table, table_as_flat
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
@@ -521,11 +522,8 @@ def load_irf(path: str | os.PathLike, *, variable: str | None = None) -> np.ndar
     """
     p = _check_path(path)
     ext = _ext(p)
-    if ext in (".csv", ".txt"):
-        try:
-            a = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=1)
-        except ValueError:
-            a = np.loadtxt(p, delimiter=None if ext == ".csv" else ",", ndmin=1)
+    if ext in (".csv", ".txt"):  # a header row and a time column are skipped
+        a = read_irf_text(p)[0]
     elif ext in _CONTAINER_EXTS:
         a = _irf_from_container(_read_container(p), p, variable)
     elif ext == ".npy":
@@ -1269,6 +1267,7 @@ def load(
     library=None,
     channels=None,
     time_axis: int | None = None,
+    wavelength_axis: int | None = None,
 ) -> Cube:
     """Read a histogram cube or photon time lists from a file into a :class:`Cube`.
 
@@ -1325,6 +1324,11 @@ def load(
         Histogram files: the stored array's time axis (``0`` for ``(T, rows, cols)``),
         moved last. Default: the last, with a warning when the shape suggests time first
         (first axis over twice the others, last the shortest); ``-1`` silences it.
+    wavelength_axis : int, optional
+        Histogram files: the stored 4-D array's wavelength axis (``0`` for ``(L, rows,
+        cols, T)``), moved before time; rows and cols keep their order. Default: the
+        axis before time, with a warning when the first axis is short (<= 16) and that
+        one longer than 16.
 
     Returns
     -------
@@ -1352,7 +1356,7 @@ def load(
     if _ext(p) == ".zarr":
         cube = _load_zarr(
             p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable, variable=variable,
-            time_axis=time_axis,
+            time_axis=time_axis if wavelength_axis is None else (time_axis, wavelength_axis),
         )  # fmt: skip
         return _override(cube, bin_width_ps, wavelengths_nm, library)
     d = _read_any(p, channels)
@@ -1370,24 +1374,18 @@ def load(
         counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit, n_wl)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
-        file_irf = d.get("irf")
-        wl = d.get("wavelengths_nm")
-        lib = _library_from(d)
     else:
-        if bin_width is not None or time_unit != "bin":
-            raise SplidarError(
-                "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
-                "already binned cube (use bin_width_ps= to set its bin width)."
-            )
-        counts, meta, from_save = _binned_cube(d, p, name, window, meta, time_axis)
+        _check_cube_options(bin_width, time_unit)
+        axes = (time_axis, wavelength_axis)
+        counts, meta, from_save = _binned_cube(d, p, name, window, meta, axes)
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
-        file_irf = d.get("irf")
-        wl = d.get("wavelengths_nm")
-        lib = _library_from(d)
+    file_irf, wl, lib = d.get("irf"), d.get("wavelengths_nm"), _library_from(d)
     n_bins = counts.shape[-1]
+    irf, resampled = irf_on_bins(irf, bw_ps if bin_width_ps is None else bin_width_ps)
     irf_a, irf_src = _resolve_irf(
         irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
     )
+    irf_src = resampled or irf_src
     if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
         irf_a = _crop_irf(irf_a, n_bins)
     if irf_src != "file":
@@ -1405,11 +1403,31 @@ def load(
     return _override(cube, bin_width_ps, wavelengths_nm, library)
 
 
-def _time_last(v, name: str, p: Path, time_axis: int | None):
-    """Move the time axis of a stored count array last (``time_axis``); by default keep
-    it last, warning when the shape suggests ``(T, rows, cols)``."""
+def _check_cube_options(bin_width, time_unit) -> None:
+    if bin_width is not None or time_unit != "bin":
+        raise SplidarError(
+            "`bin_width` and `time_unit` apply to photon-list files; this file holds an "
+            "already binned cube (use bin_width_ps= to set its bin width)."
+        )
+
+
+def _axis(ax, what: str, v, name: str, p: Path) -> int:
+    a = check_int(ax, what, minimum=-v.ndim)
+    if a >= v.ndim:
+        raise SplidarError(
+            f"`{what}` must be an axis of variable '{name}' of '{p.name}', shape {v.shape}: "
+            f"-{v.ndim} to {v.ndim - 1}; got {ax}."
+        )
+    return a % v.ndim
+
+
+def _time_last(v, name: str, p: Path, time_axis: int | None, wavelength_axis=None):
+    """Move the time axis of a stored count array last (``time_axis``) and, for a 4-D
+    array, its wavelength axis before it (``wavelength_axis``); by default keep the
+    order, warning when the shape suggests ``(T, rows, cols)`` or ``(L, rows, cols, T)``
+    (a first axis of at most 16 and more than 16 "wavelengths")."""
+    s = v.shape
     if time_axis is None:
-        s = v.shape
         if v.ndim == 3 and s[0] > 2 * max(s[1], s[2]) and s[2] <= s[1]:
             log.warning(
                 "variable '%s' of '%s' has shape %s, read as (rows, cols, T) = %d x %d pixels "
@@ -1417,16 +1435,39 @@ def _time_last(v, name: str, p: Path, time_axis: int | None):
                 "time_axis=-1 confirms the time axis is last.",
                 name, p.name, s, *s,
             )  # fmt: skip
-        return v
-    ax = check_int(time_axis, "time_axis", minimum=-v.ndim)
-    if ax >= v.ndim:
+        t = v.ndim - 1
+    else:
+        t = _axis(time_axis, "time_axis", v, name, p)
+    if wavelength_axis is not None and v.ndim != 4:
         raise SplidarError(
-            f"`time_axis` must be an axis of variable '{name}' of '{p.name}', shape {v.shape}: "
-            f"-{v.ndim} to {v.ndim - 1}; got {time_axis}."
+            f"`wavelength_axis` applies to a 4-D count array; variable '{name}' of '{p.name}' "
+            f"has shape {s} (one wavelength: leave it out)."
         )
-    if ax % v.ndim != v.ndim - 1:
-        log.info("variable '%s' of '%s': time axis %d moved last", name, p.name, ax)
-    return np.moveaxis(v, ax, -1)
+    if v.ndim == 4 and wavelength_axis is None:
+        rest = [a for a in range(4) if a != t]
+        if s[rest[0]] <= 16 < s[rest[2]]:  # more than 16 wavelengths: rarely so
+            log.warning(
+                "variable '%s' of '%s' has shape %s, read as %d x %d pixels of %d "
+                "wavelengths. If axis %d holds the wavelengths, pass wavelength_axis=%d; "
+                "wavelength_axis=%d confirms the order.",
+                name, p.name, s, s[rest[0]], s[rest[1]], s[rest[2]], rest[0], rest[0],
+                rest[2],
+            )  # fmt: skip
+    if v.ndim == 4 and wavelength_axis is not None:
+        w = _axis(wavelength_axis, "wavelength_axis", v, name, p)
+        if w == t:
+            raise SplidarError(
+                f"`wavelength_axis` and `time_axis` name the same axis ({w}) of variable "
+                f"'{name}' of '{p.name}', shape {s}."
+            )
+        order = [a for a in range(4) if a not in (w, t)] + [w, t]
+        if order != [0, 1, 2, 3]:
+            log.info("variable '%s' of '%s': axes %s read as (rows, cols, L, T)", name,
+                     p.name, tuple(order))  # fmt: skip
+        return np.transpose(v, order)
+    if t != v.ndim - 1:
+        log.info("variable '%s' of '%s': time axis %d moved last", name, p.name, t)
+    return np.moveaxis(v, t, -1)
 
 
 #: variables that describe the counts; in an HDF5 file, looked up beside them in their group
@@ -1435,12 +1476,18 @@ _SIBLINGS = ("irf", "bin_width_ps", "wavelengths_nm", "library", "class_names", 
 
 def _group_siblings(d: dict[str, Any], p: Path, name: str) -> dict[str, Any]:
     """``d`` with the ``irf``, ``bin_width_ps``, ... of the counts' own HDF5 group (e.g.
-    ``scan/irf`` beside ``scan/histograms``) as top-level names, where those are absent."""
+    ``scan/irf`` beside ``scan/histograms``, or an attribute of that group) or attributes
+    of the counts' dataset (``scan/histograms/bin_width_ps``, read by ``_read_hdf5``) as
+    top-level names, where those are absent; the dataset's own attributes first."""
     group = name.rpartition("/")[0]
-    found = {k: d[f"{group}/{k}"] for k in _SIBLINGS if k not in d and f"{group}/{k}" in d}
-    if not group or not found:
+    found, where = {}, {}
+    for k in _SIBLINGS:
+        for key, place in ((f"{name}/{k}", f"attribute of '{name}'"), (f"{group}/{k}", group)):
+            if k not in d and k not in found and key in d:
+                found[k], where[k] = d[key], place
+    if not found:
         return d
-    log.info("'%s': using %s of group '%s'", p.name, ", ".join(found), group)
+    log.info("'%s': using %s", p.name, ", ".join(f"{k} ({where[k]})" for k in found))
     return {**d, **found}
 
 
@@ -1454,10 +1501,10 @@ def _photon_table(d: dict[str, Any], p: Path, time_unit: str, flat: bool, variab
     return d, time_unit, n_wl, True
 
 
-def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time_axis=None):
-    """The count cube ``(rows, cols, L, T)`` of variable ``name`` (its ``time_axis``
-    moved last), cropped to ``window`` (a bin range), with its metadata; ``from_save``
-    when :func:`save` wrote the file."""
+def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, axes=(None, None)):
+    """The count cube ``(rows, cols, L, T)`` of variable ``name`` (``axes``: its time
+    and wavelength axes, see :func:`_time_last`), cropped to ``window`` (a bin range),
+    with its metadata; ``from_save`` when :func:`save` wrote the file."""
     v = d[name]
     if not (isinstance(v, np.ndarray) and v.dtype.kind in "uifb"):
         raise SplidarError(
@@ -1469,7 +1516,7 @@ def _binned_cube(d: dict[str, Any], p: Path, name: str, window, meta: dict, time
             f"variable '{name}' of '{p.name}' must be a count cube (rows, cols, T) or "
             f"(rows, cols, L, T); got shape {v.shape}."
         )
-    v = _time_last(v, name, p, time_axis)
+    v = _time_last(v, name, p, *axes)
     counts = v if v.ndim == 4 else v[:, :, None, :]
     md0 = _metadata_from(d.get("metadata"))
     from_save = str(np.asarray(d.get("__kind__", ""))) == "Cube"
@@ -1750,6 +1797,11 @@ def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable, variable=None, time_axis
             f"the zarr group '{p}' has no `{name}` array; it holds arrays {names}{hint}."
         )
     counts = da.from_zarr(g[name])
+    if isinstance(time_axis, tuple):
+        raise SplidarError(
+            f"`wavelength_axis` is not supported for Zarr input ('{p.name}'): rewrite the "
+            "array as (rows, cols, L, T) (splidar.save(cube, 'x.zarr'))."
+        )
     if time_axis is not None and int(time_axis) % max(counts.ndim, 1) != counts.ndim - 1:
         raise SplidarError(
             f"`time_axis` {time_axis} is not supported for Zarr input ('{p.name}', shape "
