@@ -160,4 +160,8 @@ def test_cli_irf_variable_and_wavelength_axis(tmp_path, capsys):
     assert info["shape"] == [6, 7, 2, 48] and info["irf_samples"] == 20
     # without --irf-variable the IRF is ambiguous (IRF, lambda_nm): the message names it
     assert main(args) == 1
-    assert "--irf-variable" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # the CLI names its own option and not the Python function's keyword
+    assert "--irf-variable" in err and "load_irf" not in err and "--variable" not in err
+    with pytest.raises(SplidarError, match=r"irf_variable=.*variable= when calling load_irf"):
+        load(p, variable="Y", irf=p, wavelength_axis=0)

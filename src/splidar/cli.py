@@ -1603,9 +1603,14 @@ _QUOTED_RE = re.compile(
 )
 
 
+# a library message's aside that only concerns a Python function the CLI never calls
+_API_ONLY_RE = re.compile(r" \([^()]*\bwhen calling load_irf\)")
+
+
 def _cli_names(msg: str) -> str:
     """Spell the API's parameter names as the command line's options (``irf='estimate'``
     as ``--irf estimate``, ``time_axis=0`` as ``--time-axis 0``)."""
+    msg = _API_ONLY_RE.sub("", msg)  # e.g. "(variable= when calling load_irf)"
     msg = _QUOTED_RE.sub(
         lambda m: f"--{m.group(1).replace('_', '-')} {m.group(2) or m.group(3)}", msg
     )

@@ -453,7 +453,8 @@ def _irf_from_container(d: dict[str, Any], p: Path, variable: str | None) -> np.
             raise SplidarError(
                 f"cannot tell which variable of '{p.name}' is the IRF "
                 f"({'none looks like one' if not cands else 'candidates: ' + ', '.join(cands)}); "
-                f"it holds: {_summary(d)}. Pass irf_variable= to load (variable= to load_irf)."
+                f"it holds: {_summary(d)}. Name it with irf_variable= "
+                "(variable= when calling load_irf)."
             )
         name = cands[0]
     return np.asarray(d[name])
