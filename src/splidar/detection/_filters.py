@@ -28,8 +28,8 @@ class Correlator:
 
     A return whose peak lands on bin ``d`` (the depth reference) gives a response that
     peaks on ``d`` (the autocorrelation of ``g`` is symmetric about lag 0). Implemented
-    by direct summation in float64 for IRFs of at most :data:`DIRECT_MAX_TAPS` samples
-    (cheaper than an FFT there, and exact to float32 rounding), else with a padded real
+    by direct summation in float32 for IRFs of at most :data:`DIRECT_MAX_TAPS` samples
+    (cheaper than an FFT there, within a float32 step of exact), else with a padded real
     FFT (no circular wrap; mirrored edges) and the IRF spectrum precomputed. The two
     agree to float32 rounding of the response (about 1e-7 of its largest value).
 
