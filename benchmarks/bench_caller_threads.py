@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     threads.thread.start()
     before = dict(threads.cpu)
     try:
-        det, t, peaks, _, restarted, cpu, cpus = bd._cluster_run(
+        det, t, peaks, caller, restarted, cpu, cpus = bd._cluster_run(
             lazy, 2, args.memory_limit, store, tiny, None, True, True
         )
     finally:
@@ -136,7 +136,8 @@ def main(argv=None) -> int:
         shutil.rmtree(store, ignore_errors=True)
     print(f"wall {t:.1f} s, CPU {cpu:.1f} s: " + ", ".join(f"{k} {v:.1f}" for k, v in cpus.items()))
     print(f"{len(det.surfaces)} surfaces; worker peaks {[round(x / 1e6) for x in peaks]} MB, "
-          f"{restarted} restarted; stages {bd._stages(det)}")  # fmt: skip
+          f"calling process {caller / 1e6:.0f} MB, {restarted} restarted; stages "
+          f"{bd._stages(det)}")  # fmt: skip
     print("calling process, CPU seconds by thread (from the cluster's start):")
     for k, v in threads.by_name(before).most_common():
         print(f"  {v:7.1f}  {k}")
