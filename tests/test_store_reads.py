@@ -139,3 +139,47 @@ def test_pixels_zarr_equals_vindex(tmp_path):
     assert got.dtype == a.dtype
     np.testing.assert_array_equal(got, x.vindex[rows, cols].compute())
     np.testing.assert_array_equal(_pixels_by_chunk(z, x.chunks[0], rows, cols), a[rows, cols])
+
+
+@pytest.mark.parametrize("budget", [None, 0])
+def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
+    """In ``kept_counts`` (detect's stages 5-7 on a Zarr cube) the bands and pixels come
+    from the chunks' nonzero counts, decoded once; the same values as the array's, with
+    chunks past the byte budget (``budget=0``: all of them after the first) decoded
+    again; the chunks are released when the context ends."""
+    from splidar.detection import _slopes
+    from splidar.detection._7_align_depths import _pixels
+
+    if budget is not None:
+        monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
+    rng = np.random.default_rng(5)
+    a = (rng.random((45, 9, 2, 30)) < 0.05) * rng.integers(1, 200, (45, 9, 2, 30))
+    a = a.astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
+    )
+    z[:] = a
+    x = da.from_zarr(tmp_path / "c.zarr")
+    with _slopes.kept_counts(x):
+        assert x.name in _slopes._KEPT
+        for _ in range(2):  # the second pass from the kept chunks
+            items = np.sort(rng.integers(0, 45, 40))
+            got = [(sel, b.copy(), y0) for sel, b, y0 in _row_bands(x, items, 3, band=6)]
+            for _sel, band, y0 in got:
+                np.testing.assert_array_equal(band, a[y0 : y0 + band.shape[0]])
+            assert sorted(s for sel, _, _ in got for s in sel) == list(range(items.size))
+        rows, cols = rng.integers(0, 45, 50), rng.integers(0, 9, 50)
+        np.testing.assert_array_equal(_pixels(x, rows, cols), a[rows, cols])
+    assert x.name not in _slopes._KEPT
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float64])
+def test_nonzero_equals_flatnonzero(dtype):
+    from splidar.detection._slopes import _nonzero
+
+    rng = np.random.default_rng(6)
+    a = ((rng.random(10_007) < 0.02) * rng.integers(1, 9, 10_007)).astype(dtype)
+    for x in (a, a[:-7], a[1:], np.zeros(16, dtype)):  # ragged ends, unaligned, none
+        idx, val = _nonzero(x)
+        np.testing.assert_array_equal(idx, np.flatnonzero(x))
+        np.testing.assert_array_equal(val, x[np.flatnonzero(x)])

@@ -21,7 +21,7 @@ from ._4_map import _local_scale
 from ._kernels import _llr_one, _select_scale
 from ._quality import _shifted_irf, align_depths
 from ._result import STAGES, StoredHistograms, Surfaces
-from ._slopes import _row_bands, _zarr_of, support_sums, surface_fields
+from ._slopes import _row_bands, _zarr_of, pixels_of, support_sums, surface_fields
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -255,6 +255,9 @@ def _pixels(counts, rows, cols) -> np.ndarray:
     scheduler: on a cluster the workers' reads were serialised and sent over.
     """
     if is_dask(counts):
+        kept = pixels_of(counts, rows, cols)  # kept sparse during the detection
+        if kept is not None:
+            return kept
         z = _zarr_of(counts)
         if z is not None:
             try:

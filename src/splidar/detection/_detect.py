@@ -49,6 +49,7 @@ from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._result import Background, Detection, StageRecord, StoredHistograms
+from ._slopes import kept_counts
 from ._table import remove_tree, skipped, store_histograms
 from ._tiled import first_pass, is_dask, map_candidates_tiled, tiled_window_means
 
@@ -286,8 +287,8 @@ def detect(
     mp, held, n_map = _map_pass(cube, filters, nul, o, store, tiled)  # 4
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    done = _clean_up(cube, o, mp, held, bg, corr, rng)  # 5
-    surfaces, aligned, t_sel, n_kept = _select_and_align(cube, o, mp, done, t0, store, bg)  # 6, 7
+    out = _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0, store)  # 5, 6, 7
+    done, surfaces, aligned, t_sel, n_kept = out
     mp = dataclasses.replace(mp, histograms=())
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
@@ -295,6 +296,15 @@ def detect(
     provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
+
+
+def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
+    """The clean-up passes (5), the selection (6) and the depth alignment (7): ``(done,
+    surfaces, aligned, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
+    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``)."""
+    with kept_counts(cube.counts):
+        done = _clean_up(cube, o, mp, held, bg, corr, rng)
+        return done, *_select_and_align(cube, o, mp, done, t0, store, bg)
 
 
 def _stuck_pixels_first(cube: Cube, o: dict):

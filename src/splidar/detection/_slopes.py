@@ -79,7 +79,9 @@ counts with the pooled intensity; local scale's z).
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 
 import numpy as np
 from numba import njit
@@ -878,7 +880,10 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     An in-memory cube is used whole, without a copy; a lazy (Dask / Zarr) one is read a
     band of ``band`` rows at a time (fewer when they would hold over :data:`BAND_BYTES`),
     only where there are items, the next band on a thread while the caller works on
-    this one (the calling process holds two bands).
+    this one (the calling process holds two bands). The Zarr array of a cube from
+    :func:`splidar.load` is read by whole stored chunks, each decoded once per call
+    (:class:`_ChunkRows`), into kept buffers: a band ``y`` is valid in the caller's loop
+    body only (the callers use it there and keep nothing of it).
     """
     R = counts.shape[0]
     rows = np.asarray(rows, np.int64)
@@ -896,7 +901,14 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
         return
     from concurrent.futures import ThreadPoolExecutor
 
+    chunked = _ChunkRows.of(counts)
+
     def read(i):
+        if chunked is not None:
+            try:
+                return chunked(todo[i][1], todo[i][2])
+            except OSError as exc:  # a path the workers see and this process does not
+                logger.debug("rows read through the scheduler: %s", exc)
         return np.ascontiguousarray(_read_rows(counts, todo[i][1], todo[i][2]))
 
     with ThreadPoolExecutor(1) as ex:
@@ -906,6 +918,251 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
             ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
             yield sel, y, y0
             del y
+
+
+#: Bytes of a Zarr cube's counts the calling process may keep, sparse, while the
+#: clean-up passes and the depth alignment read it (:func:`kept_counts`): the flat
+#: indices and values of the nonzero counts of every chunk of rows read, up to this
+#: size (5 bytes per nonzero uint8 count; the ``--large`` scene of
+#: ``bench_distributed.py``, PPP about 8 in 1000 bins, needs about 130 MB for its
+#: 3.1 G voxels). Chunks past it are decoded again at each read.
+SPARSE_BYTES = 256 * 2**20
+
+#: Sparse counts of the Zarr cubes whose clean-up runs (:func:`kept_counts`), by the
+#: Dask array's name.
+_KEPT: dict = {}
+_KEPT_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def kept_counts(counts):
+    """While the context runs, the Zarr array a Dask cube reads as it is (``splidar.load``
+    of a Zarr cube) is read by :func:`_row_bands` and :func:`pixels_of` from the
+    nonzero counts of its chunks of rows, each chunk decoded once (:class:`_Sparse`),
+    instead of decoding the chunks again at every pass (the slope pass reads the
+    cube up to five times, the spill-over lines and the alignment once each). Any
+    other array: nothing changes. The values read are the same."""
+    z = None
+    if not isinstance(counts, np.ndarray) and hasattr(counts, "dask"):
+        try:
+            z = _zarr_of(counts)
+        except Exception:  # any other graph
+            z = None
+    name = getattr(counts, "name", None)
+    with _KEPT_LOCK:
+        mine = z is not None and name not in _KEPT
+        if mine:
+            _KEPT[name] = _Sparse(z)
+    try:
+        yield
+    finally:
+        if mine:
+            with _KEPT_LOCK:
+                _KEPT.pop(name, None)
+
+
+class _Sparse:
+    """A Zarr array's chunks of rows, each decoded once and kept as the flat indices
+    (in the chunk) and values of its nonzero entries, within :data:`SPARSE_BYTES`."""
+
+    def __init__(self, z):
+        self.z, self.step = z, int(z.chunks[0])
+        self.row = tuple(int(v) for v in z.shape[1:])
+        self.per = int(np.prod(self.row))  # entries per image row
+        self.dtype = np.dtype(z.dtype)
+        self.chunks: dict = {}  # chunk index -> (flat indices, values), or None: decode
+        self.bytes = 0
+        self.lock = threading.Lock()
+        self.buf = None  # one decoded chunk
+
+    def _decode(self, k: int) -> np.ndarray:
+        from zarr.core.buffer import default_buffer_prototype
+
+        lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
+        if self.buf is None:
+            self.buf = np.empty((self.step,) + self.row, self.dtype)
+        a = self.buf[: hi - lo]
+        nd = default_buffer_prototype().nd_buffer
+        self.z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(a))
+        return a
+
+    def _chunk(self, k: int):
+        """``(indices, values)`` of chunk ``k``, or the decoded chunk (over budget)."""
+        if k in self.chunks and self.chunks[k] is not None:
+            return self.chunks[k]
+        a = self._decode(k)
+        if k in self.chunks or self.bytes > SPARSE_BYTES:
+            self.chunks[k] = None
+            return a
+        idx, val = _nonzero(a.reshape(-1))
+        self.bytes += idx.nbytes + val.nbytes
+        self.chunks[k] = (idx, val)
+        return self.chunks[k]
+
+    def rows_into(self, out: np.ndarray, y0: int, y1: int, zero: bool):
+        """Rows ``[y0, y1)`` written into ``out`` (shape ``(y1 - y0,) + row``; ``zero``:
+        it holds zeros already). Returns the flat positions in ``out`` of the nonzero
+        entries written, or None when a chunk was copied whole (over the budget)."""
+        where = []
+        with self.lock:
+            for k in range(y0 // self.step, (y1 - 1) // self.step + 1):
+                lo = k * self.step
+                a, b = max(y0, lo), min(y1, lo + self.step)
+                dst = out[a - y0 : b - y0].reshape(-1)
+                got = self._chunk(k)
+                if isinstance(got, np.ndarray):
+                    dst[:] = got[a - lo : b - lo].reshape(-1)
+                    where = None
+                    continue
+                idx, val = got
+                i0, i1 = np.searchsorted(idx, [(a - lo) * self.per, (b - lo) * self.per])
+                if not zero:
+                    dst[:] = 0
+                at = idx[i0:i1].astype(np.int64) - (a - lo) * self.per
+                dst[at] = val[i0:i1]
+                if where is not None:
+                    where.append(at + (a - y0) * self.per)
+        return None if where is None else np.concatenate(where or [np.zeros(0, np.int64)])
+
+    def pixels(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The entries ``[rows[i], cols[i]]``, ``(n,) + row[1:]``."""
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        px = int(np.prod(self.row[1:]))  # entries per pixel
+        out = np.zeros((rows.size,) + self.row[1:], self.dtype)
+        flat = out.reshape(rows.size, px)
+        chunk = rows // self.step
+        with self.lock:
+            for k in np.unique(chunk):
+                sel = np.flatnonzero(chunk == k)
+                got = self._chunk(int(k))
+                if isinstance(got, np.ndarray):
+                    out[sel] = got[rows[sel] - k * self.step, cols[sel]]
+                    continue
+                idx, val = got
+                first = ((rows[sel] - k * self.step) * self.row[0] + cols[sel]) * px
+                i0 = np.searchsorted(idx, first)
+                i1 = np.searchsorted(idx, first + px)
+                for s, a, b, f in zip(sel, i0, i1, first, strict=True):
+                    flat[s, idx[a:b] - f] = val[a:b]
+        return out
+
+
+def _nonzero(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (ascending; int32 when they fit) and values of the nonzero entries
+    of a 1-D array: the 8-byte words holding one are found first (most are zero)."""
+    kind = np.int32 if flat.size < 2**31 else np.int64
+    n = int(np.count_nonzero(flat))
+    idx, val = np.empty(n, kind), np.empty(n, flat.dtype)
+    per = 8 // flat.itemsize if 8 % flat.itemsize == 0 else 0
+    if n == 0:
+        return idx, val
+    try:
+        if per == 0 or flat.size % per:
+            raise ValueError
+        words = flat.view(np.uint64)
+    except ValueError:  # not a whole number of aligned 8-byte words
+        idx[:] = np.flatnonzero(flat)
+        val[:] = flat[idx]
+        return idx, val
+    _nonzero_words(words, flat, per, idx, val)
+    return idx, val
+
+
+@njit(cache=True, nogil=True)
+def _nonzero_words(words, flat, per, idx, val):
+    n = 0
+    for w in range(words.size):
+        if words[w] != 0:
+            base = w * per
+            for j in range(base, base + per):
+                if flat[j] != 0:
+                    idx[n] = j
+                    val[n] = flat[j]
+                    n += 1
+    return n
+
+
+def pixels_of(counts, rows, cols):
+    """The counts of pixels ``(rows, cols)`` from the sparse chunks of a cube in a
+    :func:`kept_counts` context, or None (not kept)."""
+    sp = _KEPT.get(getattr(counts, "name", None))
+    return None if sp is None else sp.pixels(rows, cols)
+
+
+class _ChunkRows:
+    """Rows ``[y0, y1)`` of a Zarr array, for :func:`_row_bands`: from its sparse chunks
+    in a :func:`kept_counts` context, else by whole stored chunks of rows, each
+    decoded once while the bands (which go down the image and overlap by their halos)
+    need it. Reading a band of 32 rows with a halo of 5 as one slice decoded the three
+    chunks of 32 rows it touches (a chunk decoded up to three times per pass). The
+    values are the same; only the decoding is saved. Bands are returned in three
+    buffers used in turn: one the caller works on, one read ahead, a spare."""
+
+    def __init__(self, z, sparse=None):
+        self.z, self.step, self.sparse = z, int(z.chunks[0]), sparse
+        self.row = tuple(int(v) for v in z.shape[1:])
+        self.dtype = np.dtype(z.dtype)
+        self.kept: dict = {}  # chunk index -> its rows (a view of a kept buffer)
+        self.free: list = []  # buffers of chunks no later band needs
+        self.bands: list = [np.empty(0, self.dtype) for _ in range(3)]
+        # sparse: each band buffer's nonzero positions (zeroed before its next band;
+        # None: zero it whole)
+        self.dirty: list = [None] * 3
+        self.turn = 0
+
+    @classmethod
+    def of(cls, counts):
+        """A reader of the Zarr array a Dask array reads as it is (``splidar.load`` of
+        a Zarr cube), else None."""
+        if isinstance(counts, np.ndarray) or not hasattr(counts, "dask"):
+            return None
+        sparse = _KEPT.get(getattr(counts, "name", None))
+        if sparse is not None:
+            return cls(sparse.z, sparse)
+        try:
+            z = _zarr_of(counts)
+        except Exception:  # any other graph
+            return None
+        return None if z is None else cls(z)
+
+    def _chunk(self, k: int) -> np.ndarray:
+        a = self.kept.get(k)
+        if a is None:
+            from zarr.core.buffer import default_buffer_prototype
+
+            lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
+            buf = self.free.pop() if self.free else np.empty((self.step,) + self.row, self.dtype)
+            a = buf[: hi - lo]
+            nd = default_buffer_prototype().nd_buffer
+            self.z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(a))
+            self.kept[k] = a
+        return a
+
+    def __call__(self, y0: int, y1: int) -> np.ndarray:
+        """The rows ``[y0, y1)`` (valid until the third call after this one)."""
+        n, t = (y1 - y0) * int(np.prod(self.row)), self.turn
+        self.turn = (t + 1) % len(self.bands)
+        if self.sparse is not None:  # buffers of zeros, where only the nonzeros move
+            if self.bands[t].size < n:
+                self.bands[t], self.dirty[t] = np.zeros(n, self.dtype), np.zeros(0, np.int64)
+            buf, zero = self.bands[t], self.dirty[t] is not None
+            if zero:
+                buf[self.dirty[t]] = 0
+            out = buf[:n].reshape((y1 - y0,) + self.row)
+            self.dirty[t] = None  # until written
+            self.dirty[t] = self.sparse.rows_into(out, y0, y1, zero)
+            return out
+        if self.bands[t].size < n:
+            self.bands[t] = np.empty(n, self.dtype)
+        out = self.bands[t][:n].reshape((y1 - y0,) + self.row)
+        for k in range(y0 // self.step, (y1 - 1) // self.step + 1):
+            c, lo = self._chunk(k), k * self.step
+            a, b = max(y0, lo), min(y1, lo + c.shape[0])
+            out[a - y0 : b - y0] = c[a - lo : b - lo]
+        # the bands go down the image: no later band starts above y0
+        for k in [k for k in self.kept if k < y0 // self.step]:
+            self.free.append(self.kept.pop(k).base)
+        return out
 
 
 #: Name prefixes of the Dask graph layers that only read stored chunks and slice them
