@@ -5,7 +5,7 @@ import functools
 import numpy as np
 import pytest
 
-from splidar import gaussian_irf
+from splidar import Cube, gaussian_irf
 from splidar.detection import STAGES, _4_map, detect
 from splidar.detection._1_background import estimate_temporal_background
 from splidar.detection._2_saliency import block_saliency, saliency_filters
@@ -72,6 +72,31 @@ def test_estimate_temporal_background_recovers_a_decaying_shape():
     np.testing.assert_allclose(bg.dev.mean(axis=-1), 0.0, atol=1e-5)  # float32 sum of T values
     # the level of the shape: within 10 % of the true mean rate (Poisson noise of 1024 px)
     assert abs(t.mean() - rate.mean()) < 0.1 * rate.mean()
+
+
+def test_estimate_temporal_background_returns_at_the_window_end_are_not_background():
+    # every pixel's return within 3 bins of the window's end (more pixels than the 90 %
+    # eq:background_1 tolerates): the running median's repeated edge values kept the
+    # returns in the profile and detect found 7 % of them (bench_foreign_cubes.py
+    # --window-end 296 299 --pulse 3 0). The end's full-window median removes them.
+    rng = np.random.default_rng(0)
+    n, T = 24, 200
+    irf = gaussian_irf(3.0)
+    d = 196 + 3 * rng.random((n, n))
+    t = np.arange(T)
+    pulse = np.exp(-0.5 * ((t - d[..., None]) / (3.0 / 2.3548)) ** 2)
+    lam = 12 * pulse / pulse.sum(axis=-1, keepdims=True) + 12 / T  # SBR about 1
+    counts = rng.poisson(lam).astype(np.uint16)[:, :, None, :]
+    _, bg, _ = _setup(counts, irf)
+    # the profile at the end stays at the background's level (12 / T per bin), not the
+    # returns' (about 3.5 photons per pixel in the last bins)
+    assert bg.temporal[0, -3:].max() < 3 * 12 / T
+    det = detect(Cube(counts, irf=irf), rng=0)
+    found = np.zeros((n, n), bool)
+    found[det.surfaces.row, det.surfaces.col] = (
+        np.abs(det.surfaces.depth_bin - d[det.surfaces.row, det.surfaces.col]) <= 2
+    )
+    assert found.mean() > 0.9  # 0.07 with the edge values repeated
 
 
 def _low_median_truth(levels, rate, irf, k, reps, rng):
