@@ -52,3 +52,19 @@ def sum_over_rows(a, axis_keep: int) -> np.ndarray:
         s = b.sum(axis=axes, dtype=np.int64)
         total = s if total is None else total + s
     return total
+
+
+def zarr_rows_into(z, lo: int, hi: int, out: np.ndarray) -> np.ndarray:
+    """Rows ``[lo, hi)`` of the Zarr array ``z`` decoded straight into ``out`` (no copy).
+
+    ``out`` has shape ``(hi - lo,) + z.shape[1:]`` and ``z``'s dtype. Zarr 3 takes an
+    ``NDBuffer`` over ``out``; zarr 2 takes the NumPy array itself.
+    """
+    try:
+        from zarr.core.buffer import default_buffer_prototype
+    except ImportError:  # zarr 2
+        z.get_basic_selection((slice(lo, hi),), out=out)
+        return out
+    nd = default_buffer_prototype().nd_buffer
+    z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(out))
+    return out

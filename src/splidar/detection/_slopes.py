@@ -87,6 +87,7 @@ import numpy as np
 from numba import njit
 from scipy import stats
 
+from .._arrays import zarr_rows_into
 from ._fast import _refl as _reflect
 from ._kernels import _llr_one
 
@@ -976,15 +977,10 @@ class _Sparse:
         self.buf = None  # one decoded chunk
 
     def _decode(self, k: int) -> np.ndarray:
-        from zarr.core.buffer import default_buffer_prototype
-
         lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
         if self.buf is None:
             self.buf = np.empty((self.step,) + self.row, self.dtype)
-        a = self.buf[: hi - lo]
-        nd = default_buffer_prototype().nd_buffer
-        self.z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(a))
-        return a
+        return zarr_rows_into(self.z, lo, hi, self.buf[: hi - lo])
 
     def _chunk(self, k: int):
         """``(indices, values)`` of chunk ``k``, or the decoded chunk (over budget)."""
@@ -1128,13 +1124,9 @@ class _ChunkRows:
     def _chunk(self, k: int) -> np.ndarray:
         a = self.kept.get(k)
         if a is None:
-            from zarr.core.buffer import default_buffer_prototype
-
             lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
             buf = self.free.pop() if self.free else np.empty((self.step,) + self.row, self.dtype)
-            a = buf[: hi - lo]
-            nd = default_buffer_prototype().nd_buffer
-            self.z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(a))
+            a = zarr_rows_into(self.z, lo, hi, buf[: hi - lo])
             self.kept[k] = a
         return a
 

@@ -49,6 +49,7 @@ import threading
 
 import numpy as np
 
+from .._arrays import zarr_rows_into
 from ._2_saliency import SaliencyFilters
 from ._3_null import NullCalibration
 from ._4_map import (
@@ -457,8 +458,6 @@ def _read_band(z, e0: int, e1: int, most_rows: int) -> np.ndarray:
     """Rows ``[e0, e1)`` of the Zarr array ``z``, read into this thread's kept band
     buffer (for up to ``most_rows`` rows) one stored chunk of rows at a time: one chunk
     decoded at once, into pages touched once per worker thread, not per band."""
-    from zarr.core.buffer import default_buffer_prototype
-
     row = tuple(int(v) for v in z.shape[1:])
     dtype = np.dtype(z.dtype)
     key = ("band", threading.get_ident())
@@ -470,11 +469,10 @@ def _read_band(z, e0: int, e1: int, most_rows: int) -> np.ndarray:
         with _WORK_LOCK:
             _WORK[key] = have
     y = have[: (e1 - e0) * int(np.prod(row))].reshape((e1 - e0,) + row)
-    nd = default_buffer_prototype().nd_buffer
     step = int(z.chunks[0])
     for a in range(e0 - e0 % step, e1, step):
         lo, hi = max(a, e0), min(a + step, e1)
-        z.get_basic_selection((slice(lo, hi),), out=nd.from_numpy_array(y[lo - e0 : hi - e0]))
+        zarr_rows_into(z, lo, hi, y[lo - e0 : hi - e0])
     return y
 
 
