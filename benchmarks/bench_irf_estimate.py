@@ -21,7 +21,7 @@ shift against the Gaussian estimate (no truth there). With ``--art``, the Art sc
 (Gaussian FWHM 3 and exp tail 3/6; PPP 4, 16, 64) with the four IRFs. With ``--weak``
 (only), SBR 0.2 at PPP 1 / 2 / 4: the IRF ``load`` builds without one (pooling pixel
 blocks where single pixels show no pulse) against the true IRF. With ``--load-cells``
-(only), the IRF ``load`` builds on 14 cells (exp tails 3/6 and 2/25, the measured pulse and
+(only), the IRF ``load`` builds on 16 cells (exp tails 3/6 and 2/25, the measured pulse and
 a Gaussian control; PPP 1-10, SBR 0.2 and 1; the tilted plane) and ``process`` with it,
 and the split-half spreads of the single pixels' and the 2 x 2 blocks' shapes (irf23).
 
@@ -462,6 +462,8 @@ def load_cells():
     if w is not None:
         cells.append(("measured pulse, PPP 4, SBR 1", 300, 4.0, 1.0, w[230:300]))
         cells.append(("measured pulse, PPP 2, SBR 1", 300, 2.0, 1.0, w[230:300]))
+        cells.append(("measured pulse, PPP 1, SBR 0.2", 300, 1.0, 0.2, w[230:300]))
+        cells.append(("measured pulse, PPP 2, SBR 0.2", 300, 2.0, 0.2, w[230:300]))
     cells.append(("gaussian fwhm 3, PPP 2, SBR 1", 200, 2.0, 1.0, gaussian_irf(3.0)))
     return cells
 
@@ -526,7 +528,7 @@ def main(argv=None):
     ap.add_argument("--art", action="store_true", help="also the Art scene (PPP 4, 16, 64, SBR 1)")
     ap.add_argument("--art-widths", action="store_true", help="the pair-lag width on the Art cubes")
     ap.add_argument("--weak", action="store_true", help="only the weak-signal cells (SBR 0.2)")
-    ap.add_argument("--load-cells", action="store_true", help="only load's IRF on 14 cells")
+    ap.add_argument("--load-cells", action="store_true", help="only load's IRF on 16 cells")
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
     t0 = time.perf_counter()

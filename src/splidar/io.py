@@ -830,12 +830,14 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
 _PAIR_BUDGET = 50_000_000  # pairs of non-empty voxels per pass of the pair-lag width
 
 
-def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
+def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None, bounds=None) -> float:
     """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count).
 
     The voxels of one pixel may repeat a bin (one per wavelength): pairs across them
     are lag-0 pairs too. Above ``_PAIR_BUDGET`` pairs, every k-th pixel is used
-    (deterministic; the peak and the floor scale alike).
+    (deterministic; the peak and the floor scale alike). ``bounds``: a list given gets
+    the FWHMs of the half-maximum crossing's ``_WIDTH_Z``-sigma bracket (lower, upper;
+    :func:`_half_max_bounds`).
     """
     stride = 2 * n_bins + 1
     key = np.asarray(pix, dtype=np.int64) * stride + np.asarray(b, dtype=np.int64)
@@ -870,11 +872,18 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
         h[0] = float(np.sum(w * (w - 1))) + 2 * h[0]
         # a flat background gives pairs in proportion to the T - k bin pairs at lag k:
         # undo that triangle so the floor is flat
-        h *= n_bins / (n_bins - np.arange(lag + 1))
+        tri = n_bins / (n_bins - np.arange(lag + 1))
+        h *= tri
+        # Poisson variance of each lag's pair count, times the triangle factor; lag 0
+        # counts every pair twice (ordered)
+        var = np.maximum(h, 1.0) * tri
+        var[0] *= 2.0
         # 5 sd as always; 7 once a window without a peak was passed (more tests made)
         k_half = _half_max_lag(h, 7.0 if searched else 5.0)
+        if k_half is not None and bounds is not None:
+            bounds[:] = _half_max_bounds(h, var, k_half)
         if k_half is None:  # no peak at one-lag resolution: pool lags (a broad pulse)
-            k_half = _pooled_half_max_lag(h)
+            k_half = _pooled_half_max_lag(h, var, bounds)
             if k_half is None:
                 if max_lag is not None or lag >= top:
                     raise SplidarError(
@@ -890,7 +899,37 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None) -> float:
             break
         lag = min(lag * 2, top)
     # FWHM of the autocorrelation = 2 k_half = sqrt(2) x FWHM of a Gaussian IRF
+    if bounds is not None:
+        bounds[:] = [max(2.0 * x / math.sqrt(2.0), 0.5) for x in bounds]
     return max(2.0 * k_half / math.sqrt(2.0), 0.5)
+
+
+#: sigmas of the half-maximum crossing's bracket (the width's uncertainty, irf24)
+_WIDTH_Z = 3.0
+
+
+def _half_max_bounds(h: np.ndarray, var: np.ndarray, k_half: float) -> tuple[float, float]:
+    """The ``_WIDTH_Z``-sigma bracket (lags) of the half-maximum crossing ``k_half`` of
+    ``h`` (floor as in :func:`_half_max_lag`; ``var``: each lag's variance): the last
+    lag before it that stands significantly above half the peak (0 when none), and the
+    first one after it significantly below (the window's end when none); the half
+    level's own noise (the peak's and the floor's) is counted."""
+    lag = h.size - 1
+    n_f = max(lag // 4, 1)
+    floor = float(np.median(h[lag - n_f + 1 :]))
+    half = (float(h[0]) - floor) / 2
+    # the half level's variance: a quarter of the peak's (lag 0 and the floor's median)
+    v_half = (var[0] + (math.pi / 2) * float(np.mean(var[lag - n_f + 1 :])) / n_f) / 4
+    s = np.sqrt(var + v_half)
+    s[0] = math.sqrt(var[0]) / 2  # lag 0 against half itself: h0 - half = peak / 2
+    e = h - floor
+    lags = np.arange(h.size)
+    above = np.flatnonzero((e > half + _WIDTH_Z * s) & (lags < k_half))
+    below = np.flatnonzero((e < half - _WIDTH_Z * s) & (lags > k_half))
+    return (
+        float(above[-1]) if above.size else 0.0,
+        float(below[0]) if below.size else float(lag),
+    )
 
 
 def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
@@ -915,7 +954,7 @@ def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
     return (k - 1) + above[k - 1] / (above[k - 1] - above[k])
 
 
-def _pooled_half_max_lag(h: np.ndarray) -> float | None:
+def _pooled_half_max_lag(h: np.ndarray, var=None, bounds=None) -> float | None:
     """:func:`_half_max_lag` on sums of ``r`` adjacent lags (r = 3, 5, 9, ...).
 
     A broad or tailed pulse spreads its pair excess over many lags, each within the
@@ -927,6 +966,8 @@ def _pooled_half_max_lag(h: np.ndarray) -> float | None:
     """
     lag = h.size - 1
     cs = np.concatenate([[0.0], np.cumsum(np.concatenate([h[:0:-1], h]))])  # lags -lag..lag
+    v = np.ones_like(h) if var is None else var
+    cv = np.concatenate([[0.0], np.cumsum(np.concatenate([v[:0:-1], v]))])
     r = 3
     while lag // r >= 8:
         half = (r - 1) // 2
@@ -936,6 +977,11 @@ def _pooled_half_max_lag(h: np.ndarray) -> float | None:
         k = _half_max_lag(c, 7.0)
         if k is not None:
             log.info("IRF width: pair peak measured on sums of %d lags", r)
+            if bounds is not None:
+                cvar = cv[centre + half + 1] - cv[centre - half]
+                # the centre sum holds lags -half..half: each +-j pair is one value
+                cvar[0] = v[0] + 4.0 * float(np.sum(v[1 : half + 1]))
+                bounds[:] = [x * r for x in _half_max_bounds(c, cvar, k)]
             return k * r
         r = 2 * r - 1
     return None
@@ -1036,8 +1082,14 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
     ``k x k`` pixel blocks, ``k = 2, 4, 8, ...`` while at least ``_MIN_BLOCKS`` blocks
     remain: neighbouring pixels of a real scene share their depth, so a block's
     photons hold ``k^2`` times the signal pairs (the depth differences within a block
-    widen the width). Returns (FWHM, k); raises naming ``irf=`` when no level shows a
-    return."""
+    widen the width). A level's width is taken only where it is determined (irf24): the
+    ``_WIDTH_Z``-sigma bracket of its half-maximum crossing (:func:`_half_max_bounds`)
+    has a half-length below the width (the width differs from 0 at that significance;
+    a lone noisy lag 0 gave 1-bin widths for a 16-bin pulse), and overlaps the brackets
+    of the finer levels (blocks of pixels at unrelated depths measure the depth spread,
+    not the pulse). When no level determines it, the width of the smallest relative
+    bracket among those that do not clash, with a warning. Returns (FWHM, k); raises
+    naming ``irf=`` when no level shows a return."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
     n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
     if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
@@ -1048,7 +1100,7 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
         rowi, b = np.nonzero(flat)
         w = flat[rowi, b]
         pix = rowi // n_l
-    k = 1
+    k, vague, finer = 1, [], []
     while True:
         if k == 1:
             key_p, key_b, key_w = pix, b, w
@@ -1057,10 +1109,42 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
             u, inv = np.unique(key, return_inverse=True)
             key_w = np.bincount(inv.ravel(), weights=np.asarray(w, np.float64))
             key_p, key_b = u // n_bins, u % n_bins
+        bounds: list = []
         try:
-            fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None)
+            fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None, bounds)
+            # the width is taken where it differs from 0 at _WIDTH_Z sigma: its bracket's
+            # half-length (the half-maximum crossing's noise) below the width (irf24)
+            clash = [f for f in finer if bounds[1] < f[0] or bounds[0] > f[1]]
+            if (bounds[1] - bounds[0]) / 2 > fwhm:
+                if not clash:
+                    vague.append((k, fwhm, bounds))
+                    finer.append(bounds)
+                raise SplidarError(
+                    f"the photon-pair width is not determined ({fwhm:.2f} bins, between "
+                    f"{bounds[0]:.2f} and {bounds[1]:.2f} at {_WIDTH_Z:g} sigma)"
+                )
+            if clash:
+                raise SplidarError(
+                    f"the photon-pair width on {k} x {k} pixel blocks ({fwhm:.2f} bins, between "
+                    f"{bounds[0]:.2f} and {bounds[1]:.2f}) is outside the finer level's "
+                    f"({clash[0][0]:.2f} to {clash[0][1]:.2f}): the blocks' depth spread"
+                )
         except SplidarError as exc:
             nxt = 2 * k
+            if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS and vague:
+                # no level determines it: the one of the smallest relative bracket, warned
+                k, fwhm, bounds = min(vague, key=lambda v: (v[2][1] - v[2][0]) / v[1])
+                log.warning(
+                    "IRF width not determined by the photon-pair time differences at any "
+                    "level of pixel pooling: %.2f bins (between %.2f and %.2f at %g sigma, "
+                    "%s); pass irf= or irf_fwhm= if you know it",
+                    fwhm,
+                    bounds[0],
+                    bounds[1],
+                    _WIDTH_Z,
+                    "single pixels" if k == 1 else f"{k} x {k} pixel blocks",
+                )
+                return fwhm, k
             if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS:
                 n_ph = float(np.sum(w))
                 where = (
@@ -1070,17 +1154,17 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
                 )
                 raise SplidarError(
                     f"no return found to estimate the IRF from: {exc.args[0].split(';')[0]}, "
-                    f"{where} ({n_ph:,.0f} photons, {n_ph / max(n_rows * n_cols, 1):.2g} per "
-                    "pixel). "
+                    f"{where} ({n_ph:,.0f} photons, "
+                    f"{n_ph / max(n_rows * n_cols, 1):.2g} per pixel). "
                     "If the data do hold a return, pass irf= (array or file) or irf_fwhm= "
                     "(Gaussian FWHM in bins)."
                 ) from None
-            log.info("IRF width: %s; pooling %d x %d pixel blocks", exc.args[0][:60], nxt, nxt)
+            log.info("IRF width: %s; pooling %d x %d pixel blocks", exc.args[0][:90], nxt, nxt)
             k = nxt
             continue
         if k > 1:
             log.warning(
-                "IRF width: no photon-pair peak within single pixels (weak signal); "
+                "IRF width: no determined photon-pair peak within single pixels (weak signal); "
                 "measured on %d x %d pixel blocks: FWHM %.2f bins (the depth differences "
                 "within a block may widen it)",
                 k,
