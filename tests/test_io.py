@@ -616,6 +616,18 @@ def test_load_weak_signal_pools_pixel_blocks_for_the_irf(tmp_path, caplog):
     assert "pixel blocks" in g.metadata["irf_source"]
 
 
+def test_pooled_fwhm_undetermined_at_every_level_warns_and_keeps_a_width(caplog):
+    # irf24: 0.17 signal photons per pixel (seed 3): no level's pair-lag width differs
+    # from 0 at 3 sigma (4 x 4 blocks: 6.3 bins, bracket 0.5-14.1); the width of the
+    # smallest relative bracket is kept (the file still loads) and the warning says so
+    from splidar.io import _pooled_fwhm
+
+    with caplog.at_level("WARNING", logger="splidar.io"):
+        fw, k = _pooled_fwhm(_weak_plane(3), 300, None)
+    assert k == 4 and 0.5 * 7.09 < fw < 2.5 * 7.09
+    assert "not determined" in caplog.text and "irf=" in caplog.text
+
+
 def test_load_without_return_raises_naming_irf(tmp_path):
     # background only (0.83 photons per pixel, the weak plane's): no level of pooling
     # shows a pair peak; the error says so and names the options that fix it
