@@ -1031,9 +1031,12 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
             "the counts hold no photon (every voxel is 0): there is no IRF to estimate and "
             "nothing to detect. Check the file, its variable and the time window."
         )
-    fwhm, k = _pooled_fwhm(counts, n_bins, sparse)
+    seen: list = []
+    fwhm, k = _pooled_fwhm(counts, n_bins, sparse, seen)
     if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
-        shaped = _pooled_shape(counts, fwhm, k, sparse)
+        # its blocks start where a pair peak was first seen (the width's level may be
+        # coarser: where the width is determined, irf24)
+        shaped = _pooled_shape(counts, fwhm, seen[0], sparse)
         if shaped is not None:
             arr, src = shaped
             log.warning(
@@ -1076,7 +1079,7 @@ def _block_index(pix: np.ndarray, n_cols: int, k: int) -> np.ndarray:
     return (r // k) * (-(-n_cols // k)) + c // k
 
 
-def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
+def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
     """The pair-lag width (:func:`estimate_irf_fwhm`) of ``counts``; when single pixels
     show no pair peak (weak signal: a few tenths of a signal photon per pixel), on
     ``k x k`` pixel blocks, ``k = 2, 4, 8, ...`` while at least ``_MIN_BLOCKS`` blocks
@@ -1089,7 +1092,8 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
     of the finer levels (blocks of pixels at unrelated depths measure the depth spread,
     not the pulse). When no level determines it, the width of the smallest relative
     bracket among those that do not clash, with a warning. Returns (FWHM, k); raises
-    naming ``irf=`` when no level shows a return."""
+    naming ``irf=`` when no level shows a return. ``seen``: a list given gets the first
+    level whose pairs show a peak (determined or not)."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
     n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
     if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
@@ -1112,6 +1116,8 @@ def _pooled_fwhm(counts, n_bins: int, sparse) -> tuple[float, int]:
         bounds: list = []
         try:
             fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None, bounds)
+            if seen is not None and not seen:
+                seen.append(k)
             # the width is taken where it differs from 0 at _WIDTH_Z sigma: its bracket's
             # half-length (the half-maximum crossing's noise) below the width (irf24)
             clash = [f for f in finer if bounds[1] < f[0] or bounds[0] > f[1]]
