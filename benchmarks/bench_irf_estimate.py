@@ -23,7 +23,8 @@ shift against the Gaussian estimate (no truth there). With ``--art``, the Art sc
 blocks where single pixels show no pulse) against the true IRF. With ``--load-cells``
 (only), the IRF ``load`` builds on 16 cells (exp tails 3/6 and 2/25, the measured pulse and
 a Gaussian control; PPP 1-10, SBR 0.2 and 1; the tilted plane) and ``process`` with it,
-and the split-half spreads of the single pixels' and the 2 x 2 blocks' shapes (irf23).
+and the split-half spreads of the single pixels' and the 2 x 2 blocks' shapes (irf23), and
+the pair-lag width with its pixel-block level (irf24).
 
 Usage::
 
@@ -478,9 +479,9 @@ def run_load_cells(seeds):
     print("\n## the IRF load builds without one, 32 x 32 tilted plane; process(rng=0)")
     print(
         "| cell | seed | load's IRF | L1 | F_true | false | bias | load CPU s "
-        "| spread pixels / 2 x 2 blocks |"
+        "| spread pixels / 2 x 2 blocks | pair-lag width (level) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, T, ppp, sbr, true in load_cells():
         true = np.asarray(true, float) / np.sum(true)
         fw = float(irf_fwhm(true))
@@ -499,8 +500,9 @@ def run_load_cells(seeds):
                 t_load = time.process_time() - c0
                 rec = splidar.process(dataclasses.replace(cube, irf=est), rng=0)
                 spread = "-"
+                fwhm, kw = sio._pooled_fwhm(cube.counts, T, None)
+                width = f"{fwhm:.1f} ({'pixels' if kw == 1 else f'{kw} x {kw}'})"
                 if hasattr(sio, "_split_spread"):
-                    fwhm, _ = sio._pooled_fwhm(cube.counts, T, None)
                     sp = [
                         sio._split_spread(
                             cube.counts if q == 1 else sio._block_sum(cube.counts, q), fwhm
@@ -514,7 +516,7 @@ def run_load_cells(seeds):
             print(
                 f"| {name} | {seed} | {kind}, {lvl} | {shape_row(true, est[0], fw)['l1']:.3f} | "
                 f"{m.f_true:.3f} | {m.f_false} | {depth_bias(rec.points, truth, tau):+.2f} | "
-                f"{t_load:.2f} | {spread} |",
+                f"{t_load:.2f} | {spread} | {width} |",
                 flush=True,
             )
 
