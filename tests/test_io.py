@@ -618,8 +618,9 @@ def test_load_weak_signal_pools_pixel_blocks_for_the_irf(tmp_path, caplog):
 
 def test_pooled_fwhm_undetermined_at_every_level_warns_and_keeps_a_width(caplog):
     # irf24: 0.17 signal photons per pixel (seed 3): no level's pair-lag width differs
-    # from 0 at 3 sigma (4 x 4 blocks: 6.3 bins, bracket 0.5-14.1); the width of the
-    # smallest relative bracket is kept (the file still loads) and the warning says so
+    # from 0 at 3 sigma (4 x 4 blocks, the first level with a pair peak: 6.3 bins,
+    # bracket 0.5-14.1); the finest level's width is kept (the file still loads, as
+    # before) and the warning says so
     from splidar.io import _pooled_fwhm
 
     with caplog.at_level("WARNING", logger="splidar.io"):

@@ -1090,8 +1090,8 @@ def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
     has a half-length below the width (the width differs from 0 at that significance;
     a lone noisy lag 0 gave 1-bin widths for a 16-bin pulse), and overlaps the brackets
     of the finer levels (blocks of pixels at unrelated depths measure the depth spread,
-    not the pulse). When no level determines it, the width of the smallest relative
-    bracket among those that do not clash, with a warning. Returns (FWHM, k); raises
+    not the pulse). When no level determines it, the finest level's width (the one taken
+    before irf24), with a warning. Returns (FWHM, k); raises
     naming ``irf=`` when no level shows a return. ``seen``: a list given gets the first
     level whose pairs show a peak (determined or not)."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
@@ -1138,8 +1138,8 @@ def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
         except SplidarError as exc:
             nxt = 2 * k
             if -(-n_rows // nxt) * -(-n_cols // nxt) < _MIN_BLOCKS and vague:
-                # no level determines it: the one of the smallest relative bracket, warned
-                k, fwhm, bounds = min(vague, key=lambda v: (v[2][1] - v[2][0]) / v[1])
+                # no level determines it: the finest level's width (as before irf24), warned
+                k, fwhm, bounds = vague[0]
                 log.warning(
                     "IRF width not determined by the photon-pair time differences at any "
                     "level of pixel pooling: %.2f bins (between %.2f and %.2f at %g sigma, "
