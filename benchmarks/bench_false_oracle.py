@@ -94,7 +94,39 @@ class _TrueShape:
         _detect.estimate_temporal_background = self.saved
 
 
-def score(det, truth, fwhm: float) -> dict:
+def decidable(det, sim, false, kinds, miss) -> list:
+    """For each wrong depth, the own raw counts' Poisson log-likelihood of a return of
+    the true intensity at the true depth less that at the estimate (true background),
+    and how many of its 4-neighbours hold a surface within tau of the true depth."""
+    pts, truth = det.points, sim.truth
+    irf = np.asarray(sim.cube.irf, np.float64).reshape(-1)
+    irf = irf / irf.sum()
+    lag = np.arange(irf.size) - int(np.argmax(irf))
+    t = np.arange(N_BINS, dtype=np.float64)
+    out = []
+    for j, kind in zip(false, kinds, strict=True):
+        if not kind.startswith("wrong"):
+            continue
+        r, c, d = int(pts.row[j]), int(pts.col[j]), float(pts.depth_bin[j])
+        here = miss[(truth.row[miss] == r) & (truth.col[miss] == c)]
+        if not here.size:
+            continue
+        q = here[np.argmin(np.abs(truth.depth_bin[here] - d))]
+        x0, s = float(truth.depth_bin[q]), float(truth.intensity[q].sum())
+        b = sim.background(slice(r, r + 1), slice(c, c + 1))[0, 0, 0]
+        y = np.asarray(sim.cube.counts[r, c, 0], np.float64)
+
+        def loglik(x, y=y, b=b, s=s):
+            g = np.interp(t - x, lag, irf, left=0.0, right=0.0)
+            return float(np.sum(y * np.log1p(s * g / b)) - s * g.sum())
+
+        n4 = (np.abs(pts.row - r) + np.abs(pts.col - c)) == 1
+        held = int(np.sum(np.abs(pts.depth_bin[n4] - x0) <= TAU))
+        out.append((kind, round(loglik(x0) - loglik(d), 3), held))
+    return out
+
+
+def score(det, truth, fwhm: float, sim=None) -> dict:
     """Per-oracle (matched, false) counts and the further-surface level curves."""
     pts = det.points
     false, cause = false_causes(pts, truth)
@@ -104,6 +136,9 @@ def score(det, truth, fwhm: float) -> dict:
     n_match = n_true - len(m.unmatched_true)
     out = {"n_true": n_true, "n_match": n_match, "n_false": int(false.size)}
     out["by_kind"] = {k: int(np.sum(kinds == k)) for g in GROUPS.values() for k in g}
+    if sim is not None:
+        miss = np.asarray(m.unmatched_true, np.int64)
+        out["decidable"] = decidable(det, sim, false, kinds, miss)
     for name, removed, fix in ORACLES:
         hit = np.isin(kinds, removed)
         gain = int(np.sum(hit & np.char.startswith(kinds, "wrong"))) if fix else 0
@@ -160,7 +195,7 @@ def run(seeds, points, true_bg: bool, null: bool) -> list:
                         with patch:
                             det = detect(sim.cube, rng=0, pfa=pfa, surface_pfa=spfa)
                     r = dict(seed=seed, bg=bg, point=pt, background_shape=name)
-                    r.update(score(det, sim.truth, fwhm))
+                    r.update(score(det, sim.truth, fwhm, sim))
                     if null:
                         lam = sim.background_spatial[..., None] * sim.background_temporal
                         y = np.random.default_rng([seed, i, 7]).poisson(lam).astype(np.uint16)
@@ -227,6 +262,7 @@ def summarise(rows, target_f=0.975) -> None:
                         tot += r["n_false"] - dropped[k[-1]]
                     res.append(f"{tot / len(rs):5.1f}" if ok else "  -  ")
                 print(f"  further surfaces below a level of {stat} (per cube): " + "  ".join(res))
+            _print_decidable(sel, pts)
             for p_fix in FIX_FRACTIONS:
                 res = []
                 for p in pts:
@@ -241,13 +277,22 @@ def summarise(rows, target_f=0.975) -> None:
 FIX_FRACTIONS = (0.0, 0.5, 0.75, 1.0)
 
 
-def _level_and_fix(rs, p_fix: float, target_f: float):
+def _decidable_fraction(r) -> float:
+    """The fraction of a cube's wrong depths whose own counts favour the true depth
+    (log-likelihood difference >= 0): what perfect proposals would fix."""
+    dec = r.get("decidable", [])
+    return float(np.mean([d[1] >= 0 for d in dec])) if dec else 0.0
+
+
+def _level_and_fix(rs, p_fix, target_f: float, cap: float = np.inf):
     """The fewest false surfaces (mean over the cubes) with mean F_true >= target_f when
-    the further surfaces below one level of ``presence_llr`` (shared by the cubes) are
-    removed and the fraction ``p_fix`` of the wrong depths left is fixed (oracle); None
-    if not reached."""
+    the further surfaces below one level (at most ``cap``) of ``presence_llr`` (shared
+    by the cubes) are removed and the fraction ``p_fix`` of the wrong depths left is
+    fixed (oracle; None: each cube's own-count-decidable fraction); None if not
+    reached."""
     vals = [np.asarray(r["curves"]["presence_llr_values"], np.float64) for r in rs]
     levels = np.unique(np.concatenate([[-np.inf, np.inf], *vals]))
+    levels = levels[levels <= cap]
     match = np.zeros(levels.size)
     false = np.zeros(levels.size)
     for r in rs:
@@ -259,13 +304,46 @@ def _level_and_fix(rs, p_fix: float, target_f: float):
         dropped = np.r_[0, np.cumsum(kinds != "true")][k]
         wrong_gone = np.r_[0, np.cumsum(np.char.startswith(kinds, "wrong"))][k]
         wrong = r["by_kind"]["wrong depth near"] + r["by_kind"]["wrong depth far"]
-        fixes = np.floor(p_fix * (wrong - wrong_gone))
+        p = _decidable_fraction(r) if p_fix is None else p_fix
+        fixes = np.floor(p * (wrong - wrong_gone))
         match += (r["n_match"] - lost + fixes) / r["n_true"] / len(rs)
         false += (r["n_false"] - dropped - fixes) / len(rs)
     ok = match >= target_f
     if not ok.any():
         return None
     return float(false[ok].min())
+
+
+def _print_decidable(sel, pts) -> None:
+    """The wrong depths by what the own counts say (first point's cubes) and the level
+    table with the own-count-decidable ones fixed."""
+    ref = "1e-3:0.01" if "1e-3:0.01" in pts else pts[0]  # the default point first
+    rs = [r for r in sel if r["point"] == ref and "decidable" in r]
+    if not rs:
+        return
+    d = [x for r in rs for x in r["decidable"]]
+    dl = np.array([x[1] for x in d])
+    held = np.array([x[2] for x in d])
+    n = len(rs)
+    print(
+        f"  wrong depths at {ref} (per cube): {dl.size / n:.1f}; own counts favour the "
+        f"truth by > 1 nat {np.sum(dl > 1) / n:.1f}, within 1 nat {np.sum(abs(dl) <= 1) / n:.1f}, "
+        f"favour the estimate {np.sum(dl < -1) / n:.1f}; decidable (>= 0) "
+        f"{np.sum(dl >= 0) / n:.1f}, of them with 1 / 2 / 3 4-neighbours at the true depth "
+        + " / ".join(f"{np.sum((dl >= 0) & (held >= k)) / n:.1f}" for k in (1, 2, 3))
+    )
+    for cap in (PRESENCE_CAP, np.inf):
+        res = [_level_and_fix([r for r in sel if r["point"] == p], None, 0.975, cap) for p in pts]
+        print(
+            f"  one presence_llr level <= {cap:g} + the decidable wrong depths fixed: "
+            + "  ".join(f"{x:5.1f}" if x is not None else "  -  " for x in res)
+        )
+
+
+#: The cap of the further-surface level in the decidable table: the presence test's
+#: rejection level (``PRESENCE_LLR``, 3 nats), so a second surface whose own counts
+#: speak for it stays (the partly transmissive layer, the net).
+PRESENCE_CAP = 3.0
 
 
 def main(argv=None) -> int:
