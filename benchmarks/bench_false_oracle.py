@@ -17,6 +17,12 @@ is put in its kind (``bench_false_surfaces.false_kinds``); then:
   of a statistic (``evidence``, ``presence_llr``) traces a curve; the figure is its
   fewest false surfaces with F_true >= 0.975 (each cube's own level: an optimistic
   bound for one level shared by the cubes).
+* **the wrong depths the own counts could decide**: for each wrong depth, the own raw
+  counts' Poisson log-likelihood of a return of the true intensity at the true depth
+  less that at the estimate (true background), and how many 4-neighbours hold the true
+  depth; then the level table above with, per cube, the wrong depths whose own counts
+  favour the truth fixed (what a clean-up with perfect proposals could do), the level
+  capped at the presence test's 3 nats or not.
 * **an oracle background** (``--true-background``): stage 1's temporal shape replaced
   by the true one (the simulation's, matched-filtered), the rest of the detection
   unchanged; and the background-alone figure (``--null``).
