@@ -106,7 +106,9 @@ def main() -> None:
     methods = ["detect"] + (["scales1"] if args.fine else [])
     methods += [] if args.no_baseline else ["per_pixel"]
     rows = []
-    print("| scene | PPP | SBR | " + " | ".join(f"{m} F_true / false / DAE" for m in methods) + " |")
+    print(
+        "| scene | PPP | SBR | " + " | ".join(f"{m} F_true / false / DAE" for m in methods) + " |"
+    )
     print("|---|---|---|" + "---|" * len(methods))
     for kind in args.only:
         for ppp in args.ppp:

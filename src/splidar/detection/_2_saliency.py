@@ -18,13 +18,30 @@ from ._background import CLIP
 from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
 
-__all__ = ["STRIP_COLS", "SaliencyFilters", "block_saliency", "saliency_filters"]
+__all__ = [
+    "COHERENCE_VOXELS",
+    "COHERENCE_Z",
+    "STRIP_COLS",
+    "SaliencyFilters",
+    "Coherence",
+    "block_saliency",
+    "coherent_scales",
+    "saliency_filters",
+]
 
 #: Columns the saliency kernel filters together, each strip's rows in turn (the rows a
 #: strip's boxes read stay in cache): CPU per voxel and wavelength on a 40 x 200 x 1500
 #: block, 9.3-10.3 ns at full width, 6.9-7.4 ns at strips of 24-64. The result does not
 #: depend on it (the column sums carry over from strip to strip).
 STRIP_COLS = 32
+#: Voxels (pixels x L x T) the spatial-coherence measurement (:func:`coherent_scales`)
+#: reads at most: the whole image below it, else evenly spaced bands of rows.
+COHERENCE_VOXELS = 24_000_000
+#: A box is dropped from ``scales="auto"`` only where its signal-to-noise at the own
+#: pixel's depth is below the own pixel's with this Poisson-style z (3 sigma, the
+#: house's presence and split z): a scene that cannot show its incoherence keeps every
+#: scale.
+COHERENCE_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -138,3 +155,139 @@ def block_saliency(
         if spatial is None:
             sp_out[:, :, l] = sp_l
     return c, sal, d, sp_out, level
+
+
+@dataclass(frozen=True)
+class Coherence:
+    """The measured spatial coherence of the returns (:func:`coherent_scales`).
+
+    Attributes
+    ----------
+    scales : ndarray (Q,) int
+        The candidate box sizes (ascending).
+    kept : ndarray (Q,) bool
+        Which of them ``scales="auto"`` keeps.
+    rho : ndarray (Q,) float
+        ``rho_k``: the fraction of the own pixel's signal (matched-filter response above
+        ``bhat``, noise-debiased energy) that the ring of the ``k x k`` box (the box
+        without the own pixel) shares, depth by depth; 1 where neighbours share the
+        depth, about 0 where their depths are independent (nan for k = 1 and when not
+        measured).
+    z : ndarray (Q,) float
+        ``z`` of ``rho_k - 1 / (k + 1)`` (the box's break-even coherence).
+    energy_z : float
+        ``z`` of the own pixels' signal energy: below :data:`COHERENCE_Z` the scene shows
+        no signal to measure and keeps every scale.
+    pixels : int
+        Pixels measured.
+    """
+
+    scales: np.ndarray
+    kept: np.ndarray
+    rho: np.ndarray
+    z: np.ndarray
+    energy_z: float
+    pixels: int
+
+
+def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
+    """Which of ``ctx.scales`` pool returns that share the own pixel's depth.
+
+    The boxes of ``eq:4.s1`` average a pixel's matched-filter response ``c`` with its
+    neighbours'; that adds signal only where the neighbours' returns lie at the own
+    pixel's depth. With ``x = c - bhat`` (``eq:background_3``) and ``N_k`` the mean of
+    ``x`` over the ``k x k`` box without the own pixel, the own pixels' signal energy is
+    ``E = sum (x^2 - sum_j g_j^2 y)`` (the Poisson variance of ``c`` removed, ``y`` the
+    counts) and the part the ring shares ``A_k = sum x N_k`` (noise of distinct pixels
+    is independent: zero mean), summed over pixels, wavelengths and t; ``rho_k = A_k /
+    E``. A box keeps a fraction ``m_k = (1 + (k^2 - 1) rho_k) / k^2`` of the own return
+    at its depth with ``1 / k`` of the own pixel's noise: it raises the signal-to-noise
+    ratio at the own depth when ``k m_k >= 1``, i.e. ``rho_k >= 1 / (k + 1)``. A box
+    whose ``rho_k`` is below that by more than :data:`COHERENCE_Z` standard errors
+    (from the per-pixel terms) is dropped; so is nothing when ``E`` itself is not that
+    significant. Measured on the pixels at least ``max k // 2`` from the image border
+    (no reflected self), the whole image or evenly spaced bands of rows
+    (:data:`COHERENCE_VOXELS`); deterministic (no rng).
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+    ctx : SaliencyFilters
+        The candidate scales and their filters (stage 2's set-up).
+
+    Returns
+    -------
+    Coherence
+    """
+    scales = np.asarray(ctx.scales, np.int64)
+    Q = scales.size
+    R, C, L, T = counts.shape
+    h = int(scales.max()) // 2
+    nan = np.full(Q, np.nan)
+    keep_all = Coherence(scales, np.ones(Q, bool), nan, nan.copy(), float("nan"), 0)
+    if Q == 1 or R <= 2 * h or C <= 2 * h:
+        return keep_all
+    gsq = np.asarray(ctx.gsq, np.float64)
+    e_p, a_p = [], []
+    for r0, r1, c0, c1 in _coherence_tiles(R, C, L * T, h):
+        # the tile with a halo of h pixels: its boxes and levels exact inside
+        y = np.asarray(counts[r0 - h : r1 + h, max(c0 - h, 0) : min(c1 + h, C)])
+        j0 = c0 - max(c0 - h, 0)
+        c, _, _, sp, _ = block_saliency(y, ctx, with_level=False)
+        c -= np.maximum(sp[..., None] + ctx.dev[None, None], np.float32(0.0))  # x
+        x = c[h : h + r1 - r0, j0 : j0 + c1 - c0]
+        yin = y[h : h + r1 - r0, j0 : j0 + c1 - c0].sum(axis=3, dtype=np.float64)
+        e_p.append((_dot(x, x) - (yin * gsq).sum(axis=2)).ravel())
+        ring = np.zeros((Q, x.shape[0] * x.shape[1]))
+        for q, k in enumerate(scales):
+            if k > 1:
+                box = _box_sum(c, int(k) // 2)[h : h + r1 - r0, j0 : j0 + c1 - c0]
+                box -= x
+                ring[q] = _dot(x, box).ravel() / (k * k - 1)
+        a_p.append(ring)
+    e_p = np.concatenate(e_p)
+    a_p = np.concatenate(a_p, axis=1)
+    E = float(e_p.sum())
+    ez = E / max(float(np.sqrt((e_p**2).sum())), 1e-300)
+    rho, z = nan.copy(), nan.copy()
+    kept = np.ones(Q, bool)
+    if E > 0:
+        rho[scales > 1] = a_p.sum(axis=1)[scales > 1] / E
+    for q in np.flatnonzero(scales > 1):
+        d = a_p[q] - e_p / (scales[q] + 1)
+        z[q] = float(d.sum()) / max(float(np.sqrt((d**2).sum())), 1e-300)
+        kept[q] = not (ez >= COHERENCE_Z and z[q] < -COHERENCE_Z)
+    return Coherence(scales, kept, rho, z, float(ez), int(e_p.size))
+
+
+def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
+    """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels, at least ``h`` from the image
+    border, evenly spaced over the image: all of it when it fits in
+    :data:`COHERENCE_VOXELS` (tiles and their halos), else as many as fit."""
+    side = 32
+    rs = list(range(h, R - h, side))
+    cs = list(range(h, C - h, side))
+    grid = [(a, min(a + side, R - h), b, min(b + side, C - h)) for a in rs for b in cs]
+    cost = [(r1 - r0 + 2 * h) * (c1 - c0 + 2 * h) * per_pixel for r0, r1, c0, c1 in grid]
+    n = len(grid)
+    fit = max(1, int(COHERENCE_VOXELS // max(max(cost), 1)))
+    if fit >= n:
+        return grid
+    idx = np.linspace(0, n - 1, fit).round().astype(np.int64)
+    return [grid[i] for i in dict.fromkeys(idx.tolist())]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``sum_{l,t} a b`` per pixel (float64) of two (rows, cols, L, T) float32 arrays."""
+    return np.einsum("ijlt,ijlt->ij", a, b, dtype=np.float64)
+
+
+def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
+    """``k x k`` sums (``k = 2 r + 1``) of ``x`` (rows, cols, L, T) float32, exact at least
+    ``r`` pixels inside (reflected beyond)."""
+    from scipy import ndimage
+
+    k = 2 * r + 1
+    out = ndimage.uniform_filter(x, size=(k, k, 1, 1), mode="reflect", output=np.float32)
+    out *= np.float32(k * k)
+    return out
