@@ -283,8 +283,12 @@ def detect(
         cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
     )  # fmt: skip
     filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
-    if o["auto_scales"]:
-        filters = _coherent_filters(cube.counts, filters, o, corr, bg.dev, irf)
+    if o["auto_scales"] and _coherent_scales(cube.counts, filters, o):
+        # fewer boxes: stage 1 again with the coarsest kept box, as detect(scales=) would
+        bg = estimate_temporal_background(
+            cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
+        )  # fmt: skip
+        filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
@@ -317,9 +321,10 @@ def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
         return done, *_select_and_align(cube, o, mp, done, t0, store, bg)
 
 
-def _coherent_filters(counts, filters, o: dict, corr, dev, irf):
-    """``scales="auto"``: the filters of the scales whose boxes pool returns sharing the
-    own pixels' depths (:func:`coherent_scales`); ``o``'s scales and weights updated."""
+def _coherent_scales(counts, filters, o: dict) -> bool:
+    """``scales="auto"``: keep the scales whose boxes pool returns sharing the own pixels'
+    depths (:func:`coherent_scales`); ``o``'s scales and weights updated. True when a
+    scale was dropped."""
     coh = coherent_scales(counts, filters)
     logger.info(
         "detect: spatial coherence rho %s of boxes %s (energy z %.1f, %d pixels): scales %s",
@@ -327,10 +332,10 @@ def _coherent_filters(counts, filters, o: dict, corr, dev, irf):
         coh.scales[coh.kept].tolist(),
     )  # fmt: skip
     if coh.kept.all():
-        return filters
+        return False
     o["scales"] = coh.scales[coh.kept]
     o["weights"] = o["scales"] / o["scales"].sum()
-    return saliency_filters(corr, o["scales"], o["weights"], dev, irf)
+    return True
 
 
 def _stuck_pixels_first(cube: Cube, o: dict):
