@@ -36,7 +36,7 @@ __all__ = [
 STRIP_COLS = 32
 #: Voxels (pixels x L x T) the spatial-coherence measurement (:func:`coherent_scales`)
 #: reads at most: the whole image below it, else evenly spaced bands of rows.
-COHERENCE_VOXELS = 24_000_000
+COHERENCE_VOXELS = 6_000_000
 #: A box is dropped from ``scales="auto"`` only where its signal-to-noise at the own
 #: pixel's depth is below the own pixel's with this Poisson-style z (3 sigma, the
 #: house's presence and split z): a scene that cannot show its incoherence keeps every
@@ -261,19 +261,19 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
 
 
 def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
-    """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels, at least ``h`` from the image
-    border, evenly spaced over the image: all of it when it fits in
-    :data:`COHERENCE_VOXELS` (tiles and their halos), else as many as fit."""
-    side = 32
+    """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels (fewer where one such tile and
+    its halo would exceed :data:`COHERENCE_VOXELS`; 8 at least), at least ``h`` from the
+    image border: all of them when they fit in :data:`COHERENCE_VOXELS` (with their
+    halos), else as many as fit, evenly spaced in raster order."""
+    side = int(np.clip(np.sqrt(COHERENCE_VOXELS / max(per_pixel, 1)) - 2 * h, 8, 32))
     rs = list(range(h, R - h, side))
     cs = list(range(h, C - h, side))
     grid = [(a, min(a + side, R - h), b, min(b + side, C - h)) for a in rs for b in cs]
-    cost = [(r1 - r0 + 2 * h) * (c1 - c0 + 2 * h) * per_pixel for r0, r1, c0, c1 in grid]
     n = len(grid)
-    fit = max(1, int(COHERENCE_VOXELS // max(max(cost), 1)))
+    fit = max(1, int(COHERENCE_VOXELS // ((side + 2 * h) ** 2 * max(per_pixel, 1))))
     if fit >= n:
         return grid
-    idx = np.linspace(0, n - 1, fit).round().astype(np.int64)
+    idx = ((np.arange(fit) + 0.5) * n / fit).astype(np.int64)
     return [grid[i] for i in dict.fromkeys(idx.tolist())]
 
 
