@@ -181,12 +181,9 @@ def detect(
         Counts ``(rows, cols, L, T)`` with the IRF.
     scales : "auto" or sequence of positive odd int
         Spatial pooling: box sizes ``k_q`` (sorted ascending, with their weights).
-        ``"auto"`` (default): ``(1, 3, 7, 11)``, less the boxes whose neighbours do not
-        share the own pixels' depths enough to raise the signal-to-noise ratio there
-        (measured on the data: :func:`~splidar.detection._2_saliency.coherent_scales`;
-        every scale kept on scenes of surfaces wider than a few pixels, the own pixel
-        alone where every pixel's depth is independent); with ``weights`` given, the
-        four scales as they are.
+        ``"auto"`` (default): ``(1, 3, 7, 11)`` less the boxes whose neighbours share the
+        pixels' depths too little to raise the signal-to-noise ratio (measured on the
+        data, ``_2_saliency.coherent_scales``); all four with ``weights`` given.
     weights : array_like (Q,), optional
         Spatial pooling: ``lambda_q`` (non-negative, sum 1, in the order of ``scales``).
         Default ``k_q / sum k``: every scale adds the same noise variance (against the
@@ -279,16 +276,7 @@ def detect(
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
     tiled = o["tiled"] = is_dask(cube.counts)
-    bg = estimate_temporal_background(  # 1
-        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
-    )  # fmt: skip
-    filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
-    if o["auto_scales"] and _coherent_scales(cube.counts, filters, o):
-        # fewer boxes: stage 1 again with the coarsest kept box, as detect(scales=) would
-        bg = estimate_temporal_background(
-            cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
-        )  # fmt: skip
-        filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
+    bg, filters = _stages_1_2(cube.counts, corr, irf, o, windows)  # 1, 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
@@ -319,6 +307,23 @@ def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
     with kept_counts(cube.counts):
         done = _clean_up(cube, o, mp, held, bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, done, t0, store, bg)
+
+
+def _stages_1_2(counts, corr, irf, o: dict, windows):
+    """Stage 1 (the background's temporal shape) and stage 2's filters; with
+    ``scales="auto"`` those of the boxes kept by the measured coherence
+    (:func:`_coherent_scales`), stage 1 then run again with the coarsest kept box, as
+    ``detect(scales=<kept>)`` runs it."""
+    bg = estimate_temporal_background(
+        counts, corr, irf, box=int(o["scales"].max()), n_jobs=o["n_jobs"], windows=windows,
+    )  # fmt: skip
+    filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
+    if o["auto_scales"] and _coherent_scales(counts, filters, o):
+        bg = estimate_temporal_background(
+            counts, corr, irf, box=int(o["scales"].max()), n_jobs=o["n_jobs"], windows=windows,
+        )  # fmt: skip
+        filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
+    return bg, filters
 
 
 def _coherent_scales(counts, filters, o: dict) -> bool:
