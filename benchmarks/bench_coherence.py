@@ -5,15 +5,16 @@
 share depths. This family measures what that costs where they do not: on 48 x 48
 pixels, T = 300, one surface per pixel whose depth is drawn uniform in bins 30-270
 **independently for every patch** of 1 x 1, 2 x 2, 4 x 4 or 8 x 8 pixels, or a smooth
-scene (a tilted plane plus a slow sinusoid, depths 60-240), at 4, 12 and 40 signal
+scene (a tilted plane plus a slow sinusoid, depths 60-240), or "half": the left half 1 x
+1, the right half smooth (F_true of each half in brackets), at 4, 12 and 40 signal
 photons a pixel and SBR 1 and 0.25 (a flat background). The pulse is the reproducer's
 (``bench_foreign_cubes.py --window-end``): a Gaussian of FWHM 6 bins with an exponential
 tail of 4 bins (FWHM 8.4), its IRF recorded as 100 samples, peak at 30. Scores:
 ``evaluate`` at tau = 4.2 bins (FWHM / 2): F_true, false surfaces, DAE (bins), for
 ``detect`` (``rng=0``) and ``per_pixel_detect`` (the baseline), and ``detect(scales=(1,))``
-with ``--fine``.
+with ``--fine``; "half" also scores each half (left 1 x 1, right smooth).
 
-    python benchmarks/bench_coherence.py              # 30 cells, a few minutes
+    python benchmarks/bench_coherence.py              # 36 cells, a few minutes
     python benchmarks/bench_coherence.py --only 1x1 --ppp 12 --sbr 1
     python benchmarks/bench_coherence.py --seed 1 --json out.json
 
@@ -36,13 +37,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_foreign_cubes import Pulse, irf_record  # noqa: E402
 
 N, T = 48, 300
-PATCHES = ("1x1", "2x2", "4x4", "8x8", "smooth")
+PATCHES = ("1x1", "2x2", "4x4", "8x8", "smooth", "half")
 PULSE = Pulse(6.0, 4.0)
 TAU = 4.2
 
 
 def depths(kind: str, rng) -> np.ndarray:
     """(N, N) depths in bins: independent per patch, or a smooth surface."""
+    if kind == "half":  # the left half 1 x 1, the right half smooth
+        d = depths("smooth", rng)
+        d[:, : N // 2] = depths("1x1", rng)[:, : N // 2]
+        return d
     if kind == "smooth":
         r, c = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
         phase = rng.random() * 2 * np.pi
@@ -90,6 +95,15 @@ def run_cell(kind, ppp, sbr, seed, methods, detect_kwargs=None):
                 "f_true": float(m.f_true), "false": int(m.f_false), "dae": float(m.dae),
                 "cpu_s": time.process_time() - t0,
             }  # fmt: skip
+            if kind == "half":  # F_true of the left (incoherent) and right (smooth) half
+                from splidar.metrics import match_points
+
+                mt = match_points(pts, truth, tau=TAU)
+                hit = np.zeros(truth.row.size, bool)
+                hit[mt.true_index] = True
+                left = truth.col < N // 2
+                out[name]["left"] = float(hit[left].mean())
+                out[name]["right"] = float(hit[~left].mean())
     return out
 
 
@@ -117,6 +131,11 @@ def main() -> None:
                 rows.append({"scene": kind, "ppp": ppp, "sbr": sbr, **res})
                 cells = " | ".join(
                     f"{res[m]['f_true']:.3f} / {res[m]['false']} / {res[m]['dae']:.2f}"
+                    + (
+                        f" (halves {res[m]['left']:.3f}, {res[m]['right']:.3f})"
+                        if "left" in res[m]
+                        else ""
+                    )
                     for m in methods
                 )
                 print(f"| {kind} | {ppp:g} | {sbr:g} | {cells} |", flush=True)
