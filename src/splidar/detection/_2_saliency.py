@@ -200,13 +200,14 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
     ``E = sum (x^2 - sum_j g_j^2 y)`` (the Poisson variance of ``c`` removed, ``y`` the
     counts) and the part the ring shares ``A_k = sum x N_k`` (noise of distinct pixels
     is independent: zero mean), summed over pixels, wavelengths and t; ``rho_k = A_k /
-    E``. A box keeps a fraction ``m_k = (1 + (k^2 - 1) rho_k) / k^2`` of the own return
-    at its depth with ``1 / k`` of the own pixel's noise: it raises the signal-to-noise
-    ratio at the own depth when ``k m_k >= 1``, i.e. ``rho_k >= 1 / (k + 1)``. A box
-    whose ``rho_k`` is below that by more than :data:`COHERENCE_Z` standard errors
-    (from the per-pixel terms) is dropped; so is nothing when ``E`` itself is not that
-    significant. Measured on the pixels at least ``max k // 2`` from the image border
-    (no reflected self), the whole image or evenly spaced bands of rows
+    E`` (``sum_j g_j^2`` holds inside the window; near its ends, where the filter reads
+    mirrored samples twice, the exact weights: :func:`_variance_weights`). A box keeps
+    ``m_k = (1 + (k^2 - 1) rho_k) / k^2`` of the own return at its depth with ``1 / k``
+    of the own pixel's noise: it raises the signal-to-noise ratio at the own depth when
+    ``k m_k >= 1``, i.e. ``rho_k >= 1 / (k + 1)``. A box whose ``rho_k`` is below that by
+    more than :data:`COHERENCE_Z` standard errors (from the per-pixel terms) is dropped;
+    none is when ``E`` itself is not that significant. Measured on the pixels at least
+    ``max k // 2`` from the image border (no reflected self), in tiles
     (:data:`COHERENCE_VOXELS`); deterministic (no rng).
 
     Parameters
@@ -227,7 +228,7 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
     keep_all = Coherence(scales, np.ones(Q, bool), nan, nan.copy(), float("nan"), 0)
     if Q == 1 or R <= 2 * h or C <= 2 * h:
         return keep_all
-    gsq = np.asarray(ctx.gsq, np.float64)
+    var_w = _variance_weights(ctx.corr, L, T)  # (L, T): Var(c) = sum_s var_w[s] lambda_s
     e_p, a_p = [], []
     for r0, r1, c0, c1 in _coherence_tiles(R, C, L * T, h):
         # the tile with a halo of h pixels: its boxes and levels exact inside
@@ -236,8 +237,9 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
         c, _, _, sp, _ = block_saliency(y, ctx, with_level=False)
         c -= np.maximum(sp[..., None] + ctx.dev[None, None], np.float32(0.0))  # x
         x = c[h : h + r1 - r0, j0 : j0 + c1 - c0]
-        yin = y[h : h + r1 - r0, j0 : j0 + c1 - c0].sum(axis=3, dtype=np.float64)
-        e_p.append((_dot(x, x) - (yin * gsq).sum(axis=2)).ravel())
+        yin = y[h : h + r1 - r0, j0 : j0 + c1 - c0]
+        var = np.einsum("ijlt,lt->ij", yin, var_w, dtype=np.float64)  # Poisson variance
+        e_p.append((_dot(x, x) - var).ravel())
         ring = np.zeros((Q, x.shape[0] * x.shape[1]))
         for q, k in enumerate(scales):
             if k > 1:
@@ -275,6 +277,22 @@ def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
         return grid
     idx = ((np.arange(fit) + 0.5) * n / fit).astype(np.int64)
     return [grid[i] for i in dict.fromkeys(idx.tolist())]
+
+
+def _variance_weights(corr, L: int, T: int) -> np.ndarray:
+    """``w[l, s] = sum_t (d c_t / d y_s)^2`` of the matched filter (mirrored edges):
+    ``Var(c_t)`` summed over t is ``sum_s w[l, s] lambda_s`` for Poisson counts. Inside
+    the window ``w = sum_j g_j^2``; within two IRF lengths of either end it is computed
+    from unit impulses (a mirrored sample enters the response twice)."""
+    irf = np.asarray(corr.irf, np.float64)
+    w = np.repeat((irf**2).sum(axis=1)[:, None], T, axis=1)
+    m = min(T, 2 * irf.shape[1])
+    edge = np.unique(np.concatenate([np.arange(m), np.arange(T - m, T)]))
+    imp = np.zeros((edge.size, 1, L, T), np.float32)
+    imp[np.arange(edge.size), 0, :, edge] = 1.0
+    resp = corr(imp).astype(np.float64)[:, 0]  # (n_edge, L, T)
+    w[:, edge] = (resp**2).sum(axis=2).T
+    return w
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
