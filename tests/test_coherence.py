@@ -119,3 +119,15 @@ def test_variance_weights_are_the_filters_squared_sensitivities():
         eye = np.eye(n_bins, dtype=np.float32)[:, None, None, :].repeat(2, axis=2)
         full = (corr(eye).astype(np.float64) ** 2).sum(axis=3)[:, 0].T  # (L, T)
         np.testing.assert_allclose(_variance_weights(corr, 2, n_bins), full, rtol=1e-5)
+
+
+def test_detect_auto_scales_dask_cube_gives_the_in_memory_result():
+    da = __import__("pytest").importorskip("dask.array")
+    cube = _cube(_independent(1))
+    mem = detect(cube, rng=0, n_jobs=1)
+    lazy = detect(
+        Cube(da.from_array(np.asarray(cube.counts), chunks=(16, 16, 1, T)), irf=cube.irf),
+        rng=0, n_jobs=1,
+    )  # fmt: skip
+    assert lazy.scales == mem.scales == (1,)
+    assert np.array_equal(lazy.points.depth_bin, mem.points.depth_bin)
