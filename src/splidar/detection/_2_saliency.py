@@ -265,10 +265,10 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
 
 def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
     """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels (fewer where one such tile and
-    its halo would exceed :data:`COHERENCE_VOXELS`; 8 at least), at least ``h`` from the
+    its halo would exceed :data:`COHERENCE_VOXELS`; 16 at least), at least ``h`` from the
     image border: all of them when they fit in :data:`COHERENCE_VOXELS` (with their
     halos), else as many as fit, evenly spaced in raster order."""
-    side = int(np.clip(np.sqrt(COHERENCE_VOXELS / max(per_pixel, 1)) - 2 * h, 8, 32))
+    side = int(np.clip(np.sqrt(COHERENCE_VOXELS / max(per_pixel, 1)) - 2 * h, 16, 32))
     rs = list(range(h, R - h, side))
     cs = list(range(h, C - h, side))
     grid = [(a, min(a + side, R - h), b, min(b + side, C - h)) for a in rs for b in cs]
