@@ -267,17 +267,19 @@ def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
     """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels (fewer where one such tile and
     its halo would exceed :data:`COHERENCE_VOXELS`; 16 at least), at least ``h`` from the
     image border: all of them when they fit in :data:`COHERENCE_VOXELS` (with their
-    halos), else as many as fit, evenly spaced in raster order."""
+    halos), else an evenly spread lattice of as many as fit (the centre tile for one)."""
     side = int(np.clip(np.sqrt(COHERENCE_VOXELS / max(per_pixel, 1)) - 2 * h, 16, 32))
     rs = list(range(h, R - h, side))
     cs = list(range(h, C - h, side))
     grid = [(a, min(a + side, R - h), b, min(b + side, C - h)) for a in rs for b in cs]
-    n = len(grid)
     fit = max(1, int(COHERENCE_VOXELS // ((side + 2 * h) ** 2 * max(per_pixel, 1))))
-    if fit >= n:
+    if fit >= len(grid):
         return grid
-    idx = ((np.arange(fit) + 0.5) * n / fit).astype(np.int64)
-    return [grid[i] for i in dict.fromkeys(idx.tolist())]
+    # an m x m lattice of tiles, evenly spread over the image (its centre for one)
+    m = int(np.floor(np.sqrt(fit)))
+    ri = ((np.arange(min(m, len(rs))) + 0.5) * len(rs) / min(m, len(rs))).astype(np.int64)
+    ci = ((np.arange(min(m, len(cs))) + 0.5) * len(cs) / min(m, len(cs))).astype(np.int64)
+    return [grid[i * len(cs) + j] for i in dict.fromkeys(ri.tolist()) for j in ci.tolist()]
 
 
 def _variance_weights(corr, L: int, T: int) -> np.ndarray:
