@@ -220,7 +220,8 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         "--scales",
         type=_int_list,
         metavar="K1,K2,..",
-        help="box sizes of the multiscale cubes, odd (default 1,3,7,11)",
+        help="box sizes of the multiscale cubes, odd (default: 1,3,7,11 less the boxes "
+        "whose neighbours do not share the pixels' depths, measured on the data)",
     )
     g.add_argument(
         "--weights",

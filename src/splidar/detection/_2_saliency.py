@@ -18,13 +18,30 @@ from ._background import CLIP
 from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
 
-__all__ = ["STRIP_COLS", "SaliencyFilters", "block_saliency", "saliency_filters"]
+__all__ = [
+    "COHERENCE_VOXELS",
+    "COHERENCE_Z",
+    "STRIP_COLS",
+    "SaliencyFilters",
+    "Coherence",
+    "block_saliency",
+    "coherent_scales",
+    "saliency_filters",
+]
 
 #: Columns the saliency kernel filters together, each strip's rows in turn (the rows a
 #: strip's boxes read stay in cache): CPU per voxel and wavelength on a 40 x 200 x 1500
 #: block, 9.3-10.3 ns at full width, 6.9-7.4 ns at strips of 24-64. The result does not
 #: depend on it (the column sums carry over from strip to strip).
 STRIP_COLS = 32
+#: Voxels (pixels x L x T) the spatial-coherence measurement (:func:`coherent_scales`)
+#: reads at most: the whole image below it, else evenly spaced bands of rows.
+COHERENCE_VOXELS = 3_000_000
+#: A box is dropped from ``scales="auto"`` only where its signal-to-noise at the own
+#: pixel's depth is below the own pixel's with this Poisson-style z (3 sigma, the
+#: house's presence and split z): a scene that cannot show its incoherence keeps every
+#: scale.
+COHERENCE_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -138,3 +155,168 @@ def block_saliency(
         if spatial is None:
             sp_out[:, :, l] = sp_l
     return c, sal, d, sp_out, level
+
+
+@dataclass(frozen=True)
+class Coherence:
+    """The measured spatial coherence of the returns (:func:`coherent_scales`).
+
+    Attributes
+    ----------
+    scales : ndarray (Q,) int
+        The candidate box sizes (ascending).
+    kept : ndarray (Q,) bool
+        Which of them ``scales="auto"`` keeps.
+    rho : ndarray (Q,) float
+        ``rho_k``: the fraction of the own pixel's signal (matched-filter response above
+        ``bhat``, noise-debiased energy) that the ring of the ``k x k`` box (the box
+        without the own pixel) shares, depth by depth; 1 where neighbours share the
+        depth, about 0 where their depths are independent (nan for k = 1 and when not
+        measured).
+    z : ndarray (Q,) float
+        ``z`` of ``rho_k - 1 / (k + 1)`` (the box's break-even coherence).
+    energy_z : float
+        ``z`` of the own pixels' signal energy: below :data:`COHERENCE_Z` the scene shows
+        no signal to measure and keeps every scale.
+    pixels : int
+        Pixels measured.
+    """
+
+    scales: np.ndarray
+    kept: np.ndarray
+    rho: np.ndarray
+    z: np.ndarray
+    energy_z: float
+    pixels: int
+
+
+def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
+    """Which of ``ctx.scales`` pool returns that share the own pixel's depth.
+
+    The boxes of ``eq:4.s1`` average a pixel's matched-filter response ``c`` with its
+    neighbours'; that adds signal only where the neighbours' returns lie at the own
+    pixel's depth. With ``x = c - bhat`` (``eq:background_3``) and ``N_k`` the mean of
+    ``x`` over the ``k x k`` box without the own pixel, the own pixels' signal energy is
+    ``E = sum (x^2 - sum_j g_j^2 y)`` (the Poisson variance of ``c`` removed, ``y`` the
+    counts) and the part the ring shares ``A_k = sum x N_k`` (noise of distinct pixels
+    is independent: zero mean), summed over pixels, wavelengths and t; ``rho_k = A_k /
+    E`` (``sum_j g_j^2`` holds inside the window; near its ends, where the filter reads
+    mirrored samples twice, the exact weights: :func:`_variance_weights`). A box keeps
+    ``m_k = (1 + (k^2 - 1) rho_k) / k^2`` of the own return at its depth with ``1 / k``
+    of the own pixel's noise: it raises the signal-to-noise ratio at the own depth when
+    ``k m_k >= 1``, i.e. ``rho_k >= 1 / (k + 1)``. A box whose ``rho_k`` is below that by
+    more than :data:`COHERENCE_Z` standard errors (from the per-pixel terms) is dropped;
+    none is when ``E`` itself is not that significant. Measured on the pixels at least
+    ``max k // 2`` from the image border (no reflected self), in tiles
+    (:data:`COHERENCE_VOXELS`); deterministic (no rng).
+
+    Parameters
+    ----------
+    counts : array_like (rows, cols, L, T)
+    ctx : SaliencyFilters
+        The candidate scales and their filters (stage 2's set-up).
+
+    Returns
+    -------
+    Coherence
+    """
+    scales = np.asarray(ctx.scales, np.int64)
+    Q = scales.size
+    R, C, L, T = counts.shape
+    h = int(scales.max()) // 2
+    nan = np.full(Q, np.nan)
+    keep_all = Coherence(scales, np.ones(Q, bool), nan, nan.copy(), float("nan"), 0)
+    if Q == 1 or R <= 2 * h or C <= 2 * h:
+        return keep_all
+    var_w = _variance_weights(ctx.corr, L, T)  # (L, T): Var(c) = sum_s var_w[s] lambda_s
+    e_p, a_p = [], []
+    for r0, r1, c0, c1 in _coherence_tiles(R, C, L * T, h):
+        # the tile with a halo of h pixels: its boxes and levels exact inside
+        y = np.asarray(counts[r0 - h : r1 + h, max(c0 - h, 0) : min(c1 + h, C)])
+        j0 = c0 - max(c0 - h, 0)
+        c, _, _, sp, _ = block_saliency(y, ctx, with_level=False)
+        c -= np.maximum(sp[..., None] + ctx.dev[None, None], np.float32(0.0))  # x
+        x = c[h : h + r1 - r0, j0 : j0 + c1 - c0]
+        yin = y[h : h + r1 - r0, j0 : j0 + c1 - c0]
+        var = np.einsum("ijlt,lt->ij", yin, var_w, dtype=np.float64)  # Poisson variance
+        e_p.append((_dot(x, x) - var).ravel())
+        ring = np.zeros((Q, x.shape[0] * x.shape[1]))
+        table = _summed_area(c)
+        for q, k in enumerate(scales):
+            if k > 1:  # the k x k sums about the tile's pixels, less the own pixel
+                box = _box_sums(table, int(k) // 2, h, h + r1 - r0, j0, j0 + c1 - c0)
+                box -= x
+                ring[q] = _dot(x, box).ravel() / (k * k - 1)
+        a_p.append(ring)
+    e_p = np.concatenate(e_p)
+    a_p = np.concatenate(a_p, axis=1)
+    E = float(e_p.sum())
+    ez = E / max(float(np.sqrt((e_p**2).sum())), 1e-300)
+    rho, z = nan.copy(), nan.copy()
+    kept = np.ones(Q, bool)
+    if E > 0:
+        rho[scales > 1] = a_p.sum(axis=1)[scales > 1] / E
+    for q in np.flatnonzero(scales > 1):
+        d = a_p[q] - e_p / (scales[q] + 1)
+        z[q] = float(d.sum()) / max(float(np.sqrt((d**2).sum())), 1e-300)
+        kept[q] = not (ez >= COHERENCE_Z and z[q] < -COHERENCE_Z)
+    return Coherence(scales, kept, rho, z, float(ez), int(e_p.size))
+
+
+def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
+    """Tiles ``(r0, r1, c0, c1)`` of at most 32 x 32 pixels (fewer where one such tile and
+    its halo would exceed :data:`COHERENCE_VOXELS`; 16 at least), at least ``h`` from the
+    image border: all of them when they fit in :data:`COHERENCE_VOXELS` (with their
+    halos), else an evenly spread lattice of as many as fit (the centre tile for one)."""
+    side = int(np.clip(np.sqrt(COHERENCE_VOXELS / max(per_pixel, 1)) - 2 * h, 16, 32))
+    rs = list(range(h, R - h, side))
+    cs = list(range(h, C - h, side))
+    grid = [(a, min(a + side, R - h), b, min(b + side, C - h)) for a in rs for b in cs]
+    fit = max(1, int(COHERENCE_VOXELS // ((side + 2 * h) ** 2 * max(per_pixel, 1))))
+    if fit >= len(grid):
+        return grid
+    # an m x m lattice of tiles, evenly spread over the image (its centre for one)
+    m = int(np.floor(np.sqrt(fit)))
+    ri = ((np.arange(min(m, len(rs))) + 0.5) * len(rs) / min(m, len(rs))).astype(np.int64)
+    ci = ((np.arange(min(m, len(cs))) + 0.5) * len(cs) / min(m, len(cs))).astype(np.int64)
+    return [grid[i * len(cs) + j] for i in dict.fromkeys(ri.tolist()) for j in ci.tolist()]
+
+
+def _variance_weights(corr, L: int, T: int) -> np.ndarray:
+    """``w[l, s] = sum_t (d c_t / d y_s)^2`` of the matched filter (mirrored edges):
+    ``Var(c_t)`` summed over t is ``sum_s w[l, s] lambda_s`` for Poisson counts. Inside
+    the window ``w = sum_j g_j^2``; within two IRF lengths of either end it is computed
+    from unit impulses (a mirrored sample enters the response twice)."""
+    irf = np.asarray(corr.irf, np.float64)
+    w = np.repeat((irf**2).sum(axis=1)[:, None], T, axis=1)
+    m = min(T, 2 * irf.shape[1])
+    edge = np.unique(np.concatenate([np.arange(m), np.arange(T - m, T)]))
+    imp = np.zeros((edge.size, 1, L, T), np.float32)
+    imp[np.arange(edge.size), 0, :, edge] = 1.0
+    resp = corr(imp).astype(np.float64)[:, 0]  # (n_edge, L, T)
+    w[:, edge] = (resp**2).sum(axis=2).T
+    return w
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``sum_{l,t} a b`` per pixel (float64) of two (rows, cols, L, T) float32 arrays."""
+    return np.einsum("ijlt,ijlt->ij", a, b, dtype=np.float64)
+
+
+def _summed_area(x: np.ndarray) -> np.ndarray:
+    """Summed-area table of ``x`` (rows, cols, L, T) over rows and columns, float64, with
+    a leading row and column of zeros: ``(rows + 1, cols + 1, L, T)``."""
+    out = np.zeros((x.shape[0] + 1, x.shape[1] + 1) + x.shape[2:], np.float64)
+    np.cumsum(x, axis=0, dtype=np.float64, out=out[1:, 1:])
+    np.cumsum(out[1:, 1:], axis=1, out=out[1:, 1:])
+    return out
+
+
+def _box_sums(table: np.ndarray, r: int, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
+    """``(2 r + 1)^2`` box sums about pixels ``[i0, i1) x [j0, j1)`` (their boxes inside
+    the array) from its summed-area table, float32 (rows, cols, L, T)."""
+    a = table[i0 + r + 1 : i1 + r + 1, j0 + r + 1 : j1 + r + 1]
+    b = table[i0 - r : i1 - r, j0 + r + 1 : j1 + r + 1]
+    c = table[i0 + r + 1 : i1 + r + 1, j0 - r : j1 - r]
+    d = table[i0 - r : i1 - r, j0 - r : j1 - r]
+    return (a - b - c + d).astype(np.float32)

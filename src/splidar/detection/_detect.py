@@ -23,7 +23,7 @@ from .._validation import (
 from ..cube import Cube
 from . import _4_map
 from ._1_background import estimate_temporal_background
-from ._2_saliency import saliency_filters
+from ._2_saliency import coherent_scales, saliency_filters
 from ._3_null import calibrate_null
 from ._4_map import (
     PRESENCE_LLR,
@@ -58,6 +58,8 @@ __all__ = ["PASSES", "detect"]
 logger = logging.getLogger(__name__)
 
 _NULL_METHODS = ("empirical", "gamma")
+#: The candidate box sizes of ``scales="auto"``, weighted ``k_q / sum k``.
+AUTO_SCALES = (1, 3, 7, 11)
 _PRESENCE = ("auto", "adaptive", "none", "pixel")
 
 
@@ -149,7 +151,7 @@ PASSES = (
 def detect(
     cube: Cube,
     *,
-    scales=(1, 3, 7, 11),
+    scales="auto",
     weights=None,
     pfa: float = 1e-3,
     surface_pfa: float = 0.01,
@@ -177,8 +179,11 @@ def detect(
     ----------
     cube : Cube
         Counts ``(rows, cols, L, T)`` with the IRF.
-    scales : sequence of positive odd int
+    scales : "auto" or sequence of positive odd int
         Spatial pooling: box sizes ``k_q`` (sorted ascending, with their weights).
+        ``"auto"`` (default): ``(1, 3, 7, 11)`` less the boxes whose neighbours share the
+        pixels' depths too little to raise the signal-to-noise ratio (measured on the
+        data, ``_2_saliency.coherent_scales``); all four with ``weights`` given.
     weights : array_like (Q,), optional
         Spatial pooling: ``lambda_q`` (non-negative, sum 1, in the order of ``scales``).
         Default ``k_q / sum k``: every scale adds the same noise variance (against the
@@ -271,10 +276,7 @@ def detect(
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
     tiled = o["tiled"] = is_dask(cube.counts)
-    bg = estimate_temporal_background(  # 1
-        cube.counts, corr, irf, box=int(o["scales"].max()), n_jobs=n_jobs, windows=windows,
-    )  # fmt: skip
-    filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)  # 2
+    bg, filters = _stages_1_2(cube.counts, corr, irf, o, windows)  # 1, 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
@@ -305,6 +307,40 @@ def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
     with kept_counts(cube.counts):
         done = _clean_up(cube, o, mp, held, bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, done, t0, store, bg)
+
+
+def _stages_1_2(counts, corr, irf, o: dict, windows):
+    """Stage 1 (the background's temporal shape) and stage 2's filters; with
+    ``scales="auto"`` those of the boxes kept by the measured coherence
+    (:func:`_coherent_scales`), stage 1 then run again with the coarsest kept box, as
+    ``detect(scales=<kept>)`` runs it."""
+    bg = estimate_temporal_background(
+        counts, corr, irf, box=int(o["scales"].max()), n_jobs=o["n_jobs"], windows=windows,
+    )  # fmt: skip
+    filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
+    if o["auto_scales"] and _coherent_scales(counts, filters, o):
+        bg = estimate_temporal_background(
+            counts, corr, irf, box=int(o["scales"].max()), n_jobs=o["n_jobs"], windows=windows,
+        )  # fmt: skip
+        filters = saliency_filters(corr, o["scales"], o["weights"], bg.dev, irf)
+    return bg, filters
+
+
+def _coherent_scales(counts, filters, o: dict) -> bool:
+    """``scales="auto"``: keep the scales whose boxes pool returns sharing the own pixels'
+    depths (:func:`coherent_scales`); ``o``'s scales and weights updated. True when a
+    scale was dropped."""
+    coh = coherent_scales(counts, filters)
+    logger.info(
+        "detect: spatial coherence rho %s of boxes %s (energy z %.1f, %d pixels): scales %s",
+        np.round(coh.rho, 3).tolist(), coh.scales.tolist(), coh.energy_z, coh.pixels,
+        coh.scales[coh.kept].tolist(),
+    )  # fmt: skip
+    if coh.kept.all():
+        return False
+    o["scales"] = coh.scales[coh.kept]
+    o["weights"] = o["scales"] / o["scales"].sum()
+    return True
 
 
 def _stuck_pixels_first(cube: Cube, o: dict):
@@ -358,10 +394,11 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
             f"`cube` must be a splidar.Cube; got {describe(cube)}. Build one with "
             "splidar.Cube(counts, irf=...) or splidar.load(path)."
         )
-    scales_in = _check_scales(scales)
+    auto = isinstance(scales, str) and scales == "auto"
+    scales_in = _check_scales(AUTO_SCALES if auto else scales)
     w_in = _check_weights(weights, scales_in)
     order = np.argsort(scales_in)
-    o = dict(scales=scales_in[order], weights=w_in[order])
+    o = dict(scales=scales_in[order], weights=w_in[order], auto_scales=auto and weights is None)
     o["pfa"] = check_probability(pfa, "pfa")
     o["max_surfaces"] = check_int(max_surfaces, "max_surfaces", minimum=1)
     o["surface_pfa"] = check_probability(surface_pfa, "surface_pfa")
