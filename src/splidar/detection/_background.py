@@ -7,6 +7,7 @@ estimate from the correlated cube.
 
 from __future__ import annotations
 
+import logging
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -15,6 +16,8 @@ from scipy import ndimage, signal, special
 from ._fast import low_median as _low_median_kernel
 from ._fast import window_means
 from ._filters import Correlator
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
 
@@ -231,6 +234,11 @@ def _start_of_window(
     cut = (a > 0) & (excess > ratio * np.maximum(fall, 0.0)) & (excess > 3.0 * sigma)
     if not cut.any():
         return med
+    logger.info(
+        "background: the first %d bins' excess (%.3g x the level after them) taken for "
+        "returns cut by the window's start, wavelengths %s",
+        h, float(np.max(excess[cut] / a[cut])), np.flatnonzero(cut).tolist(),
+    )  # fmt: skip
     out = med.copy()
     t = np.arange(h, dtype=np.float64)
     trend = np.maximum(a[:, None] + fall[:, None] * (1.5 * h - t[None, :]) / h, 0.0)
