@@ -142,6 +142,20 @@ def test_estimate_temporal_background_a_decay_from_the_window_start_is_backgroun
     np.testing.assert_allclose(bg.temporal[0, :3], target[:3], rtol=0.15)
 
 
+def test_estimate_temporal_background_a_rise_to_the_window_end_is_background():
+    # background alone rising 20-fold to the end (exp(3 t / T), 0.5 photons a bin on
+    # average): it goes on rising before the last bins, a return cut by the end does
+    # not, so the end's rule keeps it. Session 16's rule (the lower of the running
+    # median and the last full window's median) put the last 3 bins 15 % low.
+    T = 200
+    mean = np.exp(3.0 * np.arange(T) / T)
+    mean *= 0.5 / mean.mean()
+    counts = np.random.default_rng(4).poisson(np.broadcast_to(mean, (96, 80, 1, T)))
+    irf, bg, _ = _setup(counts, gaussian_irf(3.0))
+    target = Correlator(irf, T)(mean[None, None].astype(np.float32))[0, 0]
+    np.testing.assert_allclose(bg.temporal[0, -3:], target[-3:], rtol=0.06)
+
+
 def _low_median_truth(levels, rate, irf, k, reps, rng):
     """Mean over ``reps`` simulated coarse cubes of stage 1's estimator (the median of the
     lowest 10 %), less the mean rate: the exact window sums of Poisson counts (a sum of

@@ -97,7 +97,7 @@ def temporal_shape(
     if smooth > 1:
         med = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
         med = _start_of_window(prof, med, smooth, var_factor)
-        prof = _end_of_window(prof, med, smooth)
+        prof = _end_of_window(prof, med, smooth, var_factor)
     if refine:
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
 
@@ -169,31 +169,25 @@ def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
-def _end_of_window(raw: np.ndarray, med: np.ndarray, smooth: int) -> np.ndarray:
-    """The running median's last ``smooth // 2`` bins, without the edge's repeated values.
+def _end_of_window(
+    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray
+) -> np.ndarray:
+    """The running median's last ``smooth // 2`` bins: the start's rule
+    (:func:`_start_of_window`) with time reversed.
 
     ``mode="nearest"`` repeats the last bin: when the returns of most pixels sit within
     a FWHM of the window's end (more than the 90 % ``eq:background_1`` tolerates), the
     repeats fill the window and the returns stay in the profile (``detect`` then found 7
-    of 100 such returns: ``benchmarks/bench_foreign_cubes.py --window-end``). There the
-    median of the last full window (``smooth`` bins inside the range) is the
-    background's: a bump narrower than half of it is removed as in the window's middle.
-    The lower of the two is kept, so a profile that falls to the end (a decay, pile-up)
-    keeps its ``nearest`` values. The start has its own rule (:func:`_start_of_window`):
-    a background decaying from the first bin looks like a return cut by the window there.
+    of 100 such returns: ``benchmarks/bench_foreign_cubes.py --window-end``). A
+    background that rises to the end looks the same in the last bins; it goes on rising
+    before them, a return does not.
     """
-    T = raw.shape[-1]
-    h = smooth // 2
-    if T < smooth or h < 1:
-        return med
-    tail = np.median(raw[:, T - smooth :], axis=-1)
-    out = med.copy()
-    out[:, T - h :] = np.minimum(med[:, T - h :], tail[:, None])
-    return out
+    rev = _start_of_window(raw[:, ::-1], med[:, ::-1], smooth, var_factor, side="end")
+    return np.ascontiguousarray(rev[:, ::-1])
 
 
 def _start_of_window(
-    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray
+    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray, *, side="start"
 ) -> np.ndarray:
     """The running median's first ``h = smooth // 2`` bins, where the start's excess is a
     return cut by the window rather than a background falling from bin 0.
@@ -203,7 +197,8 @@ def _start_of_window(
     ``eq:background_1`` tolerates) they stay in the profile and ``detect`` found 28-30 %
     of them (``benchmarks/bench_foreign_cubes.py --window-end 0 3``). A background that
     decays from bin 0 (pile-up, a gate's opening, backscatter) gives the same first bins,
-    so the end's rule (:func:`_end_of_window`) cannot be copied. What tells them apart
+    so the lower of the running median and the first full window's median (which
+    removes a return there) would take a decay for returns. What tells them apart
     is what follows: the matched filter's response to a return spans ``wh`` bins either
     side of it (``irf_halfwidth``, ``smooth = 4 wh + 1``), so a return at depth ``<= wh``
     adds nothing beyond bin ``h = 2 wh``, and a background that falls from bin 0 goes on
@@ -235,9 +230,9 @@ def _start_of_window(
     if not cut.any():
         return med
     logger.info(
-        "background: the first %d bins' excess (%.3g x the level after them) taken for "
-        "returns cut by the window's start, wavelengths %s",
-        h, float(np.max(excess[cut] / a[cut])), np.flatnonzero(cut).tolist(),
+        "background: %d bins' excess at the edge (%.3g x the level after them) taken for "
+        "returns cut by the window's %s, wavelengths %s",
+        h, float(np.max(excess[cut] / a[cut])), side, np.flatnonzero(cut).tolist(),
     )  # fmt: skip
     out = med.copy()
     t = np.arange(h, dtype=np.float64)
