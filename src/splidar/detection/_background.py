@@ -96,8 +96,9 @@ def temporal_shape(
     var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
     if smooth > 1:
         med = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
-        med = _start_of_window(prof, med, smooth, var_factor)
-        prof = _end_of_window(prof, med, smooth, var_factor)
+        noise = _edge_noise(coarse, row_starts.size, col_starts.size, smooth // 2)
+        med = _start_of_window(prof, med, smooth, var_factor, noise[0])
+        prof = _end_of_window(prof, med, smooth, var_factor, noise[1])
     if refine:
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
 
@@ -169,8 +170,39 @@ def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
+def _edge_noise(coarse: np.ndarray, n_rows: int, n_cols: int, h: int) -> np.ndarray:
+    """Sampling standard deviation of the ``eq:background_1`` profile beside each edge.
+
+    The sampled windows are split into two halves of the grid (top and bottom rows, or
+    left and right columns), each gives its own profile (the median of its lowest 10 %)
+    over bins ``[h, 3h]`` from each edge, and the spread of their difference about its
+    median is twice the full profile's (``var(p1 - p2) = 2 var(p_half) = 4 var(p)``).
+    It is a measured, not a modelled, noise: it holds for overlapping windows, any
+    level and any count statistics. Returns ``(2, L)`` (start, end); ``inf`` when the
+    grid cannot be split or the window is too short.
+    """
+    n, L, T = coarse.shape
+    out = np.full((2, L), np.inf)
+    if T < 4 * h + 1 or h < 1 or max(n_rows, n_cols) < 2:
+        return out
+    grid = coarse.reshape(n_rows, n_cols, L, T)
+    if n_rows >= 2:
+        halves = (grid[: n_rows // 2], grid[n_rows // 2 :])
+    else:
+        halves = (grid[:, : n_cols // 2], grid[:, n_cols // 2 :])
+    cols = np.concatenate([np.arange(h, 3 * h + 1), np.arange(T - 1 - 3 * h, T - h)])
+    prof = []
+    for half in halves:
+        x = np.ascontiguousarray(half[..., cols].reshape(-1, L * cols.size))
+        m = max(1, int(np.ceil(LOW_FRACTION * x.shape[0])))
+        prof.append(_low_median(x, m).reshape(L, cols.size).astype(np.float64))
+    d = (prof[0] - prof[1]).reshape(L, 2, -1).transpose(1, 0, 2)  # (edge, L, bins)
+    dev = d - np.median(d, axis=-1, keepdims=True)
+    return 0.5 * np.sqrt(np.mean(dev**2, axis=-1))
+
+
 def _end_of_window(
-    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray
+    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray, noise
 ) -> np.ndarray:
     """The running median's last ``smooth // 2`` bins: the start's rule
     (:func:`_start_of_window`) with time reversed.
@@ -182,12 +214,18 @@ def _end_of_window(
     background that rises to the end looks the same in the last bins; it goes on rising
     before them, a return does not.
     """
-    rev = _start_of_window(raw[:, ::-1], med[:, ::-1], smooth, var_factor, side="end")
+    rev = _start_of_window(raw[:, ::-1], med[:, ::-1], smooth, var_factor, noise, side="end")
     return np.ascontiguousarray(rev[:, ::-1])
 
 
 def _start_of_window(
-    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray, *, side="start"
+    raw: np.ndarray,
+    med: np.ndarray,
+    smooth: int,
+    var_factor: np.ndarray,
+    noise,
+    *,
+    side="start",
 ) -> np.ndarray:
     """The running median's first ``h = smooth // 2`` bins, where the start's excess is a
     return cut by the window rather than a background falling from bin 0.
@@ -207,9 +245,11 @@ def _start_of_window(
     ``E = med_0 - A`` and the next fall ``F = A - B`` of a decay ``c + a exp(-t / s)``
     (any floor ``c``) have the ratio ``E / F = (1 - e^{-1.5 h / s}) / (e^{-1.5 h / s} -
     e^{-2.5 h / s})``, which grows as ``s`` shrinks, without bound for a return. The start
-    is taken for returns when ``E / F`` exceeds that ratio at ``s = wh``, i.e. the profile
-    falls faster than a decay over the matched filter's own half-width (a background
-    that fast cannot be told from a return, and the running median removes a bump that
+    is taken for returns when ``E`` exceeds that ratio at ``s = wh`` (about 22) times an
+    upper bound of ``F`` (the measured fall plus 3 standard deviations of ``A - B``, from
+    the profile's sampling noise ``noise``, :func:`_edge_noise`), i.e. the profile falls
+    faster than a decay over the matched filter's own half-width (a background that
+    fast cannot be told from a return, and the running median removes a bump that
     narrow in the window's middle), and when ``E`` is more than 3 standard deviations of
     one coarsest-box value at the start's level (``sqrt(med_0 var_factor)``). Its first
     ``h`` bins then keep the lower of the running median and the background's linear
@@ -226,7 +266,10 @@ def _start_of_window(
     # E / F of a decay over s = wh = h / 2 (about 22): 1.5 h / s = 3, 2.5 h / s = 5
     ratio = -np.expm1(-3.0) / (np.exp(-3.0) - np.exp(-5.0))
     sigma = np.sqrt(np.maximum(med[:, 0], 0.0) * np.asarray(var_factor, np.float64))
-    cut = (a > 0) & (excess > ratio * np.maximum(fall, 0.0)) & (excess > 3.0 * sigma)
+    # the fall's upper bound: 3 standard deviations of A - B above the measured fall
+    # (A and B each taken as noisy as one bin of the profile: sqrt(2) noise)
+    upper = np.maximum(fall, 0.0) + 3.0 * np.sqrt(2.0) * np.asarray(noise, np.float64)
+    cut = (a > 0) & (excess > ratio * upper) & (excess > 3.0 * sigma)
     if not cut.any():
         return med
     logger.info(
