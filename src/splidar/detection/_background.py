@@ -96,9 +96,8 @@ def temporal_shape(
     var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
     if smooth > 1:
         med = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
-        noise = _edge_noise(coarse, row_starts.size, col_starts.size, smooth // 2)
-        med = _start_of_window(prof, med, smooth, var_factor, noise[0])
-        prof = _end_of_window(prof, med, smooth, var_factor, noise[1])
+        noise = _end_noise(coarse, row_starts.size, col_starts.size, smooth // 2)
+        prof = _end_of_window(prof, med, smooth, var_factor, noise)
     if refine:
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
 
@@ -170,33 +169,32 @@ def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
-def _edge_noise(coarse: np.ndarray, n_rows: int, n_cols: int, h: int) -> np.ndarray:
-    """Sampling standard deviation of the ``eq:background_1`` profile beside each edge.
+def _end_noise(coarse: np.ndarray, n_rows: int, n_cols: int, h: int) -> np.ndarray:
+    """Sampling standard deviation of the ``eq:background_1`` profile before the last bins.
 
     The sampled windows are split into two halves of the grid (top and bottom rows, or
     left and right columns), each gives its own profile (the median of its lowest 10 %)
-    over bins ``[h, 3h]`` from each edge, and the spread of their difference about its
-    median is twice the full profile's (``var(p1 - p2) = 2 var(p_half) = 4 var(p)``).
-    It is a measured, not a modelled, noise: it holds for overlapping windows, any
-    level and any count statistics. Returns ``(2, L)`` (start, end); ``inf`` when the
-    grid cannot be split or the window is too short.
+    over the bins ``[T - 1 - 3h, T - 1 - h]``, and the spread of their difference about
+    its median is twice the full profile's (``var(p1 - p2) = 2 var(p_half) = 4
+    var(p)``). A measured, not a modelled, noise: it holds for overlapping windows, any
+    level and any count statistics. Returns ``(L,)``; ``inf`` when the grid cannot be
+    split or the window is too short.
     """
     n, L, T = coarse.shape
-    out = np.full((2, L), np.inf)
     if T < 4 * h + 1 or h < 1 or max(n_rows, n_cols) < 2:
-        return out
+        return np.full(L, np.inf)
     grid = coarse.reshape(n_rows, n_cols, L, T)
     if n_rows >= 2:
         halves = (grid[: n_rows // 2], grid[n_rows // 2 :])
     else:
         halves = (grid[:, : n_cols // 2], grid[:, n_cols // 2 :])
-    cols = np.concatenate([np.arange(h, 3 * h + 1), np.arange(T - 1 - 3 * h, T - h)])
+    cols = np.arange(T - 1 - 3 * h, T - h)
     prof = []
     for half in halves:
         x = np.ascontiguousarray(half[..., cols].reshape(-1, L * cols.size))
         m = max(1, int(np.ceil(LOW_FRACTION * x.shape[0])))
         prof.append(_low_median(x, m).reshape(L, cols.size).astype(np.float64))
-    d = (prof[0] - prof[1]).reshape(L, 2, -1).transpose(1, 0, 2)  # (edge, L, bins)
+    d = prof[0] - prof[1]
     dev = d - np.median(d, axis=-1, keepdims=True)
     return 0.5 * np.sqrt(np.mean(dev**2, axis=-1))
 
@@ -204,83 +202,62 @@ def _edge_noise(coarse: np.ndarray, n_rows: int, n_cols: int, h: int) -> np.ndar
 def _end_of_window(
     raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray, noise
 ) -> np.ndarray:
-    """The running median's last ``smooth // 2`` bins: the start's rule
-    (:func:`_start_of_window`) with time reversed.
+    """The running median's last ``h = smooth // 2`` bins, where a rise is a return cut by
+    the window's end rather than a background rising to it.
 
-    ``mode="nearest"`` repeats the last bin: when the returns of most pixels sit within
-    a FWHM of the window's end (more than the 90 % ``eq:background_1`` tolerates), the
-    repeats fill the window and the returns stay in the profile (``detect`` then found 7
-    of 100 such returns: ``benchmarks/bench_foreign_cubes.py --window-end``). A
-    background that rises to the end looks the same in the last bins; it goes on rising
-    before them, a return does not.
-    """
-    rev = _start_of_window(raw[:, ::-1], med[:, ::-1], smooth, var_factor, noise, side="end")
-    return np.ascontiguousarray(rev[:, ::-1])
-
-
-def _start_of_window(
-    raw: np.ndarray,
-    med: np.ndarray,
-    smooth: int,
-    var_factor: np.ndarray,
-    noise,
-    *,
-    side="start",
-) -> np.ndarray:
-    """The running median's first ``h = smooth // 2`` bins, where the start's excess is a
-    return cut by the window rather than a background falling from bin 0.
-
-    With ``mode="nearest"`` the first bins' windows hold ``h - t`` copies of bin 0: when
-    the returns of most pixels lie within about a FWHM of bin 0 (more than the 90 %
-    ``eq:background_1`` tolerates) they stay in the profile and ``detect`` found 28-30 %
-    of them (``benchmarks/bench_foreign_cubes.py --window-end 0 3``). A background that
-    decays from bin 0 (pile-up, a gate's opening, backscatter) gives the same first bins,
-    so the lower of the running median and the first full window's median (which
-    removes a return there) would take a decay for returns. What tells them apart
-    is what follows: the matched filter's response to a return spans ``wh`` bins either
-    side of it (``irf_halfwidth``, ``smooth = 4 wh + 1``), so a return at depth ``<= wh``
-    adds nothing beyond bin ``h = 2 wh``, and a background that falls from bin 0 goes on
-    falling there. With ``A`` and ``B`` the medians of the raw profile over ``[h, 2h]`` and
-    ``[2h, 3h]`` (about its values at ``1.5 h`` and ``2.5 h``), the start's excess
-    ``E = med_0 - A`` and the next fall ``F = A - B`` of a decay ``c + a exp(-t / s)``
-    (any floor ``c``) have the ratio ``E / F = (1 - e^{-1.5 h / s}) / (e^{-1.5 h / s} -
-    e^{-2.5 h / s})``, which grows as ``s`` shrinks, without bound for a return. The start
-    is taken for returns when ``E`` exceeds that ratio at ``s = wh`` (about 22) times an
-    upper bound of ``F`` (the measured fall plus 3 standard deviations of ``A - B``, from
-    the profile's sampling noise ``noise``, :func:`_edge_noise`), i.e. the profile falls
-    faster than a decay over the matched filter's own half-width (a background that
-    fast cannot be told from a return, and the running median removes a bump that
-    narrow in the window's middle), and when ``E`` is more than 3 standard deviations of
-    one coarsest-box value at the start's level (``sqrt(med_0 var_factor)``). Its first
+    With ``mode="nearest"`` the last bins' windows hold copies of bin ``T - 1``: when the
+    returns of most pixels lie within about a FWHM of the window's end (more than the
+    90 % ``eq:background_1`` tolerates) they stay in the profile, and ``detect`` found 7
+    % of them (``benchmarks/bench_foreign_cubes.py --window-end 296 299 --pulse 3 0``). A
+    background rising to the end gives the same last bins; what tells them apart is what
+    comes before: the matched filter's response to a return spans ``wh`` bins either
+    side of it (``irf_halfwidth``, ``smooth = 4 wh + 1``), so a return within ``wh`` of
+    the end adds nothing before bin ``T - 1 - h`` (``h = 2 wh``), and a rising background
+    rises there too. Counting bins back from the end, with ``A`` and ``B`` the medians of
+    the raw profile over ``[h, 2h]`` and ``[2h, 3h]`` (about its values at ``1.5 h`` and
+    ``2.5 h``), the end's excess ``E = med_{T-1} - A`` and the rise before it ``F = A -
+    B`` of ``c + a exp(-t / s)`` (any floor ``c``) have the ratio ``E / F = (1 -
+    e^{-1.5 h / s}) / (e^{-1.5 h / s} - e^{-2.5 h / s})``, which grows as ``s`` shrinks,
+    without bound for a return. The end is taken for returns when ``E`` exceeds that
+    ratio at ``s = wh`` (about 22) times an upper bound of ``F`` (the measured rise plus
+    3 standard deviations of ``A - B``, from the profile's sampling noise ``noise``,
+    :func:`_end_noise`), and when ``E`` is more than 3 standard deviations of one
+    coarsest-box value at the end's level (``sqrt(med_{T-1} var_factor)``). The last
     ``h`` bins then keep the lower of the running median and the background's linear
-    trend from ``A`` and ``B``. Otherwise (a decay, pile-up slower than ``wh``, noise) the
-    ``nearest`` values stay.
+    trend from ``A`` and ``B``; otherwise (a rise, noise) the ``nearest`` values stay.
+
+    The window's start is not treated so, although the same test finds its returns
+    (``benchmarks/README.md``, "start24"): a background that falls from bin 0 faster than
+    over ``wh`` bins (pile-up or a gate's opening over about a FWHM) cannot be told from
+    returns there, and the test would take it for one return in every pixel. The start
+    keeps ``nearest``: such backgrounds are common at the start of gated sensors' windows.
     """
     T = raw.shape[-1]
     h = smooth // 2
     if h < 2 or T < 4 * h + 1:
         return med
-    a = np.median(raw[:, h : 2 * h + 1], axis=-1)
-    b = np.median(raw[:, 2 * h : 3 * h + 1], axis=-1)
-    excess, fall = med[:, 0] - a, a - b
-    # E / F of a decay over s = wh = h / 2 (about 22): 1.5 h / s = 3, 2.5 h / s = 5
+    rev_raw, rev_med = raw[:, ::-1], med[:, ::-1]
+    a = np.median(rev_raw[:, h : 2 * h + 1], axis=-1)
+    b = np.median(rev_raw[:, 2 * h : 3 * h + 1], axis=-1)
+    excess, rise = rev_med[:, 0] - a, a - b
+    # E / F of c + a exp(-t / s) at s = wh = h / 2 (about 22): 1.5 h / s = 3, 2.5 h / s = 5
     ratio = -np.expm1(-3.0) / (np.exp(-3.0) - np.exp(-5.0))
-    sigma = np.sqrt(np.maximum(med[:, 0], 0.0) * np.asarray(var_factor, np.float64))
-    # the fall's upper bound: 3 standard deviations of A - B above the measured fall
+    sigma = np.sqrt(np.maximum(rev_med[:, 0], 0.0) * np.asarray(var_factor, np.float64))
+    # the rise's upper bound: 3 standard deviations of A - B above the measured rise
     # (A and B each taken as noisy as one bin of the profile: sqrt(2) noise)
-    upper = np.maximum(fall, 0.0) + 3.0 * np.sqrt(2.0) * np.asarray(noise, np.float64)
+    upper = np.maximum(rise, 0.0) + 3.0 * np.sqrt(2.0) * np.asarray(noise, np.float64)
     cut = (a > 0) & (excess > ratio * upper) & (excess > 3.0 * sigma)
     if not cut.any():
         return med
     logger.info(
-        "background: %d bins' excess at the edge (%.3g x the level after them) taken for "
-        "returns cut by the window's %s, wavelengths %s",
-        h, float(np.max(excess[cut] / a[cut])), side, np.flatnonzero(cut).tolist(),
+        "background: the last %d bins' excess (%.3g x the level before them) taken for "
+        "returns cut by the window's end, wavelengths %s",
+        h, float(np.max(excess[cut] / a[cut])), np.flatnonzero(cut).tolist(),
     )  # fmt: skip
     out = med.copy()
-    t = np.arange(h, dtype=np.float64)
-    trend = np.maximum(a[:, None] + fall[:, None] * (1.5 * h - t[None, :]) / h, 0.0)
-    out[cut, :h] = np.minimum(med[cut, :h], trend[cut])
+    t = np.arange(h, dtype=np.float64)[::-1]  # bins T - h .. T - 1, counted from the end
+    trend = np.maximum(a[:, None] + rise[:, None] * (1.5 * h - t[None, :]) / h, 0.0)
+    out[cut, T - h :] = np.minimum(med[cut, T - h :], trend[cut])
     return out
 
 
