@@ -4,7 +4,11 @@ Background-only cubes (96 x 80 x 200 by default, Gaussian IRF FWHM 3 bins) with 
 per-bin mean of several shapes: ``uniform``, ``decaying`` (``exp(-3 t / T)``, the
 simulator's), ``rise`` (``exp(3 t / T)``), ``bump`` (0.3 + a Gaussian of 0.15 T in the
 middle), ``ends`` (0.3 + Gaussians of 0.1 T at both ends) and ``pileup`` (the
-simulator's). For each, :func:`~splidar.detection._1_background.estimate_temporal_background`
+simulator's); and ``start-returns`` / ``end-returns``: a uniform background with a
+return in every pixel (as many signal photons as background ones, SBR 1; depths uniform
+within 3 bins of the first / last bin, more pixels than the 90 % ``eq:background_1``
+tolerates), whose background is the uniform one. For each,
+:func:`~splidar.detection._1_background.estimate_temporal_background`
 (box 11) is compared with the matched filter of the true mean (what the filtered counts
 have as mean in every bin, mirrored edges included): the error in per cent of that mean
 and in standard deviations of one coarsest-box value (``sqrt(mean sum g^2 / 121)``),
@@ -49,9 +53,25 @@ def shapes(T: int) -> dict[str, np.ndarray]:
     return {k: v / v.mean() for k, v in out.items()}
 
 
-def measure(shape, level, n_cubes, size, T):
+#: Shapes with a return in every pixel: depths (bins from the first bin, or from the last)
+RETURNS = {"start-returns": (0.0, 3.0, False), "end-returns": (0.0, 3.0, True)}
+
+
+def _returns(size, T, level, spec, rng):
+    """Expected counts of a return in every pixel (Gaussian FWHM 3 bins, ``level x T``
+    photons: SBR 1), depths uniform in ``spec``'s range from the first or last bin."""
+    lo, hi, from_end = spec
+    d = lo + (hi - lo) * rng.random(size)
+    d = T - 1 - d if from_end else d
+    t = np.arange(T)
+    p = np.exp(-0.5 * ((t - d[..., None]) / (3.0 / 2.3548)) ** 2)
+    return (level * T * p / p.sum(axis=-1, keepdims=True))[:, :, None, :]
+
+
+def measure(shape, level, n_cubes, size, T, returns=None):
     """Mean and standard error over ``n_cubes`` of the shape's error at the first 3, the
-    last 3 and the middle 20 bins: per cent of the mean, and coarse-value sigmas."""
+    last 3 and the middle 20 bins: per cent of the mean, and coarse-value sigmas.
+    ``returns``: a :data:`RETURNS` entry added to every pixel (not in the target)."""
     g = np.asarray(gaussian_irf(3.0), np.float64)[None]
     corr = Correlator(g, T)
     mean = level * shape
@@ -60,7 +80,11 @@ def measure(shape, level, n_cubes, size, T):
     parts = (slice(0, 3), slice(T - 3, T), slice(T // 2 - 10, T // 2 + 10))
     rel, sig = [], []
     for seed in range(n_cubes):
-        counts = np.random.default_rng(seed).poisson(np.broadcast_to(mean, (*size, 1, T)))
+        rng = np.random.default_rng(seed)
+        lam = np.broadcast_to(mean, (*size, 1, T))
+        if returns is not None:
+            lam = lam + _returns(size, T, level, returns, np.random.default_rng(1000 + seed))
+        counts = rng.poisson(lam)
         est = estimate_temporal_background(counts, corr, g, box=BOX, n_jobs=1).temporal[0]
         err = est.astype(np.float64) - target
         rel.append([100 * err[p].mean() / target[p].mean() for p in parts])
@@ -80,20 +104,23 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     T = args.bins
     all_shapes = shapes(T)
-    names = args.shapes or list(all_shapes)
+    names = args.shapes or list(all_shapes) + list(RETURNS)
     print(
         f"stage 1's shape less the filtered true mean, {args.size[0]} x {args.size[1]} x {T}, "
         f"{args.cubes} cubes per row; per cent (sigmas of one coarsest-box value), +- se"
     )
     head = " | ".join(f"{h:>24s}" for h in ("first 3 bins", "last 3 bins", "middle"))
-    print(f"{'shape':9s} {'bg/bin':>6s} | {head}")
+    print(f"{'shape':13s} {'bg/bin':>6s} | {head}")
     for name in names:
         for level in args.levels:
-            rel, rse, sig, sse = measure(all_shapes[name], level, args.cubes, tuple(args.size), T)
+            shape = all_shapes.get(name, all_shapes["uniform"])
+            rel, rse, sig, sse = measure(
+                shape, level, args.cubes, tuple(args.size), T, RETURNS.get(name)
+            )
             cells = [
                 f"{rel[i]:+6.1f}+-{rse[i]:3.1f} ({sig[i]:+5.2f}+-{sse[i]:4.2f})" for i in range(3)
             ]
-            print(f"{name:9s} {level:6.3f} | " + " | ".join(cells), flush=True)
+            print(f"{name:13s} {level:6.3f} | " + " | ".join(cells), flush=True)
     return 0
 
 

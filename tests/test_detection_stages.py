@@ -99,6 +99,38 @@ def test_estimate_temporal_background_returns_at_the_window_end_are_not_backgrou
     assert found.mean() > 0.9  # 0.07 with the edge values repeated
 
 
+@pytest.mark.parametrize("shape", ["pileup", "decaying"])
+def test_estimate_temporal_background_a_decay_from_the_window_start_is_background(shape):
+    # background alone, falling from bin 0: pile-up (0.05 + exp(-t / 6.7 bins), an
+    # e-folding scale just above the matched filter's half-width of 6 bins) and the
+    # 20-fold decay. The start must keep them: the first 3 bins within 15 % of the matched
+    # filter of the true mean (-5 % and -3 %; the end's rule applied at the start, with
+    # the lower of the running median and the first full window's median, puts the
+    # pile-up's first bins 8 x too low).
+    from splidar.simulation import background_shape
+
+    T = 200
+    mean = 0.08 * background_shape(shape, T)
+    counts = np.random.default_rng(2).poisson(np.broadcast_to(mean, (96, 80, 1, T)))
+    irf, bg, _ = _setup(counts, gaussian_irf(3.0))
+    target = Correlator(irf, T)(mean[None, None].astype(np.float32))[0, 0]
+    np.testing.assert_allclose(bg.temporal[0, :3], target[:3], rtol=0.15)
+
+
+def test_estimate_temporal_background_a_rise_to_the_window_end_is_background():
+    # background alone rising 20-fold to the end (exp(3 t / T), 0.5 photons a bin on
+    # average): it goes on rising before the last bins, a return cut by the end does
+    # not, so the end's rule keeps it. Session 16's rule (the lower of the running
+    # median and the last full window's median) put the last 3 bins 15 % low.
+    T = 200
+    mean = np.exp(3.0 * np.arange(T) / T)
+    mean *= 0.5 / mean.mean()
+    counts = np.random.default_rng(4).poisson(np.broadcast_to(mean, (96, 80, 1, T)))
+    irf, bg, _ = _setup(counts, gaussian_irf(3.0))
+    target = Correlator(irf, T)(mean[None, None].astype(np.float32))[0, 0]
+    np.testing.assert_allclose(bg.temporal[0, -3:], target[-3:], rtol=0.06)
+
+
 def _low_median_truth(levels, rate, irf, k, reps, rng):
     """Mean over ``reps`` simulated coarse cubes of stage 1's estimator (the median of the
     lowest 10 %), less the mean rate: the exact window sums of Poisson counts (a sum of

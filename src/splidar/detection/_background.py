@@ -7,6 +7,7 @@ estimate from the correlated cube.
 
 from __future__ import annotations
 
+import logging
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -15,6 +16,8 @@ from scipy import ndimage, signal, special
 from ._fast import low_median as _low_median_kernel
 from ._fast import window_means
 from ._filters import Correlator
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
 
@@ -90,12 +93,12 @@ def temporal_shape(
 
     _on_threads(select_part, np.arange(L * T), workers)
     prof = prof.reshape(L, T).astype(np.float64)
+    var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
     if smooth > 1:
-        prof = _end_of_window(
-            prof, ndimage.median_filter(prof, size=(1, smooth), mode="nearest"), smooth
-        )
+        med = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
+        noise = _end_noise(coarse, row_starts.size, col_starts.size, smooth // 2)
+        prof = _end_of_window(prof, med, smooth, var_factor, noise)
     if refine:
-        var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
         skew_factor = (corr.irf**3).sum(axis=1) / (kr * kc) ** 2
 
         def one(l):
@@ -166,26 +169,95 @@ def _low_median(x: np.ndarray, m: int, cols: slice | None = None) -> np.ndarray:
     return (part[k1] + part[k2]) / x.dtype.type(2)
 
 
-def _end_of_window(raw: np.ndarray, med: np.ndarray, smooth: int) -> np.ndarray:
-    """The running median's last ``smooth // 2`` bins, without the edge's repeated values.
+def _end_noise(coarse: np.ndarray, n_rows: int, n_cols: int, h: int) -> np.ndarray:
+    """Sampling standard deviation of the ``eq:background_1`` profile before the last bins.
 
-    ``mode="nearest"`` repeats the last bin: when the returns of most pixels sit within
-    a FWHM of the window's end (more than the 90 % ``eq:background_1`` tolerates), the
-    repeats fill the window and the returns stay in the profile (``detect`` then found 7
-    of 100 such returns: ``benchmarks/bench_foreign_cubes.py --window-end``). There the
-    median of the last full window (``smooth`` bins inside the range) is the
-    background's: a bump narrower than half of it is removed as in the window's middle.
-    The lower of the two is kept, so a profile that falls to the end (a decay, pile-up)
-    keeps its ``nearest`` values. The start is left as it is: a background decaying
-    from the first bin looks like a return cut by the window there.
+    The sampled windows are split into two halves of the grid (top and bottom rows, or
+    left and right columns), each gives its own profile (the median of its lowest 10 %)
+    over the bins ``[T - 1 - 3h, T - 1 - h]``, and the spread of their difference about
+    its median is twice the full profile's (``var(p1 - p2) = 2 var(p_half) = 4
+    var(p)``). A measured, not a modelled, noise: it holds for overlapping windows, any
+    level and any count statistics. Returns ``(L,)``; ``inf`` when the grid cannot be
+    split or the window is too short.
+    """
+    n, L, T = coarse.shape
+    if T < 4 * h + 1 or h < 1 or max(n_rows, n_cols) < 2:
+        return np.full(L, np.inf)
+    grid = coarse.reshape(n_rows, n_cols, L, T)
+    if n_rows >= 2:
+        halves = (grid[: n_rows // 2], grid[n_rows // 2 :])
+    else:
+        halves = (grid[:, : n_cols // 2], grid[:, n_cols // 2 :])
+    cols = np.arange(T - 1 - 3 * h, T - h)
+    prof = []
+    for half in halves:
+        x = np.ascontiguousarray(half[..., cols].reshape(-1, L * cols.size))
+        m = max(1, int(np.ceil(LOW_FRACTION * x.shape[0])))
+        prof.append(_low_median(x, m).reshape(L, cols.size).astype(np.float64))
+    d = prof[0] - prof[1]
+    dev = d - np.median(d, axis=-1, keepdims=True)
+    return 0.5 * np.sqrt(np.mean(dev**2, axis=-1))
+
+
+def _end_of_window(
+    raw: np.ndarray, med: np.ndarray, smooth: int, var_factor: np.ndarray, noise
+) -> np.ndarray:
+    """The running median's last ``h = smooth // 2`` bins, where a rise is a return cut by
+    the window's end rather than a background rising to it.
+
+    With ``mode="nearest"`` the last bins' windows hold copies of bin ``T - 1``: when the
+    returns of most pixels lie within about a FWHM of the window's end (more than the
+    90 % ``eq:background_1`` tolerates) they stay in the profile, and ``detect`` found 7
+    % of them (``benchmarks/bench_foreign_cubes.py --window-end 296 299 --pulse 3 0``). A
+    background rising to the end gives the same last bins; what tells them apart is what
+    comes before: the matched filter's response to a return spans ``wh`` bins either
+    side of it (``irf_halfwidth``, ``smooth = 4 wh + 1``), so a return within ``wh`` of
+    the end adds nothing before bin ``T - 1 - h`` (``h = 2 wh``), and a rising background
+    rises there too. Counting bins back from the end, with ``A`` and ``B`` the medians of
+    the raw profile over ``[h, 2h]`` and ``[2h, 3h]`` (about its values at ``1.5 h`` and
+    ``2.5 h``), the end's excess ``E = med_{T-1} - A`` and the rise before it ``F = A -
+    B`` of ``c + a exp(-t / s)`` (any floor ``c``) have the ratio ``E / F = (1 -
+    e^{-1.5 h / s}) / (e^{-1.5 h / s} - e^{-2.5 h / s})``, which grows as ``s`` shrinks,
+    without bound for a return. The end is taken for returns when ``E`` exceeds that
+    ratio at ``s = wh`` (about 22) times an upper bound of ``F`` (the measured rise plus
+    3 standard deviations of ``A - B``, from the profile's sampling noise ``noise``,
+    :func:`_end_noise`), and when ``E`` is more than 3 standard deviations of one
+    coarsest-box value at the end's level (``sqrt(med_{T-1} var_factor)``). The last
+    ``h`` bins then keep the lower of the running median and the background's linear
+    trend from ``A`` and ``B``; otherwise (a rise, noise) the ``nearest`` values stay.
+
+    The window's start is not treated so, although the same test finds its returns
+    (``benchmarks/README.md``, "start24"): a background that falls from bin 0 faster than
+    over ``wh`` bins (pile-up or a gate's opening over about a FWHM) cannot be told from
+    returns there, and the test would take it for one return in every pixel. The start
+    keeps ``nearest``: such backgrounds are common at the start of gated sensors' windows.
     """
     T = raw.shape[-1]
     h = smooth // 2
-    if T < smooth or h < 1:
+    if h < 2 or T < 4 * h + 1:
         return med
-    tail = np.median(raw[:, T - smooth :], axis=-1)
+    rev_raw, rev_med = raw[:, ::-1], med[:, ::-1]
+    a = np.median(rev_raw[:, h : 2 * h + 1], axis=-1)
+    b = np.median(rev_raw[:, 2 * h : 3 * h + 1], axis=-1)
+    excess, rise = rev_med[:, 0] - a, a - b
+    # E / F of c + a exp(-t / s) at s = wh = h / 2 (about 22): 1.5 h / s = 3, 2.5 h / s = 5
+    ratio = -np.expm1(-3.0) / (np.exp(-3.0) - np.exp(-5.0))
+    sigma = np.sqrt(np.maximum(rev_med[:, 0], 0.0) * np.asarray(var_factor, np.float64))
+    # the rise's upper bound: 3 standard deviations of A - B above the measured rise
+    # (A and B each taken as noisy as one bin of the profile: sqrt(2) noise)
+    upper = np.maximum(rise, 0.0) + 3.0 * np.sqrt(2.0) * np.asarray(noise, np.float64)
+    cut = (a > 0) & (excess > ratio * upper) & (excess > 3.0 * sigma)
+    if not cut.any():
+        return med
+    logger.info(
+        "background: the last %d bins' excess (%.3g x the level before them) taken for "
+        "returns cut by the window's end, wavelengths %s",
+        h, float(np.max(excess[cut] / a[cut])), np.flatnonzero(cut).tolist(),
+    )  # fmt: skip
     out = med.copy()
-    out[:, T - h :] = np.minimum(med[:, T - h :], tail[:, None])
+    t = np.arange(h, dtype=np.float64)[::-1]  # bins T - h .. T - 1, counted from the end
+    trend = np.maximum(a[:, None] + rise[:, None] * (1.5 * h - t[None, :]) / h, 0.0)
+    out[cut, T - h :] = np.minimum(med[cut, T - h :], trend[cut])
     return out
 
 
