@@ -92,6 +92,10 @@ def test_detect_auto_scales_is_the_chosen_scales_result():
     cube = _cube(_independent(1))
     auto = detect(cube, rng=0)
     assert auto.scales == (1,)
+    # the measured coherence is recorded: the dropped boxes' rho below 1 / (k + 1)
+    rho = auto.options["scale_coherence"]
+    assert auto.options["scales_auto"] and rho[0] is None and len(rho) == 4
+    assert all(r < 1 / (k + 1) for r, k in zip(rho[1:], (3, 7, 11), strict=True))
     fixed = detect(cube, scales=(1,), rng=0)
     assert np.array_equal(auto.points.depth_bin, fixed.points.depth_bin)
     rr, cc = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
@@ -107,6 +111,7 @@ def test_detect_auto_scales_with_weights_keeps_the_four_scales():
     cube = _cube(_independent(1))
     det = detect(cube, weights=(0.25, 0.25, 0.25, 0.25), rng=0)
     assert det.scales == (1, 3, 7, 11)
+    assert not det.options["scales_auto"] and det.options["scale_coherence"] is None
 
 
 def test_variance_weights_are_the_filters_squared_sensitivities():

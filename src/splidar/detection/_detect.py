@@ -331,6 +331,8 @@ def _coherent_scales(counts, filters, o: dict) -> bool:
     depths (:func:`coherent_scales`); ``o``'s scales and weights updated. True when a
     scale was dropped."""
     coh = coherent_scales(counts, filters)
+    # recorded in Detection.options: why the boxes were kept or dropped
+    o["scale_coherence"] = tuple(None if np.isnan(r) else round(float(r), 4) for r in coh.rho)
     logger.info(
         "detect: spatial coherence rho %s of boxes %s (energy z %.1f, %d pixels): scales %s",
         np.round(coh.rho, 3).tolist(), coh.scales.tolist(), coh.energy_z, coh.pixels,
@@ -633,6 +635,9 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             n_aligned=rec["align_depths"].moved,
             hot_pixels=o["hot_pixels"],
             passes=passes,
+            # scales="auto": each candidate box's measured coherence rho (None for 1)
+            scales_auto=o["auto_scales"],
+            scale_coherence=o.get("scale_coherence"),
         )
     )
     red = mp.reduction
