@@ -24,18 +24,12 @@ _EXTRA = "pip install 'splidar[distributed]'"
 #: the event loops' health tick and system monitor less often. Idle, Dask's three
 #: processes of a 2-worker cluster then take 0.02-0.03 s of CPU per second in all
 #: instead of 0.09 (``benchmarks/README.md``, "Branch dist20"): CPU that a long run
-#: pays per second of wall time, whatever its tasks do. The workers also start without
-#: Dask's ``MALLOC_TRIM_THRESHOLD_=65536`` (its nannies' default environment): set, it
-#: turns off glibc's adaptive thresholds, so every freed block above 64 kB goes back to
-#: the system and the next array of that size faults in fresh zeroed pages; the workers
-#: then spent about 15 % more CPU on the same tasks (``benchmarks/README.md``, "Branch
-#: dist24"). A value set in the environment is kept. A ``--scheduler`` cluster keeps its
-#: own settings.
+#: pays per second of wall time, whatever its tasks do. A ``--scheduler`` cluster keeps
+#: its own settings.
 CLUSTER_CONFIG = {
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "500ms",
     "distributed.admin.system-monitor.interval": "2s",
-    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
 }
 
 
