@@ -81,21 +81,37 @@ class _Threads:
         return out
 
 
+def _children_cpu() -> float:
+    """CPU seconds of this process's child processes (the LocalCluster's workers)."""
+    import psutil
+
+    out = 0.0
+    for c in psutil.Process().children(recursive=True):
+        try:
+            t = c.cpu_times()
+            out += t.user + t.system
+        except psutil.Error:
+            pass
+    return out
+
+
 def _timed_steps(record: collections.Counter):
     """Wrap ``_detect``'s steps and ``reconstruction.reconstruct`` (for this measurement
-    only) so that each adds its main-thread and process CPU seconds to ``record``."""
+    only) so that each adds its main-thread, process and workers' (the child processes')
+    CPU seconds to ``record``."""
 
     def wrap(mod, name):
         fn = getattr(mod, name)
 
         @functools.wraps(fn)
         def timed(*a, **k):
-            c, p = time.thread_time(), time.process_time()
+            c, p, w = time.thread_time(), time.process_time(), _children_cpu()
             try:
                 return fn(*a, **k)
             finally:
                 record[name] += time.thread_time() - c
                 record[name + " (process)"] += time.process_time() - p
+                record[name + " (workers)"] += _children_cpu() - w
 
         setattr(mod, name, timed)
 
@@ -141,9 +157,10 @@ def main(argv=None) -> int:
     print("calling process, CPU seconds by thread (from the cluster's start):")
     for k, v in threads.by_name(before).most_common():
         print(f"  {v:7.1f}  {k}")
-    print("main thread / whole process CPU seconds, by step:")
+    print("main thread / whole process / workers' CPU seconds, by step:")
     for k in (*STEPS, "reconstruct"):
-        print(f"  {record[k]:7.2f} / {record[k + ' (process)']:7.2f}  {k}")
+        w = record[k + " (workers)"]
+        print(f"  {record[k]:7.2f} / {record[k + ' (process)']:7.2f} / {w:7.2f}  {k}")
     return 0
 
 
