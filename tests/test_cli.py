@@ -432,3 +432,25 @@ def test_main_run_skip_passes_the_other_passes(simulated, tmp_path, monkeypatch,
     capsys.readouterr()
     assert main(["run", str(cube), "--skip", "dark", "--out", str(tmp_path / "x")]) == 2
     assert "--skip" in capsys.readouterr().err
+
+
+def test_run_says_which_boxes_scales_auto_dropped(tmp_path, capsys):
+    # independent depths per pixel: scales="auto" keeps the 1 x 1 box only, and the run
+    # says so (with the option that keeps every box); a smooth scene prints no such line
+    rng = np.random.default_rng(0)
+    n, T = 24, 200
+    t = np.arange(T)
+    depth = rng.uniform(40, 180, (n, n))
+    lam = 12 * np.exp(-0.5 * ((t - depth[..., None]) / 1.5) ** 2) / (1.5 * np.sqrt(2 * np.pi))
+    y = rng.poisson(lam + 0.06).astype(np.uint16)[:, :, None, :]
+    irf = np.exp(-0.5 * ((np.arange(31) - 15) / 1.5) ** 2)
+    path = tmp_path / "incoherent.npz"
+    np.savez(path, counts=y, irf=(irf / irf.sum())[None])
+    out = tmp_path / "out"
+    assert main(["run", str(path), "--out", str(out), "--no-figures", "--no-view"]) == 0
+    said = capsys.readouterr().out
+    assert "spatial pooling: boxes 1; 3, 7, 11 dropped" in said
+    assert "--scales 1,3,7,11" in said
+    assert main(["run", str(path), "--out", str(out), "--force", "--no-figures",
+                 "--no-view", "--scales", "1,3,7,11"]) == 0  # fmt: skip
+    assert "spatial pooling" not in capsys.readouterr().out

@@ -1054,6 +1054,22 @@ def _check_reconstruct_memory(det, library) -> None:
     )
 
 
+def _scales_line(det) -> tuple[str, ...]:
+    """A line when ``scales="auto"`` dropped boxes (none otherwise)."""
+    opts = det.options or {}
+    rho = opts.get("scale_coherence")
+    if not opts.get("scales_auto") or rho is None or len(det.scales) == len(rho):
+        return ()
+    from .detection._detect import AUTO_SCALES
+
+    dropped = [k for k in AUTO_SCALES if k not in det.scales]
+    kept = ",".join(str(k) for k in det.scales)
+    return (
+        f"spatial pooling: boxes {kept}; {', '.join(map(str, dropped))} dropped (their "
+        "neighbours do not share the pixels' depths; --scales 1,3,7,11 keeps them)",
+    )
+
+
 def _timing_line(det, rec) -> str:
     td = (det.timings or {}).get("total")
     tr = (rec.timings or {}).get("total")
@@ -1177,6 +1193,7 @@ def _cmd_run(args) -> int:
         f"{inp}: {c.n_rows} x {c.n_cols} pixels, {c.n_wavelengths} wavelength(s), {c.n_bins} bins",
         f"{len(det.surfaces)} surfaces in {int(det.surfaces.n_slots)} layer(s); "
         f"{100 * det.reduction.voxel_fraction:.3g} % of voxels kept",
+        *_scales_line(det),
         _timing_line(det, rec),
         f"outputs written to {out}/",
     )
