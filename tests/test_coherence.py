@@ -66,6 +66,19 @@ def test_coherent_scales_rho_of_2x2_patches_is_the_shared_fraction():
     assert coh.kept.tolist() == [True, True, False, False]
 
 
+def test_coherent_scales_drops_every_box_above_a_dropped_one():
+    # 3/4 of the columns independent per pixel, 1/4 a plane: the 7 and 11 boxes pass their
+    # own (lower) break-even on the average alone, but not the 3 x 3 box; a set with a gap
+    # ((1, 7, 11)) lost on both parts in bench_coherence-style scenes, so all go
+    from splidar.detection._2_saliency import COHERENCE_Z
+
+    depth = 30 + np.add.outer(np.arange(N), np.arange(N)) // 2
+    depth[:, : 3 * N // 4] = _independent(1)[:, : 3 * N // 4]
+    coh = _coherence(_cube(depth))
+    assert coh.z[1] < -COHERENCE_Z and coh.z[2] > -COHERENCE_Z and coh.z[3] > -COHERENCE_Z
+    assert coh.kept.tolist() == [True, False, False, False]
+
+
 def test_coherent_scales_keeps_every_box_without_signal():
     coh = _coherence(_cube(np.full((N, N), 60), photons=0.0, background=0.5))
     assert abs(coh.energy_z) < 3

@@ -205,9 +205,10 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
     ``m_k = (1 + (k^2 - 1) rho_k) / k^2`` of the own return at its depth with ``1 / k``
     of the own pixel's noise: it raises the signal-to-noise ratio at the own depth when
     ``k m_k >= 1``, i.e. ``rho_k >= 1 / (k + 1)``. A box whose ``rho_k`` is below that by
-    more than :data:`COHERENCE_Z` standard errors (from the per-pixel terms) is dropped;
-    none is when ``E`` itself is not that significant. Measured on the pixels at least
-    ``max k // 2`` from the image border (no reflected self), in tiles
+    more than :data:`COHERENCE_Z` standard errors (from the per-pixel terms) is dropped,
+    and with it every larger box; none is when ``E`` itself is not that significant.
+    Measured on the pixels at least ``max k // 2`` from the image border (no reflected
+    self), in tiles
     (:data:`COHERENCE_VOXELS`); deterministic (no rng).
 
     Parameters
@@ -260,6 +261,12 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
         d = a_p[q] - e_p / (scales[q] + 1)
         z[q] = float(d.sum()) / max(float(np.sqrt((d**2).sum())), 1e-300)
         kept[q] = not (ez >= COHERENCE_Z and z[q] < -COHERENCE_Z)
+    # nested: a box above a dropped one goes too. Its ring lies farther out; it passes
+    # only by its lower break-even on a mixed scene's average, and a set with a gap
+    # blurs more than it gains (3/4 of a scene incoherent: (1, 7, 11) lost F_true on
+    # both parts and had 1.2-1.5x the false surfaces of (1, 3, 7, 11) in every cell;
+    # benchmarks/README.md, "Spatially incoherent scenes")
+    kept = np.logical_and.accumulate(kept)
     return Coherence(scales, kept, rho, z, float(ez), int(e_p.size))
 
 
