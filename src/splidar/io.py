@@ -915,8 +915,7 @@ def _half_max_bounds(h: np.ndarray, var: np.ndarray, k_half: float) -> tuple[flo
     first one after it significantly below (the window's end when none); the half
     level's own noise (the peak's and the floor's) is counted."""
     lag = h.size - 1
-    n_f = max(lag // 4, 1)
-    floor = float(np.median(h[lag - n_f + 1 :]))
+    floor, n_f = _pair_floor(h)
     half = (float(h[0]) - floor) / 2
     # the half level's variance: a quarter of the peak's (lag 0 and the floor's median)
     v_half = (var[0] + (math.pi / 2) * float(np.mean(var[lag - n_f + 1 :])) / n_f) / 4
@@ -932,6 +931,13 @@ def _half_max_bounds(h: np.ndarray, var: np.ndarray, k_half: float) -> tuple[flo
     )
 
 
+def _pair_floor(h: np.ndarray) -> tuple[float, int]:
+    """The pair-lag histogram's floor (the median of its last quarter of lags, the
+    uncorrelated pairs' level) and the number of lags it reads."""
+    n_f = max((h.size - 1) // 4, 1)
+    return float(np.median(h[h.size - n_f :])), n_f
+
+
 def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
     """Half-maximum lag of the pair peak above the floor; None when no peak stands out
     (``z`` floor standard deviations)."""
@@ -941,7 +947,7 @@ def _half_max_lag(h: np.ndarray, z: float = 5.0) -> float | None:
             f"only {int(h.sum())} photon pairs within a pixel: too few to estimate the IRF; "
             "pass irf= (array or file) or irf_fwhm= (Gaussian FWHM in bins)."
         )
-    floor = float(np.median(h[lag - max(lag // 4, 1) + 1 :]))
+    floor, _ = _pair_floor(h)
     peak = float(h[0]) - floor
     if peak <= z * math.sqrt(max(floor, 1.0)):
         return None
