@@ -149,3 +149,110 @@ def test_detect_auto_scales_dask_cube_gives_the_in_memory_result():
     )  # fmt: skip
     assert lazy.scales == mem.scales == (1,)
     assert np.array_equal(lazy.points.depth_bin, mem.points.depth_bin)
+
+
+M = 48  # the mixed scene: the left half independent per pixel, the right half a plane
+
+
+def _half_cube(seed=0):
+    rng = np.random.default_rng(seed)
+    depth = 30 + np.add.outer(np.arange(M), np.arange(M)) // 4
+    depth[:, : M // 2] = rng.integers(15, T - 15, size=(M, M // 2))
+    g = gaussian_irf(3.0)
+    h = g.size // 2
+    lam = np.full((M, M, 1, T), 0.1)
+    for (i, j), d in np.ndenumerate(depth):
+        lam[i, j, 0, d - h : d + h + 1] += 8.0 * g
+    return Cube(rng.poisson(lam).astype(np.uint16), irf=g), depth
+
+
+def _found(det, depth) -> np.ndarray:
+    """(M, M) bool: the pixel's true depth found (within 2 bins)."""
+    from splidar.metrics import match_points
+
+    rr, cc = np.meshgrid(np.arange(M), np.arange(M), indexing="ij")
+    truth = PointSet(
+        row=rr.ravel(), col=cc.ravel(), depth_bin=depth.ravel().astype(float), image_shape=(M, M)
+    )
+    hit = np.zeros(M * M, bool)
+    hit[match_points(det.points, truth, tau=2).true_index] = True
+    return hit.reshape(M, M)
+
+
+def test_region_scales_drops_the_boxes_of_the_incoherent_regions_only():
+    from splidar.detection._2_saliency import region_scales
+
+    cube, _ = _half_cube()
+    irf = cube.irf / cube.irf.sum(axis=1, keepdims=True)
+    corr = Correlator(irf, T)
+    bg = estimate_temporal_background(cube.counts, corr, irf, box=11, n_jobs=1)
+    scales = np.array([1, 3, 7, 11])
+    coh = coherent_scales(cube.counts, saliency_filters(corr, scales, scales / 22, bg.dev, irf))
+    assert coh.kept.all()  # the image as a whole keeps every box (rho_3 about 1/2)
+    reg = region_scales(coh, (M, M))
+    assert reg.sets == (4, 1) and reg.z > 3  # z for 4 regions: sqrt(9 + 2 ln 4)
+    np.testing.assert_array_equal(reg.n_kept[:, : M // 2], 1)
+    np.testing.assert_array_equal(reg.n_kept[:, M // 2 :], 4)
+
+
+def test_detect_auto_scales_by_region_takes_each_regions_boxes():
+    cube, depth = _half_cube()
+    auto = detect(cube, rng=0, n_jobs=1)
+    full = detect(cube, scales=(1, 3, 7, 11), rng=0, n_jobs=1)
+    one = detect(cube, scales=(1,), rng=0, n_jobs=1)
+    rec = auto.options["scale_regions"]
+    assert rec["scales"] == ((1, 3, 7, 11), (1,)) and rec["pixels"] == (M * M // 2, M * M // 2)
+    assert auto.scales == (1, 3, 7, 11)
+    # the incoherent half gains what the 1 x 1 box gives it (0.58 -> 0.86), the plane
+    # keeps the pooled result
+    a, f, o = _found(auto, depth), _found(full, depth), _found(one, depth)
+    assert a[:, : M // 2].mean() > f[:, : M // 2].mean() + 0.2
+    np.testing.assert_array_equal(a[:, : M // 2], o[:, : M // 2])
+    np.testing.assert_array_equal(a[:, M // 2 :], f[:, M // 2 :])
+    # each pixel holds its run's surfaces, maps and threshold
+    for det, side in ((one, slice(0, M // 2)), (full, slice(M // 2, M))):
+        s, t = auto.surfaces, det.surfaces
+        mine, theirs = (s.col >= side.start) & (s.col < side.stop), t.col >= side.start
+        theirs &= t.col < side.stop
+        np.testing.assert_array_equal(s.depth_bin[mine], t.depth_bin[theirs])
+        np.testing.assert_array_equal(
+            s.histograms[mine][:, : len(det.scales)], t.histograms[theirs]
+        )
+        np.testing.assert_array_equal(auto.saliency[:, side], det.saliency[:, side])
+        np.testing.assert_array_equal(auto.mask[:, side], det.mask[:, side])
+        np.testing.assert_array_equal(
+            np.asarray(auto.threshold)[:, side], np.asarray(det.threshold)[:, side]
+        )
+    assert auto.reduction.n_voxels == int(auto.mask.sum())
+    rows, cols = np.array([0, 47, 20, 30]), np.array([0, 47, 30, 20])
+    np.testing.assert_array_equal(
+        auto.threshold.pixels(rows, cols), np.asarray(auto.threshold)[rows, cols]
+    )
+
+
+def test_detect_auto_scales_by_region_same_on_every_path(tmp_path):
+    import dataclasses
+
+    import splidar
+
+    cube, _ = _half_cube()
+    mem = detect(cube, rng=0, n_jobs=1)
+    runs = [detect(cube, rng=0, n_jobs=2), detect(cube, rng=0, n_jobs=1, store=tmp_path / "s")]
+    da = __import__("pytest").importorskip("dask.array")
+    lazy = Cube(da.from_array(np.asarray(cube.counts), chunks=(16, 16, 1, T)), irf=cube.irf)
+    runs.append(detect(lazy, rng=0, n_jobs=1))
+    for other in runs:
+        for f in dataclasses.fields(mem.surfaces):
+            x, y = getattr(mem.surfaces, f.name), getattr(other.surfaces, f.name)
+            assert np.array_equal(np.asarray(x), np.asarray(y)), f.name
+        for name in ("saliency", "mask", "threshold"):
+            x, y = np.asarray(getattr(mem, name)), np.asarray(getattr(other, name)[:])
+            np.testing.assert_array_equal(x, y, err_msg=name)
+        np.testing.assert_array_equal(mem.background.spatial, other.background.spatial)
+        assert other.reduction == mem.reduction
+        assert other.options["scale_regions"]["pixels"] == mem.options["scale_regions"]["pixels"]
+    # the smaller set's run used a subdirectory of the store, removed once merged
+    assert sorted(p.name for p in (tmp_path / "s").iterdir() if p.is_dir()) == [
+        "mask", "saliency", "surface_histograms",
+    ]  # fmt: skip
+    assert len(splidar.reconstruct(runs[1]).points) > 0

@@ -278,6 +278,24 @@ def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_clie
     _assert_same_detection(a, b)
 
 
+def test_detect_on_local_cluster_auto_scales_by_region_matches_in_memory(local_client, tmp_path):
+    """``scales="auto"`` whose regions keep different boxes (the left half independent
+    depths, the right a plane) runs ``detect`` once per set and merges per pixel: on a
+    LocalCluster, stored or not, the in-memory result."""
+    rng = np.random.default_rng(0)
+    depth = 30 + np.add.outer(np.arange(48), np.arange(48)) // 4
+    depth[:, :24] = rng.integers(15, 105, size=(48, 24))
+    g = gaussian_irf(3.0)
+    lam = np.full((48, 48, 1, 120), 0.1)
+    for (i, j), d in np.ndenumerate(depth):
+        lam[i, j, 0, d - g.size // 2 : d + g.size // 2 + 1] += 8.0 * g
+    cube, lazy = _cubes(rng.poisson(lam).astype(np.uint16), g, (16, 48, 1, 120))
+    a = splidar.detect(cube, rng=0)
+    assert a.options["scale_regions"]["scales"] == ((1, 3, 7, 11), (1,))
+    _assert_same_detection(a, splidar.detect(lazy, rng=0, block_rows=16))
+    _assert_same_detection(a, splidar.detect(lazy, rng=0, block_rows=16, store=tmp_path / "s"))
+
+
 def test_cli_run_scheduler_joins_a_cluster_and_matches_in_memory(local_client, tmp_path, capsys):
     pytest.importorskip("zarr")
     from splidar.cli import main

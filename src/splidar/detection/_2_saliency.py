@@ -19,13 +19,16 @@ from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
 
 __all__ = [
+    "COHERENCE_REGION",
     "COHERENCE_VOXELS",
     "COHERENCE_Z",
     "STRIP_COLS",
     "SaliencyFilters",
     "Coherence",
+    "RegionScales",
     "block_saliency",
     "coherent_scales",
+    "region_scales",
     "saliency_filters",
 ]
 
@@ -42,6 +45,10 @@ COHERENCE_VOXELS = 3_000_000
 #: house's presence and split z): a scene that cannot show its incoherence keeps every
 #: scale.
 COHERENCE_Z = 3.0
+#: Side (pixels) of the regions whose own coherence may override the image's choice of
+#: boxes (:func:`region_scales`): the tiles' floor, the smallest square that holds the
+#: largest box (11) with a margin; the regions are spread evenly over the image.
+COHERENCE_REGION = 16
 
 
 @dataclass(frozen=True)
@@ -188,6 +195,10 @@ class Coherence:
     z: np.ndarray
     energy_z: float
     pixels: int
+    rows: np.ndarray = None  # (n,) int64: the measured pixels' rows
+    cols: np.ndarray = None  # (n,) int64: and columns
+    energy: np.ndarray = None  # (n,) float64: their terms of E
+    shared: np.ndarray = None  # (Q, n) float64: their terms of A_k
 
 
 def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
@@ -230,8 +241,9 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
     if Q == 1 or R <= 2 * h or C <= 2 * h:
         return keep_all
     var_w = _variance_weights(ctx.corr, L, T)  # (L, T): Var(c) = sum_s var_w[s] lambda_s
-    e_p, a_p = [], []
+    e_p, a_p, where = [], [], []
     for r0, r1, c0, c1 in _coherence_tiles(R, C, L * T, h):
+        where.append(np.mgrid[r0:r1, c0:c1].reshape(2, -1))
         # the tile with a halo of h pixels: its boxes and levels exact inside
         y = np.asarray(counts[r0 - h : r1 + h, max(c0 - h, 0) : min(c1 + h, C)])
         j0 = c0 - max(c0 - h, 0)
@@ -267,7 +279,106 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
     # both parts and had 1.2-1.5x the false surfaces of (1, 3, 7, 11) in every cell;
     # benchmarks/README.md, "Spatially incoherent scenes")
     kept = np.logical_and.accumulate(kept)
-    return Coherence(scales, kept, rho, z, float(ez), int(e_p.size))
+    rc = np.concatenate(where, axis=1).astype(np.int64)
+    return Coherence(scales, kept, rho, z, float(ez), int(e_p.size), rc[0], rc[1], e_p, a_p)
+
+
+@dataclass(frozen=True)
+class RegionScales:
+    """The boxes each region of the image keeps (:func:`region_scales`).
+
+    Attributes
+    ----------
+    scales : ndarray (Q,) int
+        The candidate box sizes (ascending).
+    n_kept : ndarray (rows, cols) int8
+        Per pixel, how many of the candidate boxes (ascending, nested) its region keeps:
+        the pixel's set is ``scales[:n_kept]``.
+    regions : tuple of (r0, r1, c0, c1, n) int
+        The regions (pixel ranges, the border pixels included) and their ``n_kept``.
+    z : float
+        The ``|z|`` a region's own measurement needs to override the image's choice.
+    """
+
+    scales: np.ndarray
+    n_kept: np.ndarray
+    regions: tuple
+    z: float
+
+    @property
+    def sets(self) -> tuple:
+        """The distinct ``n_kept``, largest first."""
+        return tuple(int(n) for n in np.unique(self.n_kept)[::-1])
+
+
+def region_scales(coh: Coherence, shape: tuple) -> RegionScales:
+    """Which boxes each region keeps: the image's choice (``coh.kept``) unless the
+    region's own pixels show otherwise.
+
+    The measured pixels' terms of ``E`` and ``A_k`` (:func:`coherent_scales`) are summed
+    over regions of about :data:`COHERENCE_REGION` pixels a side, spread evenly over the
+    measured part of the image (the border pixels join the nearest region). A region
+    whose energy is significant overrides the image's decision on box ``k`` when its own
+    ``z`` of ``rho_k - 1 / (k + 1)`` lies beyond ``+-z_n``: below, the box is dropped;
+    above, it is kept. ``z_n = sqrt(COHERENCE_Z^2 + 2 ln n)`` for ``n`` measured regions
+    (:data:`COHERENCE_Z` against the largest of ``n`` noise values, the rule of the split
+    test), so that the image's ``n`` regions rarely override it on noise; nested as
+    there (a box above a dropped one goes too). Regions not measured (pixels outside
+    the tiles) keep the image's choice.
+
+    Parameters
+    ----------
+    coh : Coherence
+        With its per-pixel terms.
+    shape : (rows, cols)
+
+    Returns
+    -------
+    RegionScales
+    """
+    R, C = int(shape[0]), int(shape[1])
+    scales, base = coh.scales, int(coh.kept.sum())
+    if coh.rows is None or coh.rows.size == 0:
+        whole = ((0, R, 0, C, base),)
+        return RegionScales(scales, np.full((R, C), base, np.int8), whole, float("nan"))
+    h = int(scales.max()) // 2
+    re, ce = _region_edges(R, h), _region_edges(C, h)
+    ri = np.searchsorted(re[1:-1], coh.rows, side="right")
+    ci = np.searchsorted(ce[1:-1], coh.cols, side="right")
+    idx = ri * (ce.size - 1) + ci
+    n_reg = (re.size - 1) * (ce.size - 1)
+
+    def sums(v):
+        return np.bincount(idx, weights=v, minlength=n_reg)
+
+    e = coh.energy
+    n_pix = np.bincount(idx, minlength=n_reg)
+    zn = float(np.sqrt(COHERENCE_Z**2 + 2 * np.log(max(int((n_pix > 0).sum()), 1))))
+    ez = sums(e) / np.maximum(np.sqrt(sums(e * e)), 1e-300)
+    kept = np.repeat(coh.kept[None], n_reg, axis=0)  # (regions, Q)
+    for q in np.flatnonzero(scales > 1):
+        d = coh.shared[q] - e / (scales[q] + 1)
+        zq = sums(d) / np.maximum(np.sqrt(sums(d * d)), 1e-300)
+        own = (n_pix > 0) & (ez >= zn)
+        kept[own & (zq < -zn), q] = False
+        kept[own & (zq > zn), q] = True
+    n = np.logical_and.accumulate(kept, axis=1).sum(axis=1).astype(np.int8)
+    label = np.empty((R, C), np.int8)
+    regions = []
+    for i in range(re.size - 1):
+        for j in range(ce.size - 1):
+            r0, r1 = (0 if i == 0 else re[i]), (R if i == re.size - 2 else re[i + 1])
+            c0, c1 = (0 if j == 0 else ce[j]), (C if j == ce.size - 2 else ce[j + 1])
+            label[r0:r1, c0:c1] = n[i * (ce.size - 1) + j]
+            regions.append((int(r0), int(r1), int(c0), int(c1), int(n[i * (ce.size - 1) + j])))
+    return RegionScales(scales, label, tuple(regions), zn)
+
+
+def _region_edges(n: int, h: int) -> np.ndarray:
+    """Edges of about :data:`COHERENCE_REGION` pixels, evenly spread over ``[h, n - h)``."""
+    m = max(n - 2 * h, 1)
+    k = max(1, int(round(m / COHERENCE_REGION)))
+    return (h + np.round(np.linspace(0, m, k + 1))).astype(np.int64)
 
 
 def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:

@@ -23,7 +23,7 @@ from .._validation import (
 from ..cube import Cube
 from . import _4_map
 from ._1_background import estimate_temporal_background
-from ._2_saliency import coherent_scales, saliency_filters
+from ._2_saliency import coherent_scales, region_scales, saliency_filters
 from ._3_null import calibrate_null
 from ._4_map import (
     PRESENCE_LLR,
@@ -48,6 +48,7 @@ from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
+from ._regions import merge_by_region
 from ._result import Background, Detection, StageRecord, StoredHistograms
 from ._slopes import kept_counts
 from ._table import remove_tree, skipped, store_histograms
@@ -272,7 +273,7 @@ def detect(
     check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
     cube, windows, t0 = _stuck_pixels_first(cube, o)
-    irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], np.random.default_rng(rng)
+    irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], _generator(rng, o)
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
     tiled = o["tiled"] = is_dask(cube.counts)
@@ -328,9 +329,12 @@ def _stages_1_2(counts, corr, irf, o: dict, windows):
 
 def _coherent_scales(counts, filters, o: dict) -> bool:
     """``scales="auto"``: keep the scales whose boxes pool returns sharing the own pixels'
-    depths (:func:`coherent_scales`); ``o``'s scales and weights updated. True when a
-    scale was dropped."""
+    depths (:func:`coherent_scales`), region by region (:func:`region_scales`); ``o``'s
+    scales and weights updated to the largest set a region keeps (the others, in
+    ``o["scale_regions"]``, run after this one: :func:`_by_region`). True when a scale
+    was dropped."""
     coh = coherent_scales(counts, filters)
+    reg = region_scales(coh, counts.shape[:2])
     # recorded in Detection.options: why the boxes were kept or dropped
     o["scale_coherence"] = tuple(None if np.isnan(r) else round(float(r), 4) for r in coh.rho)
     logger.info(
@@ -338,11 +342,51 @@ def _coherent_scales(counts, filters, o: dict) -> bool:
         np.round(coh.rho, 3).tolist(), coh.scales.tolist(), coh.energy_z, coh.pixels,
         coh.scales[coh.kept].tolist(),
     )  # fmt: skip
-    if coh.kept.all():
+    if len(reg.sets) > 1:
+        o["scale_regions"] = reg
+        logger.info(
+            "detect: regions keep different boxes (|z| >= %.2f): %s; one run per set, "
+            "merged per pixel", reg.z,
+            ", ".join(f"{coh.scales[:n].tolist()} on {int((reg.n_kept == n).sum())} px"
+                      for n in reg.sets),
+        )  # fmt: skip
+    n = reg.sets[0]
+    if n == coh.scales.size:
         return False
-    o["scales"] = coh.scales[coh.kept]
+    o["scales"] = coh.scales[:n]
     o["weights"] = o["scales"] / o["scales"].sum()
     return True
+
+
+def _generator(rng, o: dict):
+    """``np.random.default_rng(rng)``; ``rng`` kept in ``o`` for the further runs of
+    ``scales="auto"`` by region (:func:`_by_region`)."""
+    o["rng_in"] = rng
+    return np.random.default_rng(rng)
+
+
+def _by_region(det: Detection, o: dict, store) -> Detection:
+    """``scales="auto"`` where regions keep different boxes (``o["scale_regions"]``):
+    ``det`` ran with the largest set; :func:`detect` runs again with each smaller set
+    (its own null and threshold; a store's run in a subdirectory, removed once merged),
+    then every pixel takes its region's result (:func:`merge_by_region`)."""
+    reg = o["scale_regions"]
+    runs, subs = {reg.sets[0]: det}, []
+    for n in reg.sets[1:]:
+        sub = None if store is None else Path(os.fspath(store)) / f"scales_{n}"
+        subs.append(sub)
+        runs[n] = detect(
+            o["cube_in"], scales=tuple(int(k) for k in reg.scales[:n]), pfa=o["pfa"],
+            surface_pfa=o["surface_pfa"], max_surfaces=o["max_surfaces"], null=o["null"],
+            presence=o["presence"], passes=o["passes"], block_rows=o["block_rows"],
+            n_jobs=o["n_jobs"], store=sub, rng=o["rng_in"],
+        )  # fmt: skip
+    record = dict(z=round(reg.z, 4), regions=reg.regions)
+    out = merge_by_region(runs, reg.n_kept, o["cube_counts"], record)
+    for sub in subs:
+        if sub is not None:
+            remove_tree(sub)
+    return out
 
 
 def _stuck_pixels_first(cube: Cube, o: dict):
@@ -401,6 +445,7 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     w_in = _check_weights(weights, scales_in)
     order = np.argsort(scales_in)
     o = dict(scales=scales_in[order], weights=w_in[order], auto_scales=auto and weights is None)
+    o["cube_in"] = cube  # scales="auto" by region: the further sets' runs read it
     o["pfa"] = check_probability(pfa, "pfa")
     o["max_surfaces"] = check_int(max_surfaces, "max_surfaces", minimum=1)
     o["surface_pfa"] = check_probability(surface_pfa, "surface_pfa")
@@ -647,7 +692,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
         len(surfaces), R, C, options["n_candidates"], options["n_rejected"],
         100 * red.voxel_fraction, 100 * red.photon_fraction, timings["total"],
     )  # fmt: skip
-    return Detection(
+    det = Detection(
         cube_shape=(R, C, L, T),
         irf=cube.irf,
         bin_width_ps=cube.bin_width_ps,
@@ -667,3 +712,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
         options=options,
         provenance=provenance,
     )
+    if o.get("scale_regions") is None:
+        return det
+    o["cube_counts"] = cube.counts
+    return _by_region(det, o, store)
