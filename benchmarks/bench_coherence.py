@@ -5,14 +5,17 @@
 share depths. This family measures what that costs where they do not: on 48 x 48
 pixels, T = 300, one surface per pixel whose depth is drawn uniform in bins 30-270
 **independently for every patch** of 1 x 1, 2 x 2, 4 x 4 or 8 x 8 pixels, or a smooth
-scene (a tilted plane plus a slow sinusoid, depths 60-240), or "half": the left half 1 x
-1, the right half smooth (F_true of each half in brackets), at 4, 12 and 40 signal
+scene (a tilted plane plus a slow sinusoid, depths 60-240), or mixed scenes whose left
+columns are 1 x 1 and the rest smooth: "half" (24 columns), "quarter" (12), "3quarter"
+(36) (F_true / false surfaces of each part in brackets), at 4, 12 and 40 signal
 photons a pixel and SBR 1 and 0.25 (a flat background). The pulse is the reproducer's
 (``bench_foreign_cubes.py --window-end``): a Gaussian of FWHM 6 bins with an exponential
 tail of 4 bins (FWHM 8.4), its IRF recorded as 100 samples, peak at 30. Scores:
 ``evaluate`` at tau = 4.2 bins (FWHM / 2): F_true, false surfaces, DAE (bins), for
-``detect`` (``rng=0``) and ``per_pixel_detect`` (the baseline), and ``detect(scales=(1,))``
-with ``--fine``; "half" also scores each half (left 1 x 1, right smooth).
+``detect`` (``rng=0``) and ``per_pixel_detect`` (the baseline), ``detect(scales=(1,))``
+with ``--fine``, and with ``--before`` ``detect`` as it was before the choice of boxes by
+region (session 18: one set for the whole image, the regions' override switched off in
+the same process); the mixed scenes also score each part (left 1 x 1, right smooth).
 
     python benchmarks/bench_coherence.py              # 36 cells, a few minutes
     python benchmarks/bench_coherence.py --only 1x1 --ppp 12 --sbr 1
@@ -37,16 +40,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_foreign_cubes import Pulse, irf_record  # noqa: E402
 
 N, T = 48, 300
-PATCHES = ("1x1", "2x2", "4x4", "8x8", "smooth", "half")
+PATCHES = ("1x1", "2x2", "4x4", "8x8", "smooth", "half", "quarter", "3quarter")
+#: The mixed scenes: how many left columns are 1 x 1 (the rest smooth).
+SPLIT = {"half": N // 2, "quarter": N // 4, "3quarter": 3 * N // 4}
 PULSE = Pulse(6.0, 4.0)
 TAU = 4.2
 
 
 def depths(kind: str, rng) -> np.ndarray:
     """(N, N) depths in bins: independent per patch, or a smooth surface."""
-    if kind == "half":  # the left half 1 x 1, the right half smooth
+    if kind in SPLIT:  # the left columns 1 x 1, the rest smooth
         d = depths("smooth", rng)
-        d[:, : N // 2] = depths("1x1", rng)[:, : N // 2]
+        d[:, : SPLIT[kind]] = depths("1x1", rng)[:, : SPLIT[kind]]
         return d
     if kind == "smooth":
         r, c = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
@@ -88,6 +93,8 @@ def run_cell(kind, ppp, sbr, seed, methods, detect_kwargs=None):
                 pts = splidar.detect(cube, rng=0, **(detect_kwargs or {})).points
             elif name == "scales1":
                 pts = splidar.detect(cube, rng=0, scales=(1,)).points
+            elif name == "before":
+                pts = _one_set(lambda: splidar.detect(cube, rng=0).points)
             else:
                 pts = per_pixel_detect(cube).points
             m = evaluate(pts, truth, tau=TAU)
@@ -95,16 +102,37 @@ def run_cell(kind, ppp, sbr, seed, methods, detect_kwargs=None):
                 "f_true": float(m.f_true), "false": int(m.f_false), "dae": float(m.dae),
                 "cpu_s": time.process_time() - t0,
             }  # fmt: skip
-            if kind == "half":  # F_true of the left (incoherent) and right (smooth) half
+            if kind in SPLIT:  # F_true, false of the left (incoherent) and right part
                 from splidar.metrics import match_points
 
                 mt = match_points(pts, truth, tau=TAU)
                 hit = np.zeros(truth.row.size, bool)
                 hit[mt.true_index] = True
-                left = truth.col < N // 2
+                left = truth.col < SPLIT[kind]
+                false_left = pts.col[mt.unmatched_est] < SPLIT[kind]
                 out[name]["left"] = float(hit[left].mean())
                 out[name]["right"] = float(hit[~left].mean())
+                out[name]["false_left"] = int(false_left.sum())
+                out[name]["false_right"] = int((~false_left).sum())
     return out
+
+
+def _one_set(run):
+    """``run()`` with ``scales="auto"`` choosing one set of boxes for the whole image
+    (the image's choice, every region's override off: the code before session 18)."""
+    from splidar.detection import _detect
+    from splidar.detection._2_saliency import RegionScales
+
+    def whole(coh, shape):
+        n = int(coh.kept.sum())
+        full = np.full(tuple(shape), n, np.int8)
+        return RegionScales(coh.scales, full, ((0, shape[0], 0, shape[1], n),), float("nan"))
+
+    keep, _detect.region_scales = _detect.region_scales, whole
+    try:
+        return run()
+    finally:
+        _detect.region_scales = keep
 
 
 def main() -> None:
@@ -115,9 +143,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--fine", action="store_true", help="also detect(scales=(1,))")
     ap.add_argument("--no-baseline", action="store_true", help="skip per_pixel_detect")
+    ap.add_argument(
+        "--before", action="store_true", help="also detect with one set of boxes for the image"
+    )
     ap.add_argument("--json", default=None, help="write the figures to this file")
     args = ap.parse_args()
-    methods = ["detect"] + (["scales1"] if args.fine else [])
+    methods = (["before"] if args.before else []) + ["detect"] + (["scales1"] if args.fine else [])
     methods += [] if args.no_baseline else ["per_pixel"]
     rows = []
     print(
@@ -132,7 +163,9 @@ def main() -> None:
                 cells = " | ".join(
                     f"{res[m]['f_true']:.3f} / {res[m]['false']} / {res[m]['dae']:.2f}"
                     + (
-                        f" (halves {res[m]['left']:.3f}, {res[m]['right']:.3f})"
+                        f" (parts {res[m]['left']:.3f} / {res[m]['false_left']}, "
+                        f"{res[m]['right']:.3f} / {res[m]['false_right']}; "
+                        f"{res[m]['cpu_s']:.2f} s)"
                         if "left" in res[m]
                         else ""
                     )

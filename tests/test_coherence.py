@@ -190,8 +190,11 @@ def test_region_scales_drops_the_boxes_of_the_incoherent_regions_only():
     coh = coherent_scales(cube.counts, saliency_filters(corr, scales, scales / 22, bg.dev, irf))
     assert coh.kept.all()  # the image as a whole keeps every box (rho_3 about 1/2)
     reg = region_scales(coh, (M, M))
-    assert reg.sets == (4, 1) and reg.z > 3  # z for 4 regions: sqrt(9 + 2 ln 4)
-    np.testing.assert_array_equal(reg.n_kept[:, : M // 2], 1)
+    # z against the largest of the 28 x 28 windows' noise: sqrt(9 + 2 ln 784) = 4.7
+    assert reg.sets == (4, 1) and abs(reg.z - np.sqrt(9 + 2 * np.log(28 * 28))) < 1e-9
+    # the windows (11 x 11) straddling the border measure the mixture: the border of
+    # the choice lies within half a window of the scene's
+    np.testing.assert_array_equal(reg.n_kept[:, : M // 2 - 5], 1)
     np.testing.assert_array_equal(reg.n_kept[:, M // 2 :], 4)
 
 
@@ -201,27 +204,27 @@ def test_detect_auto_scales_by_region_takes_each_regions_boxes():
     full = detect(cube, scales=(1, 3, 7, 11), rng=0, n_jobs=1)
     one = detect(cube, scales=(1,), rng=0, n_jobs=1)
     rec = auto.options["scale_regions"]
-    assert rec["scales"] == ((1, 3, 7, 11), (1,)) and rec["pixels"] == (M * M // 2, M * M // 2)
-    assert auto.scales == (1, 3, 7, 11)
-    # the incoherent half gains what the 1 x 1 box gives it (0.58 -> 0.86), the plane
+    n_kept = rec["n_kept"]
+    assert rec["scales"] == ((1, 3, 7, 11), (1,)) and auto.scales == (1, 3, 7, 11)
+    assert rec["pixels"] == (int((n_kept == 4).sum()), int((n_kept == 1).sum()))
+    # the incoherent half gains what the 1 x 1 box gives it (0.58 -> 0.84), the plane
     # keeps the pooled result
     a, f, o = _found(auto, depth), _found(full, depth), _found(one, depth)
     assert a[:, : M // 2].mean() > f[:, : M // 2].mean() + 0.2
-    np.testing.assert_array_equal(a[:, : M // 2], o[:, : M // 2])
     np.testing.assert_array_equal(a[:, M // 2 :], f[:, M // 2 :])
     # each pixel holds its run's surfaces, maps and threshold
-    for det, side in ((one, slice(0, M // 2)), (full, slice(M // 2, M))):
+    for det, n in ((one, 1), (full, 4)):
+        mine = n_kept == n
+        np.testing.assert_array_equal(a[mine], (o if n == 1 else f)[mine])
         s, t = auto.surfaces, det.surfaces
-        mine, theirs = (s.col >= side.start) & (s.col < side.stop), t.col >= side.start
-        theirs &= t.col < side.stop
-        np.testing.assert_array_equal(s.depth_bin[mine], t.depth_bin[theirs])
+        i, j = mine[s.row, s.col], mine[t.row, t.col]
+        np.testing.assert_array_equal(s.depth_bin[i], t.depth_bin[j])
+        np.testing.assert_array_equal(s.histograms[i][:, :n], t.histograms[j])
+        assert not s.histograms[i][:, n:].any()
+        np.testing.assert_array_equal(auto.saliency[mine], det.saliency[mine])
+        np.testing.assert_array_equal(auto.mask[mine], det.mask[mine])
         np.testing.assert_array_equal(
-            s.histograms[mine][:, : len(det.scales)], t.histograms[theirs]
-        )
-        np.testing.assert_array_equal(auto.saliency[:, side], det.saliency[:, side])
-        np.testing.assert_array_equal(auto.mask[:, side], det.mask[:, side])
-        np.testing.assert_array_equal(
-            np.asarray(auto.threshold)[:, side], np.asarray(det.threshold)[:, side]
+            np.asarray(auto.threshold)[mine], np.asarray(det.threshold)[mine]
         )
     assert auto.reduction.n_voxels == int(auto.mask.sum())
     rows, cols = np.array([0, 47, 20, 30]), np.array([0, 47, 30, 20])

@@ -19,7 +19,6 @@ from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
 
 __all__ = [
-    "COHERENCE_REGION",
     "COHERENCE_VOXELS",
     "COHERENCE_Z",
     "STRIP_COLS",
@@ -45,10 +44,6 @@ COHERENCE_VOXELS = 3_000_000
 #: house's presence and split z): a scene that cannot show its incoherence keeps every
 #: scale.
 COHERENCE_Z = 3.0
-#: Side (pixels) of the regions whose own coherence may override the image's choice of
-#: boxes (:func:`region_scales`): the tiles' floor, the smallest square that holds the
-#: largest box (11) with a margin; the regions are spread evenly over the image.
-COHERENCE_REGION = 16
 
 
 @dataclass(frozen=True)
@@ -285,25 +280,26 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
 
 @dataclass(frozen=True)
 class RegionScales:
-    """The boxes each region of the image keeps (:func:`region_scales`).
+    """The boxes each part of the image keeps (:func:`region_scales`).
 
     Attributes
     ----------
     scales : ndarray (Q,) int
         The candidate box sizes (ascending).
     n_kept : ndarray (rows, cols) int8
-        Per pixel, how many of the candidate boxes (ascending, nested) its region keeps:
-        the pixel's set is ``scales[:n_kept]``.
-    regions : tuple of (r0, r1, c0, c1, n) int
-        The regions (pixel ranges, the border pixels included) and their ``n_kept``.
+        Per pixel, how many of the candidate boxes (ascending, nested) it keeps: the
+        pixel's set is ``scales[:n_kept]``.
     z : float
-        The ``|z|`` a region's own measurement needs to override the image's choice.
+        The ``|z|`` a pixel's window needs to override the image's choice (nan: no
+        measurement).
+    window : int
+        The windows' side (pixels).
     """
 
     scales: np.ndarray
     n_kept: np.ndarray
-    regions: tuple
     z: float
+    window: int
 
     @property
     def sets(self) -> tuple:
@@ -312,19 +308,23 @@ class RegionScales:
 
 
 def region_scales(coh: Coherence, shape: tuple) -> RegionScales:
-    """Which boxes each region keeps: the image's choice (``coh.kept``) unless the
-    region's own pixels show otherwise.
+    """Which boxes each pixel keeps: the image's choice (``coh.kept``) unless the
+    measured pixels about it show otherwise.
 
     The measured pixels' terms of ``E`` and ``A_k`` (:func:`coherent_scales`) are summed
-    over regions of about :data:`COHERENCE_REGION` pixels a side, spread evenly over the
-    measured part of the image (the border pixels join the nearest region). A region
-    whose energy is significant overrides the image's decision on box ``k`` when its own
-    ``z`` of ``rho_k - 1 / (k + 1)`` lies beyond ``+-z_n``: below, the box is dropped;
-    above, it is kept. ``z_n = sqrt(COHERENCE_Z^2 + 2 ln n)`` for ``n`` measured regions
+    over every window of ``w x w`` pixels that lies inside them, ``w`` the largest box
+    (11: the footprint the boxes pool over; inside the smallest tile). Where a window's
+    energy is significant, its own ``z`` of ``rho_k - 1 / (k + 1)`` beyond ``+-z_n``
+    overrides the image's decision on box ``k`` for its centre: below, the box is
+    dropped; above, it is kept. ``z_n = sqrt(COHERENCE_Z^2 + 2 ln n)`` for ``n`` windows
     (:data:`COHERENCE_Z` against the largest of ``n`` noise values, the rule of the split
-    test), so that the image's ``n`` regions rarely override it on noise; nested as
-    there (a box above a dropped one goes too). Regions not measured (pixels outside
-    the tiles) keep the image's choice.
+    test; the windows overlap, so this is conservative): they do not override the
+    image's choice on noise. Nested as there (a box above a dropped one goes too). A
+    pixel that is no window's centre (near the image's border or a tile's edge) takes
+    the decision of the nearest centre when its own window would hold measured pixels,
+    else (outside the tiles of a large image) the image's choice. A window straddling
+    a border between coherent and incoherent parts measures their mixture: the border
+    of the choice moves by up to ``w / 2`` pixels.
 
     Parameters
     ----------
@@ -336,49 +336,49 @@ def region_scales(coh: Coherence, shape: tuple) -> RegionScales:
     -------
     RegionScales
     """
+    from scipy.ndimage import distance_transform_edt
+
     R, C = int(shape[0]), int(shape[1])
     scales, base = coh.scales, int(coh.kept.sum())
+    w = int(scales.max())
+    out = np.full((R, C), base, np.int8)
     if coh.rows is None or coh.rows.size == 0:
-        whole = ((0, R, 0, C, base),)
-        return RegionScales(scales, np.full((R, C), base, np.int8), whole, float("nan"))
-    h = int(scales.max()) // 2
-    re, ce = _region_edges(R, h), _region_edges(C, h)
-    ri = np.searchsorted(re[1:-1], coh.rows, side="right")
-    ci = np.searchsorted(ce[1:-1], coh.cols, side="right")
-    idx = ri * (ce.size - 1) + ci
-    n_reg = (re.size - 1) * (ce.size - 1)
+        return RegionScales(scales, out, float("nan"), w)
 
-    def sums(v):
-        return np.bincount(idx, weights=v, minlength=n_reg)
+    def window(v):
+        m = np.zeros((R, C))
+        m[coh.rows, coh.cols] = v
+        return _window_sums(m, w // 2)
 
     e = coh.energy
-    n_pix = np.bincount(idx, minlength=n_reg)
-    zn = float(np.sqrt(COHERENCE_Z**2 + 2 * np.log(max(int((n_pix > 0).sum()), 1))))
-    ez = sums(e) / np.maximum(np.sqrt(sums(e * e)), 1e-300)
-    kept = np.repeat(coh.kept[None], n_reg, axis=0)  # (regions, Q)
+    n_pix = window(np.ones(e.size))
+    centre = n_pix >= w * w - 0.5  # the window lies inside the measured pixels
+    if not centre.any():
+        return RegionScales(scales, out, float("nan"), w)
+    zn = float(np.sqrt(COHERENCE_Z**2 + 2 * np.log(centre.sum())))
+    own = centre & (window(e) >= zn * np.sqrt(window(e * e)))
+    kept = np.repeat(coh.kept[None, None], R, axis=0).repeat(C, axis=1)  # (R, C, Q)
     for q in np.flatnonzero(scales > 1):
         d = coh.shared[q] - e / (scales[q] + 1)
-        zq = sums(d) / np.maximum(np.sqrt(sums(d * d)), 1e-300)
-        own = (n_pix > 0) & (ez >= zn)
+        zq = window(d) / np.maximum(np.sqrt(window(d * d)), 1e-300)
         kept[own & (zq < -zn), q] = False
         kept[own & (zq > zn), q] = True
-    n = np.logical_and.accumulate(kept, axis=1).sum(axis=1).astype(np.int8)
-    label = np.empty((R, C), np.int8)
-    regions = []
-    for i in range(re.size - 1):
-        for j in range(ce.size - 1):
-            r0, r1 = (0 if i == 0 else re[i]), (R if i == re.size - 2 else re[i + 1])
-            c0, c1 = (0 if j == 0 else ce[j]), (C if j == ce.size - 2 else ce[j + 1])
-            label[r0:r1, c0:c1] = n[i * (ce.size - 1) + j]
-            regions.append((int(r0), int(r1), int(c0), int(c1), int(n[i * (ce.size - 1) + j])))
-    return RegionScales(scales, label, tuple(regions), zn)
+    n = np.logical_and.accumulate(kept, axis=2).sum(axis=2).astype(np.int8)
+    near = distance_transform_edt(~centre, return_distances=False, return_indices=True)
+    reach = n_pix > 0  # the pixel's own window holds measured pixels
+    out[reach] = n[near[0], near[1]][reach]
+    return RegionScales(scales, out, zn, w)
 
 
-def _region_edges(n: int, h: int) -> np.ndarray:
-    """Edges of about :data:`COHERENCE_REGION` pixels, evenly spread over ``[h, n - h)``."""
-    m = max(n - 2 * h, 1)
-    k = max(1, int(round(m / COHERENCE_REGION)))
-    return (h + np.round(np.linspace(0, m, k + 1))).astype(np.int64)
+def _window_sums(m: np.ndarray, r: int) -> np.ndarray:
+    """Sums of ``m`` (rows, cols) over the ``(2 r + 1)^2`` window about each pixel, cut at
+    the border (a summed-area table)."""
+    R, C = m.shape
+    t = np.zeros((R + 1, C + 1))
+    t[1:, 1:] = m.cumsum(axis=0).cumsum(axis=1)
+    i0, i1 = np.clip(np.arange(R) - r, 0, R), np.clip(np.arange(R) + r + 1, 0, R)
+    j0, j1 = np.clip(np.arange(C) - r, 0, C), np.clip(np.arange(C) + r + 1, 0, C)
+    return t[i1][:, j1] - t[i0][:, j1] - t[i1][:, j0] + t[i0][:, j0]
 
 
 def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:

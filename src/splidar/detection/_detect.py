@@ -345,8 +345,8 @@ def _coherent_scales(counts, filters, o: dict) -> bool:
     if len(reg.sets) > 1:
         o["scale_regions"] = reg
         logger.info(
-            "detect: regions keep different boxes (|z| >= %.2f): %s; one run per set, "
-            "merged per pixel", reg.z,
+            "detect: parts of the image keep different boxes (windows of %d px, |z| >= "
+            "%.2f): %s; one run per set, merged per pixel", reg.window, reg.z,
             ", ".join(f"{coh.scales[:n].tolist()} on {int((reg.n_kept == n).sum())} px"
                       for n in reg.sets),
         )  # fmt: skip
@@ -381,7 +381,8 @@ def _by_region(det: Detection, o: dict, store) -> Detection:
             presence=o["presence"], passes=o["passes"], block_rows=o["block_rows"],
             n_jobs=o["n_jobs"], store=sub, rng=o["rng_in"],
         )  # fmt: skip
-    record = dict(z=round(reg.z, 4), regions=reg.regions)
+    # which pixel took which set: scales[:n_kept]
+    record = dict(z=round(reg.z, 4), window=reg.window, n_kept=reg.n_kept)
     out = merge_by_region(runs, reg.n_kept, o["cube_counts"], record)
     for sub in subs:
         if sub is not None:
