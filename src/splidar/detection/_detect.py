@@ -184,7 +184,9 @@ def detect(
         Spatial pooling: box sizes ``k_q`` (sorted ascending, with their weights).
         ``"auto"`` (default): ``(1, 3, 7, 11)`` less the boxes whose neighbours share the
         pixels' depths too little to raise the signal-to-noise ratio (measured on the
-        data, ``_2_saliency.coherent_scales``); all four with ``weights`` given.
+        data, ``_2_saliency.coherent_scales``), per 11 x 11 window where that differs
+        significantly (``region_scales``; foliage beside buildings): one run per set,
+        merged per pixel (``options["scale_regions"]``); all four with ``weights`` given.
     weights : array_like (Q,), optional
         Spatial pooling: ``lambda_q`` (non-negative, sum 1, in the order of ``scales``).
         Default ``k_q / sum k``: every scale adds the same noise variance (against the
@@ -226,11 +228,10 @@ def detect(
         open: ``docs/distributed.md``); ``n_jobs`` then serves the null and the
         clean-up passes, which run in the calling process.
     store : str or path, optional
-        A new directory for ``saliency`` and ``mask`` as chunked Zarr arrays (cubes
-        whose ``(rows, cols, T)`` arrays do not fit in RAM; needs ``pip install
-        splidar[dask]``); the threshold is kept as in memory (its factors,
-        ``ThresholdField``). ``block_rows``, ``n_jobs`` and ``store`` never
-        change the result.
+        A new directory for ``saliency`` and ``mask`` as chunked Zarr arrays (cubes whose
+        ``(rows, cols, T)`` arrays do not fit in RAM; needs ``pip install splidar[dask]``);
+        the threshold is kept as in memory (its factors, ``ThresholdField``).
+        ``block_rows``, ``n_jobs`` and ``store`` never change the result.
     rng : None, int or Generator, default 0
         Seed of the Monte Carlo null and of the slope pass's robust plane fits: the same
         input gives the same result; ``None`` draws fresh entropy.
@@ -280,10 +281,9 @@ def detect(
     bg, filters = _stages_1_2(cube.counts, corr, irf, o, windows)  # 1, 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    split = (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
     nul = calibrate_null(  # 3
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
-        min_separation=o["min_separation"], split=split, rng=rng, n_jobs=n_jobs,
+        min_separation=o["min_separation"], split=_split(), rng=rng, n_jobs=n_jobs,
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -299,6 +299,12 @@ def detect(
     provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
+
+
+def _split() -> tuple:
+    """The split rule's constants as stage 3's null runs it (``_4_map``; read at the
+    call, so that a patched module constant takes effect)."""
+    return (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
 
 
 def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
