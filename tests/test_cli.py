@@ -434,6 +434,24 @@ def test_main_run_skip_passes_the_other_passes(simulated, tmp_path, monkeypatch,
     assert "--skip" in capsys.readouterr().err
 
 
+def test_scales_line_says_which_boxes_each_region_took():
+    from types import SimpleNamespace
+
+    from splidar.cli import _scales_line
+
+    det = SimpleNamespace(
+        scales=(1, 3, 7, 11),
+        options={
+            "scales_auto": True, "scale_coherence": (None, 0.5, 0.45, 0.4),
+            "scale_regions": {"scales": ((1, 3, 7, 11), (1,)), "pixels": (1344, 960)},
+        },
+    )  # fmt: skip
+    assert _scales_line(det) == (
+        "spatial pooling by region: boxes 1,3,7,11 on 1344 px; 1 on 960 px "
+        "(--scales 1,3,7,11 keeps all)",
+    )
+
+
 def test_run_says_which_boxes_scales_auto_dropped(tmp_path, capsys):
     # independent depths per pixel: scales="auto" keeps the 1 x 1 box only, and the run
     # says so (with the option that keeps every box); a smooth scene prints no such line

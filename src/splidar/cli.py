@@ -1058,6 +1058,13 @@ def _scales_line(det) -> tuple[str, ...]:
     """A line when ``scales="auto"`` dropped boxes (none otherwise)."""
     opts = det.options or {}
     rho = opts.get("scale_coherence")
+    parts = opts.get("scale_regions")
+    if parts is not None:  # boxes chosen by region: the sets and their pixels
+        sets = "; ".join(
+            f"{','.join(map(str, k))} on {n} px"
+            for k, n in zip(parts["scales"], parts["pixels"], strict=True)
+        )
+        return (f"spatial pooling by region: boxes {sets} (--scales 1,3,7,11 keeps all)",)
     if not opts.get("scales_auto") or rho is None or len(det.scales) == len(rho):
         return ()
     from .detection._detect import AUTO_SCALES
