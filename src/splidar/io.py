@@ -599,6 +599,12 @@ def estimate_irf(
        does not reject it at the ``significance``-sigma p-value, the pooled photons
        cannot support a shape better than a Gaussian and the Gaussian of ``fwhm`` is
        returned instead (logged; ``load`` records it in ``metadata["irf_source"]``).
+    7. **Reference.** The depth reference is the shape's maximum. Each sample's chance
+       of being the true maximum is computed from the pooled curve's Poisson standard
+       errors (independent Gaussian errors); the sample at the expected position of the
+       maximum is raised to just above it (a change within its noise). Where the
+       photons determine the peak this is the argmax; on a top that is flat within the
+       noise it lies between the candidate peaks instead of jumping to one end.
 
     Parameters
     ----------
@@ -638,7 +644,7 @@ def estimate_irf(
 
     Notes
     -----
-    The depth reference is the estimate's argmax. On the simulated pulses of
+    The depth reference is the estimate's argmax (step 7). On the simulated pulses of
     ``benchmarks/bench_irf_estimate.py`` the soft alignment brings the depth bias of
     ``process`` with the estimate within 0.2 bin of the true IRF's on exp tail 3/6 and
     the measured pulse, and within about 1 bin of it on the slowly decaying exp tail
@@ -690,6 +696,7 @@ def _estimate_irf(
     refine=True,
     voxels=None,
     stats=None,
+    reference=True,
 ):
     """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``. ``voxels``:
     photon lists' sorted non-empty (flat voxel index, count) of one-wavelength ``counts``.
@@ -734,6 +741,7 @@ def _estimate_irf(
         refine=bool(refine),
         gaussian_p=norm.sf(z) if fallback else 2.0,
         voxels=voxels if a.shape[2] == 1 else None,
+        reference=bool(reference),
     )
     if stats is not None:
         stats["n_used"] = n_used
@@ -1223,6 +1231,7 @@ def _split_spread(cube, fwhm: float) -> float:
                     significance=3.0,
                     min_pixels=10,
                     fallback=False,
+                    reference=False,
                 )
             except SplidarError:
                 return math.inf
