@@ -601,10 +601,12 @@ def estimate_irf(
        returned instead (logged; ``load`` records it in ``metadata["irf_source"]``).
     7. **Reference.** The depth reference is the shape's maximum. Each sample's chance
        of being the true maximum is computed from the pooled curve's Poisson standard
-       errors (independent Gaussian errors); the sample at the expected position of the
-       maximum is raised to just above it (a change within its noise). Where the
-       photons determine the peak this is the argmax; on a top that is flat within the
-       noise it lies between the candidate peaks instead of jumping to one end.
+       errors (independent Gaussian errors) and credited to the local maximum (peak)
+       it climbs to; the sample at the expected position of the peak so weighted is
+       raised to just above the maximum (a change within its noise). A shape with one
+       peak, or whose photons determine its peak, keeps its argmax; on a top that is
+       flat within the noise with two bumps the reference lies between them, in
+       proportion to their chances, instead of jumping to one end.
 
     Parameters
     ----------
