@@ -599,14 +599,16 @@ def estimate_irf(
        does not reject it at the ``significance``-sigma p-value, the pooled photons
        cannot support a shape better than a Gaussian and the Gaussian of ``fwhm`` is
        returned instead (logged; ``load`` records it in ``metadata["irf_source"]``).
-    7. **Reference.** The depth reference is the shape's maximum. Each sample's chance
-       of being the true maximum is computed from the pooled curve's Poisson standard
-       errors (independent Gaussian errors) and credited to the local maximum (peak)
-       it climbs to; the sample at the expected position of the peak so weighted is
-       raised to just above the maximum (a change within its noise). A shape with one
-       peak, or whose photons determine its peak, keeps its argmax; on a top that is
-       flat within the noise with two bumps the reference lies between them, in
-       proportion to their chances, instead of jumping to one end.
+    7. **Reference** (the soft-aligned shape of step 5; a hard-aligned one, whose local
+       maxima are Poisson wiggles, keeps its argmax). The depth reference is the
+       shape's maximum. Each sample's chance of being the true maximum is computed from
+       the pooled curve's Poisson standard errors (independent Gaussian errors) and
+       credited to the local maximum (peak) it climbs to; the sample at the expected
+       position of the peak so weighted is raised to just above the maximum (a change
+       within its noise). A shape with one peak, or whose photons determine its peak,
+       keeps its argmax; on a top that is flat within the noise with two bumps the
+       reference lies between them, in proportion to their chances, instead of jumping
+       to one end.
 
     Parameters
     ----------
