@@ -29,7 +29,10 @@ the pair-lag width with its pixel-block level (irf24).
 Usage::
 
     python benchmarks/bench_irf_estimate.py [--seeds 0 1 2] [--ppp4] [--real] [--art] [--art-widths]
-        [--weak] [--load-cells] [--no-sim] [--data DIR]
+        [--weak] [--load-cells] [--no-sim] [--reference {peaks,pmax,argmax}] [--data DIR]
+
+``--reference argmax`` gives the estimated shapes the depth reference of releases before
+irf25 (the estimate's own argmax), ``pmax`` the variant measured in irf25.
 """
 
 from __future__ import annotations
@@ -531,8 +534,18 @@ def main(argv=None):
     ap.add_argument("--art-widths", action="store_true", help="the pair-lag width on the Art cubes")
     ap.add_argument("--weak", action="store_true", help="only the weak-signal cells (SBR 0.2)")
     ap.add_argument("--load-cells", action="store_true", help="only load's IRF on 16 cells")
+    ap.add_argument(
+        "--reference",
+        choices=("peaks", "pmax", "argmax"),
+        default=None,
+        help="depth reference of the estimated shapes (_irf_estimate._REFERENCE; irf25)",
+    )
     ap.add_argument("--data", default=str(_default_data()))
     args = ap.parse_args(argv)
+    if args.reference is not None:
+        import splidar._irf_estimate as _ie
+
+        _ie._REFERENCE = args.reference
     t0 = time.perf_counter()
     if args.load_cells:
         run_load_cells(args.seeds)

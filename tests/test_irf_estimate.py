@@ -380,3 +380,48 @@ def test_load_irf_width_needs_a_determined_half_maximum(seed, caplog):
         fw, k = _pooled_fwhm(y, 400, None)
     assert k > 1 and "width is not determined" in caplog.text
     assert 0.5 * 19.64 < fw < 2.5 * 19.64
+
+
+def test_max_probability_follows_the_noise():
+    from splidar._irf_estimate import max_probability
+
+    sharp = np.array([0.1, 0.3, 1.0, 0.4, 0.1])
+    p = max_probability(sharp, np.full(5, 0.02))
+    assert p.sum() == pytest.approx(1.0) and p[2] > 0.999
+    horns = np.array([0.2, 1.0, 0.8, 1.0, 0.2])  # two equal peaks: each half the chance
+    p = max_probability(horns, np.full(5, 0.05))
+    assert p[1] == pytest.approx(p[3], abs=1e-3) and p[1] == pytest.approx(0.5, abs=0.01)
+
+
+def test_reference_moves_only_an_undetermined_peak():
+    from splidar._irf_estimate import _reference
+
+    sharp = np.array([0.1, 0.3, 1.0, 0.4, 0.1])
+    assert _reference(sharp, np.full(5, 0.01)) is sharp  # determined: unchanged
+    top = np.array([0.1, 0.9, 1.0, 0.95, 0.9, 0.92, 0.9, 0.1])  # flat within the noise
+    out = _reference(top, np.full(8, 0.1) / top.sum())  # errors relative to the sum
+    # P(max) 0.09 / 0.40 / 0.20 / 0.09 | 0.13 / 0.09 on samples 1-4 (peak 2) | 5-6 (peak
+    # 5): 0.78 x 2 + 0.22 x 5 = 2.66
+    assert int(np.argmax(out)) == 3 and out.sum() == pytest.approx(1.0)
+    assert np.abs(out - top / top.sum()).sum() < 0.05  # one sample raised to the top
+    # one peak and a slow tail within the noise: every sample climbs to the peak
+    tail = np.r_[0.2, 1.0, np.linspace(0.98, 0.8, 10)]
+    assert _reference(tail, np.full(tail.size, 0.1) / tail.sum()) is tail
+
+
+def test_hill_tops_climb_to_the_nearest_peak():
+    from splidar._irf_estimate import _hill_tops
+
+    u = np.array([0.1, 0.5, 0.4, 0.6, 0.9, 0.7, 0.7, 0.8, 0.2])
+    assert _hill_tops(u).tolist() == [1, 1, 4, 4, 4, 4, 7, 7, 7]
+
+
+@pytest.mark.parametrize(("ppp", "seed"), [(4.0, 3), (10.0, 3), (10.0, 5), (10.0, 7)])
+def test_estimate_irf_reference_of_a_flat_top_is_not_at_an_end(ppp, seed):
+    # a pulse flat over 14 bins (samples 2-15): the estimate's argmax landed on the
+    # plateau's ends on these seeds (4 / 14 / 4 / 4 for a centre of 8.5); now 9 / 12 / 7 / 6
+    true = np.r_[0.3, 0.7, np.ones(14), 0.7, 0.3]
+    true = true / true.sum()
+    est = estimate_irf(_cube(true, ppp=ppp, sbr=1.0, seed=seed).counts)[0]
+    at = _best_offset(true, est) + int(np.argmax(est))
+    assert abs(at - 8.5) <= 3.5

@@ -599,6 +599,16 @@ def estimate_irf(
        does not reject it at the ``significance``-sigma p-value, the pooled photons
        cannot support a shape better than a Gaussian and the Gaussian of ``fwhm`` is
        returned instead (logged; ``load`` records it in ``metadata["irf_source"]``).
+    7. **Reference** (the soft-aligned shape of step 5; a hard-aligned one, whose local
+       maxima are Poisson wiggles, keeps its argmax). The depth reference is the
+       shape's maximum. Each sample's chance of being the true maximum is computed from
+       the pooled curve's Poisson standard errors (independent Gaussian errors) and
+       credited to the local maximum (peak) it climbs to; the sample at the expected
+       position of the peak so weighted is raised to just above the maximum (a change
+       within its noise). A shape with one peak, or whose photons determine its peak,
+       keeps its argmax; on a top that is flat within the noise with two bumps the
+       reference lies between them, in proportion to their chances, instead of jumping
+       to one end.
 
     Parameters
     ----------
@@ -638,7 +648,7 @@ def estimate_irf(
 
     Notes
     -----
-    The depth reference is the estimate's argmax. On the simulated pulses of
+    The depth reference is the estimate's argmax (step 7). On the simulated pulses of
     ``benchmarks/bench_irf_estimate.py`` the soft alignment brings the depth bias of
     ``process`` with the estimate within 0.2 bin of the true IRF's on exp tail 3/6 and
     the measured pulse, and within about 1 bin of it on the slowly decaying exp tail
@@ -690,6 +700,7 @@ def _estimate_irf(
     refine=True,
     voxels=None,
     stats=None,
+    reference=True,
 ):
     """:func:`estimate_irf`; also its source for ``metadata["irf_source"]``. ``voxels``:
     photon lists' sorted non-empty (flat voxel index, count) of one-wavelength ``counts``.
@@ -734,6 +745,7 @@ def _estimate_irf(
         refine=bool(refine),
         gaussian_p=norm.sf(z) if fallback else 2.0,
         voxels=voxels if a.shape[2] == 1 else None,
+        reference=bool(reference),
     )
     if stats is not None:
         stats["n_used"] = n_used
@@ -1223,6 +1235,7 @@ def _split_spread(cube, fwhm: float) -> float:
                     significance=3.0,
                     min_pixels=10,
                     fallback=False,
+                    reference=False,
                 )
             except SplidarError:
                 return math.inf
