@@ -42,6 +42,7 @@ STAGES = (
     "stray_clusters",  # 5f: removes a crowded pixel's small stray same-depth clusters
     "select",  # 6: keeps at most K_s candidates per pixel
     "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
+    "edge_bands",  # 7b: moves the bands beside depth edges to the side their counts favour
 )
 
 #: What a stage's code in ``Surfaces.stage`` (added) or ``Surfaces.moved_by`` (moved)
@@ -56,6 +57,8 @@ STAGE_REASONS = {
     "enclosed": "restored in a hole that the surface encloses on both axes",
     "align_depths": "its 4-neighbours' plane (or the depth they offer a far surface) "
     "places it there",
+    "edge_bands": "a band beside a depth edge, decided together (Potts prior, own counts): "
+    "the neighbouring region's plane",
 }
 
 
