@@ -235,14 +235,22 @@ def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
     irf = np.atleast_2d(np.asarray(irf, np.float64))
     peak = np.argmax(irf, axis=1)
     T = int(np.shape(counts)[-1])
+    # the IRF's support about a depth (+1 bin for the sub-bin shift): all that counts
+    W = min(irf.shape[1] + 2, T)
     out = np.empty((rows.size, 2))
     for a in range(0, rows.size, _BLOCK):
         sl = slice(a, a + _BLOCK)
         y = _pixels(counts, rows[sl], cols[sl]).astype(np.float64)  # (n, L, T)
         b = np.maximum(background.at(rows[sl], cols[sl]).astype(np.float64), 1e-6)
+        n = np.arange(y.shape[0])[:, None]
         for j in range(2):
-            g = _shifted_irf(irf, peak, np.clip(dep[sl, j], 0.0, T - 1.0), T)
-            out[sl, j] = profile_llr(y, g, b)
+            d = np.clip(dep[sl, j], 0.0, T - 1.0)
+            lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
+            t = lo[:, None] + np.arange(W)  # (n, W)
+            g = _shifted_irf(irf, peak, d - lo, W)  # (n, L, W)
+            yw = np.moveaxis(y[n, :, t], -1, 1)  # (n, L, W)
+            bw = np.moveaxis(b[n, :, t], -1, 1)
+            out[sl, j] = profile_llr(yw, g, bw)
     return out
 
 
@@ -343,11 +351,15 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     moved = []
     for A, B in sorted(set(zip(pair_a.tolist(), pair_b.tolist(), strict=True))):
         m = np.flatnonzero((pair_a == A) & (pair_b == B))
-        node = np.full((R, C), -1, np.int64)
-        node[zr[m], zc[m]] = np.arange(m.size)
+        # the band's bounding box and one pixel around it (its 4-neighbours)
+        r0, c0 = max(int(zr[m].min()) - 1, 0), max(int(zc[m].min()) - 1, 0)
+        box = (slice(r0, int(zr[m].max()) + 2), slice(c0, int(zc[m].max()) + 2))
+        node = np.full(big[box].shape, -1, np.int64)
+        node[zr[m] - r0, zc[m] - c0] = np.arange(m.size)
         own_b = big[zr[m], zc[m]] == B
         ll_ab = np.where(own_b[:, None], ll[m][:, ::-1], ll[m])  # column 0: A, 1: B
-        new = min_cut_labels(node, ll_ab, beta, (big == A) & (node < 0), (big == B) & (node < 0))
+        fixed_a, fixed_b = (big[box] == A) & (node < 0), (big[box] == B) & (node < 0)
+        new = min_cut_labels(node, ll_ab, beta, fixed_a, fixed_b)
         change = new != own_b
         # the prior shapes a band; it never moves one the own counts do not favour
         if not change.any() or np.sum((ll[m, 1] - ll[m, 0])[change]) <= 0.0:
