@@ -6,33 +6,40 @@ counts (0.3-2 photons) cannot tell A from B (benchmarks/README.md, "false24, ses
 17": with oracle proposals 33-42 % of such pixels would move right, with the
 4-neighbours' about 2 per cube); summed over the band they can. So the single-surface
 pixels are grouped into regions (8-connected, depths within :data:`GATE_FWHM` FWHM of
-a neighbour's, more than :data:`MIN_REGION` members), and the pixels of two adjacent
+a neighbour's, at least :data:`MIN_REGION` members), and the pixels of two adjacent
 regions A and B within the largest box's half-width of the other region (the reach of
-the pooling) are labelled A or B jointly: a Potts Markov random field whose data costs
-are minus the own raw counts' Poisson log-likelihood of a return at each region's local
-depth plane (a robust least-squares plane over the region's members within twice that
-reach, extrapolated to the pixel; slopes and ramps exist, a median would not follow
-them) of the region's nearby median intensity over the pixel's background,
+the pooling) are labelled A or B jointly by a Potts Markov random field. Its data
+terms are the own raw counts' Poisson log-likelihood ratio of a return at each
+region's local depth plane (a robust least-squares plane over the region's members
+within twice that reach, extrapolated to the pixel: slopes and ramps exist, a median
+would not follow them) against background alone, the return's intensity ``s`` profiled
+out (:func:`profile_llr`),
 
-    ``L_X(p) = sum_t y_t log(1 + s_X g(t - d_X(p)) / b_t) - s_X sum_t g(t - d_X(p))``
+    ``L_X(p) = max_s sum_t y_t log(1 + s g(t - d_X(p)) / b_t) - s sum_t g(t - d_X(p))``
 
-(the statistic of stages 5 and 7), and whose pairwise cost ``beta`` is paid per pair
-of 4-neighbours with different labels. ``beta = log((1 - p) / p)`` with ``p`` the
-fraction of 4-neighbour pairs of single-surface pixels that lie in different regions
-on this detection: the prior odds that two neighbours belong to one region, measured,
-not tuned. The labelling is solved exactly by a minimum s-t cut (Greig, Porteous and
-Seheult 1989; ``scipy.sparse.csgraph.maximum_flow``) with the pixels outside the band
-fixed at their regions. A pixel whose label changes moves to that region's plane; its
-fields follow the depth as stage 7's do. Multi-surface pixels (layers, nets) and
-pixels of small clusters are left alone and offer no depth.
+(the statistic of stages 5 and 7, ``b`` stage 1's background): only where the return
+lies is compared, since a region's intensity misleads in a dark stripe that shares its
+depth. The pairwise cost ``beta`` is paid per pair of 4-neighbours with different
+labels: ``beta = log((1 - p) / p)`` with ``p`` the fraction of 4-neighbour pairs of
+single-surface pixels that lie in different regions on this detection (the prior odds
+that two neighbours belong to one region: measured, not tuned). The labelling is solved
+exactly by a minimum s-t cut (Greig, Porteous and Seheult 1989;
+``scipy.sparse.csgraph.maximum_flow``) with the pixels outside the band fixed at their
+regions. The prior shapes a band but never moves one: a pair's relabelling is kept
+only when the own counts of the pixels it moves favour the move in sum (without, the
+prior erased the object's cells between a net's strands). A pixel whose label changes
+moves to the other region's plane; its fields follow the depth as in stage 7's far
+rule. Multi-surface pixels (layers, nets) and small clusters are left alone and offer
+no depth.
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
-not pull edges; it forbids a lone pixel (4 ``beta``) or a ragged boundary from moving
-on a fraction of a nat, and the data of the whole band decides where the edge lies.
+not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
+a fraction of a nat, and the data of the whole band decides where the edge lies.
 Measured (``benchmarks/bench_edge_bands.py``, benchmarks/README.md "edge25, session
 18"): single surface PPP 4, SBR 0.25, seeds 0-2 per cube, false surfaces 118.0 ->
-109.7 (uniform), 149.0 -> 136.0 (decaying), F_true 0.9753 -> 0.9764, 0.9767 -> 0.9784;
-with ``beta = 0`` (every pixel alone) 159 and 146 true surfaces moved off in seed 0.
+113.3 (uniform), 149.0 -> 141.7 (decaying), F_true 0.9753 -> 0.9759, 0.9767 -> 0.9777;
+every sheet and net cell better or equal; with ``beta = 0`` (every pixel alone) 146-159
+true surfaces moved off per cube.
 """
 
 from __future__ import annotations
