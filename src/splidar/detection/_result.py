@@ -322,8 +322,9 @@ class Surfaces:
     moved_by : ndarray (S,), int8, optional
         The index into :data:`splidar.detection.STAGES` of the last stage that moved the
         surface's depth (``"recentre"``: to the depth its 4-neighbours agree on inside
-        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth),
-        ``-1`` when no stage moved it. Every other field describes the depth it holds
+        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth;
+        ``"edge_bands"``: a band beside a depth edge onto the neighbouring region's
+        plane), ``-1`` when no stage moved it. Every other field describes the depth it holds
         now. With ``stage``, what :meth:`Detection.explain` tells. Added field.
     """
 
@@ -383,7 +384,8 @@ class StageRecord:
         Kept candidates it rejected (``"map"``: the runs of the map dropped by the
         evidence or presence tests; ``"select"``: those beyond ``K_s`` per pixel).
     moved : int
-        Surfaces (candidates) whose depth it changed (``"recentre"``, ``"align_depths"``).
+        Surfaces (candidates) whose depth it changed (``"recentre"``, ``"align_depths"``,
+        ``"edge_bands"``).
     seconds : float
     """
 
