@@ -426,7 +426,15 @@ def test_main_run_skip_passes_the_other_passes(simulated, tmp_path, monkeypatch,
         args = ["run", str(cube), "-q", "--seed", "0", "--no-figures", "--out", str(tmp_path / out)]
         assert main(args + extra) == 0
     assert seen == [
-        ("recentre", "spill_over", "isolated", "dark_regions", "stray_clusters", "align_depths"),
+        (
+            "recentre",
+            "spill_over",
+            "isolated",
+            "dark_regions",
+            "stray_clusters",
+            "align_depths",
+            "edge_bands",
+        ),
         "default",
     ]
     capsys.readouterr()

@@ -16,8 +16,10 @@ flows (one way, see ``docs/detection.md`` for the diagram)::
      |  _5c_dark_regions.py  restore_dark_regions    dim patches, pooled
      |  _5d_slopes.py        recover_slope_surfaces  steep slopes, sheared pooled tests
      |  _5e_enclosed.py      restore_enclosed_holes  holes a surface encloses
+     |  _5f_stray_clusters.py remove_stray_clusters  a crowded pixel's small stray clusters
      |  _6_select.py         select_surfaces         K_s per pixel -> Surfaces
      |  _7_align_depths.py   align_surface_depths    depths the 4-neighbours place elsewhere
+     |  _7b_edge_bands.py    relabel_edge_bands      bands beside depth edges, decided together
      v
     Detection (with ``provenance``: what each stage added or removed)
 

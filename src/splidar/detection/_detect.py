@@ -46,6 +46,7 @@ from ._5e_enclosed import restore_enclosed_holes
 from ._5f_stray_clusters import remove_stray_clusters
 from ._6_select import select_surfaces
 from ._7_align_depths import align_surface_depths
+from ._7b_edge_bands import relabel_edge_bands
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._regions import merge_by_region
@@ -145,7 +146,7 @@ def _give_back() -> None:
 #: The clean-up passes :func:`detect` can run, in the order they run (``passes``).
 PASSES = (
     "recentre", "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
-    "align_depths",
+    "align_depths", "edge_bands",
 )  # fmt: skip
 
 
@@ -174,7 +175,7 @@ def detect(
     of ``M`` split between resolved peaks, clean histograms at every scale,
     ``eq:background_final``, selected scale ``eq:scale_sel``, sub-bin depth), kept when
     their evidence beats the null's and their own pixel shows them; 5. clean-up passes;
-    6. at most ``K_s`` surfaces per pixel; 7. depths aligned with the 4-neighbours'.
+    6. at most ``K_s`` surfaces per pixel; 7. depths aligned with the 4-neighbours'; 7b. edge bands.
 
     Parameters
     ----------
@@ -217,8 +218,8 @@ def detect(
     passes : sequence of str
         The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
         ``"recentre"``, ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
-        ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``. What each does and its
-        measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
+        ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``, ``"edge_bands"``. What each
+        does and its measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
         per tile (Dask task) of whole rows (default: square tiles of that many pixels).
@@ -291,12 +292,12 @@ def detect(
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     out = _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0, store)  # 5, 6, 7
-    done, surfaces, aligned, t_sel, n_kept = out
+    done, surfaces, moves, t_sel, n_kept = out
     mp = dataclasses.replace(mp, histograms=())
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
         timings["slopes"] = next(p.seconds for p in done if p.name == "slopes")
-    provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, aligned, timings)
+    provenance = _provenance(mp, n_map, n_kept, done, len(surfaces), t_sel, moves, timings)
     timings["total"] = time.perf_counter() - t_start
     return _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store)
 
@@ -477,8 +478,9 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
 
 
 def _select_and_align(cube, o, mp, done, t0: float, store, bg):
-    """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depth alignment;
-    with the selection's own seconds (since ``t0``, less the clean-up passes').
+    """Stages 6, 7 and 7b: at most ``max_surfaces`` per pixel, then the depth alignment
+    and the bands beside depth edges; with the selection's own seconds (since ``t0``,
+    less the clean-up passes'). Returns ``(surfaces, (aligned, banded), t_sel, n_kept)``.
 
     With a ``store``, the surfaces' histograms are written there part by part and stay
     there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed.
@@ -504,7 +506,15 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
             scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
         )  # fmt: skip
         surfaces = aligned.surfaces
-    return surfaces, aligned, t_sel, n_kept
+    banded = None
+    if "edge_bands" in o["passes"] and o["checks"] and len(surfaces):
+        background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
+        banded = relabel_edge_bands(
+            surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"], irf=o["irf"],
+            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
+        )  # fmt: skip
+        surfaces = banded.surfaces
+    return surfaces, (aligned, banded), t_sel, n_kept
 
 
 def _stored_histograms(store, shape):
@@ -629,7 +639,8 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     return done
 
 
-def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, aligned, timings) -> tuple:
+def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, moves, timings) -> tuple:
+    aligned, banded = moves
     return (
         StageRecord(
             "map", True, n_map, mp.n_rejected,
@@ -641,6 +652,11 @@ def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, aligned, timings) ->
             "align_depths", aligned is not None, 0, 0,
             0 if aligned is None else aligned.n_moved,
             0.0 if aligned is None else aligned.seconds,
+        ),
+        StageRecord(
+            "edge_bands", banded is not None, 0, 0,
+            0 if banded is None else banded.n_moved,
+            0.0 if banded is None else banded.seconds,
         ),
     )  # fmt: skip
 
@@ -685,6 +701,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             slopes=SLOPE_PIXELS if "slopes" in passes else False,
             n_slopes=rec["slopes"].added,
             n_aligned=rec["align_depths"].moved,
+            n_edge_bands=rec["edge_bands"].moved,
             hot_pixels=o["hot_pixels"],
             passes=passes,
             # scales="auto": each candidate box's measured coherence rho (None for 1)

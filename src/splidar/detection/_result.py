@@ -42,6 +42,7 @@ STAGES = (
     "stray_clusters",  # 5f: removes a crowded pixel's small stray same-depth clusters
     "select",  # 6: keeps at most K_s candidates per pixel
     "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
+    "edge_bands",  # 7b: moves the bands beside depth edges to the side their counts favour
 )
 
 #: What a stage's code in ``Surfaces.stage`` (added) or ``Surfaces.moved_by`` (moved)
@@ -56,6 +57,8 @@ STAGE_REASONS = {
     "enclosed": "restored in a hole that the surface encloses on both axes",
     "align_depths": "its 4-neighbours' plane (or the depth they offer a far surface) "
     "places it there",
+    "edge_bands": "a band beside a depth edge, decided together (Potts prior, own counts): "
+    "the neighbouring region's plane",
 }
 
 
@@ -319,8 +322,9 @@ class Surfaces:
     moved_by : ndarray (S,), int8, optional
         The index into :data:`splidar.detection.STAGES` of the last stage that moved the
         surface's depth (``"recentre"``: to the depth its 4-neighbours agree on inside
-        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth),
-        ``-1`` when no stage moved it. Every other field describes the depth it holds
+        its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth;
+        ``"edge_bands"``: a band beside a depth edge onto the neighbouring region's
+        plane), ``-1`` when no stage moved it. Every other field describes the depth it holds
         now. With ``stage``, what :meth:`Detection.explain` tells. Added field.
     """
 
@@ -380,7 +384,8 @@ class StageRecord:
         Kept candidates it rejected (``"map"``: the runs of the map dropped by the
         evidence or presence tests; ``"select"``: those beyond ``K_s`` per pixel).
     moved : int
-        Surfaces (candidates) whose depth it changed (``"recentre"``, ``"align_depths"``).
+        Surfaces (candidates) whose depth it changed (``"recentre"``, ``"align_depths"``,
+        ``"edge_bands"``).
     seconds : float
     """
 

@@ -1,0 +1,443 @@
+"""Stage 7b (clean-up): decide the bands beside depth edges together, not pixel by pixel.
+
+Beside a depth edge the multiscale boxes pool a bright region B's returns into the dim
+pixels of its neighbour A: a band of A's pixels takes B's depth. Per pixel the own
+counts (0.3-2 photons) cannot tell A from B (benchmarks/README.md, "false24, session
+17": with oracle proposals 33-42 % of such pixels would move right, with the
+4-neighbours' about 2 per cube); summed over the band they can. So the single-surface
+pixels are grouped into regions (8-connected, depths within :data:`GATE_FWHM` FWHM of
+a neighbour's, at least :data:`MIN_REGION` members), and the pixels of two adjacent
+regions A and B within the largest box's half-width of the other region (the reach of
+the pooling) are labelled A or B jointly by a Potts Markov random field. Its data
+terms are the own raw counts' Poisson log-likelihood ratio of a return at each
+region's local depth plane (a robust least-squares plane over the region's members
+within twice that reach, extrapolated to the pixel: slopes and ramps exist, a median
+would not follow them) against background alone, the return's intensity ``s`` profiled
+out (:func:`profile_llr`),
+
+    ``L_X(p) = max_s sum_t y_t log(1 + s g(t - d_X(p)) / b_t) - s sum_t g(t - d_X(p))``
+
+(the statistic of stages 5 and 7, ``b`` stage 1's background): only where the return
+lies is compared, since a region's intensity misleads in a dark stripe that shares its
+depth. The pairwise cost ``beta`` is paid per pair of 4-neighbours with different
+labels: ``beta = log((1 - p) / p)`` with ``p`` the fraction of 4-neighbour pairs of
+single-surface pixels that lie in different regions on this detection (the prior odds
+that two neighbours belong to one region: measured, not tuned). The labelling is solved
+exactly by a minimum s-t cut (Greig, Porteous and Seheult 1989;
+``scipy.sparse.csgraph.maximum_flow``) with the pixels outside the band fixed at their
+regions. The prior shapes a band but never moves one: a pair's relabelling is kept
+only when the own counts of the pixels it moves favour the move in sum (without, the
+prior erased the object's cells between a net's strands). A pixel whose label changes
+moves to the other region's plane; its fields follow the depth as in stage 7's far
+rule. Multi-surface pixels (layers, nets) and small clusters are left alone and offer
+no depth.
+
+A straight band shifted by a row costs no more boundary than before, so the prior does
+not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
+a fraction of a nat, and the data of the whole band decides where the edge lies.
+Measured (``benchmarks/bench_edge_bands.py``, benchmarks/README.md "edge25, session
+18"): single surface PPP 4, SBR 0.25, seeds 0-2 per cube, false surfaces 118.0 ->
+113.3 (uniform), 149.0 -> 141.7 (decaying), F_true 0.9753 -> 0.9759, 0.9767 -> 0.9777;
+every sheet and net cell better or equal; with ``beta = 0`` (every pixel alone) 146-159
+true surfaces moved off per cube.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numba import njit
+from scipy import sparse
+from scipy.sparse import csgraph
+
+from ._quality import _shifted_irf
+from ._result import STAGES, Surfaces
+
+__all__ = ["GATE_FWHM", "MIN_REGION", "EdgeBands", "relabel_edge_bands"]
+
+#: Neighbouring single-surface pixels whose depths differ by at most this many FWHM are
+#: one region (4.5 bins at FWHM 3: the benchmark's ramp of 3.2 bins per row stays one
+#: region; the wrong depths' clusters, false24 (6), were counted at this gate).
+GATE_FWHM = 1.5
+#: A region of fewer pixels offers no depth and is not relabelled (stage 5f's stray
+#: clusters hold at most 4).
+MIN_REGION = 5
+#: Max-flow capacities are integers: nats times this.
+_SCALE = 1000.0
+#: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
+_BLOCK = 4096
+
+
+@dataclass(frozen=True)
+class EdgeBands:
+    """The surfaces with the bands' depths decided, how many moved, the Potts weight
+    ``beta`` (nats per pair of 4-neighbours with different labels) and the time."""
+
+    surfaces: Surfaces
+    n_moved: int
+    beta: float
+    seconds: float
+
+
+def region_labels(depth: np.ndarray, gate: float) -> np.ndarray:
+    """8-connected components of the finite entries of ``depth`` (R, C) whose neighbours'
+    depths differ by at most ``gate`` bins: (R, C) int64 labels, -1 where NaN."""
+    R, C = depth.shape
+    idx = np.arange(R * C).reshape(R, C)
+    ok = np.isfinite(depth)
+    a, b = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        c0, c1 = max(0, -dc), C - max(0, dc)
+        p = (slice(0, R - dr), slice(c0, c1))
+        q = (slice(dr, R), slice(c0 + dc, c1 + dc))
+        e = ok[p] & ok[q] & (np.abs(depth[p] - depth[q]) <= gate)
+        a.append(idx[p][e])
+        b.append(idx[q][e])
+    a, b = np.concatenate(a), np.concatenate(b)
+    g = sparse.coo_matrix((np.ones(a.size), (a, b)), shape=(R * C, R * C))
+    _, lab = csgraph.connected_components(g.tocsr(), directed=False)
+    return np.where(ok, lab.reshape(R, C), -1).astype(np.int64)
+
+
+def potts_weight(labels: np.ndarray) -> float:
+    """``log((1 - p) / p)``, ``p`` the fraction of 4-neighbour pairs of labelled pixels
+    (``labels >= 0``) with different labels (at least one such pair counted)."""
+    pairs = diff = 0
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1], labels[1:])):
+        both = (a >= 0) & (b >= 0)
+        pairs += int(both.sum())
+        diff += int((both & (a != b)).sum())
+    p = max(diff, 1) / max(pairs, 2)
+    return float(np.log((1.0 - p) / p))
+
+
+@njit(cache=True, nogil=True)
+def _solve3(A, y):
+    """Least squares of a 3-column design through its normal equations; NaN when the
+    points are (nearly) collinear."""
+    M = A.T @ A
+    det = np.linalg.det(M)
+    if abs(det) < 1e-9 * max(M[0, 0], 1.0) ** 3:
+        return np.full(3, np.nan)
+    return np.linalg.solve(M, A.T @ y)
+
+
+@njit(cache=True, nogil=True)
+def _band_kernel(lab, depth, half, gate, other, dep):
+    """For each pixel of a region, ``other[r, c]``: the other region with most members
+    within ``half`` (Chebyshev; ties to the lower label), -1 if none; then for such
+    pixels the local plane of its own (``dep[..., 0]``) and of the other region
+    (``dep[..., 1]``) at the pixel (:func:`_plane` over the members within ``2 half``)."""
+    R, C = lab.shape
+    reach = 2 * half
+    buf_r = np.empty((2 * reach + 1) ** 2)
+    buf_c = np.empty((2 * reach + 1) ** 2)
+    buf_d = np.empty((2 * reach + 1) ** 2)
+    for r in range(R):
+        for c in range(C):
+            other[r, c] = -1
+            own = lab[r, c]
+            if own < 0:
+                continue
+            best, n_best = -1, 0
+            for rr in range(max(r - half, 0), min(r + half + 1, R)):
+                for cc in range(max(c - half, 0), min(c + half + 1, C)):
+                    x = lab[rr, cc]
+                    if x < 0 or x == own or x == best:
+                        continue
+                    n = 0
+                    for r2 in range(max(r - half, 0), min(r + half + 1, R)):
+                        for c2 in range(max(c - half, 0), min(c + half + 1, C)):
+                            n += lab[r2, c2] == x
+                    if n > n_best or (n == n_best and x < best):
+                        best, n_best = x, n
+            other[r, c] = best
+            if best < 0:
+                continue
+            for j in range(2):
+                x = own if j == 0 else best
+                m = 0
+                for rr in range(max(r - reach, 0), min(r + reach + 1, R)):
+                    for cc in range(max(c - reach, 0), min(c + reach + 1, C)):
+                        if lab[rr, cc] == x:
+                            buf_r[m] = rr - r
+                            buf_c[m] = cc - c
+                            buf_d[m] = depth[rr, cc]
+                            m += 1
+                dep[r, c, j] = _plane(buf_r[:m], buf_c[:m], buf_d[:m], gate)
+
+
+@njit(cache=True, nogil=True)
+def _plane(dr, dc, d, gate):
+    """A robust plane through the depths ``d`` at offsets ``(dr, dc)``, evaluated at
+    (0, 0): least squares, the points off it by more than ``gate`` dropped, least
+    squares again; the median with fewer than 3 non-collinear points."""
+    m = d.size
+    keep = np.ones(m, np.bool_)
+    value = np.median(d)
+    for _ in range(2):
+        k = int(keep.sum())
+        if k < 3:
+            return value
+        A = np.empty((k, 3))
+        y = np.empty(k)
+        j = 0
+        for i in range(m):
+            if keep[i]:
+                A[j, 0], A[j, 1], A[j, 2], y[j] = 1.0, dr[i], dc[i], d[i]
+                j += 1
+        coef = _solve3(A, y)
+        if np.isnan(coef[0]):
+            return value
+        value = coef[0]
+        for i in range(m):
+            keep[i] = abs(coef[0] + coef[1] * dr[i] + coef[2] * dc[i] - d[i]) <= gate
+    return value
+
+
+def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
+    """``max_{s >= 0} sum_t y_t log(1 + s g_t / b_t) - s sum_t g_t`` per pixel: the
+    own counts' log-likelihood ratio of a return at the depth against background
+    alone, the return's intensity ``s`` profiled out (one ``s`` over the wavelengths).
+
+    Concave in ``s``: 0 (``s = 0``) when its slope at 0, ``sum_t y_t g_t / b_t - sum_t
+    g_t``, is not positive; else Newton steps from the counts' IRF-weighted sum.
+
+    Parameters
+    ----------
+    y : ndarray (n, L, T)
+        Raw counts.
+    g : ndarray (n, L, T)
+        The IRF with its peak on the depth (sums to 1 per wavelength inside the window).
+    b : ndarray (n, L, T)
+        Background counts per bin (> 0).
+    n_iter : int
+        Newton steps.
+
+    Returns
+    -------
+    ndarray (n,)
+        Nats, >= 0.
+    """
+    G = g.sum(axis=(1, 2))
+    on = (y * g / b).sum(axis=(1, 2)) > G
+    s = np.where(on, np.maximum((y * g).sum(axis=(1, 2)) / np.maximum(G, 1e-12), 1e-3), 0.0)
+    for _ in range(n_iter):
+        den = b + s[:, None, None] * g
+        d1 = (y * g / den).sum(axis=(1, 2)) - G
+        d2 = -(y * g**2 / den**2).sum(axis=(1, 2))
+        ok = on & (d2 < 0)
+        s = np.maximum(s - np.where(ok, d1 / np.where(ok, d2, -1.0), 0.0), 0.0)
+    llr = (y * np.log1p(s[:, None, None] * g / b)).sum(axis=(1, 2)) - s * G
+    return np.where(on, np.maximum(llr, 0.0), 0.0)
+
+
+def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
+    """:func:`profile_llr` of the pixels ``(rows, cols)`` at their two depths ``dep``
+    (n, 2): (n, 2), in blocks of pixels."""
+    from ._7_align_depths import _pixels
+
+    irf = np.atleast_2d(np.asarray(irf, np.float64))
+    peak = np.argmax(irf, axis=1)
+    T = int(np.shape(counts)[-1])
+    # the IRF's support about a depth (+1 bin for the sub-bin shift): all that counts
+    W = min(irf.shape[1] + 2, T)
+    out = np.empty((rows.size, 2))
+    for a in range(0, rows.size, _BLOCK):
+        sl = slice(a, a + _BLOCK)
+        y = _pixels(counts, rows[sl], cols[sl]).astype(np.float64)  # (n, L, T)
+        b = np.maximum(background.at(rows[sl], cols[sl]).astype(np.float64), 1e-6)
+        n = np.arange(y.shape[0])[:, None]
+        for j in range(2):
+            d = np.clip(dep[sl, j], 0.0, T - 1.0)
+            lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
+            t = lo[:, None] + np.arange(W)  # (n, W)
+            g = _shifted_irf(irf, peak, d - lo, W)  # (n, L, W)
+            yw = np.moveaxis(y[n, :, t], -1, 1)  # (n, L, W)
+            bw = np.moveaxis(b[n, :, t], -1, 1)
+            out[sl, j] = profile_llr(yw, g, bw)
+    return out
+
+
+def min_cut_labels(node, ll, beta, fixed_a, fixed_b) -> np.ndarray:
+    """The labels (0 or 1) of the band's pixels minimising ``-sum_p ll[p, label_p] +
+    beta * #(4-neighbour pairs with different labels)``, exactly (a minimum s-t cut).
+
+    Parameters
+    ----------
+    node : ndarray (R, C) int64
+        The band's pixels numbered ``0..n-1``, -1 elsewhere.
+    ll : ndarray (n, 2)
+        Log-likelihoods (nats) of labels 0 and 1.
+    beta : float
+        Potts weight (nats per differing pair).
+    fixed_a, fixed_b : ndarray (R, C) bool
+        Pixels outside the band held at label 0 / 1 (their pairs with the band count).
+    """
+    R, C = node.shape
+    n = ll.shape[0]
+    cost = -ll - (-ll).min(axis=1, keepdims=True)
+    cap_s, cap_t = cost[:, 1].copy(), cost[:, 0].copy()  # cut when label 1 / label 0
+    src, dst = [], []
+    for p, q in (
+        ((slice(None), slice(0, C - 1)), (slice(None), slice(1, C))),
+        ((slice(0, R - 1), slice(None)), (slice(1, R), slice(None))),
+    ):
+        for u, v in ((p, q), (q, p)):
+            a, b = node[u], node[v]
+            both = (a >= 0) & (b >= 0)
+            src.append(a[both])
+            dst.append(b[both])
+            np.add.at(cap_s, a[(a >= 0) & fixed_a[v]], beta)
+            np.add.at(cap_t, a[(a >= 0) & fixed_b[v]], beta)
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    i = np.concatenate([src, np.full(n, n), np.arange(n)])
+    j = np.concatenate([dst, np.arange(n), np.full(n, n + 1)])
+    w = np.concatenate([np.full(src.size, beta), cap_s, cap_t])
+    w = np.rint(w * _SCALE).astype(np.int64)
+    g = sparse.csr_matrix((w[w > 0], (i[w > 0], j[w > 0])), shape=(n + 2, n + 2))
+    g.sum_duplicates()
+    res = (g - csgraph.maximum_flow(g, n, n + 1).flow).tocsr()
+    res.data[res.data < 0] = 0
+    res.eliminate_zeros()
+    reach = csgraph.breadth_first_order(res, n, directed=True, return_predecessors=False)
+    label = np.ones(n, np.int64)
+    label[reach[reach < n]] = 0
+    return label
+
+
+def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, half: int):
+    """The depths of ``surfaces`` after the bands' labelling (see the module), the
+    indices of the surfaces moved and the Potts weight ``beta``.
+
+    Parameters
+    ----------
+    surfaces : Surfaces
+    counts : array_like (rows, cols, L, T)
+        The cube's raw counts (NumPy or Dask).
+    background : Background
+        The detection's background (``Background.at``).
+    fwhm : float
+        The IRF's FWHM (bins).
+    irf : ndarray (L, n_irf)
+    half : int
+        The largest box's half-width (pixels): the band's reach.
+
+    Returns
+    -------
+    depth : ndarray (S,) float64
+    moved : ndarray (m,) int64
+    beta : float
+    """
+    s = surfaces
+    R, C = s.image_shape
+    pix = s.row * C + s.col
+    solo = np.flatnonzero(np.bincount(pix, minlength=R * C)[pix] == 1)
+    D = np.full((R, C), np.nan)
+    D[s.row[solo], s.col[solo]] = s.depth_bin[solo]
+    at = np.full((R, C), -1, np.int64)
+    at[s.row[solo], s.col[solo]] = solo
+    gate = GATE_FWHM * float(fwhm)
+    lab = region_labels(D, gate)
+    beta = potts_weight(lab)
+    size = np.bincount(lab[lab >= 0], minlength=1)
+    big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
+    other = np.empty((R, C), np.int64)
+    dep = np.full((R, C, 2), np.nan)
+    _band_kernel(big, D, int(half), gate, other, dep)
+    depth = np.array(s.depth_bin, np.float64)
+    zr, zc = np.nonzero(other >= 0)
+    if zr.size == 0:
+        return depth, np.zeros(0, np.int64), beta
+    ll = _likelihoods(counts, background, zr, zc, dep[zr, zc], irf)  # own, other
+    T = int(np.shape(counts)[-1])
+    pair_a = np.minimum(big[zr, zc], other[zr, zc])
+    pair_b = np.maximum(big[zr, zc], other[zr, zc])
+    moved = []
+    for A, B in sorted(set(zip(pair_a.tolist(), pair_b.tolist(), strict=True))):
+        m = np.flatnonzero((pair_a == A) & (pair_b == B))
+        # the band's bounding box and one pixel around it (its 4-neighbours)
+        r0, c0 = max(int(zr[m].min()) - 1, 0), max(int(zc[m].min()) - 1, 0)
+        box = (slice(r0, int(zr[m].max()) + 2), slice(c0, int(zc[m].max()) + 2))
+        node = np.full(big[box].shape, -1, np.int64)
+        node[zr[m] - r0, zc[m] - c0] = np.arange(m.size)
+        own_b = big[zr[m], zc[m]] == B
+        ll_ab = np.where(own_b[:, None], ll[m][:, ::-1], ll[m])  # column 0: A, 1: B
+        fixed_a, fixed_b = (big[box] == A) & (node < 0), (big[box] == B) & (node < 0)
+        new = min_cut_labels(node, ll_ab, beta, fixed_a, fixed_b)
+        change = new != own_b
+        # the prior shapes a band; it never moves one the own counts do not favour
+        if not change.any() or np.sum((ll[m, 1] - ll[m, 0])[change]) <= 0.0:
+            continue
+        for k in np.flatnonzero(change):
+            d_new = dep[zr[m[k]], zc[m[k]], 1]  # the other region's plane
+            i = at[zr[m[k]], zc[m[k]]]
+            if abs(d_new - depth[i]) > fwhm and 0.0 <= d_new <= T - 1:
+                depth[i] = d_new
+                moved.append(int(i))
+    return depth, np.array(sorted(moved), np.int64), beta
+
+
+def relabel_edge_bands(
+    surfaces: Surfaces,
+    *,
+    counts,
+    background,
+    fwhm: float,
+    irf,
+    scales,
+    saliency=None,
+    threshold=None,
+) -> EdgeBands:
+    """Stage 7b: the bands beside depth edges labelled jointly (see the module).
+
+    Parameters
+    ----------
+    surfaces : Surfaces
+        After stage 7.
+    counts : array_like (rows, cols, L, T)
+        The cube's raw counts.
+    background : Background
+    fwhm : float
+        The IRF's FWHM (bins).
+    irf : ndarray (L, n_irf)
+    scales : ndarray (Q,) int
+        ``Detection.scales``: the band's reach is the largest box's half-width, and a
+        moved surface's clean histograms are recomputed with them.
+    saliency, threshold : optional
+        ``Detection.saliency`` and ``.threshold``: a moved surface's ``saliency_mass``
+        and ``evidence`` summed over its new support.
+
+    Returns
+    -------
+    EdgeBands
+        ``surfaces.moved_by`` holds ``"edge_bands"``'s index in ``STAGES`` for the
+        surfaces it moved; their fields follow the depth as stage 7's moves do
+        (``_7_align_depths._follow``, ``_window_fields``, ``_support_fields``).
+    """
+    from ._7_align_depths import _follow, _pixels, _support_fields, _window_fields
+
+    t0 = time.perf_counter()
+    s = surfaces
+    half = int(np.max(scales)) // 2
+    depth, moved, beta = band_depths(s, counts, background, fwhm=fwhm, irf=irf, half=half)
+    if moved.size == 0:
+        return EdgeBands(s, 0, beta, time.perf_counter() - t0)
+    start, stop = np.array(s.start), np.array(s.stop)
+    own_counts = np.array(s.counts, np.float64)
+    own_bg = np.array(s.background, np.float64)
+    ys = _pixels(counts, s.row[moved], s.col[moved]).astype(np.float64)
+    bs = np.maximum(background.at(s.row[moved], s.col[moved]).astype(np.float64), 1e-6)
+    W, T = int(s.histograms.shape[-1]), int(np.shape(counts)[-1])
+    old = np.asarray(s.depth_bin, np.float64)
+    for k, i in enumerate(moved):
+        _follow(start, stop, own_counts, own_bg, i, old[i], depth[i], ys[k], bs[k], W, T)
+    out = replace(s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg)
+    out = _window_fields(out, moved, np.ones(moved.size, bool), counts, background, scales, irf)
+    out = _support_fields(out, moved, saliency, threshold)
+    code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
+    code[moved] = STAGES.index("edge_bands")
+    out = replace(out, moved_by=code)
+    return EdgeBands(out, int(moved.size), beta, time.perf_counter() - t0)

@@ -1,0 +1,178 @@
+"""Tests of stage 7b (``detection/_7b_edge_bands.py``): the bands beside depth edges."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from splidar import gaussian_irf
+from splidar.detection import STAGES
+from splidar.detection._7b_edge_bands import (
+    band_depths,
+    min_cut_labels,
+    profile_llr,
+    relabel_edge_bands,
+)
+from splidar.detection._result import Background, Surfaces
+
+IRF = gaussian_irf(3.0)[None, :]  # (1, 13), FWHM 3 bins
+T = 100
+SHAPE = (20, 24)
+D_BRIGHT, D_DIM = 30.0, 62.0
+BG = 0.02  # background counts per bin
+
+
+def _lam(dim_photons: float, edge: int = 12) -> np.ndarray:
+    """A bright region (columns < ``edge``, depth 30, 12 photons) beside a dim one
+    (depth 62, ``dim_photons``), the Poisson mean (rows, cols, 1, T)."""
+    lam = np.full(SHAPE + (1, T), BG)
+    t = np.arange(T)
+    g = np.exp(-0.5 * ((t - 0.0) / (3.0 / 2.3548)) ** 2)
+    for c in range(SHAPE[1]):
+        d, ph = (D_BRIGHT, 12.0) if c < edge else (D_DIM, dim_photons)
+        g = np.exp(-0.5 * ((t - d) / (3.0 / 2.3548)) ** 2)
+        lam[:, c, 0] += ph * g / g.sum()
+    return lam
+
+
+def _surfaces(depth: np.ndarray) -> Surfaces:
+    """One surface per pixel at ``depth`` (rows, cols), the other fields placeholders
+    of the right shapes (window 13 bins about the depth)."""
+    R, C = depth.shape
+    row, col = (a.ravel() for a in np.mgrid[0:R, 0:C])
+    n, W = row.size, 13
+    d = depth.ravel().astype(np.float64)
+    off = np.clip(np.rint(d).astype(np.int64) - W // 2, 0, T - W)
+    return Surfaces(
+        row=row, col=col, slot=np.zeros(n, np.int64), depth_bin=d, start=off, stop=off + W,
+        scale_index=np.zeros(n, np.int64), offset=off,
+        histograms=np.zeros((n, 4, 1, W), np.float32), signal=np.ones((n, 4, 1)),
+        counts=np.zeros((n, 1)), background=np.zeros((n, 1)), saliency_mass=np.ones(n),
+        image_shape=(R, C), n_slots=2, presence_llr=np.zeros(n), presence_z=np.zeros(n),
+        stage=np.zeros(n, np.int8),
+    )  # fmt: skip
+
+
+def _background() -> Background:
+    return Background(
+        spatial=np.full(SHAPE + (1,), BG, np.float32), temporal=np.full((1, T), BG, np.float32)
+    )
+
+
+def _band(width: int) -> np.ndarray:
+    """The detection's depths: the dim region's first ``width`` columns took the
+    bright region's depth (the boxes pooled its returns into them)."""
+    depth = np.where(np.arange(SHAPE[1]) < 12 + width, D_BRIGHT, D_DIM)
+    return np.broadcast_to(depth, SHAPE).copy()
+
+
+def test_band_depths_moves_a_dim_band_beside_a_bright_region_to_its_own_depth():
+    counts = np.random.default_rng(3).poisson(_lam(dim_photons=1.5)).astype(np.uint16)
+    wrong = _band(3)
+    depth, moved, beta = band_depths(
+        _surfaces(wrong), counts, _background(), fwhm=3.0, irf=IRF, half=5
+    )
+    depth = depth.reshape(SHAPE)
+    band = np.zeros(SHAPE, bool)
+    band[:, 12:15] = True
+    # the band's pixels (one or two photons each) move to their region's depth together
+    assert np.mean(np.abs(depth[band] - D_DIM) < 1.0) > 0.9
+    # nothing else moves, and the prior comes from the depth field (beta > 0)
+    assert np.array_equal(depth[~band], wrong[~band])
+    assert moved.size == np.sum(np.abs(depth - wrong) > 0) and beta > 0
+
+
+def test_band_depths_keeps_a_band_its_counts_place_on_the_bright_side():
+    # the bright region really reaches column 14: its pixels show it, none moves
+    counts = np.random.default_rng(3).poisson(_lam(dim_photons=1.5, edge=15)).astype(np.uint16)
+    wrong = _band(3)
+    depth, moved, _ = band_depths(
+        _surfaces(wrong), counts, _background(), fwhm=3.0, irf=IRF, half=5
+    )
+    assert moved.size == 0 and np.array_equal(depth, wrong.ravel())
+
+
+def test_band_depths_leaves_multi_surface_pixels_alone():
+    counts = np.random.default_rng(3).poisson(_lam(dim_photons=1.5)).astype(np.uint16)
+    s = _surfaces(_band(3))
+    # every band pixel also holds a second surface: a layer, not an occlusion
+    extra = np.flatnonzero((s.col >= 12) & (s.col < 15))
+    two = Surfaces(
+        **{
+            k: (
+                np.concatenate([v, v[extra]])
+                if isinstance(v, np.ndarray) and v.shape[:1] == (len(s),)
+                else v
+            )
+            for k, v in vars(s).items()
+        }
+    )
+    depth, moved, _ = band_depths(two, counts, _background(), fwhm=3.0, irf=IRF, half=5)
+    assert moved.size == 0
+
+
+def test_min_cut_labels_is_the_exact_minimum():
+    rng = np.random.default_rng(0)
+    node = np.full((3, 4), -1, np.int64)
+    node[:, 1:3] = np.arange(6).reshape(3, 2)
+    fixed_a = np.zeros((3, 4), bool)
+    fixed_a[:, 0] = True
+    fixed_b = np.zeros((3, 4), bool)
+    fixed_b[:, 3] = True
+    pairs = [(node[r, c], node[r2, c2]) for r, c in np.argwhere(node >= 0)
+             for r2, c2 in ((r + 1, c), (r, c + 1)) if r2 < 3 and node[r2, c2] >= 0]  # fmt: skip
+    for _ in range(20):
+        ll = rng.normal(0, 2, (6, 2))
+        beta = float(rng.uniform(0, 3))
+
+        def energy(lab, ll=ll, beta=beta):
+            e = -ll[np.arange(6), lab].sum() + beta * sum(lab[a] != lab[b] for a, b in pairs)
+            # pairs with the fixed columns: column 0 holds label 0, column 3 label 1
+            return e + beta * (np.sum(lab[[0, 2, 4]] == 1) + np.sum(lab[[1, 3, 5]] == 0))
+
+        best = min(energy(np.array(x)) for x in itertools.product((0, 1), repeat=6))
+        lab = min_cut_labels(node, ll, beta, fixed_a, fixed_b)
+        assert energy(lab) <= best + 1e-2
+
+
+def test_profile_llr_is_the_maximum_over_the_intensity():
+    rng = np.random.default_rng(1)
+    g = np.zeros((5, 1, 40))
+    g[:, 0, 14:27] = IRF[0]
+    b = np.full((5, 1, 40), 0.05)
+    y = rng.poisson(b + 2.0 * g).astype(np.float64)
+    got = profile_llr(y, g, b)
+    s = np.linspace(0, 30, 30001)[:, None, None, None]
+    grid = (y * np.log1p(s * g / b)).sum(axis=(2, 3)) - s[..., 0, 0] * g.sum(axis=(1, 2))
+    assert np.allclose(got, np.maximum(grid.max(axis=0), 0.0), atol=1e-3)
+
+
+def test_relabel_edge_bands_records_its_moves():
+    counts = np.random.default_rng(3).poisson(_lam(dim_photons=1.5)).astype(np.uint16)
+    res = relabel_edge_bands(
+        _surfaces(_band(3)), counts=counts, background=_background(), fwhm=3.0, irf=IRF,
+        scales=np.array([1, 3, 7, 11]),
+    )  # fmt: skip
+    moved = np.flatnonzero(res.surfaces.moved_by == STAGES.index("edge_bands"))
+    assert res.n_moved == moved.size > 0
+    s = res.surfaces
+    # a moved surface's support and window follow its depth
+    assert np.all((s.start[moved] <= s.depth_bin[moved]) & (s.depth_bin[moved] < s.stop[moved]))
+
+
+def test_detect_runs_edge_bands_after_align_depths_unless_skipped():
+    from splidar import Cube
+    from splidar.detection import PASSES, detect
+
+    counts = np.random.default_rng(0).poisson(_lam(dim_photons=1.5)).astype(np.uint16)
+    cube = Cube(counts, irf=gaussian_irf(3.0))
+    on = detect(cube, rng=0)
+    off = detect(cube, rng=0, passes=tuple(p for p in PASSES if p != "edge_bands"))
+    rec_on = {r.stage: r for r in on.provenance}
+    rec_off = {r.stage: r for r in off.provenance}
+    assert [r.stage for r in on.provenance][-2:] == ["align_depths", "edge_bands"]
+    assert rec_on["edge_bands"].ran and not rec_off["edge_bands"].ran
+    assert on.options["n_edge_bands"] == rec_on["edge_bands"].moved
+    if rec_on["edge_bands"].moved == 0:
+        assert np.array_equal(on.points.depth_bin, off.points.depth_bin)
