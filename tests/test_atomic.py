@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from splidar.cli import _clean_stale, main
+from splidar.cli import _clean_stale, _on_sigterm, _Terminated, main
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 
@@ -123,3 +123,32 @@ def test_clean_stale_restores_output_moved_aside(tmp_path):
     _clean_stale(out)
     assert (out / "summary.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", mine.name])
+
+
+@pytest.mark.skipif(not hasattr(signal, "setitimer"), reason="POSIX interval timers")
+def test_on_sigterm_defers_a_signal_that_lands_inside_llvm():
+    """A SIGTERM inside one of numba's LLVM callbacks (ctypes would print its traceback
+    and drop the exception) is raised a moment later, outside the callback."""
+    fake = os.path.join("site-packages", "llvmlite", "binding", "executionengine.py")
+    src = (
+        "def callback(kill, wait):\n"
+        "    kill()\n"
+        "    wait()\n"  # the signal arrives while this frame runs
+        "    return 'done'\n"
+    )
+    ns: dict = {}
+    exec(compile(src, fake, "exec"), ns)
+
+    def busy(seconds=0.3):
+        t = time.monotonic()
+        while time.monotonic() - t < seconds:
+            pass
+
+    reached = []
+    with pytest.raises(_Terminated):
+        with _on_sigterm():
+            reached.append(ns["callback"](lambda: os.kill(os.getpid(), signal.SIGTERM), busy))
+            busy(2.0)  # the deferred signal is raised here
+            reached.append("not interrupted")
+    assert reached == ["done"]
+    assert signal.getsignal(signal.SIGTERM) is not None  # the old handlers are back

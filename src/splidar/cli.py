@@ -1752,22 +1752,81 @@ class _Terminated(KeyboardInterrupt):
 
 @contextmanager
 def _on_sigterm():
-    """Turn SIGTERM into :class:`_Terminated` while a command runs (main thread only)."""
+    """Turn SIGTERM into :class:`_Terminated` (and Ctrl-C into ``KeyboardInterrupt``)
+    while a command runs (main thread only).
+
+    A signal that lands while numba's LLVM layer is inside one of its ctypes callbacks
+    (``llvmlite.binding``: loading or saving a cached kernel) is delivered a moment
+    later (:func:`_deferred`): an exception raised inside a ctypes callback is printed
+    with a traceback by ctypes and then lost, so the run would go on.
+    """
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def handler(signum, frame):
-        raise _Terminated()
-
-    old = signal.signal(signal.SIGTERM, handler)
+    pending: list = []
+    handlers = {
+        signal.SIGTERM: _deferred(_Terminated, pending),
+        signal.SIGINT: _deferred(KeyboardInterrupt, pending),
+    }
+    if hasattr(signal, "setitimer"):  # POSIX: the deferred signal's retry
+        handlers[signal.SIGALRM] = _retry(pending)
+    old = {sig: signal.signal(sig, h) for sig, h in handlers.items()}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, old)
+        if hasattr(signal, "setitimer"):
+            signal.setitimer(signal.ITIMER_REAL, 0)
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+#: Seconds between the retries of a signal that landed inside an LLVM callback.
+_RETRY_S = 0.02
+
+
+def _inside_llvm(frame) -> bool:
+    """True when ``frame`` or a caller runs ``llvmlite.binding`` code."""
+    while frame is not None:
+        if f"llvmlite{os.sep}binding" in frame.f_code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _deferred(exc_type, pending: list):
+    """A signal handler raising ``exc_type``, or, inside an LLVM callback and where
+    ``signal.setitimer`` exists, recording it in ``pending`` for :func:`_retry`."""
+    import signal
+
+    def handler(signum, frame):
+        if hasattr(signal, "setitimer") and _inside_llvm(frame):
+            pending.append(exc_type)
+            signal.setitimer(signal.ITIMER_REAL, _RETRY_S)
+            return
+        raise exc_type()
+
+    return handler
+
+
+def _retry(pending: list):
+    """The SIGALRM handler: raise the first pending signal's exception once outside
+    LLVM's callbacks (else try again after :data:`_RETRY_S`)."""
+    import signal
+
+    def handler(signum, frame):
+        if not pending:
+            return
+        if _inside_llvm(frame):
+            signal.setitimer(signal.ITIMER_REAL, _RETRY_S)
+            return
+        exc_type = pending[0]
+        pending.clear()
+        raise exc_type()
+
+    return handler
 
 
 def entry() -> None:
