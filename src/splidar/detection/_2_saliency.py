@@ -356,11 +356,11 @@ def region_scales(coh: Coherence, shape: tuple) -> RegionScales:
     if not centre.any():
         return RegionScales(scales, out, float("nan"), w)
     zn = float(np.sqrt(COHERENCE_Z**2 + 2 * np.log(centre.sum())))
-    own = centre & (window(e) >= zn * np.sqrt(window(e * e)))
+    own = centre & (window(e) >= zn * _root(window(e * e)))
     kept = np.repeat(coh.kept[None, None], R, axis=0).repeat(C, axis=1)  # (R, C, Q)
     for q in np.flatnonzero(scales > 1):
         d = coh.shared[q] - e / (scales[q] + 1)
-        zq = window(d) / np.maximum(np.sqrt(window(d * d)), 1e-300)
+        zq = window(d) / np.maximum(_root(window(d * d)), 1e-300)
         kept[own & (zq < -zn), q] = False
         kept[own & (zq > zn), q] = True
     n = np.logical_and.accumulate(kept, axis=2).sum(axis=2).astype(np.int8)
@@ -368,6 +368,12 @@ def region_scales(coh: Coherence, shape: tuple) -> RegionScales:
     reach = n_pix > 0  # the pixel's own window holds measured pixels
     out[reach] = n[near[0], near[1]][reach]
     return RegionScales(scales, out, zn, w)
+
+
+def _root(v: np.ndarray) -> np.ndarray:
+    """``sqrt(v)``, NaN where the summed-area table left ``v`` at or below 0 (a window
+    of no spread: every comparison with it is then False, no evidence either way)."""
+    return np.sqrt(np.where(v > 0, v, np.nan), where=v > 0, out=np.full(v.shape, np.nan))
 
 
 def _window_sums(m: np.ndarray, r: int) -> np.ndarray:

@@ -221,17 +221,48 @@ def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
     ndarray (n,)
         Nats, >= 0.
     """
-    G = g.sum(axis=(1, 2))
-    on = (y * g / b).sum(axis=(1, 2)) > G
-    s = np.where(on, np.maximum((y * g).sum(axis=(1, 2)) / np.maximum(G, 1e-12), 1e-3), 0.0)
-    for _ in range(n_iter):
-        den = b + s[:, None, None] * g
-        d1 = (y * g / den).sum(axis=(1, 2)) - G
-        d2 = -(y * g**2 / den**2).sum(axis=(1, 2))
-        ok = on & (d2 < 0)
-        s = np.maximum(s - np.where(ok, d1 / np.where(ok, d2, -1.0), 0.0), 0.0)
-    llr = (y * np.log1p(s[:, None, None] * g / b)).sum(axis=(1, 2)) - s * G
-    return np.where(on, np.maximum(llr, 0.0), 0.0)
+    y, g, b = (np.ascontiguousarray(a, np.float64) for a in (y, g, b))
+    out = np.empty(y.shape[0])
+    _profile_llr_kernel(y, g, b, int(n_iter), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
+    """:func:`profile_llr`, one pixel at a time (the bins without counts add nothing to
+    the sums over ``y``)."""
+    n, L, W = y.shape
+    for i in range(n):
+        G = 0.0
+        slope = 0.0
+        yg = 0.0
+        for l in range(L):
+            for t in range(W):
+                G += g[i, l, t]
+                if y[i, l, t] > 0:
+                    slope += y[i, l, t] * g[i, l, t] / b[i, l, t]
+                    yg += y[i, l, t] * g[i, l, t]
+        if not slope > G:
+            out[i] = 0.0
+            continue
+        s = max(yg / max(G, 1e-12), 1e-3)
+        for _ in range(n_iter):
+            d1 = -G
+            d2 = 0.0
+            for l in range(L):
+                for t in range(W):
+                    if y[i, l, t] > 0:
+                        q = y[i, l, t] * g[i, l, t] / (b[i, l, t] + s * g[i, l, t])
+                        d1 += q
+                        d2 -= q * g[i, l, t] / (b[i, l, t] + s * g[i, l, t])
+            if d2 < 0:
+                s = max(s - d1 / d2, 0.0)
+        llr = -s * G
+        for l in range(L):
+            for t in range(W):
+                if y[i, l, t] > 0:
+                    llr += y[i, l, t] * np.log1p(s * g[i, l, t] / b[i, l, t])
+        out[i] = max(llr, 0.0)
 
 
 def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
@@ -245,18 +276,23 @@ def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
     # the IRF's support about a depth (+1 bin for the sub-bin shift): all that counts
     W = min(irf.shape[1] + 2, T)
     out = np.empty((rows.size, 2))
+    tm = background.temporal
+    tm = tm - tm.mean(axis=-1, keepdims=True)  # as Background.at: (L, T)
     for a in range(0, rows.size, _BLOCK):
         sl = slice(a, a + _BLOCK)
-        y = _pixels(counts, rows[sl], cols[sl]).astype(np.float64)  # (n, L, T)
-        b = np.maximum(background.at(rows[sl], cols[sl]).astype(np.float64), 1e-6)
+        y = _pixels(counts, rows[sl], cols[sl])  # (n, L, T) as stored
+        sp = background.spatial[rows[sl], cols[sl]]  # (n, L)
         n = np.arange(y.shape[0])[:, None]
         for j in range(2):
             d = np.clip(dep[sl, j], 0.0, T - 1.0)
             lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
             t = lo[:, None] + np.arange(W)  # (n, W)
             g = _shifted_irf(irf, peak, d - lo, W)  # (n, L, W)
-            yw = np.moveaxis(y[n, :, t], -1, 1)  # (n, L, W)
-            bw = np.moveaxis(b[n, :, t], -1, 1)
+            yw = np.moveaxis(y[n, :, t], -1, 1).astype(np.float64)  # (n, L, W)
+            # Background.at over the window only, the same float32 arithmetic
+            bw = sp[:, :, None] + np.moveaxis(tm[:, t], 0, 1)
+            bw = np.maximum(bw, 0, out=bw).astype(np.float32, copy=False)
+            bw = np.maximum(bw.astype(np.float64), 1e-6)
             out[sl, j] = profile_llr(yw, g, bw)
     return out
 
@@ -277,9 +313,7 @@ def min_cut_labels(node, ll, beta, fixed_a, fixed_b) -> np.ndarray:
         Pixels outside the band held at label 0 / 1 (their pairs with the band count).
     """
     R, C = node.shape
-    n = ll.shape[0]
-    cost = -ll - (-ll).min(axis=1, keepdims=True)
-    cap_s, cap_t = cost[:, 1].copy(), cost[:, 0].copy()  # cut when label 1 / label 0
+    cap_s, cap_t = _unary(ll)
     src, dst = [], []
     for p, q in (
         ((slice(None), slice(0, C - 1)), (slice(None), slice(1, C))),
@@ -292,7 +326,22 @@ def min_cut_labels(node, ll, beta, fixed_a, fixed_b) -> np.ndarray:
             dst.append(b[both])
             np.add.at(cap_s, a[(a >= 0) & fixed_a[v]], beta)
             np.add.at(cap_t, a[(a >= 0) & fixed_b[v]], beta)
-    src, dst = np.concatenate(src), np.concatenate(dst)
+    return _cut(np.concatenate(src), np.concatenate(dst), cap_s, cap_t, beta)
+
+
+def _unary(ll: np.ndarray):
+    """The terminal capacities ``(cut when label 1, cut when label 0)`` of log-likelihoods
+    ``ll`` (n, 2), shifted to be non-negative."""
+    cost = -ll - (-ll).min(axis=1, keepdims=True)
+    return cost[:, 1].copy(), cost[:, 0].copy()
+
+
+def _cut(src, dst, cap_s, cap_t, beta: float) -> np.ndarray:
+    """Labels (0: source side) of the minimum s-t cut of ``n = cap_s.size`` nodes with
+    terminal capacities ``cap_s`` / ``cap_t`` and ``beta`` on each directed edge
+    ``src -> dst``: the source side is the set the source reaches in the residual graph
+    of a maximum flow (the smallest minimum cut, the same for every maximum flow)."""
+    n = cap_s.size
     i = np.concatenate([src, np.full(n, n), np.arange(n)])
     j = np.concatenate([dst, np.arange(n), np.full(n, n + 1)])
     w = np.concatenate([np.full(src.size, beta), cap_s, cap_t])
@@ -306,6 +355,32 @@ def min_cut_labels(node, ll, beta, fixed_a, fixed_b) -> np.ndarray:
     label = np.ones(n, np.int64)
     label[reach[reach < n]] = 0
     return label
+
+
+def _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) -> np.ndarray:
+    """:func:`min_cut_labels` of every pair of regions' band at once: the bands' pixels
+    are disjoint (each has one other region) and a Potts edge joins two pixels of one
+    band only, so the graph is the bands' graphs side by side, sharing the source and
+    the sink, and its minimum cut is theirs. A neighbour outside the pixel's band is
+    held at its region (A: label 0, B: label 1) as in :func:`min_cut_labels`."""
+    R, C = big.shape
+    node = np.full((R, C), -1, np.int64)
+    node[zr, zc] = np.arange(zr.size)
+    cap_s, cap_t = _unary(ll_ab)
+    src, dst = [], []
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        r, c = zr + dr, zc + dc
+        ok = (r >= 0) & (r < R) & (c >= 0) & (c < C)
+        u, r, c = np.flatnonzero(ok), r[ok], c[ok]
+        v = node[r, c]
+        same = v >= 0
+        same[same] = (pair_a[v[same]] == pair_a[u[same]]) & (pair_b[v[same]] == pair_b[u[same]])
+        src.append(u[same])
+        dst.append(v[same])
+        held = big[r, c]
+        np.add.at(cap_s, u[~same & (held == pair_a[u])], beta)
+        np.add.at(cap_t, u[~same & (held == pair_b[u])], beta)
+    return _cut(np.concatenate(src), np.concatenate(dst), cap_s, cap_t, beta)
 
 
 def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, half: int):
@@ -355,28 +430,17 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     T = int(np.shape(counts)[-1])
     pair_a = np.minimum(big[zr, zc], other[zr, zc])
     pair_b = np.maximum(big[zr, zc], other[zr, zc])
-    moved = []
-    for A, B in sorted(set(zip(pair_a.tolist(), pair_b.tolist(), strict=True))):
-        m = np.flatnonzero((pair_a == A) & (pair_b == B))
-        # the band's bounding box and one pixel around it (its 4-neighbours)
-        r0, c0 = max(int(zr[m].min()) - 1, 0), max(int(zc[m].min()) - 1, 0)
-        box = (slice(r0, int(zr[m].max()) + 2), slice(c0, int(zc[m].max()) + 2))
-        node = np.full(big[box].shape, -1, np.int64)
-        node[zr[m] - r0, zc[m] - c0] = np.arange(m.size)
-        own_b = big[zr[m], zc[m]] == B
-        ll_ab = np.where(own_b[:, None], ll[m][:, ::-1], ll[m])  # column 0: A, 1: B
-        fixed_a, fixed_b = (big[box] == A) & (node < 0), (big[box] == B) & (node < 0)
-        new = min_cut_labels(node, ll_ab, beta, fixed_a, fixed_b)
-        change = new != own_b
-        # the prior shapes a band; it never moves one the own counts do not favour
-        if not change.any() or np.sum((ll[m, 1] - ll[m, 0])[change]) <= 0.0:
-            continue
-        for k in np.flatnonzero(change):
-            d_new = dep[zr[m[k]], zc[m[k]], 1]  # the other region's plane
-            i = at[zr[m[k]], zc[m[k]]]
-            if abs(d_new - depth[i]) > fwhm and 0.0 <= d_new <= T - 1:
-                depth[i] = d_new
-                moved.append(int(i))
+    own_b = big[zr, zc] == pair_b
+    ll_ab = np.where(own_b[:, None], ll[:, ::-1], ll)  # column 0: A, 1: B
+    change = _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) != own_b
+    # the prior shapes a band; it never moves one the own counts do not favour
+    pair = np.unique(np.stack([pair_a, pair_b]), axis=1, return_inverse=True)[1].ravel()
+    gain = np.bincount(pair, weights=np.where(change, ll[:, 1] - ll[:, 0], 0.0))
+    go = change & (gain[pair] > 0.0)
+    i, d_new = at[zr[go], zc[go]], dep[zr[go], zc[go], 1]  # the other region's plane
+    ok = (np.abs(d_new - depth[i]) > fwhm) & (d_new >= 0.0) & (d_new <= T - 1)
+    depth[i[ok]] = d_new[ok]
+    moved = i[ok]
     return depth, np.array(sorted(moved), np.int64), beta
 
 
