@@ -11,6 +11,7 @@ from splidar.detection import STAGES
 from splidar.detection._7b_edge_bands import (
     band_depths,
     min_cut_labels,
+    near_depths,
     profile_llr,
     relabel_edge_bands,
 )
@@ -176,3 +177,48 @@ def test_detect_runs_edge_bands_after_align_depths_unless_skipped():
     assert on.options["n_edge_bands"] == rec_on["edge_bands"].moved
     if rec_on["edge_bands"].moved == 0:
         assert np.array_equal(on.points.depth_bin, off.points.depth_bin)
+
+
+def _ramp_lam(photons: float, bright_at=None) -> tuple:
+    """One region, a ramp ``depth = 40 + 0.5 col`` (bins) of ``photons`` per pixel; with
+    ``bright_at`` (row, col, depth) that pixel's return is 30 photons at that depth.
+    Returns the Poisson mean (rows, cols, 1, T) and the ramp's depths (rows, cols)."""
+    depth = np.broadcast_to(40.0 + 0.5 * np.arange(SHAPE[1]), SHAPE).copy()
+    t = np.arange(T)
+    lam = np.full(SHAPE + (1, T), BG)
+    for (r, c), d in np.ndenumerate(depth):
+        ph = photons
+        if bright_at is not None and (r, c) == bright_at[:2]:
+            d, ph = bright_at[2], 30.0
+        g = np.exp(-0.5 * ((t - d) / (3.0 / 2.3548)) ** 2)
+        lam[r, c, 0] += ph * g / g.sum()
+    return lam, depth
+
+
+def test_band_depths_moves_a_near_wrong_depth_onto_its_region_plane():
+    # a pixel of a ramp, its depth 5 bins off the ramp (inside the 4.5-bin gate of a
+    # neighbour's), its counts the ramp's 3.4 photons: it moves back onto the plane
+    lam, ramp = _ramp_lam(3.4)
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] += 5.0
+    depth, moved, _ = band_depths(
+        _surfaces(wrong), counts, _background(), fwhm=3.0, irf=IRF, half=5
+    )
+    i = 10 * SHAPE[1] + 12
+    assert moved.tolist() == [i]
+    assert abs(depth[i] - ramp[10, 12]) < 0.5
+
+
+def test_near_depths_keeps_a_pixel_its_counts_place_off_the_plane():
+    # the same pixel's counts show a bright return where it was detected: it stays
+    lam, ramp = _ramp_lam(3.4, bright_at=(10, 12, 51.0))
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] = 51.0
+    s = _surfaces(wrong)
+    moved, to = near_depths(
+        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
+        fwhm=3.0, irf=IRF, half=5,
+    )  # fmt: skip
+    assert moved.size == 0 and to.size == 0
