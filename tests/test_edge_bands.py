@@ -222,3 +222,22 @@ def test_near_depths_keeps_a_pixel_its_counts_place_off_the_plane():
         fwhm=3.0, irf=IRF, half=5,
     )  # fmt: skip
     assert moved.size == 0 and to.size == 0
+
+
+def test_near_depths_keeps_a_step_its_pixels_share():
+    # a 3 x 3 patch 5 bins behind the ramp (a step inside the 4.5-bin gate), dim: its
+    # pixels share their offset from the plane, so it is a surface, not a fluctuation
+    lam, ramp = _ramp_lam(0.0)
+    depth = ramp.copy()
+    depth[8:11, 10:13] += 5.0
+    t = np.arange(T)
+    for (r, c), d in np.ndenumerate(depth):
+        g = np.exp(-0.5 * ((t - d) / (3.0 / 2.3548)) ** 2)
+        lam[r, c, 0] += (0.3 if 8 <= r < 11 and 10 <= c < 13 else 3.4) * g / g.sum()
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    s = _surfaces(depth)
+    moved, _ = near_depths(
+        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
+        fwhm=3.0, irf=IRF, half=5,
+    )  # fmt: skip
+    assert moved.size == 0

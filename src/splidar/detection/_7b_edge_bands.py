@@ -33,8 +33,9 @@ rule. Multi-surface pixels (layers, nets) and small clusters are left alone and 
 no depth.
 
 Then a region's member more than :data:`NEAR_FWHM` FWHM off its own region's local plane
-(the plane through the other members) is offered the plane's depth, with the same
-profile likelihood and a prior measured on the detection (:func:`near_depths`): the
+(the plane through the other members), and not sharing that offset with two of its
+8-neighbours, is offered the plane's depth, with the same profile likelihood and a prior
+measured on the detection (:func:`near_depths`): the
 "near" wrong depths, a pixel's own peak moved a few bins by a Poisson fluctuation, which
 the labelling of two regions never sees.
 
@@ -487,6 +488,20 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     return depth, np.union1d(np.asarray(moved, np.int64), near), beta
 
 
+def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
+    """(R, C) int: how many 8-neighbours' finite values lie within ``tol`` of the pixel's."""
+    R, C = depth.shape
+    pad = np.pad(depth, 1, constant_values=np.nan)
+    out = np.zeros((R, C), np.int64)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                nb = pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+                with np.errstate(invalid="ignore"):
+                    out += np.abs(nb - depth) <= tol
+    return out
+
+
 def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int):
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
@@ -494,10 +509,15 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
 
     The regions are re-formed on ``depth`` (after the bands' labelling); each member's
     plane is :func:`_plane` over the other members within ``2 half`` (the pixel left
-    out). With ``q`` the fraction of the members (with a plane) off it by more than
-    ``NEAR_FWHM`` FWHM, measured on this detection, the prior log-odds that a pixel lies
-    on its region's plane is ``log((1 - q) / q)``; a pixel moves when ``L(plane) -
-    L(own) + log((1 - q) / q) > 0`` (``L``: :func:`profile_llr` of its raw counts).
+    out). A pixel is offered its plane when it lies more than ``NEAR_FWHM`` FWHM off it
+    and fewer than 2 of its 8-neighbours lie off their own planes by the same amount
+    (within half the FWHM): a lone fluctuation or a pair, not a step of a surface inside
+    the region's gate (with a wide IRF, FWHM 7 bins, a region spans steps of up to 10
+    bins; without this guard the step's side moved onto the plane). With ``q`` the
+    fraction of the members (with a plane) off it by more than ``NEAR_FWHM`` FWHM,
+    measured on this detection, the prior log-odds that a pixel lies on its region's
+    plane is ``log((1 - q) / q)``; a pixel moves when ``L(plane) - L(own) + log((1 - q)
+    / q) > 0`` (``L``: :func:`profile_llr` of its raw counts).
 
     Parameters
     ----------
@@ -529,7 +549,7 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     _own_plane_kernel(big, D, 2 * int(half), gate, plane)
     has = np.isfinite(plane)
     off = has & (np.abs(D - plane) > NEAR_FWHM * float(fwhm))
-    zr, zc = np.nonzero(off)
+    zr, zc = np.nonzero(off & (_shared(D - plane, 0.5 * float(fwhm)) < 2))
     T = int(np.shape(counts)[-1])
     keep = (plane[zr, zc] >= 0.0) & (plane[zr, zc] <= T - 1)
     zr, zc = zr[keep], zc[keep]
