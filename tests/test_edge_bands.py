@@ -195,7 +195,10 @@ def _ramp_lam(photons: float, bright_at=None) -> tuple:
     return lam, depth
 
 
-def test_band_depths_moves_a_near_wrong_depth_onto_its_region_plane():
+def test_band_depths_moves_a_near_wrong_depth_onto_its_region_plane(monkeypatch):
+    import splidar.detection._7b_edge_bands as stage
+
+    monkeypatch.setattr(stage, "NEAR_DEPTHS", True)  # off by default (Art, near26)
     # a pixel of a ramp, its depth 5 bins off the ramp (inside the 4.5-bin gate of a
     # neighbour's), its counts the ramp's 3.4 photons: it moves back onto the plane
     lam, ramp = _ramp_lam(3.4)

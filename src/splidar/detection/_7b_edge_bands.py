@@ -32,7 +32,8 @@ moves to the other region's plane; its fields follow the depth as in stage 7's f
 rule. Multi-surface pixels (layers, nets) and small clusters are left alone and offer
 no depth.
 
-Then a region's member more than :data:`NEAR_FWHM` FWHM off its own region's local plane
+Then (with :data:`NEAR_DEPTHS`, off by default) a region's member more than
+:data:`NEAR_FWHM` FWHM off its own region's local plane
 (the plane through the other members), and not sharing that offset with two of its
 8-neighbours, is offered the plane's depth, with the same profile likelihood and a prior
 measured on the detection (:func:`near_depths`): the
@@ -46,9 +47,9 @@ Measured (``benchmarks/bench_edge_bands.py``, benchmarks/README.md "edge25, sess
 18"): single surface PPP 4, SBR 0.25, seeds 0-2 per cube, false surfaces 118.0 ->
 113.3 (uniform), 149.0 -> 141.7 (decaying), F_true 0.9753 -> 0.9759, 0.9767 -> 0.9777;
 every sheet and net cell better or equal; with ``beta = 0`` (every pixel alone) 146-159
-true surfaces moved off per cube. With the near depths ("near26, session 18"): 113.3 ->
-84.0 (uniform), 141.7 -> 114.3 (decaying), F_true 0.9797 and 0.9812; every sheet and
-net cube better or equal.
+true surfaces moved off per cube. With the near depths (``NEAR_DEPTHS``; "near26,
+session 18"): 113.3 -> 89.3 (uniform), 141.7 -> 118.0 (decaying), F_true 0.9790 and
+0.9808; every sheet and net cube better or equal, but Art at PPP 4 slightly worse.
 """
 
 from __future__ import annotations
@@ -78,8 +79,18 @@ MIN_REGION = 5
 #: "near" wrong depths, a pixel's own peak moved 3-8 bins by a Poisson fluctuation at a
 #: few photons. Measured (benchmarks/README.md, "near26, session 18"): on issue #15's
 #: single-surface cells the plane lies within 3 bins of the truth for every such wrong
-#: depth, and 93-96 % of the pixels so far off are wrong depths.
+#: depth, and 95 % of the pixels so far off (86-100 % per cube) are wrong depths.
+#: Single surface PPP 4, SBR 0.25, seeds 0-2: false surfaces 113.3 -> 89.3 (uniform),
+#: 141.7 -> 118.0 (decaying); no sheet, net or ``bench_detection.py`` cell worse; Art
+#: at PPP 4 worse (:data:`NEAR_DEPTHS`).
 NEAR_FWHM = 1.0
+#: Move the near wrong depths (:func:`near_depths`) in :func:`band_depths`. Off: on the
+#: paper's Art scene at PPP 4 (``bench_paper_art.py --quick``, tau 4 mm = 1.67 bins) it
+#: moved more true surfaces off than it fixed (uniform 39 moved: 11 fixed, 20 off;
+#: decaying 36: 6 fixed, 18 off; ``process``: false 2391 -> 2400 and 2129 -> 2141, F_true
+#: -0.0001), although every single-surface, sheet, net and ``bench_detection.py`` cell
+#: gained (benchmarks/README.md, "near26, session 18").
+NEAR_DEPTHS = False
 #: Max-flow capacities are integers: nats times this.
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
@@ -483,7 +494,9 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     ok = (np.abs(d_new - depth[i]) > fwhm) & (d_new >= 0.0) & (d_new <= T - 1)
     depth[i[ok]] = d_new[ok]
     moved = i[ok]
-    near, to = near_depths(s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half)
+    near, to = np.zeros(0, np.int64), np.zeros(0)
+    if NEAR_DEPTHS:
+        near, to = near_depths(s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half)
     depth[near] = to
     return depth, np.union1d(np.asarray(moved, np.int64), near), beta
 

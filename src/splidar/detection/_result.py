@@ -58,7 +58,7 @@ STAGE_REASONS = {
     "align_depths": "its 4-neighbours' plane (or the depth they offer a far surface) "
     "places it there",
     "edge_bands": "a band beside a depth edge, decided together (Potts prior, own counts): "
-    "the neighbouring region's plane; or a pixel far off its own region's plane, onto it",
+    "the neighbouring region's plane",
 }
 
 
@@ -324,9 +324,8 @@ class Surfaces:
         surface's depth (``"recentre"``: to the depth its 4-neighbours agree on inside
         its own run; ``"align_depths"``: onto its neighbours' plane or off a far depth;
         ``"edge_bands"``: a band beside a depth edge onto the neighbouring region's
-        plane, or a pixel far off its own region's plane onto it), ``-1`` when no stage
-        moved it. Every other field describes the depth it holds now. With ``stage``,
-        what :meth:`Detection.explain` tells. Added field.
+        plane), ``-1`` when no stage moved it. Every other field describes the depth it holds
+        now. With ``stage``, what :meth:`Detection.explain` tells. Added field.
     """
 
     row: np.ndarray
