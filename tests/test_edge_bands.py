@@ -195,12 +195,10 @@ def _ramp_lam(photons: float, bright_at=None) -> tuple:
     return lam, depth
 
 
-def test_band_depths_moves_a_near_wrong_depth_onto_its_region_plane(monkeypatch):
-    import splidar.detection._7b_edge_bands as stage
-
-    monkeypatch.setattr(stage, "NEAR_DEPTHS", True)  # off by default (Art, near26)
-    # a pixel of a ramp, its depth 5 bins off the ramp (inside the 4.5-bin gate of a
-    # neighbour's), its counts the ramp's 3.4 photons: it moves back onto the plane
+def test_band_depths_moves_a_near_wrong_depth_onto_its_region_plane():
+    # a pixel inside a ramp, its depth 5 bins off the ramp (inside the 4.5-bin gate of
+    # a neighbour's), its counts the ramp's 3.4 photons: it moves back onto the plane
+    # (the near depths are on by default since near27)
     lam, ramp = _ramp_lam(3.4)
     counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
     wrong = ramp.copy()
@@ -244,3 +242,28 @@ def test_near_depths_keeps_a_step_its_pixels_share():
         fwhm=3.0, irf=IRF, half=5,
     )  # fmt: skip
     assert moved.size == 0
+
+
+def test_near_depths_keeps_a_pixel_at_its_region_border(monkeypatch):
+    import splidar.detection._7b_edge_bands as stage
+
+    # the pixel the ramp test moves (5 bins off the ramp, the ramp's counts; joined to
+    # its region by its right neighbour, 4.5 bins away), but its region ends at its row
+    # (border: 3 of its 8-neighbours outside) or at its row and column (corner: 5
+    # outside): the plane there extrapolates across the border, so it is not offered
+    # (NEAR_INSIDE); offered (NEAR_INSIDE = 0), it moves
+    lam, ramp = _ramp_lam(3.4)
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] += 5.0
+    s = _surfaces(wrong)
+    i, default = 10 * SHAPE[1] + 12, stage.NEAR_INSIDE
+    for members in (s.row <= 10, (s.row <= 10) & (s.col >= 12)):
+        solo = np.flatnonzero(members)
+        for inside, want in ((default, []), (0, [i])):
+            monkeypatch.setattr(stage, "NEAR_INSIDE", inside)  # read at call time
+            moved, _ = near_depths(
+                s, np.asarray(s.depth_bin), solo, counts, _background(),
+                fwhm=3.0, irf=IRF, half=5,
+            )  # fmt: skip
+            assert moved.tolist() == want

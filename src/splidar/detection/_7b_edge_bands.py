@@ -32,13 +32,13 @@ moves to the other region's plane; its fields follow the depth as in stage 7's f
 rule. Multi-surface pixels (layers, nets) and small clusters are left alone and offer
 no depth.
 
-Then (with :data:`NEAR_DEPTHS`, off by default) a region's member more than
-:data:`NEAR_FWHM` FWHM off its own region's local plane
-(the plane through the other members), and not sharing that offset with two of its
-8-neighbours, is offered the plane's depth, with the same profile likelihood and a prior
-measured on the detection (:func:`near_depths`): the
-"near" wrong depths, a pixel's own peak moved a few bins by a Poisson fluctuation, which
-the labelling of two regions never sees.
+Then (:data:`NEAR_DEPTHS`) a region's member more than :data:`NEAR_FWHM` FWHM off its
+own region's local plane (the plane through the other members), inside its region (at
+least :data:`NEAR_INSIDE` of its 8-neighbours members) and not sharing that offset with
+two of its 8-neighbours, is offered the plane's depth, with the same profile likelihood
+and a prior measured on the detection (:func:`near_depths`): the "near" wrong depths,
+a pixel's own peak moved a few bins by a Poisson fluctuation, which the labelling of
+two regions never sees.
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
 not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
@@ -48,8 +48,7 @@ Measured (``benchmarks/bench_edge_bands.py``, benchmarks/README.md "edge25, sess
 113.3 (uniform), 149.0 -> 141.7 (decaying), F_true 0.9753 -> 0.9759, 0.9767 -> 0.9777;
 every sheet and net cell better or equal; with ``beta = 0`` (every pixel alone) 146-159
 true surfaces moved off per cube. With the near depths (``NEAR_DEPTHS``; "near26,
-session 18"): 113.3 -> 89.3 (uniform), 141.7 -> 118.0 (decaying), F_true 0.9790 and
-0.9808; every sheet and net cube better or equal, but Art at PPP 4 slightly worse.
+session 18", and its inside condition, "near27, session 19"): see :data:`NEAR_INSIDE`.
 """
 
 from __future__ import annotations
@@ -65,7 +64,7 @@ from scipy.sparse import csgraph
 from ._quality import _shifted_irf
 from ._result import STAGES, Surfaces
 
-__all__ = ["GATE_FWHM", "MIN_REGION", "NEAR_FWHM", "EdgeBands", "relabel_edge_bands"]
+__all__ = ["GATE_FWHM", "MIN_REGION", "NEAR_FWHM", "NEAR_INSIDE", "EdgeBands", "relabel_edge_bands"]
 
 #: Neighbouring single-surface pixels whose depths differ by at most this many FWHM are
 #: one region (4.5 bins at FWHM 3: the benchmark's ramp of 3.2 bins per row stays one
@@ -81,16 +80,24 @@ MIN_REGION = 5
 #: single-surface cells the plane lies within 3 bins of the truth for every such wrong
 #: depth, and 95 % of the pixels so far off (86-100 % per cube) are wrong depths.
 #: Single surface PPP 4, SBR 0.25, seeds 0-2: false surfaces 113.3 -> 89.3 (uniform),
-#: 141.7 -> 118.0 (decaying); no sheet, net or ``bench_detection.py`` cell worse; Art
-#: at PPP 4 worse (:data:`NEAR_DEPTHS`).
+#: 141.7 -> 118.0 (decaying) without :data:`NEAR_INSIDE` (Art at PPP 4 worse).
 NEAR_FWHM = 1.0
-#: Move the near wrong depths (:func:`near_depths`) in :func:`band_depths`. Off: on the
-#: paper's Art scene at PPP 4 (``bench_paper_art.py --quick``, tau 4 mm = 1.67 bins) it
-#: moved more true surfaces off than it fixed (uniform 39 moved: 11 fixed, 20 off;
-#: decaying 36: 6 fixed, 18 off; ``process``: false 2391 -> 2400 and 2129 -> 2141, F_true
-#: -0.0001), although every single-surface, sheet, net and ``bench_detection.py`` cell
-#: gained (benchmarks/README.md, "near26, session 18").
-NEAR_DEPTHS = False
+#: Move the near wrong depths (:func:`near_depths`) in :func:`band_depths`. On since
+#: near27 (session 19), with :data:`NEAR_INSIDE`; without it, the paper's Art scene at
+#: PPP 4 lost more true surfaces than it fixed (benchmarks/README.md, "near26, session
+#: 18").
+NEAR_DEPTHS = True
+#: A pixel is offered its plane only when at least this many of its 8-neighbours are
+#: members of its own region: it lies inside the region, at most one neighbour outside
+#: (a lone wrong neighbour or a missed pixel). A pixel on a straight or diagonal border
+#: of its region has 3 neighbours outside, at a convex corner 5: there the plane through
+#: the other members is an extrapolation across the border, and on curved, finely
+#: structured surfaces (the paper's Art, whose single-surface pixels are where one of two
+#: surfaces was missed) it is not the pixel's surface. Measured (benchmarks/README.md,
+#: "near27, session 19"): Art PPP 4 moves (fixed / true moved off at 1.67 bins) 39 (11 /
+#: 20) -> 1 (0 / 0) uniform, 36 (6 / 18) -> 0 decaying; the single-surface cells keep
+#: 120 of 143 fixes (3 seeds, both backgrounds), none moved off.
+NEAR_INSIDE = 7
 #: Max-flow capacities are integers: nats times this.
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
@@ -515,6 +522,19 @@ def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
     return out
 
 
+def _inside(lab: np.ndarray) -> np.ndarray:
+    """(R, C) int: how many of a labelled pixel's 8-neighbours carry its label (0 where
+    ``lab < 0``; neighbours outside the image count as not)."""
+    R, C = lab.shape
+    pad = np.pad(lab, 1, constant_values=-1)
+    out = np.zeros((R, C), np.int64)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                out += pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C] == lab
+    return np.where(lab >= 0, out, 0)
+
+
 def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int):
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
@@ -522,11 +542,13 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
 
     The regions are re-formed on ``depth`` (after the bands' labelling); each member's
     plane is :func:`_plane` over the other members within ``2 half`` (the pixel left
-    out). A pixel is offered its plane when it lies more than ``NEAR_FWHM`` FWHM off it
-    and fewer than 2 of its 8-neighbours lie off their own planes by the same amount
-    (within half the FWHM): a lone fluctuation or a pair, not a step of a surface inside
-    the region's gate (with a wide IRF, FWHM 7 bins, a region spans steps of up to 10
-    bins; without this guard the step's side moved onto the plane). With ``q`` the
+    out). A pixel is offered its plane when it lies more than ``NEAR_FWHM`` FWHM off it,
+    at least :data:`NEAR_INSIDE` of its 8-neighbours are members of its region (not at
+    its border, where the plane extrapolates), and fewer than 2 of its 8-neighbours lie
+    off their own planes by the same amount (within half the FWHM): a lone fluctuation
+    or a pair, not a step of a surface inside the region's gate (with a wide IRF, FWHM 7
+    bins, a region spans steps of up to 10 bins; without this guard the step's side
+    moved onto the plane). With ``q`` the
     fraction of the members (with a plane) off it by more than ``NEAR_FWHM`` FWHM,
     measured on this detection, the prior log-odds that a pixel lies on its region's
     plane is ``log((1 - q) / q)``; a pixel moves when ``L(plane) - L(own) + log((1 - q)
@@ -562,7 +584,8 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     _own_plane_kernel(big, D, 2 * int(half), gate, plane)
     has = np.isfinite(plane)
     off = has & (np.abs(D - plane) > NEAR_FWHM * float(fwhm))
-    zr, zc = np.nonzero(off & (_shared(D - plane, 0.5 * float(fwhm)) < 2))
+    cand = off & (_shared(D - plane, 0.5 * float(fwhm)) < 2) & (_inside(big) >= NEAR_INSIDE)
+    zr, zc = np.nonzero(cand)
     T = int(np.shape(counts)[-1])
     keep = (plane[zr, zc] >= 0.0) & (plane[zr, zc] <= T - 1)
     zr, zc = zr[keep], zc[keep]
