@@ -16,7 +16,11 @@ from splidar.detection._slopes import (  # noqa: E402
     _zarr_of,
     support_sums,
 )
-from splidar.detection._table import CandidateTable, remove_tree  # noqa: E402
+from splidar.detection._table import (  # noqa: E402
+    CandidateTable,
+    remove_tree,
+    store_histograms,
+)
 
 
 def _supports(rng, R, C, T, S):
@@ -104,6 +108,18 @@ def test_gather_stored_histograms_equals_in_memory(tmp_path):
         src = extra if hb[k] == -1 else blocks[hb[k]]
         np.testing.assert_array_equal(want[i], src[hr[k]])
     np.testing.assert_array_equal(_gather(table, idx, tuple(stored)), want)
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_store_histograms_writes_every_chunk_without_comparing(tmp_path, compressed):
+    # a chunk of zeros is stored too (Zarr does not compare each chunk with the fill
+    # value first); the values read back are the ones written
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    data = np.zeros((10, 2, 1, 5), np.float32)  # one chunk, all zeros
+    z = store_histograms(g, "h", data.shape, data=data, compressed=compressed)
+    assert z.config.write_empty_chunks
+    assert (tmp_path / "h.zarr" / "h" / "c" / "0" / "0" / "0" / "0").is_file()
+    np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "h.zarr"))["h"][...], data)
 
 
 def test_remove_tree_removes_nested_folders(tmp_path):

@@ -193,6 +193,54 @@ def test_reconstruct_tiled_on_local_cluster_tasks_read_their_strips(
     assert list((tmp_path / "det").iterdir()) == []
 
 
+def _in_memory(client, prefix: str, wait: float = 5.0) -> list:
+    """Keys named ``prefix...`` held on the cluster's workers, after up to ``wait``
+    seconds for the releases under way."""
+    import time
+
+    t0 = time.perf_counter()
+    while True:
+        held = [k for keys in client.has_what().values() for k in keys if prefix in str(k)]
+        if not held or time.perf_counter() - t0 > wait:
+            return held
+        time.sleep(0.05)
+
+
+def test_reconstruct_tiled_released_carries(small_strips, monkeypatch):
+    """Each strip's carry (its surfaces, graph and sweep state, kept on a worker) is
+    released as soon as the next step of that strip is done, not when every strip's is:
+    when the sweeps are done no step-2 carry is held, when the intensities are done no
+    step-4 carry (Dask counts a carry's strip and graph in both steps' results, so
+    holding both made the workers spill). The result is the same bit for bit."""
+    distributed = pytest.importorskip("distributed")
+    _, lazy = _detections(n_classes=2)
+    seen = {}
+    persist, run = _tiled._persist, _tiled._run
+
+    def checked_persist(tasks, name, take):
+        kept = persist(tasks, name, take)
+        if name == "sweeps":
+            seen["labels"] = _in_memory(client, "splidar-labels-tile")
+        return kept
+
+    def checked_run(tasks, name, take):
+        run(tasks, name, take)
+        seen["fits"] = _in_memory(client, "splidar-fit-tile")
+
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        a = splidar.reconstruct(lazy, library=lazy.library, rng=0)
+        monkeypatch.setattr(_tiled, "_persist", checked_persist)
+        monkeypatch.setattr(_tiled, "_run", checked_run)
+        b = splidar.reconstruct(lazy, library=lazy.library, rng=0)
+    assert seen == {"labels": [], "fits": []}, seen
+    _assert_identical(a, b)
+
+
 def test_process_dask_cube_reconstructs_in_strips(small_strips, monkeypatch):
     from splidar.scenes import multispectral_scene
 

@@ -520,6 +520,9 @@ def _persist(tasks: dict, name: str, take) -> dict:
     keys = list(tasks)
     t = time.perf_counter()
     kept = dict(zip(keys, dask.persist(*[tasks[n] for n in keys]), strict=True))
+    # the unpersisted graphs hold the previous step's carries: dropped, so that a carry
+    # is released as soon as the task that needs it is done (``_fit_pass``)
+    tasks.clear()
     compute_each([kept[n][0] for n in keys], lambda i, small: take(keys[i], small))
     log.info("reconstruct: %d %s task(s), %.3f s", len(keys), name, time.perf_counter() - t)
     return kept
@@ -567,6 +570,9 @@ def _fit_pass(strips_, core_idx, us, own, carries, sh, eb, token, store, skip):
     resid, metas = [None] * len(strips_), [None] * len(strips_)
 
     def take(n, result):
+        # the strip's step-2 carry is no longer needed (its sweeps are done): released
+        # at once, not at the pass's end (released_carries)
+        carries.pop(n, None)
         res, n_core, n_l, hist = result
         resid[n] = res
         metas[n] = dict(
@@ -586,6 +592,7 @@ def _fit_pass(strips_, core_idx, us, own, carries, sh, eb, token, store, skip):
             carry, st if carry is None else None, us[n], own[n] if carry is None else None,
             sh, eb, dask_key_name=(f"splidar-fit-tile-{token}", n),
         )  # fmt: skip
+    carry = None
     kept = _persist(tasks, "sweeps", take)
     return resid, metas, kept
 
@@ -733,6 +740,8 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
     intensity, std = (np.zeros((S, L)), np.zeros((S, L))) if assemble else (None, None)
 
     def take(n, result):
+        # the strip's step-4 carry released at once (released_carries)
+        fits.pop(n, None), tasks.pop(n, None)
         ic, sc = result
         ci = core_idx[n]
         if store is not None:
@@ -754,7 +763,7 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
             dask_key_name=(f"splidar-reconstruct-tile-{token}", n),
         )  # fmt: skip
     _run(tasks, "reconstruct", take)
-    del fits, tasks
+    fits.clear(), tasks.clear()
     t_iter = time.perf_counter()
     hyper = _hyperparameters(
         su, opt, prior, marg.mean(axis=0), bias2,
