@@ -755,3 +755,34 @@ def test_detect_stray_clusters_removes_only_candidates_of_crowded_pixels(net_map
     # every pixel that lost a surface keeps one
     kept = set(zip(on.surfaces.row.tolist(), on.surfaces.col.tolist(), strict=True))
     assert {(r, c) for r, c, _ in gone} <= kept
+
+
+def test_calibrate_null_measures_the_data_tail_beside_the_patches(monkeypatch):
+    # with n_jobs > 1 an in-memory cube's data_tail runs on a thread of its own (beside
+    # the null's patches); the calibration is the same as on one thread
+    import threading
+
+    from splidar.detection import _3_null
+
+    sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=4, sbr=0.25, rng=1)
+    counts = np.asarray(sim.cube.counts)
+    _, _, filters = _setup(counts, sim.cube.irf)
+    where, tail = [], _3_null.data_tail
+
+    def spy(*args, **kwargs):
+        where.append(threading.get_ident())
+        return tail(*args, **kwargs)
+
+    monkeypatch.setattr(_3_null, "data_tail", spy)
+    out = {}
+    for n_jobs in (1, 2):
+        out[n_jobs] = calibrate_null(
+            counts, filters, pfa=1e-3, surface_pfa=0.01, null="empirical", min_separation=3,
+            split=(0.5, _4_map.SPLIT_Z, 3.0, 0.0), rng=np.random.default_rng(0), n_jobs=n_jobs,
+        )  # fmt: skip
+    assert where[0] == threading.get_ident() and where[1] != threading.get_ident()
+    a, b = out[1], out[2]
+    assert a.evidence_threshold == b.evidence_threshold
+    np.testing.assert_array_equal(a.thresholds, b.thresholds)
+    for x, y in zip(a.split, b.split, strict=True):
+        np.testing.assert_array_equal(x, y)

@@ -412,9 +412,19 @@ def calibrate_null(
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
     split_ratio, split_z, split_reach, split_slack = split
-    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
-        counts, null_ctx, n_target, rng, fine=split_z > 0
-    )
+    # the first return's tail as the data's returns carry it (not only the IRF's): from
+    # the data alone, so an in-memory cube's is measured on a thread of its own beside
+    # the null's patches (a Dask cube's reads go to its scheduler, one after the other)
+    beside = n_jobs > 1 and split_z > 0 and isinstance(counts, np.ndarray)
+    with ThreadPoolExecutor(1) if beside else contextlib.nullcontext() as ex:
+        job = ex.submit(data_tail, counts, filters.corr.irf, filters.dev) if beside else None
+        p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
+            counts, null_ctx, n_target, rng, fine=split_z > 0
+        )
+    if job is not None:
+        tail = job.result()
+    else:
+        tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
@@ -436,8 +446,6 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    # the first return's tail as the data's returns carry it (not only the IRF's)
-    tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
     rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_slack)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
