@@ -786,3 +786,23 @@ def test_calibrate_null_measures_the_data_tail_beside_the_patches(monkeypatch):
     np.testing.assert_array_equal(a.thresholds, b.thresholds)
     for x, y in zip(a.split, b.split, strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+def test_fine_on_threads_equals_one_fine_response_call():
+    from splidar.detection._3_null import _fine_on_threads
+
+    rng = np.random.default_rng(8)
+    g = gaussian_irf(3.0)[None]
+    y = rng.poisson(0.3, size=(13, 11, 1, 80)).astype(np.uint16)
+    c = np.asarray(Correlator(g, 80)(y.astype(np.float32)), np.float32)
+    sp = rng.uniform(0.1, 0.4, size=(13, 11, 1)).astype(np.float32)
+    dev = np.zeros((1, 80), np.float32)
+    win = split_rule(g, 0.0)[3]
+    sl = (slice(2, 12), slice(1, 10))  # a patch's interior: views, as the null passes
+    ref = tuple(np.empty((10, 9, 80), np.float32) for _ in range(3))
+    fine_response(c[sl], y[sl], sp[sl], dev, win, *ref)
+    for workers in (1, 3):
+        out = tuple(np.full((10, 9, 80), np.nan, np.float32) for _ in range(3))
+        _fine_on_threads(c[sl], y[sl], sp[sl], dev, win, out, workers)
+        for a, b in zip(out, ref, strict=True):
+            np.testing.assert_array_equal(a, b)

@@ -155,7 +155,7 @@ def _null_samples(
         shp = (r1 - r0, c1 - c0, T) if fine else (0, 0, 0)
         f_n_mu = tuple(np.empty(shp, np.float32) for _ in range(3))
         if fine:
-            fine_response(c[sl], ysim[sl], sp[sl], dev, win, *f_n_mu)
+            _fine_on_threads(c[sl], ysim[sl], sp[sl], dev, win, f_n_mu, wctx.workers)
         return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, f_n_mu
 
     dev = np.ascontiguousarray(ctx.dev, np.float32)
@@ -176,6 +176,24 @@ def _null_samples(
     d_sim = [r[2] for r in res]
     f_n_mu = [r[4] for r in res]
     return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), f_n_mu
+
+
+def _fine_on_threads(c, y, sp, dev, win, out: tuple, workers: int) -> None:
+    """:func:`~splidar.detection._kernels.fine_response` of a patch into ``out`` (f, n,
+    mu), its rows split between ``workers`` threads (every voxel's values are its own,
+    so the split never changes them; the kernel releases the GIL)."""
+    k = max(1, min(int(workers), c.shape[0]))
+    if k == 1:
+        fine_response(c, y, sp, dev, win, *out)
+        return
+    edges = np.linspace(0, c.shape[0], k + 1).astype(np.int64).tolist()
+
+    def part(i):
+        rows = slice(edges[i], edges[i + 1])
+        fine_response(c[rows], y[rows], sp[rows], dev, win, *(a[rows] for a in out))
+
+    with ThreadPoolExecutor(k) as ex:
+        list(ex.map(part, range(k)))
 
 
 def split_rule(
