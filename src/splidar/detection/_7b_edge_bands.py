@@ -209,17 +209,18 @@ def _band_planes(lab, depth, half: int, gate: float, n_jobs: int = 1):
 
 
 @njit(cache=True, nogil=True)
-def _plane(dr, dc, d, gate):
+def _plane(dr, dc, d, gate):  # pragma: no cover - numba
     """A robust plane through the depths ``d`` at offsets ``(dr, dc)``, evaluated at
     (0, 0): least squares, the points off it by more than ``gate`` dropped, least
-    squares again; the median with fewer than 3 non-collinear points."""
+    squares again; the median with fewer than 3 non-collinear points (taken only then:
+    a plane's value does not need it)."""
     m = d.size
     keep = np.ones(m, np.bool_)
-    value = np.median(d)
-    for _ in range(2):
+    value = np.nan
+    for it in range(2):
         k = int(keep.sum())
         if k < 3:
-            return value
+            return np.median(d) if it == 0 else value
         A = np.empty((k, 3))
         y = np.empty(k)
         j = 0
@@ -229,7 +230,7 @@ def _plane(dr, dc, d, gate):
                 j += 1
         coef = _solve3(A, y)
         if np.isnan(coef[0]):
-            return value
+            return np.median(d) if it == 0 else value
         value = coef[0]
         for i in range(m):
             keep[i] = abs(coef[0] + coef[1] * dr[i] + coef[2] * dc[i] - d[i]) <= gate
