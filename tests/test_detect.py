@@ -596,6 +596,28 @@ def test_reject_spill_over_keeps_enclosed_and_supported_candidates():
     assert not rej.any()
 
 
+def test_reject_spill_over_same_on_any_number_of_threads(monkeypatch):
+    from splidar.detection import _quality
+    from splidar.detection._quality import reject_spill_over
+
+    # strands and spread of random brightness at a few depths: several passes, and the
+    # first pass's log-ratios split between threads (parts of 40 candidates)
+    rng = np.random.default_rng(7)
+    depth = rng.choice([30.0, 31.0, 60.0], size=(16, 18))
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    counts = rng.choice([0.0, 1.0, 4.0, 8.0], size=depth.shape)
+    surf, g, pk = _table(depth, counts)
+    keep = np.ones(surf["row"].size, bool)
+    one = reject_spill_over(surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=18)
+    monkeypatch.setattr(_quality, "_SPILL_PART", 40)
+    for n_jobs in (2, 3):
+        rej = reject_spill_over(
+            surf, keep, irf=g, peak=pk, fwhm=3.0, llr_level=0.0, max_iter=18, n_jobs=n_jobs
+        )
+        np.testing.assert_array_equal(rej, one)
+    assert 0 < one.sum() < one.size
+
+
 def test_reject_spill_over_strip_of_spread_does_not_enclose_itself():
     from splidar.detection._quality import reject_spill_over
 

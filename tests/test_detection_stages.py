@@ -755,3 +755,54 @@ def test_detect_stray_clusters_removes_only_candidates_of_crowded_pixels(net_map
     # every pixel that lost a surface keeps one
     kept = set(zip(on.surfaces.row.tolist(), on.surfaces.col.tolist(), strict=True))
     assert {(r, c) for r, c, _ in gone} <= kept
+
+
+def test_calibrate_null_measures_the_data_tail_beside_the_patches(monkeypatch):
+    # with n_jobs > 1 an in-memory cube's data_tail runs on a thread of its own (beside
+    # the null's patches); the calibration is the same as on one thread
+    import threading
+
+    from splidar.detection import _3_null
+
+    sim = two_layer_scene((24, 24), n_bins=120).simulate(ppp=4, sbr=0.25, rng=1)
+    counts = np.asarray(sim.cube.counts)
+    _, _, filters = _setup(counts, sim.cube.irf)
+    where, tail = [], _3_null.data_tail
+
+    def spy(*args, **kwargs):
+        where.append(threading.get_ident())
+        return tail(*args, **kwargs)
+
+    monkeypatch.setattr(_3_null, "data_tail", spy)
+    out = {}
+    for n_jobs in (1, 2):
+        out[n_jobs] = calibrate_null(
+            counts, filters, pfa=1e-3, surface_pfa=0.01, null="empirical", min_separation=3,
+            split=(0.5, _4_map.SPLIT_Z, 3.0, 0.0), rng=np.random.default_rng(0), n_jobs=n_jobs,
+        )  # fmt: skip
+    assert where[0] == threading.get_ident() and where[1] != threading.get_ident()
+    a, b = out[1], out[2]
+    assert a.evidence_threshold == b.evidence_threshold
+    np.testing.assert_array_equal(a.thresholds, b.thresholds)
+    for x, y in zip(a.split, b.split, strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_fine_on_threads_equals_one_fine_response_call():
+    from splidar.detection._3_null import _fine_on_threads
+
+    rng = np.random.default_rng(8)
+    g = gaussian_irf(3.0)[None]
+    y = rng.poisson(0.3, size=(13, 11, 1, 80)).astype(np.uint16)
+    c = np.asarray(Correlator(g, 80)(y.astype(np.float32)), np.float32)
+    sp = rng.uniform(0.1, 0.4, size=(13, 11, 1)).astype(np.float32)
+    dev = np.zeros((1, 80), np.float32)
+    win = split_rule(g, 0.0)[3]
+    sl = (slice(2, 12), slice(1, 10))  # a patch's interior: views, as the null passes
+    ref = tuple(np.empty((10, 9, 80), np.float32) for _ in range(3))
+    fine_response(c[sl], y[sl], sp[sl], dev, win, *ref)
+    for workers in (1, 3):
+        out = tuple(np.full((10, 9, 80), np.nan, np.float32) for _ in range(3))
+        _fine_on_threads(c[sl], y[sl], sp[sl], dev, win, out, workers)
+        for a, b in zip(out, ref, strict=True):
+            np.testing.assert_array_equal(a, b)

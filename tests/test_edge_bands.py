@@ -267,3 +267,93 @@ def test_near_depths_keeps_a_pixel_at_its_region_border(monkeypatch):
                 fwhm=3.0, irf=IRF, half=5,
             )  # fmt: skip
             assert moved.tolist() == want
+
+
+def _other_brute(lab: np.ndarray, half: int) -> np.ndarray:
+    """The other region with most members within ``half`` of each labelled pixel, ties
+    to the lower label (-1 if none): the definition, pixel by pixel."""
+    R, C = lab.shape
+    out = np.full((R, C), -1, np.int64)
+    for r, c in itertools.product(range(R), range(C)):
+        if lab[r, c] < 0:
+            continue
+        w = lab[max(r - half, 0) : r + half + 1, max(c - half, 0) : c + half + 1]
+        w = w[(w >= 0) & (w != lab[r, c])]
+        if w.size:
+            vals, n = np.unique(w, return_counts=True)
+            out[r, c] = vals[np.argmax(n)]  # the first maximum: the lowest label
+    return out
+
+
+def test_band_planes_other_region_is_the_most_frequent_with_ties_to_the_lower_label():
+    from splidar.detection._7b_edge_bands import _band_planes
+
+    rng = np.random.default_rng(3)
+    lab = rng.integers(-1, 6, size=(23, 19))  # many ties in 3 x 3 windows
+    depth = rng.uniform(10, 40, size=lab.shape)
+    other, dep = _band_planes(lab, depth, 1, 4.5)
+    np.testing.assert_array_equal(other, _other_brute(lab, 1))
+    # a plane wherever there is another region, NaN elsewhere
+    assert np.array_equal(np.isfinite(dep[..., 0]), other >= 0)
+
+
+def test_band_planes_same_on_any_number_of_threads():
+    from splidar.detection._7b_edge_bands import _band_planes
+
+    rng = np.random.default_rng(4)
+    lab = np.repeat(np.repeat(rng.integers(-1, 8, size=(12, 10)), 6, axis=0), 5, axis=1)
+    depth = 20.0 + 0.3 * np.arange(lab.shape[0])[:, None] + rng.normal(0, 0.5, lab.shape)
+    one = _band_planes(lab, depth, 3, 4.5, n_jobs=1)
+    for n_jobs in (2, 3):
+        other, dep = _band_planes(lab, depth, 3, 4.5, n_jobs=n_jobs)
+        np.testing.assert_array_equal(other, one[0])
+        np.testing.assert_array_equal(dep, one[1])
+
+
+class _Lazy:
+    """Counts read pixel by pixel (neither NumPy nor Dask): ``_pixels``'s generic path."""
+
+    def __init__(self, a):
+        self.a, self.shape = a, a.shape
+
+    def __getitem__(self, key):
+        return self.a[key]
+
+
+def test_likelihoods_window_read_equals_whole_series_on_any_threads(monkeypatch):
+    from splidar.detection import _7b_edge_bands as eb
+
+    rng = np.random.default_rng(5)
+    counts = rng.poisson(_lam(2.0)).astype(np.uint16)
+    rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
+    dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
+    dep += rng.uniform(-3, 3, dep.shape)
+    dep[:3] = [[-5.0, T + 5.0]] * 3  # clipped at the window's ends
+    ref = eb._likelihoods(_Lazy(counts), _background(), rows, cols, dep, IRF)
+    monkeypatch.setattr(eb, "_BLOCK", 37)  # several blocks
+    for n_jobs in (1, 2):
+        got = eb._likelihoods(counts, _background(), rows, cols, dep, IRF, n_jobs)
+        np.testing.assert_array_equal(got, ref)
+    assert (ref > 0).any()
+
+
+def test_profile_llr_gathered_bins_give_the_dense_sums():
+    rng = np.random.default_rng(6)
+    n, L, W = 50, 2, 15
+    y = rng.poisson(0.4, size=(n, L, W)).astype(np.float64)
+    y[:, :, 5:9] += rng.poisson(2.0, size=(n, L, 4))
+    g = np.broadcast_to(np.exp(-0.5 * ((np.arange(W) - 7) / 1.3) ** 2), (n, L, W))
+    g = g / g.sum(axis=-1, keepdims=True)
+    b = rng.uniform(0.05, 0.5, size=(n, L, W))
+    got = profile_llr(y, g, b)
+    # the dense Newton steps over every bin (bins without counts add 0 * ... = 0)
+    G = g.sum(axis=(1, 2))
+    s = np.maximum((y * g).sum(axis=(1, 2)) / G, 1e-3)
+    for _ in range(30):
+        q = y * g / (b + s[:, None, None] * g)
+        d1 = -G + q.sum(axis=(1, 2))
+        d2 = -(q * g / (b + s[:, None, None] * g)).sum(axis=(1, 2))
+        s = np.where(d2 < 0, np.maximum(s - d1 / np.where(d2 < 0, d2, -1), 0.0), s)
+    llr = (y * np.log1p(s[:, None, None] * g / b)).sum(axis=(1, 2)) - s * G
+    ref = np.where((y * g / b).sum(axis=(1, 2)) > G, np.maximum(llr, 0.0), 0.0)
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9)

@@ -155,7 +155,7 @@ def _null_samples(
         shp = (r1 - r0, c1 - c0, T) if fine else (0, 0, 0)
         f_n_mu = tuple(np.empty(shp, np.float32) for _ in range(3))
         if fine:
-            fine_response(c[sl], ysim[sl], sp[sl], dev, win, *f_n_mu)
+            _fine_on_threads(c[sl], ysim[sl], sp[sl], dev, win, f_n_mu, wctx.workers)
         return sal[sl].copy(), level[sl].copy(), d[sl].copy(), real, f_n_mu
 
     dev = np.ascontiguousarray(ctx.dev, np.float32)
@@ -176,6 +176,24 @@ def _null_samples(
     d_sim = [r[2] for r in res]
     f_n_mu = [r[4] for r in res]
     return s_sim, lev, d_sim, np.concatenate([r[3] for r in res]), f_n_mu
+
+
+def _fine_on_threads(c, y, sp, dev, win, out: tuple, workers: int) -> None:
+    """:func:`~splidar.detection._kernels.fine_response` of a patch into ``out`` (f, n,
+    mu), its rows split between ``workers`` threads (every voxel's values are its own,
+    so the split never changes them; the kernel releases the GIL)."""
+    k = max(1, min(int(workers), c.shape[0]))
+    if k == 1:
+        fine_response(c, y, sp, dev, win, *out)
+        return
+    edges = np.linspace(0, c.shape[0], k + 1).astype(np.int64).tolist()
+
+    def part(i):
+        rows = slice(edges[i], edges[i + 1])
+        fine_response(c[rows], y[rows], sp[rows], dev, win, *(a[rows] for a in out))
+
+    with ThreadPoolExecutor(k) as ex:
+        list(ex.map(part, range(k)))
 
 
 def split_rule(
@@ -412,9 +430,19 @@ def calibrate_null(
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
     split_ratio, split_z, split_reach, split_slack = split
-    p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
-        counts, null_ctx, n_target, rng, fine=split_z > 0
-    )
+    # the first return's tail as the data's returns carry it (not only the IRF's): from
+    # the data alone, so an in-memory cube's is measured on a thread of its own beside
+    # the null's patches (a Dask cube's reads go to its scheduler, one after the other)
+    beside = n_jobs > 1 and split_z > 0 and isinstance(counts, np.ndarray)
+    with ThreadPoolExecutor(1) if beside else contextlib.nullcontext() as ex:
+        job = ex.submit(data_tail, counts, filters.corr.irf, filters.dev) if beside else None
+        p_sim, p_lev, p_d, s_real, p_fine = _null_samples(
+            counts, null_ctx, n_target, rng, fine=split_z > 0
+        )
+    if job is not None:
+        tail = job.result()
+    else:
+        tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second
@@ -436,8 +464,6 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    # the first return's tail as the data's returns carry it (not only the IRF's)
-    tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
     rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_slack)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):

@@ -78,7 +78,7 @@ def remove_spill_over(
         Log-likelihood ratio at which a line shows or rejects a return (``detect``
         passes ``PRESENCE_LLR``).
     n_jobs : int
-        Threads of the line test.
+        Threads of the first pass of the per-pixel test and of the line test.
 
     Returns
     -------
@@ -100,6 +100,7 @@ def remove_spill_over(
         llr_level=llr_level,
         vouch_level=vouch_level,
         max_iter=max(R, C),
+        n_jobs=n_jobs,
     )
     keep = table.keep & ~spill
     if counts is not None and half > 0 and np.isfinite(line_level):

@@ -54,6 +54,7 @@ session 18", and its inside condition, "near27, session 19"): see :data:`NEAR_IN
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -61,6 +62,7 @@ from numba import njit
 from scipy import sparse
 from scipy.sparse import csgraph
 
+from ._7_align_depths import _pixels
 from ._quality import _shifted_irf
 from ._result import STAGES, Surfaces
 
@@ -159,34 +161,26 @@ def _solve3(A, y):
 
 
 @njit(cache=True, nogil=True)
-def _band_kernel(lab, depth, half, gate, other, dep):
-    """For each pixel of a region, ``other[r, c]``: the other region with most members
-    within ``half`` (Chebyshev; ties to the lower label), -1 if none; then for such
-    pixels the local plane of its own (``dep[..., 0]``) and of the other region
-    (``dep[..., 1]``) at the pixel (:func:`_plane` over the members within ``2 half``)."""
+def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cover - numba
+    """For each pixel of a region in rows ``r0:r1``, ``other[r, c]``: the other region
+    with most members within ``half`` (Chebyshev; ties to the lower label), -1 if none;
+    then for such pixels the local plane of its own (``dep[..., 0]``) and of the other
+    region (``dep[..., 1]``) at the pixel (:func:`_plane` over the members within
+    ``2 half``). Rows outside ``r0:r1`` are neither read from ``other``/``dep`` nor
+    written, so disjoint row ranges run on threads side by side."""
     R, C = lab.shape
     reach = 2 * half
     buf_r = np.empty((2 * reach + 1) ** 2)
     buf_c = np.empty((2 * reach + 1) ** 2)
     buf_d = np.empty((2 * reach + 1) ** 2)
-    for r in range(R):
+    seen = np.empty((2 * half + 1) ** 2, np.int64)
+    for r in range(r0, r1):
         for c in range(C):
             other[r, c] = -1
             own = lab[r, c]
             if own < 0:
                 continue
-            best, n_best = -1, 0
-            for rr in range(max(r - half, 0), min(r + half + 1, R)):
-                for cc in range(max(c - half, 0), min(c + half + 1, C)):
-                    x = lab[rr, cc]
-                    if x < 0 or x == own or x == best:
-                        continue
-                    n = 0
-                    for r2 in range(max(r - half, 0), min(r + half + 1, R)):
-                        for c2 in range(max(c - half, 0), min(c + half + 1, C)):
-                            n += lab[r2, c2] == x
-                    if n > n_best or (n == n_best and x < best):
-                        best, n_best = x, n
+            best = _most_members(lab, r, c, half, own, seen)
             other[r, c] = best
             if best < 0:
                 continue
@@ -228,17 +222,63 @@ def _own_plane_kernel(lab, depth, reach, gate, out):
 
 
 @njit(cache=True, nogil=True)
-def _plane(dr, dc, d, gate):
+def _most_members(lab, r, c, half, own, seen):  # pragma: no cover - numba
+    """The label other than ``own`` (and >= 0) with most pixels within ``half`` of
+    ``(r, c)`` (Chebyshev), ties to the lower label; -1 if none. The window's other
+    labels are gathered in ``seen`` and sorted, then counted run by run: one pass over
+    the window instead of one per label met (the same answer)."""
+    R, C = lab.shape
+    m = 0
+    for rr in range(max(r - half, 0), min(r + half + 1, R)):
+        for cc in range(max(c - half, 0), min(c + half + 1, C)):
+            x = lab[rr, cc]
+            if x >= 0 and x != own:
+                seen[m] = x
+                m += 1
+    if m == 0:
+        return -1
+    s = np.sort(seen[:m])
+    best, n_best, n = s[0], 1, 1
+    for i in range(1, m):
+        n = n + 1 if s[i] == s[i - 1] else 1
+        # ascending labels: a later label takes over only with strictly more members
+        if n > n_best:
+            best, n_best = s[i], n
+    return best
+
+
+def _band_planes(lab, depth, half: int, gate: float, n_jobs: int = 1):
+    """``other`` (R, C) int64 and ``dep`` (R, C, 2) of :func:`_band_kernel`, its rows
+    split between ``n_jobs`` threads (the kernel releases the GIL; each row's result
+    depends on the inputs alone, so the split never changes it)."""
+    R, C = lab.shape
+    other = np.empty((R, C), np.int64)
+    dep = np.full((R, C, 2), np.nan)
+    n = max(1, min(int(n_jobs), R // 16))
+    edges = np.linspace(0, R, n + 1).astype(np.int64)
+    args = [(lab, depth, int(half), float(gate), other, dep, int(a), int(b))
+            for a, b in zip(edges[:-1], edges[1:], strict=True)]  # fmt: skip
+    if n == 1:
+        _band_kernel(*args[0])
+    else:
+        with ThreadPoolExecutor(n) as ex:
+            list(ex.map(lambda a: _band_kernel(*a), args))
+    return other, dep
+
+
+@njit(cache=True, nogil=True)
+def _plane(dr, dc, d, gate):  # pragma: no cover - numba
     """A robust plane through the depths ``d`` at offsets ``(dr, dc)``, evaluated at
     (0, 0): least squares, the points off it by more than ``gate`` dropped, least
-    squares again; the median with fewer than 3 non-collinear points."""
+    squares again; the median with fewer than 3 non-collinear points (taken only then:
+    a plane's value does not need it)."""
     m = d.size
     keep = np.ones(m, np.bool_)
-    value = np.median(d)
-    for _ in range(2):
+    value = np.nan
+    for it in range(2):
         k = int(keep.sum())
         if k < 3:
-            return value
+            return np.median(d) if it == 0 else value
         A = np.empty((k, 3))
         y = np.empty(k)
         j = 0
@@ -248,7 +288,7 @@ def _plane(dr, dc, d, gate):
                 j += 1
         coef = _solve3(A, y)
         if np.isnan(coef[0]):
-            return value
+            return np.median(d) if it == 0 else value
         value = coef[0]
         for i in range(m):
             keep[i] = abs(coef[0] + coef[1] * dr[i] + coef[2] * dc[i] - d[i]) <= gate
@@ -287,19 +327,26 @@ def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
-    """:func:`profile_llr`, one pixel at a time (the bins without counts add nothing to
-    the sums over ``y``)."""
+    """:func:`profile_llr`, one pixel at a time. The bins without counts add nothing to
+    the sums over ``y``: each pixel's bins with counts are gathered first (in the same
+    order) and the Newton steps run over them alone, the same sums term by term."""
     n, L, W = y.shape
+    ya = np.empty(L * W)
+    ga = np.empty(L * W)
+    ba = np.empty(L * W)
     for i in range(n):
         G = 0.0
         slope = 0.0
         yg = 0.0
+        m = 0
         for l in range(L):
             for t in range(W):
                 G += g[i, l, t]
                 if y[i, l, t] > 0:
                     slope += y[i, l, t] * g[i, l, t] / b[i, l, t]
                     yg += y[i, l, t] * g[i, l, t]
+                    ya[m], ga[m], ba[m] = y[i, l, t], g[i, l, t], b[i, l, t]
+                    m += 1
         if not slope > G:
             out[i] = 0.0
             continue
@@ -307,27 +354,33 @@ def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
         for _ in range(n_iter):
             d1 = -G
             d2 = 0.0
-            for l in range(L):
-                for t in range(W):
-                    if y[i, l, t] > 0:
-                        q = y[i, l, t] * g[i, l, t] / (b[i, l, t] + s * g[i, l, t])
-                        d1 += q
-                        d2 -= q * g[i, l, t] / (b[i, l, t] + s * g[i, l, t])
+            for k in range(m):
+                q = ya[k] * ga[k] / (ba[k] + s * ga[k])
+                d1 += q
+                d2 -= q * ga[k] / (ba[k] + s * ga[k])
             if d2 < 0:
                 s = max(s - d1 / d2, 0.0)
         llr = -s * G
-        for l in range(L):
-            for t in range(W):
-                if y[i, l, t] > 0:
-                    llr += y[i, l, t] * np.log1p(s * g[i, l, t] / b[i, l, t])
+        for k in range(m):
+            llr += ya[k] * np.log1p(s * ga[k] / ba[k])
         out[i] = max(llr, 0.0)
 
 
-def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
-    """:func:`profile_llr` of the pixels ``(rows, cols)`` at their two depths ``dep``
-    (n, 2): (n, 2), in blocks of pixels."""
-    from ._7_align_depths import _pixels
+@njit(cache=True, nogil=True)
+def _window_counts(counts, rows, cols, lo, out):  # pragma: no cover - numba
+    """``out[i, l, :] = counts[rows[i], cols[i], l, lo[i] : lo[i] + W]`` as float64."""
+    W = out.shape[2]
+    for i in range(rows.size):
+        for l in range(out.shape[1]):
+            for k in range(W):
+                out[i, l, k] = counts[rows[i], cols[i], l, lo[i] + k]
 
+
+def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> np.ndarray:
+    """:func:`profile_llr` of the pixels ``(rows, cols)`` at their two depths ``dep``
+    (n, 2): (n, 2), in blocks of pixels on ``n_jobs`` threads (each block's result is
+    its own, so the threads never change it). An in-memory cube is read over each
+    depth's window alone; others (Dask, Zarr) a pixel's whole series at once."""
     irf = np.atleast_2d(np.asarray(irf, np.float64))
     peak = np.argmax(irf, axis=1)
     T = int(np.shape(counts)[-1])
@@ -336,22 +389,36 @@ def _likelihoods(counts, background, rows, cols, dep, irf) -> np.ndarray:
     out = np.empty((rows.size, 2))
     tm = background.temporal
     tm = tm - tm.mean(axis=-1, keepdims=True)  # as Background.at: (L, T)
-    for a in range(0, rows.size, _BLOCK):
+
+    def block(a):
         sl = slice(a, a + _BLOCK)
-        y = _pixels(counts, rows[sl], cols[sl])  # (n, L, T) as stored
-        sp = background.spatial[rows[sl], cols[sl]]  # (n, L)
-        n = np.arange(y.shape[0])[:, None]
+        r, c = rows[sl], cols[sl]
+        y = None if isinstance(counts, np.ndarray) else _pixels(counts, r, c)  # (n, L, T)
+        sp = background.spatial[r, c]  # (n, L)
         for j in range(2):
             d = np.clip(dep[sl, j], 0.0, T - 1.0)
             lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
             t = lo[:, None] + np.arange(W)  # (n, W)
             g = _shifted_irf(irf, peak, d - lo, W)  # (n, L, W)
-            yw = np.moveaxis(y[n, :, t], -1, 1).astype(np.float64)  # (n, L, W)
+            if y is None:  # the window alone
+                yw = np.empty((r.size, counts.shape[2], W))
+                _window_counts(counts, r, c, lo, yw)
+            else:
+                yw = y[np.arange(y.shape[0])[:, None], :, t]
+                yw = np.moveaxis(yw, -1, 1).astype(np.float64)  # (n, L, W)
             # Background.at over the window only, the same float32 arithmetic
             bw = sp[:, :, None] + np.moveaxis(tm[:, t], 0, 1)
             bw = np.maximum(bw, 0, out=bw).astype(np.float32, copy=False)
             bw = np.maximum(bw.astype(np.float64), 1e-6)
             out[sl, j] = profile_llr(yw, g, bw)
+
+    starts = range(0, rows.size, _BLOCK)
+    if n_jobs > 1 and len(starts) > 1:
+        with ThreadPoolExecutor(min(int(n_jobs), len(starts))) as ex:
+            list(ex.map(block, starts))
+    else:
+        for a in starts:
+            block(a)
     return out
 
 
@@ -441,7 +508,9 @@ def _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) -> np.ndarray:
     return _cut(np.concatenate(src), np.concatenate(dst), cap_s, cap_t, beta)
 
 
-def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, half: int):
+def band_depths(
+    surfaces: Surfaces, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1
+):
     """The depths of ``surfaces`` after the bands' labelling (see the module), the
     indices of the surfaces moved and the Potts weight ``beta``.
 
@@ -457,6 +526,8 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     irf : ndarray (L, n_irf)
     half : int
         The largest box's half-width (pixels): the band's reach.
+    n_jobs : int
+        Threads for the planes and the likelihoods (never changes the result).
 
     Returns
     -------
@@ -477,15 +548,13 @@ def band_depths(surfaces: Surfaces, counts, background, *, fwhm: float, irf, hal
     beta = potts_weight(lab)
     size = np.bincount(lab[lab >= 0], minlength=1)
     big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
-    other = np.empty((R, C), np.int64)
-    dep = np.full((R, C, 2), np.nan)
-    _band_kernel(big, D, int(half), gate, other, dep)
+    other, dep = _band_planes(big, D, int(half), gate, n_jobs)
     depth = np.array(s.depth_bin, np.float64)
     zr, zc = np.nonzero(other >= 0)
     ll = (
         np.zeros((0, 2))
         if zr.size == 0
-        else _likelihoods(counts, background, zr, zc, dep[zr, zc], irf)
+        else _likelihoods(counts, background, zr, zc, dep[zr, zc], irf, n_jobs)
     )  # own, other
     T = int(np.shape(counts)[-1])
     pair_a = np.minimum(big[zr, zc], other[zr, zc])
@@ -612,6 +681,7 @@ def relabel_edge_bands(
     scales,
     saliency=None,
     threshold=None,
+    n_jobs: int = 1,
 ) -> EdgeBands:
     """Stage 7b: the bands beside depth edges labelled jointly (see the module).
 
@@ -631,6 +701,8 @@ def relabel_edge_bands(
     saliency, threshold : optional
         ``Detection.saliency`` and ``.threshold``: a moved surface's ``saliency_mass``
         and ``evidence`` summed over its new support.
+    n_jobs : int
+        Threads (:func:`band_depths`; never changes the result).
 
     Returns
     -------
@@ -644,7 +716,9 @@ def relabel_edge_bands(
     t0 = time.perf_counter()
     s = surfaces
     half = int(np.max(scales)) // 2
-    depth, moved, beta = band_depths(s, counts, background, fwhm=fwhm, irf=irf, half=half)
+    depth, moved, beta = band_depths(
+        s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
+    )
     if moved.size == 0:
         return EdgeBands(s, 0, beta, time.perf_counter() - t0)
     start, stop = np.array(s.start), np.array(s.stop)

@@ -512,6 +512,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
         banded = relabel_edge_bands(
             surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"], irf=o["irf"],
             scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
+            n_jobs=o["n_jobs"],
         )  # fmt: skip
         surfaces = banded.surfaces
     return surfaces, (aligned, banded), t_sel, n_kept

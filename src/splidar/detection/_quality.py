@@ -70,6 +70,7 @@ counts favour the current depth by more than their noise.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -284,6 +285,7 @@ def reject_spill_over(
     llr_level: float,
     vouch_level: float = -np.inf,
     max_iter: int = 10,
+    n_jobs: int = 1,
 ) -> np.ndarray:
     """Candidates that are a neighbour's return spread by the coarse scales.
 
@@ -323,6 +325,9 @@ def reject_spill_over(
         strongly as the presence test requires do not vouch for a neighbour).
     max_iter : int
         Most passes; each one removes the spread one pixel further from the sources.
+    n_jobs : int
+        Threads of the first pass's log-ratios (every candidate's own: the result does
+        not depend on it).
 
     Returns
     -------
@@ -357,26 +362,15 @@ def reject_spill_over(
     col = np.asarray(surf["col"], np.int64)[idx]
     order, starts = _by_pixel(row, col, (R, C))
     out = np.zeros(idx.size, bool)
-    n_pass = _spill_kernel(
-        row,
-        col,
-        np.asarray(surf["depth_bin"], np.float64)[idx],
-        np.asarray(surf["offset"], np.int64)[idx],
-        np.ascontiguousarray(counts),
-        np.ascontiguousarray(bkg),
-        own,
-        order,
-        starts,
-        int(R),
-        int(C),
-        np.ascontiguousarray(irf, np.float64),
-        np.ascontiguousarray(peak, np.float64),
+    args = (
+        row, col, np.asarray(surf["depth_bin"], np.float64)[idx],
+        np.asarray(surf["offset"], np.int64)[idx], np.ascontiguousarray(counts),
+        np.ascontiguousarray(bkg), own, order, starts, int(R), int(C),
+        np.ascontiguousarray(irf, np.float64), np.ascontiguousarray(peak, np.float64),
         float(fwhm),
-        float(llr_level),
-        float(vouch_level),
-        int(max_iter),
-        out,
-    )
+    )  # fmt: skip
+    llr = _first_llrs(args, n_jobs)
+    n_pass = _spill_kernel(*args, float(llr_level), float(vouch_level), int(max_iter), llr, out)
     rej[idx] = out
     logger.debug(
         "spill-over: %d of %d kept candidates rejected in %d passes",
@@ -485,6 +479,41 @@ def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
     return llr
 
 
+#: Fewest candidates per thread of the spill-over test's first pass.
+_SPILL_PART = 4096
+
+
+def _first_llrs(args: tuple, n_jobs: int) -> np.ndarray:
+    """The first pass's log-ratios of :func:`_spill_kernel` (every candidate active), in
+    ``n_jobs`` contiguous parts on as many threads (each candidate's value is its own)."""
+    n = args[0].size
+    llr = np.empty(n)
+    k = max(1, min(int(n_jobs), n // _SPILL_PART))
+    edges = np.linspace(0, n, k + 1).astype(np.int64)
+    parts = list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
+    if k == 1:
+        _first_llrs_kernel(*args, 0, n, llr)
+    else:
+        with ThreadPoolExecutor(k) as ex:
+            list(ex.map(lambda p: _first_llrs_kernel(*args, p[0], p[1], llr), parts))
+    return llr
+
+
+@njit(cache=True, nogil=True)
+def _first_llrs_kernel(
+    row, col, d, offset, counts, bkg, own, order, starts, R, C, irf, peak, fwhm, i0, i1, llr
+):  # pragma: no cover - numba
+    """``llr[i0:i1]``: :func:`_spill_suspect` of candidates ``i0..i1-1`` with every
+    candidate active (the first pass of :func:`_spill_kernel`)."""
+    active = np.ones(row.size, np.bool_)
+    sig = np.empty(counts.shape[1], np.float64)
+    for i in range(i0, i1):
+        llr[i] = _spill_suspect(
+            i, row, col, d, offset, counts, bkg, own, active, order, starts, R, C, irf, peak,
+            fwhm, sig,
+        )  # fmt: skip
+
+
 @njit(cache=True, nogil=True)
 def _spill_kernel(
     row,
@@ -504,6 +533,7 @@ def _spill_kernel(
     level,
     vouch,
     max_iter,
+    llr,
     rej,
 ):
     """Iterated spill-over test of :func:`reject_spill_over` on ``n`` candidates.
@@ -513,19 +543,20 @@ def _spill_kernel(
     that has a source (``+inf`` without one), then rejects those below ``level`` that
     no opposite pair of 4-neighbours encloses; a further candidate (beside another of
     its pixel at or above ``level``) needs a pair of which one is no further candidate
-    below ``vouch`` (all at once, as :func:`spill_over_features`). Returns the number
-    of passes.
+    below ``vouch`` (all at once, as :func:`spill_over_features`). ``llr`` (n,) holds
+    the first pass's log-ratios (:func:`_first_llrs_kernel`) and is updated in place.
+    Returns the number of passes.
     """
     n = row.size
     L = counts.shape[1]
     active = np.ones(n, np.bool_)
-    llr = np.full(n, np.inf)
     further = np.zeros(n, np.bool_)
     mute = np.zeros(n, np.bool_)
     new = np.zeros(n, np.bool_)
     # a log-ratio changes only where the 3 x 3 neighbourhood lost a candidate in the
-    # last pass (the source may have gone): recompute those (all in the first pass)
-    dirty = np.ones(R * C, np.bool_)
+    # last pass (the source may have gone): recompute those (none in the first pass,
+    # whose log-ratios come in ``llr``)
+    dirty = np.zeros(R * C, np.bool_)
     sig = np.empty(L, np.float64)
     passes = 0
     for _ in range(max_iter):
