@@ -350,7 +350,7 @@ def _fine_of_run(c, y, sp, dev, win, a, b, fr, nr, mr):
 def _next_run(m, t):
     """The first ``u >= t`` with ``m[u]`` (``m.size`` if none): the start of the next run
     of a pixel's mask ``m`` (T,) bool (a tight loop over one pixel's row: the skip over
-    the clear bins is most of :func:`find_segments`' time when indexed ``mask[i, j, t]``)."""
+    the clear bins was about half of :func:`find_segments`' time indexed ``mask[i, j, t]``)."""
     T = m.size
     while t < T and not m[t]:
         t += 1
