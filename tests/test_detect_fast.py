@@ -706,3 +706,126 @@ def test_box_sums_cached_column_sums_give_the_same_bits():
         np.testing.assert_array_equal(warm, cold)
         ref = _box_sums_reference(c, scales, 7, jcol, 0, 0, off, W, n_rows, n_cols)
         np.testing.assert_allclose(warm, ref, rtol=1e-12, atol=0)
+
+
+def _segments_reference(mask, d, s, e, min_sep, rho):
+    """find_segments without the fine split, in plain Python (runs of the mask, peaks of
+    ``d`` strongest first, cuts at the first minimum between kept peaks, sums in order)."""
+    out = []
+    R, C, T = mask.shape
+    for i in range(R):
+        for j in range(C):
+            m = np.r_[False, mask[i, j], False]
+            starts = np.flatnonzero(m[1:] & ~m[:-1])
+            stops = np.flatnonzero(~m[1:] & m[:-1])
+            dd = [float(v) for v in d[i, j]]
+            for a, b in zip(starts, stops, strict=True):
+                cand = [
+                    t
+                    for t in range(a, b)
+                    if dd[t] >= (dd[t - 1] if t > a else -np.inf)
+                    and dd[t] > (dd[t + 1] if t < b - 1 else -np.inf)
+                ]
+                if not cand:
+                    cand = [a + int(np.argmax(dd[a:b]))]
+                acc = []
+                for p in sorted(cand, key=lambda t: -dd[t]):
+                    ok = all(
+                        abs(p - q) >= min_sep
+                        and min(dd[min(p, q) : max(p, q) + 1]) <= rho * min(dd[p], dd[q])
+                        for q in acc
+                    )
+                    if ok:
+                        acc.append(p)
+                peaks = sorted(acc)
+                lo = a
+                for k, pk in enumerate(peaks):
+                    if k < len(peaks) - 1:
+                        seg = dd[pk : peaks[k + 1] + 1]
+                        hi = max(pk + int(np.argmin(seg)), lo + 1)
+                    else:
+                        hi = b
+                    mass = 0.0
+                    ev = 0.0
+                    for t in range(lo, hi):
+                        mass += float(s[i, j, t])
+                        ev += float(e[i, j, t])
+                    out.append((i, j, lo, hi, pk, mass, ev))
+                    lo = hi
+    return out
+
+
+def _random_segment_block(seed, R=3, C=5, T=160):
+    rng = np.random.default_rng(seed)
+    # smooth bumps of several widths: runs with one peak, several peaks, flat tops
+    d = rng.normal(0.0, 0.05, (R, C, T))
+    tt = np.arange(T)
+    for _ in range(R * C * 4):
+        i, j = rng.integers(R), rng.integers(C)
+        d[i, j] += rng.uniform(0.3, 2.0) * np.exp(
+            -0.5 * ((tt - rng.uniform(0, T)) / rng.uniform(1.0, 8.0)) ** 2
+        )
+    d = d.astype(np.float32)
+    d[0, 0, 40:48] = 1.0  # a flat run
+    mask = np.ascontiguousarray(d > 0.15)
+    mask[0, 1] = True  # one run over the whole series
+    s = rng.uniform(0, 1, (R, C, T)).astype(np.float32)
+    e = rng.uniform(0, 1, (R, C, T)).astype(np.float32)
+    return mask, d, s, e
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_find_segments_equals_python_reference_on_random_blocks(seed):
+    # the run walk over each pixel's row and the one-peak path give every segment as
+    # the plain definition does (bit for bit)
+    from splidar.detection._kernels import find_segments
+
+    mask, d, s, e = _random_segment_block(seed)
+    no4 = np.empty((0, 0, 0, 0), np.float32)
+    no3 = np.empty((0, 0, 0), np.float32)
+    fine = (no4, no4.astype(np.uint16), 0, 0, no3, np.empty((0, 0), np.float32), no3, no3, no3)
+    split = (0.0, np.zeros(1), 1.0, np.zeros((1, 2), np.int64), 0)
+    got = find_segments(mask, d, s, e, 3, 0.5, fine, split)
+    ref = _segments_reference(mask, d, s, e, 3, 0.5)
+    assert len(ref) > 3 * mask.shape[0] * mask.shape[1]  # several runs and splits per pixel
+    assert [tuple(a[k] for a in got[:7]) for k in range(got[0].size)] == ref
+    assert not got[7].any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_find_segments_fine_split_from_counts_equals_precomputed_response(seed):
+    # the map pass's way (the fine response read from the correlated counts, n and mu
+    # only at the response's local maxima) gives the segments of the null's way (every
+    # voxel's f, n and mu precomputed by fine_response): bit for bit, splits included
+    from splidar.detection._3_null import split_rule
+    from splidar.detection._kernels import find_segments, fine_response
+
+    rng = np.random.default_rng(seed)
+    R, C, L, T = 3, 6, 2, 150
+    g = gaussian_irf(3.0).reshape(1, -1).repeat(L, 0)
+    lam = np.full((R, C, L, T), 0.05)
+    tt = np.arange(T)
+    for _ in range(R * C * 3):
+        i, j = rng.integers(R), rng.integers(C)
+        prof = np.exp(-0.5 * ((tt - rng.uniform(10, T - 10)) / 1.3) ** 2)
+        lam[i, j] += rng.uniform(3, 20) * prof / prof.sum()
+    y = rng.poisson(lam).astype(np.uint16)
+    c = Correlator(g, T)(y, workers=1)
+    sp = np.full((R, C, L), 0.05, np.float32)
+    dev = rng.normal(0, 0.005, (L, T)).astype(np.float32)
+    # a broad d over the returns: the coarse scales merge them, the fine split cuts
+    d = np.stack([np.convolve(v, np.ones(9) / 9, "same") for v in c.sum(2).reshape(-1, T)])
+    d = (d.reshape(R, C, T) - 0.1).astype(np.float32)
+    mask = np.ascontiguousarray(d > 0.05)
+    s = rng.uniform(0, 1, (R, C, T)).astype(np.float32)
+    rule = split_rule(g, 2.0)
+    no = np.empty((0, 0, 0), np.float32)
+    from_c = find_segments(mask, d, s, s, 3, 0.5, (c, y, 0, 0, sp, dev, no, no, no), rule)
+    pre = tuple(np.empty((R, C, T), np.float32) for _ in range(3))
+    fine_response(c, y, sp, dev, rule[3], *pre)
+    empty = (np.empty((0,) * 4, np.float32), np.empty((0,) * 4, np.uint16), 0, 0, no)
+    no_dev = np.empty((0, 0), np.float32)
+    from_f = find_segments(mask, d, s, s, 3, 0.5, (*empty, no_dev, *pre), rule)
+    assert from_c[7].sum() >= 3  # the fine split cut some segments
+    for a, b in zip(from_c, from_f, strict=True):
+        np.testing.assert_array_equal(a, b)

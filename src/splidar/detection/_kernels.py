@@ -90,13 +90,14 @@ def _prefetch_next(c, y, rows, cols, peak_bin, order, ii, i_end, scales, r0, e0,
 
 
 @njit(cache=True, nogil=True)
-def _segments_of_run(d, s, e, a, b, min_sep, rho, seg_start, seg_stop, seg_peak, seg_mass, seg_ev):
+def _segments_of_run(d, s, e, a, b, min_sep, rho, seg_start, seg_stop, seg_peak, seg_mass, seg_ev,
+                     cand, vals, acc):  # fmt: skip
     """Split the run ``[a, b)`` at deep minima between separated peaks of ``d``.
 
-    Returns the number of segments written into the ``seg_*`` scratch arrays.
+    Returns the number of segments written into the ``seg_*`` scratch arrays. ``cand``,
+    ``vals`` (float64) and ``acc``: scratch of at least ``b - a`` values (no allocation
+    per run: most runs are short and have one peak).
     """
-    n = b - a
-    cand = np.empty(n, np.int64)
     nc = 0
     for t in range(a, b):
         left = d[t - 1] if t > a else -np.inf
@@ -112,11 +113,22 @@ def _segments_of_run(d, s, e, a, b, min_sep, rho, seg_start, seg_stop, seg_peak,
                 best = t
         cand[0] = best
         nc = 1
-    vals = np.empty(nc)
+    if nc == 1:
+        # one peak: the whole run (what the general path below gives for one peak)
+        m = 0.0
+        ev = 0.0
+        for t in range(a, b):
+            m += s[t]
+            ev += e[t]
+        seg_ev[0] = ev
+        seg_start[0] = a
+        seg_stop[0] = b
+        seg_peak[0] = cand[0]
+        seg_mass[0] = m
+        return 1
     for i in range(nc):
         vals[i] = -d[cand[i]]
-    order = np.argsort(vals)
-    acc = np.empty(nc, np.int64)
+    order = np.argsort(vals[:nc])
     na = 0
     for oi in range(nc):
         p = cand[order[oi]]
@@ -177,21 +189,35 @@ def _fine_at(c, y, sp, dev, win, t):
     ``t + win[l, 0]`` to ``t + win[l, 1]``: where the IRF is above half its peak);
     ``mu_b``: the background ``bhat`` expects there.
     """
-    L, T = c.shape
+    n, mu = _fine_counts(y, sp, dev, win, t)
+    return _fine_f(c, sp, dev, t), n, mu
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fine_f(c, sp, dev, t):
+    """``f`` of :func:`_fine_at` alone."""
     f = 0.0
-    n = 0.0
-    mu = 0.0
-    for l in range(L):
+    for l in range(c.shape[0]):
         b = sp[l] + dev[l, t]
         if b < 0:
             b = np.float32(0.0)
         f += np.float64(c[l, t]) - np.float64(b)
+    return f
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fine_counts(y, sp, dev, win, t):
+    """``(n, mu_b)`` of :func:`_fine_at` alone."""
+    L, T = y.shape
+    n = 0.0
+    mu = 0.0
+    for l in range(L):
         for u in range(max(t + win[l, 0], 0), min(t + win[l, 1] + 1, T)):
             n += np.float64(y[l, u])
             bu = sp[l] + dev[l, u]
             if bu > 0:
                 mu += np.float64(bu)
-    return f, n, mu
+    return n, mu
 
 
 @njit(cache=True, nogil=True)
@@ -223,7 +249,7 @@ def _poisson_z(n, mu):
 
 
 @njit(cache=True, nogil=True)
-def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts):
+def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, cand, vals, acc):
     """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
     are separate returns.
 
@@ -237,12 +263,12 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts):
     a fraction ``tail[k]`` of them in the window ``k = |q - p|`` bins away. Writes the
     accepted peaks in increasing order into ``peaks`` and the cuts (the response's
     minimum between two consecutive peaks) into ``cuts``; returns their number (1: not
-    split).
+    split). ``nr`` and ``mr`` are read only at the interior local maxima of ``fr``.
+    ``cand``, ``vals`` (float64) and ``acc``: scratch of at least ``en - st`` values.
     """
     n = en - st
     if n < 3 or z <= 0:
         return 1
-    cand = np.empty(n, np.int64)
     nc = 0
     for t in range(st + 1, en - 1):
         if fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]:
@@ -250,14 +276,12 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts):
             nc += 1
     if nc < 2:
         return 1
-    vals = np.empty(nc)
     for i in range(nc):
         vals[i] = -fr[cand[i]]
-    order = np.argsort(vals)
+    order = np.argsort(vals[:nc])
     # the largest of the segment's bins: z against the max of that many tested places
     # (as _window_centre)
     z_need = np.sqrt(z * z + 2.0 * np.log(n))
-    acc = np.empty(nc, np.int64)
     na = 0
     for oi in range(nc):
         q = cand[order[oi]]
@@ -305,6 +329,32 @@ def _segment_sums(s, e, a, b):
         m += s[t]
         ev += e[t]
     return m, ev
+
+
+@njit(cache=True, nogil=True)
+def _fine_of_run(c, y, sp, dev, win, a, b, fr, nr, mr):
+    """:func:`_fine_at` of the pixel's run ``[a, b)`` into ``fr``, ``nr``, ``mr`` (T,),
+    rounded to float32 as the null's stored values (the same tests): ``f`` at every bin,
+    ``n`` and ``mu`` only where :func:`_fine_split` reads them, the interior local maxima
+    of ``fr`` (a segment's are its run's)."""
+    for u in range(a, b):
+        fr[u] = np.float32(_fine_f(c, sp, dev, u))
+    for u in range(a + 1, b - 1):
+        if fr[u] >= fr[u - 1] and fr[u] > fr[u + 1]:
+            n, mu = _fine_counts(y, sp, dev, win, u)
+            nr[u] = np.float32(n)
+            mr[u] = np.float32(mu)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _next_run(m, t):
+    """The first ``u >= t`` with ``m[u]`` (``m.size`` if none): the start of the next run
+    of a pixel's mask ``m`` (T,) bool (a tight loop over one pixel's row: the skip over
+    the clear bins was about half of :func:`find_segments`' time indexed ``mask[i, j, t]``)."""
+    T = m.size
+    while t < T and not m[t]:
+        t += 1
+    return t
 
 
 @njit(cache=True, nogil=True)
@@ -376,16 +426,17 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
     mr = np.zeros(T)
     f_peaks = np.empty(T, np.int64)
     f_cuts = np.empty(T, np.int64)
+    sc_cand = np.empty(T, np.int64)  # scratch of the per-run and per-segment kernels
+    sc_vals = np.empty(T)
+    sc_acc = np.empty(T, np.int64)
     k = 0
     for i in range(R):
         for j in range(C):
-            t = 0
+            mij = mask[i, j]
+            t = _next_run(mij, 0)
             while t < T:
-                if not mask[i, j, t]:
-                    t += 1
-                    continue
                 a = t
-                while t < T and mask[i, j, t]:
+                while t < T and mij[t]:
                     t += 1
                 b = t
                 ns = _segments_of_run(
@@ -401,26 +452,24 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     seg_peak,
                     seg_mass,
                     seg_ev,
+                    sc_cand,
+                    sc_vals,
+                    sc_acc,
                 )
                 if split_z > 0 and b - a >= 3:
-                    for u in range(a, b):
-                        if from_c:
-                            ii, jj = row0 + i, col0 + j
-                            fa, na, ma = _fine_at(c[ii, jj], y[ii, jj], sp[i, j], dev, win, u)
-                            # rounded as the null's stored float32 values (same tests)
-                            fr[u] = np.float32(fa)
-                            nr[u] = np.float32(na)
-                            mr[u] = np.float32(ma)
-                        else:
-                            fr[u] = f_in[i, j, u]
-                            nr[u] = n_in[i, j, u]
-                            mr[u] = mu_in[i, j, u]
+                    if from_c:
+                        ii, jj = row0 + i, col0 + j
+                        _fine_of_run(c[ii, jj], y[ii, jj], sp[i, j], dev, win, a, b, fr, nr, mr)
+                    else:
+                        fr[a:b] = f_in[i, j, a:b]
+                        nr[a:b] = n_in[i, j, a:b]
+                        mr[a:b] = mu_in[i, j, a:b]
                 for u in range(ns):
                     nf = 1
                     if split_z > 0:
                         nf = _fine_split(
                             fr, nr, mr, seg_start[u], seg_stop[u], min_sep, split_z, tail, gmin,
-                            reach, f_peaks, f_cuts,
+                            reach, f_peaks, f_cuts, sc_cand, sc_vals, sc_acc,
                         )  # fmt: skip
                     if nf == 1:
                         o_row[k] = i
@@ -454,6 +503,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                         o_add[k] = w != w0
                         k += 1
                         lo = hi
+                t = _next_run(mij, t)
     return (
         o_row[:k], o_col[:k], o_start[:k], o_stop[:k], o_peak[:k], o_mass[:k], o_ev[:k],
         o_add[:k],
