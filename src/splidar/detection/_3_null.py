@@ -24,6 +24,7 @@ from ._fast import poisson_background
 from ._kernels import find_segments, fine_response
 from ._null import fit_gamma_quantiles, threshold_table
 from ._result import NullModel
+from ._threads import on_parts
 
 __all__ = ["NullCalibration", "calibrate_null", "data_tail", "evidence", "split_rule"]
 
@@ -182,18 +183,12 @@ def _fine_on_threads(c, y, sp, dev, win, out: tuple, workers: int) -> None:
     """:func:`~splidar.detection._kernels.fine_response` of a patch into ``out`` (f, n,
     mu), its rows split between ``workers`` threads (every voxel's values are its own,
     so the split never changes them; the kernel releases the GIL)."""
-    k = max(1, min(int(workers), c.shape[0]))
-    if k == 1:
-        fine_response(c, y, sp, dev, win, *out)
-        return
-    edges = np.linspace(0, c.shape[0], k + 1).astype(np.int64).tolist()
 
-    def part(i):
-        rows = slice(edges[i], edges[i + 1])
+    def part(i0, i1):
+        rows = slice(i0, i1)
         fine_response(c[rows], y[rows], sp[rows], dev, win, *(a[rows] for a in out))
 
-    with ThreadPoolExecutor(k) as ex:
-        list(ex.map(part, range(k)))
+    on_parts(part, c.shape[0], workers)
 
 
 def split_rule(

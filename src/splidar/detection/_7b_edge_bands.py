@@ -65,6 +65,7 @@ from scipy.sparse import csgraph
 from ._7_align_depths import _pixels
 from ._quality import _shifted_irf
 from ._result import STAGES, Surfaces
+from ._threads import on_parts
 
 __all__ = ["GATE_FWHM", "MIN_REGION", "NEAR_FWHM", "NEAR_INSIDE", "EdgeBands", "relabel_edge_bands"]
 
@@ -254,15 +255,11 @@ def _band_planes(lab, depth, half: int, gate: float, n_jobs: int = 1):
     R, C = lab.shape
     other = np.empty((R, C), np.int64)
     dep = np.full((R, C, 2), np.nan)
-    n = max(1, min(int(n_jobs), R // 16))
-    edges = np.linspace(0, R, n + 1).astype(np.int64)
-    args = [(lab, depth, int(half), float(gate), other, dep, int(a), int(b))
-            for a, b in zip(edges[:-1], edges[1:], strict=True)]  # fmt: skip
-    if n == 1:
-        _band_kernel(*args[0])
-    else:
-        with ThreadPoolExecutor(n) as ex:
-            list(ex.map(lambda a: _band_kernel(*a), args))
+    on_parts(
+        lambda i0, i1: _band_kernel(lab, depth, int(half), float(gate), other, dep, i0, i1),
+        R,
+        min(int(n_jobs), R // 16),  # rows of at least 16 per thread
+    )
     return other, dep
 
 

@@ -16,6 +16,7 @@ from scipy import ndimage, signal, special
 from ._fast import low_median as _low_median_kernel
 from ._fast import window_means
 from ._filters import Correlator
+from ._threads import on_parts
 
 logger = logging.getLogger(__name__)
 
@@ -73,13 +74,13 @@ def temporal_shape(
     if windows is None:
         sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
 
-        def rows(part):
-            for i in part:
+        def rows(i0, i1):
+            for i in range(i0, i1):
                 # exact window sums in one numba pass over the rows (_fast.window_means)
                 a = row_starts[i]
                 sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
 
-        _on_threads(rows, np.arange(row_starts.size), workers)
+        on_parts(rows, row_starts.size, workers)
     else:
         sampled = windows(counts, row_starts, kr, col_starts, kc)
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
@@ -87,11 +88,11 @@ def temporal_shape(
     m = max(1, int(np.ceil(LOW_FRACTION * n)))
     prof = np.empty(L * T, np.float32)
 
-    def select_part(part):  # eq:background_1, one selection per (l, t): any split
-        cols = slice(int(part[0]), int(part[-1]) + 1)  # contiguous parts: no copy
+    def select_part(i0, i1):  # eq:background_1, one selection per (l, t): any split
+        cols = slice(i0, i1)  # contiguous parts: no copy
         prof[cols] = _low_median(coarse.reshape(n, L * T), m, cols)
 
-    _on_threads(select_part, np.arange(L * T), workers)
+    on_parts(select_part, L * T, workers)
     prof = prof.reshape(L, T).astype(np.float64)
     var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
     if smooth > 1:
@@ -115,17 +116,6 @@ def temporal_shape(
         else:
             prof = np.stack([one(l) for l in range(L)])
     return prof.astype(np.float32)
-
-
-def _on_threads(fn, items: np.ndarray, workers: int) -> None:
-    """``fn(part)`` for ``workers`` contiguous parts of ``items``, on as many threads
-    (the calls release the GIL: numba kernels, NumPy selections)."""
-    n_thr = max(1, min(int(workers), items.size))
-    if n_thr == 1:
-        fn(items)
-        return
-    with ThreadPoolExecutor(n_thr) as ex:
-        list(ex.map(fn, np.array_split(items, n_thr)))
 
 
 def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:

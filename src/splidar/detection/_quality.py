@@ -70,12 +70,12 @@ counts favour the current depth by more than their noise.
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
 from ._kernels import _interp_irf
+from ._threads import on_parts
 
 __all__ = [
     "reject_isolated",
@@ -488,14 +488,8 @@ def _first_llrs(args: tuple, n_jobs: int) -> np.ndarray:
     ``n_jobs`` contiguous parts on as many threads (each candidate's value is its own)."""
     n = args[0].size
     llr = np.empty(n)
-    k = max(1, min(int(n_jobs), n // _SPILL_PART))
-    edges = np.linspace(0, n, k + 1).astype(np.int64)
-    parts = list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
-    if k == 1:
-        _first_llrs_kernel(*args, 0, n, llr)
-    else:
-        with ThreadPoolExecutor(k) as ex:
-            list(ex.map(lambda p: _first_llrs_kernel(*args, p[0], p[1], llr), parts))
+    work = min(int(n_jobs), n // _SPILL_PART)
+    on_parts(lambda i0, i1: _first_llrs_kernel(*args, i0, i1, llr), n, work)
     return llr
 
 
