@@ -741,7 +741,8 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
 
     def take(n, result):
         # the strip's step-4 carry released at once (released_carries)
-        fits.pop(n, None), tasks.pop(n, None)
+        fits.pop(n, None)
+        tasks.pop(n, None)
         ic, sc = result
         ci = core_idx[n]
         if store is not None:
@@ -763,7 +764,8 @@ def _on_strips(detection, opt, cores, options, store, assemble, folder):
             dask_key_name=(f"splidar-reconstruct-tile-{token}", n),
         )  # fmt: skip
     _run(tasks, "reconstruct", take)
-    fits.clear(), tasks.clear()
+    fits.clear()
+    tasks.clear()
     t_iter = time.perf_counter()
     hyper = _hyperparameters(
         su, opt, prior, marg.mean(axis=0), bias2,
