@@ -31,7 +31,11 @@ pixel is how a neighbour's spread looks (its region lies on one side only); a su
 seen on both sides (an object behind a net's strand, a sheet continuing) was pooled
 rightly. ``--axes 5`` (the default here) tests every candidate; the module's constants
 are ``AXES = 2``, ``REACH = 1``. ``--source``: only candidates with an 8-neighbour in a
-region of single-surface pixels at their depth (stage 7b's regions) are tested.
+region of single-surface pixels at their depth (stage 7b's regions) are tested;
+``--edge``: only candidates on a depth edge (a single-surface pixel at their depth on
+one side, at their pixel's other depth on the other); ``--behind H``: only candidates
+whose depth the pixels within ``H`` that hold no surface there do not show either
+(their counts pooled with one shared intensity, below the level).
 
 Each cube is the detection of ``bench_edge_bands.py`` (``passes`` without
 ``"edge_bands"``; read from its ``--cache``), stage 7b's depth rule applied
@@ -56,7 +60,7 @@ from bench_edge_bands import SINGLE, TAU, _detected, _matched
 from bench_false_surfaces import LAYER
 
 from splidar.detection._7b_edge_bands import MIN_REGION, band_depths, region_labels
-from splidar.detection._7c_spread_groups import GATE_FWHM, spread_groups
+from splidar.detection._7c_spread_groups import GATE_FWHM, _windows, group_llr, spread_groups
 from splidar.detection._filters import irf_fwhm
 from splidar.metrics import PointSet, evaluate
 
@@ -115,6 +119,48 @@ def between(s, depth, cand, gate: float) -> np.ndarray:
     return out
 
 
+def behind(s, depth, cand, counts, background, irf, gate: float, half: int) -> np.ndarray:
+    """(n,) nats: per candidate, the joint log-likelihood ratio (one shared intensity,
+    ``group_llr``) of a return at its depth in the pixels within ``half`` (Chebyshev,
+    the pixel itself left out) that hold no surface within ``gate`` bins of it: does the
+    surface continue, undetected, behind its neighbours' own surfaces (a layer's object,
+    a strand the map missed), or does it stop (a neighbour's spread: the other side
+    holds only background at that depth)?"""
+    R, C = s.image_shape
+    held = np.full((R, C, 4), np.nan)
+    k = np.zeros((R, C), np.int64)
+    for i in range(len(s)):
+        r, c = int(s.row[i]), int(s.col[i])
+        if k[r, c] < 4:
+            held[r, c, k[r, c]] = depth[i]
+            k[r, c] += 1
+    owner, rr, cc, dd = [], [], [], []
+    for n, i in enumerate(cand):
+        r0, c0, d = int(s.row[i]), int(s.col[i]), float(depth[i])
+        r1, r2, c1, c2 = (
+            max(r0 - half, 0),
+            min(r0 + half + 1, R),
+            max(c0 - half, 0),
+            min(c0 + half + 1, C),
+        )
+        with np.errstate(invalid="ignore"):
+            has = (np.abs(held[r1:r2, c1:c2] - d) <= gate).any(axis=2)
+        has[r0 - r1, c0 - c1] = True
+        a, b = np.nonzero(~has)
+        owner.append(np.full(a.size, n))
+        rr.append(a + r1)
+        cc.append(b + c1)
+        dd.append(np.full(a.size, d))
+    owner = np.concatenate(owner)
+    y, g, b = _windows(counts, background, np.concatenate(rr), np.concatenate(cc),
+                       np.concatenate(dd), irf)  # fmt: skip
+    out = np.zeros(cand.size)
+    if owner.size:
+        llr = group_llr(y, g, b, owner)
+        out[: llr.size] = llr
+    return out
+
+
 def _score(s, depth, keep, truth):
     pts = PointSet(
         row=s.row[keep], col=s.col[keep], depth_bin=depth[keep], image_shape=s.image_shape,
@@ -124,7 +170,18 @@ def _score(s, depth, keep, truth):
 
 
 def run(
-    name, seed, rng_key, cell, cache, levels, axes=5, reach=1, source=False, edge=False
+    name,
+    seed,
+    rng_key,
+    cell,
+    cache,
+    levels,
+    axes=5,
+    reach=1,
+    source=False,
+    edge=False,
+    behind_half=0,
+    behind_level=None,
 ) -> dict:
     """Stage 7c's rule (``spread_groups``) at the prior level and at ``levels`` on one
     cube (see the module)."""
@@ -142,6 +199,9 @@ def run(
         tested &= sourced(s, depth, cand, GATE_FWHM * fwhm)
     if edge:
         tested &= between(s, depth, cand, GATE_FWHM * fwhm)
+    if behind_half:
+        lc = behind(s, depth, cand, counts, d["background"], irf, GATE_FWHM * fwhm, behind_half)
+        tested &= lc < (sg.level if behind_level is None else behind_level)
     R, C = s.image_shape
     pix = s.row[cand] * C + s.col[cand]
     everything = np.ones(len(s), bool)
@@ -173,8 +233,11 @@ def main(argv=None) -> int:
     ap.add_argument("--reach", type=int, default=1, help="pixels along an axis (--axes)")
     ap.add_argument("--source", action="store_true", help="test only candidates beside a source")
     ap.add_argument("--edge", action="store_true", help="test only candidates on a depth edge")
+    ap.add_argument("--behind", type=int, default=0, help="half-width of the behind test")
+    ap.add_argument("--behind-level", type=float, help="its level (default: the prior)")
     args = ap.parse_args(argv)
-    opts = dict(axes=args.axes, reach=args.reach, source=args.source, edge=args.edge)
+    opts = dict(axes=args.axes, reach=args.reach, source=args.source, edge=args.edge,
+                behind_half=args.behind, behind_level=args.behind_level)  # fmt: skip
     rows = []
     for seed in args.seeds:
         if args.only != "layer":
