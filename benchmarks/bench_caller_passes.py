@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copyreg
 import pickle
 import shutil
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,9 @@ from bench_distributed import write_scene  # noqa: E402
 
 import splidar  # noqa: E402
 from splidar.detection import _detect, _slopes  # noqa: E402
+
+# the state holds read-only mappings (options): pickled as the dicts they show
+copyreg.pickle(types.MappingProxyType, lambda m: (dict, (dict(m),)))
 
 
 def record(base: Path, rows: int) -> None:
