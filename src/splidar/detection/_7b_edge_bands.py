@@ -38,7 +38,9 @@ least :data:`NEAR_INSIDE` of its 8-neighbours members) and not sharing that offs
 two of its 8-neighbours, is offered the plane's depth, with the same profile likelihood
 and a prior measured on the detection (:func:`near_depths`): the "near" wrong depths,
 a pixel's own peak moved a few bins by a Poisson fluctuation, which the labelling of
-two regions never sees.
+two regions never sees. Last (:data:`FAR_INSIDE`), a lone single-surface pixel inside a
+region but not a member of it (its depth far off the region's plane and shared by no
+8-neighbour) is offered the plane the same way (:func:`far_inside_depths`).
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
 not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
