@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from dataclasses import fields, replace
 
 import numpy as np
 
@@ -10,6 +11,7 @@ from splidar import gaussian_irf
 from splidar.detection import STAGES
 from splidar.detection._7b_edge_bands import (
     band_depths,
+    far_inside_depths,
     min_cut_labels,
     near_depths,
     profile_llr,
@@ -357,3 +359,66 @@ def test_profile_llr_gathered_bins_give_the_dense_sums():
     llr = (y * np.log1p(s[:, None, None] * g / b)).sum(axis=(1, 2)) - s * G
     ref = np.where((y * g / b).sum(axis=(1, 2)) > G, np.maximum(llr, 0.0), 0.0)
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9)
+
+
+def test_band_depths_moves_a_far_wrong_depth_inside_its_region_onto_the_plane():
+    # a pixel inside the ramp detected 50 bins behind it (a background cluster beat its
+    # dim return): no neighbour holds that depth, its counts the ramp's 3.4 photons at
+    # the plane, so it moves onto the plane (FAR_INSIDE; the near rule never offers it:
+    # it is not a member of the region)
+    lam, ramp = _ramp_lam(3.4)
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] += 50.0
+    depth, moved, _ = band_depths(
+        _surfaces(wrong), counts, _background(), fwhm=3.0, irf=IRF, half=5
+    )
+    i = 10 * SHAPE[1] + 12
+    assert moved.tolist() == [i]
+    assert abs(depth[i] - ramp[10, 12]) < 0.5
+
+
+def test_far_inside_depths_keeps_a_far_pixel_its_counts_place_off_the_plane():
+    # the same pixel with a bright return (30 photons) where it was detected: it stays
+    lam, ramp = _ramp_lam(3.4, bright_at=(10, 12, 90.0))
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] = 90.0
+    s = _surfaces(wrong)
+    moved, _ = far_inside_depths(
+        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
+        fwhm=3.0, irf=IRF, half=5,
+    )  # fmt: skip
+    assert moved.size == 0
+
+
+def test_far_inside_depths_keeps_a_depth_a_neighbour_shares():
+    # a strand through the pixel: its neighbour above holds the same far depth as a
+    # second surface (a two-surface pixel), so the depth continues and is not offered
+    lam, ramp = _ramp_lam(3.4)
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] += 50.0
+    s = _surfaces(wrong)
+    extra = _surfaces(np.full((1, 1), wrong[10, 12]))
+    R, C = SHAPE
+    n = len(s)
+    both = replace(s, **{
+        f.name: np.concatenate([getattr(s, f.name), getattr(extra, f.name)])
+        for f in fields(s)
+        if isinstance(getattr(s, f.name), np.ndarray) and getattr(s, f.name).shape[:1] == (n,)
+    })  # fmt: skip
+    both = replace(both, row=np.r_[s.row, 9], col=np.r_[s.col, 12], slot=np.r_[s.slot, 1])
+    pix = both.row * C + both.col
+    solo = np.flatnonzero(np.bincount(pix, minlength=R * C)[pix] == 1)
+    moved, _ = far_inside_depths(
+        both, np.asarray(both.depth_bin), solo, counts, _background(),
+        fwhm=3.0, irf=IRF, half=5,
+    )  # fmt: skip
+    assert moved.size == 0
+    # without the neighbour's surface it moves
+    moved, _ = far_inside_depths(
+        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
+        fwhm=3.0, irf=IRF, half=5,
+    )  # fmt: skip
+    assert moved.tolist() == [10 * C + 12]

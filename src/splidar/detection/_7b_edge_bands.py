@@ -38,7 +38,9 @@ least :data:`NEAR_INSIDE` of its 8-neighbours members) and not sharing that offs
 two of its 8-neighbours, is offered the plane's depth, with the same profile likelihood
 and a prior measured on the detection (:func:`near_depths`): the "near" wrong depths,
 a pixel's own peak moved a few bins by a Poisson fluctuation, which the labelling of
-two regions never sees.
+two regions never sees. Last (:data:`FAR_INSIDE`), a lone single-surface pixel inside a
+region but not a member of it (its depth far off the region's plane and shared by no
+8-neighbour) is offered the plane the same way (:func:`far_inside_depths`).
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
 not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
@@ -67,7 +69,15 @@ from ._quality import _shifted_irf
 from ._result import STAGES, Surfaces
 from ._threads import on_parts
 
-__all__ = ["GATE_FWHM", "MIN_REGION", "NEAR_FWHM", "NEAR_INSIDE", "EdgeBands", "relabel_edge_bands"]
+__all__ = [
+    "FAR_INSIDE",
+    "GATE_FWHM",
+    "MIN_REGION",
+    "NEAR_FWHM",
+    "NEAR_INSIDE",
+    "EdgeBands",
+    "relabel_edge_bands",
+]
 
 #: Neighbouring single-surface pixels whose depths differ by at most this many FWHM are
 #: one region (4.5 bins at FWHM 3: the benchmark's ramp of 3.2 bins per row stays one
@@ -101,6 +111,13 @@ NEAR_DEPTHS = True
 #: 20) -> 1 (0 / 0) uniform, 36 (6 / 18) -> 0 decaying; the single-surface cells keep
 #: 120 of 143 fixes (3 seeds, both backgrounds), none moved off.
 NEAR_INSIDE = 7
+#: Move the far depths inside a region (:func:`far_inside_depths`) in
+#: :func:`band_depths`: a single-surface pixel that is not a member of the region
+#: holding at least :data:`NEAR_INSIDE` of its 8-neighbours, its depth more than the
+#: region's gate off that region's plane and shared by none of its 8-neighbours' surfaces
+#: (any slot), offered the plane with a prior measured on the detection. Measured
+#: (benchmarks/README.md, "far28, session 20").
+FAR_INSIDE = True
 #: Max-flow capacities are integers: nats times this.
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
@@ -571,7 +588,14 @@ def band_depths(
     if NEAR_DEPTHS:
         near, to = near_depths(s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half)
     depth[near] = to
-    return depth, np.union1d(np.asarray(moved, np.int64), near), beta
+    moved = np.union1d(np.asarray(moved, np.int64), near)
+    if FAR_INSIDE:
+        far, to = far_inside_depths(
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half
+        )
+        depth[far] = to
+        moved = np.union1d(moved, far)
+    return depth, moved, beta
 
 
 def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
@@ -658,6 +682,128 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     if zr.size == 0:
         return none
     q = max(int(off.sum()), 1) / max(int(has.sum()), 2)
+    prior = np.log((1.0 - q) / q)
+    ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
+    go = ll[:, 1] - ll[:, 0] + prior > 0.0
+    if not go.any():
+        return none
+    at = np.full((R, C), -1, np.int64)
+    at[s.row[solo], s.col[solo]] = solo
+    return at[zr[go], zc[go]], plane[zr[go], zc[go]]
+
+
+@njit(cache=True, nogil=True)
+def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragma: no cover
+    """Per pixel, ``region[r, c]``: the region holding at least ``need`` of its
+    8-neighbours (-1 if none); for a pixel with a depth that is not a member of that
+    region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_plane` over
+    its members within ``reach``, Chebyshev); NaN elsewhere."""
+    R, C = big.shape
+    n = (2 * reach + 1) ** 2
+    buf_r, buf_c, buf_d = np.empty(n), np.empty(n), np.empty(n)
+    for r in range(R):
+        for c in range(C):
+            region[r, c] = -1
+            plane[r, c] = np.nan
+            best = -1
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = r + dr, c + dc
+                    if (dr == 0 and dc == 0) or not (0 <= rr < R and 0 <= cc < C):
+                        continue
+                    x = big[rr, cc]
+                    if x < 0 or best >= 0:
+                        continue
+                    k = 0
+                    for er in range(-1, 2):
+                        for ec in range(-1, 2):
+                            ar, ac = r + er, c + ec
+                            if (er or ec) and 0 <= ar < R and 0 <= ac < C and big[ar, ac] == x:
+                                k += 1
+                    if k >= need:
+                        best = x
+            region[r, c] = best
+            if best < 0 or big[r, c] == best or np.isnan(depth[r, c]):
+                continue
+            m = 0
+            for rr in range(max(r - reach, 0), min(r + reach + 1, R)):
+                for cc in range(max(c - reach, 0), min(c + reach + 1, C)):
+                    if big[rr, cc] == best:
+                        buf_r[m], buf_c[m], buf_d[m] = rr - r, cc - c, depth[rr, cc]
+                        m += 1
+            if m >= 3:
+                plane[r, c] = _plane(buf_r[:m], buf_c[:m], buf_d[:m], gate)
+
+
+def _shared_any(surfaces, depth, D, tol: float) -> np.ndarray:
+    """(R, C) int: how many 8-neighbours hold a surface (any slot) within ``tol`` of the
+    pixel's depth ``D`` (NaN: none)."""
+    s = surfaces
+    R, C = s.image_shape
+    K = int(np.max(s.slot)) + 1 if len(s) else 1
+    maps = np.full((K, R + 2, C + 2), np.nan)
+    maps[s.slot, s.row + 1, s.col + 1] = depth
+    out = np.zeros((R, C), np.int64)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                nb = maps[:, 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+                with np.errstate(invalid="ignore"):
+                    out += np.any(np.abs(nb - D) <= tol, axis=0)
+    return out
+
+
+def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int):
+    """The far wrong depths inside a region: a single-surface pixel that is not a member
+    of the region holding at least :data:`NEAR_INSIDE` of its 8-neighbours (its depth
+    more than the gate, :data:`GATE_FWHM` FWHM, off every neighbour's), moved onto that
+    region's local plane where the own counts with a measured prior favour it.
+
+    On issue #15's single-surface cells these are a dim pixel's missed return replaced
+    by a background cluster or a far neighbour's pooled return (benchmarks/README.md,
+    "far28, session 20"). A pixel is offered the plane (:func:`_plane` over the region's
+    members within ``2 half``) when its depth lies more than the gate off it and none of
+    its 8-neighbours holds a surface (any slot) within the gate of its depth: a lone
+    depth, not a strand or an edge that continues through the pixel (without this
+    guard the net's strand pixels whose object return was missed moved onto the
+    object's plane). With ``q`` the fraction of the pixels inside a region (``>=
+    NEAR_INSIDE`` of their 8-neighbours members) so offered, measured on this
+    detection, a pixel moves when ``L(plane) - L(own) + log((1 - q) / q) > 0`` (``L``:
+    :func:`profile_llr` of its raw counts), as :func:`near_depths`.
+
+    Parameters
+    ----------
+    surfaces, depth, solo, counts, background, fwhm, irf, half
+        As :func:`near_depths` (``depth`` after the near depths).
+
+    Returns
+    -------
+    moved : ndarray (m,) int64
+        Indices of the surfaces moved.
+    to : ndarray (m,) float64
+        Their new depths (bins).
+    """
+    s = surfaces
+    R, C = s.image_shape
+    none = np.zeros(0, np.int64), np.zeros(0)
+    D = np.full((R, C), np.nan)
+    D[s.row[solo], s.col[solo]] = depth[solo]
+    gate = GATE_FWHM * float(fwhm)
+    lab = region_labels(D, gate)
+    size = np.bincount(lab[lab >= 0], minlength=1)
+    big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
+    region = np.empty((R, C), np.int64)
+    plane = np.empty((R, C))
+    _inside_plane_kernel(big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane)
+    T = int(np.shape(counts)[-1])
+    with np.errstate(invalid="ignore"):
+        cand = np.isfinite(plane) & (np.abs(D - plane) > gate) & (plane >= 0.0)
+        cand &= plane <= T - 1
+    cand &= _shared_any(s, depth, D, gate) == 0
+    zr, zc = np.nonzero(cand)
+    if zr.size == 0:
+        return none
+    q = zr.size / max(int((region >= 0).sum()), 2)
     prior = np.log((1.0 - q) / q)
     ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
     go = ll[:, 1] - ll[:, 0] + prior > 0.0
