@@ -664,12 +664,7 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     s = surfaces
     R, C = s.image_shape
     none = np.zeros(0, np.int64), np.zeros(0)
-    D = np.full((R, C), np.nan)
-    D[s.row[solo], s.col[solo]] = depth[solo]
-    gate = GATE_FWHM * float(fwhm)
-    lab = region_labels(D, gate)
-    size = np.bincount(lab[lab >= 0], minlength=1)
-    big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
+    D, gate, big = _solo_regions(s, depth, solo, fwhm)
     plane = np.full((R, C), np.nan)
     _own_plane_kernel(big, D, 2 * int(half), gate, plane)
     has = np.isfinite(plane)
@@ -786,12 +781,7 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
     s = surfaces
     R, C = s.image_shape
     none = np.zeros(0, np.int64), np.zeros(0)
-    D = np.full((R, C), np.nan)
-    D[s.row[solo], s.col[solo]] = depth[solo]
-    gate = GATE_FWHM * float(fwhm)
-    lab = region_labels(D, gate)
-    size = np.bincount(lab[lab >= 0], minlength=1)
-    big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
+    D, gate, big = _solo_regions(s, depth, solo, fwhm)
     region = np.empty((R, C), np.int64)
     plane = np.empty((R, C))
     _inside_plane_kernel(big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane)
@@ -812,6 +802,20 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
     at = np.full((R, C), -1, np.int64)
     at[s.row[solo], s.col[solo]] = solo
     return at[zr[go], zc[go]], plane[zr[go], zc[go]]
+
+
+def _solo_regions(s: Surfaces, depth: np.ndarray, solo: np.ndarray, fwhm: float) -> tuple:
+    """``(D, gate, big)``: the depth image of the pixels' lone surfaces (NaN elsewhere),
+    the region gate (``GATE_FWHM`` FWHM, bins) and the region labels of the regions of at
+    least ``MIN_REGION`` pixels (-1 elsewhere), as :func:`near_depths` and
+    :func:`far_inside_depths` use them."""
+    D = np.full(s.image_shape, np.nan)
+    D[s.row[solo], s.col[solo]] = depth[solo]
+    gate = GATE_FWHM * float(fwhm)
+    lab = region_labels(D, gate)
+    size = np.bincount(lab[lab >= 0], minlength=1)
+    big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
+    return D, gate, big
 
 
 def relabel_edge_bands(
