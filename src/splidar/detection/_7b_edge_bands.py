@@ -677,14 +677,7 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     if zr.size == 0:
         return none
     q = max(int(off.sum()), 1) / max(int(has.sum()), 2)
-    prior = np.log((1.0 - q) / q)
-    ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
-    go = ll[:, 1] - ll[:, 0] + prior > 0.0
-    if not go.any():
-        return none
-    at = np.full((R, C), -1, np.int64)
-    at[s.row[solo], s.col[solo]] = solo
-    return at[zr[go], zc[go]], plane[zr[go], zc[go]]
+    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf)
 
 
 @njit(cache=True, nogil=True)
@@ -794,14 +787,7 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
     if zr.size == 0:
         return none
     q = zr.size / max(int((region >= 0).sum()), 2)
-    prior = np.log((1.0 - q) / q)
-    ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
-    go = ll[:, 1] - ll[:, 0] + prior > 0.0
-    if not go.any():
-        return none
-    at = np.full((R, C), -1, np.int64)
-    at[s.row[solo], s.col[solo]] = solo
-    return at[zr[go], zc[go]], plane[zr[go], zc[go]]
+    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf)
 
 
 def _solo_regions(s: Surfaces, depth: np.ndarray, solo: np.ndarray, fwhm: float) -> tuple:
@@ -816,6 +802,21 @@ def _solo_regions(s: Surfaces, depth: np.ndarray, solo: np.ndarray, fwhm: float)
     size = np.bincount(lab[lab >= 0], minlength=1)
     big = np.where((lab >= 0) & (size[np.maximum(lab, 0)] >= MIN_REGION), lab, -1)
     return D, gate, big
+
+
+def _plane_moves(s: Surfaces, solo, counts, background, zr, zc, D, plane, q: float, irf) -> tuple:
+    """``(moved, to)``: the lone surfaces at pixels ``(zr, zc)`` whose own counts, with the
+    prior log-odds ``log((1 - q) / q)`` of lying on the plane, favour ``plane`` over their
+    depth ``D`` (``L(plane) - L(own) + prior > 0``), and their new depths (bins)."""
+    none = np.zeros(0, np.int64), np.zeros(0)
+    prior = np.log((1.0 - q) / q)
+    ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
+    go = ll[:, 1] - ll[:, 0] + prior > 0.0
+    if not go.any():
+        return none
+    at = np.full(s.image_shape, -1, np.int64)
+    at[s.row[solo], s.col[solo]] = solo
+    return at[zr[go], zc[go]], plane[zr[go], zc[go]]
 
 
 def relabel_edge_bands(
