@@ -409,3 +409,86 @@ def test_far_inside_depths_keeps_a_depth_a_neighbour_shares():
         fwhm=3.0, irf=IRF, half=5,
     )  # fmt: skip
     assert moved.tolist() == [10 * C + 12]
+
+
+def _plane_reference(lab, depth, r, c, reach, x, skip_self, gate):
+    """The robust plane of :func:`_window_plane` with NumPy's least squares."""
+    rr, cc = np.nonzero(lab == x)
+    near = (np.abs(rr - r) <= reach) & (np.abs(cc - c) <= reach)
+    if skip_self:
+        near &= (rr != r) | (cc != c)
+    dr, dc = (rr[near] - r).astype(float), (cc[near] - c).astype(float)
+    d = depth[rr[near], cc[near]]
+    keep, value = np.ones(d.size, bool), np.nan
+    for it in range(2):
+        A = np.stack([np.ones(keep.sum()), dr[keep], dc[keep]], axis=1)
+        if keep.sum() < 3 or abs(np.linalg.det(A.T @ A)) < 1e-9 * max(keep.sum(), 1) ** 3:
+            return np.median(d) if it == 0 else value
+        coef = np.linalg.lstsq(A, d[keep], rcond=None)[0]
+        value = coef[0]
+        keep = np.abs(coef[0] + coef[1] * dr + coef[2] * dc - d) <= gate
+    return value
+
+
+def test_window_plane_equals_two_step_least_squares():
+    from splidar.detection._7b_edge_bands import _window_plane
+
+    rng = np.random.default_rng(11)
+    lab = rng.integers(-1, 3, size=(30, 30))
+    rows, cols = np.mgrid[0:30, 0:30]
+    depth = 40.0 + 0.4 * rows - 0.7 * cols + rng.normal(0, 0.5, lab.shape)
+    depth[rng.random(lab.shape) < 0.15] += 12.0  # outliers the gate drops
+    buf = np.empty(21 * 21)
+    for r, c in [(0, 0), (5, 17), (15, 15), (29, 3), (12, 29)]:
+        for x, skip in [(0, True), (1, False), (2, True)]:
+            got = _window_plane(lab, depth, r, c, 10, x, skip, 4.5, 0, buf)
+            want = _plane_reference(lab, depth, r, c, 10, x, skip, 4.5)
+            # tolerance: the normal equations against an orthogonal solver, well
+            # conditioned windows of up to 441 points -> agreement to ~1e-12 bins
+            assert got == pytest.approx(want, abs=1e-9)
+
+
+def test_window_plane_median_when_collinear_and_nan_below_min_members():
+    from splidar.detection._7b_edge_bands import _window_plane
+
+    lab = -np.ones((9, 9), np.int64)
+    depth = np.zeros((9, 9))
+    for i, d in zip(range(1, 8), (3.0, 9.0, 4.0, 8.0, 5.0, 7.0, 6.0), strict=True):
+        lab[i, i], depth[i, i] = 0, d  # members on the diagonal: no plane
+    buf = np.empty(81)
+    assert _window_plane(lab, depth, 4, 4, 4, 0, False, 4.5, 0, buf) == 6.0
+    assert np.isnan(_window_plane(lab, depth, 4, 4, 4, 0, False, 4.5, 8, buf))
+    assert np.isnan(_window_plane(lab, depth, 4, 4, 4, 1, False, 4.5, 0, buf))  # none
+
+
+def test_near_depths_same_on_any_number_of_threads():
+    lam, ramp = _ramp_lam(3.4)
+    counts = np.random.default_rng(5).poisson(lam).astype(np.uint16)
+    wrong = ramp.copy()
+    wrong[10, 12] += 5.0  # the near move of the parametrized test above, twice
+    wrong[4, 5] += 5.0
+    s = _surfaces(wrong)
+    args = (s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background())
+    one = near_depths(*args, fwhm=3.0, irf=IRF, half=5, n_jobs=1)
+    assert one[0].size == 2
+    for n_jobs in (2, 3):
+        got = near_depths(*args, fwhm=3.0, irf=IRF, half=5, n_jobs=n_jobs)
+        np.testing.assert_array_equal(got[0], one[0])
+        np.testing.assert_array_equal(got[1], one[1])
+
+
+def test_own_plane_kernel_same_on_any_split_of_rows():
+    from splidar.detection._7b_edge_bands import _own_plane_kernel
+
+    rng = np.random.default_rng(4)
+    lab = np.repeat(np.repeat(rng.integers(-1, 8, size=(12, 10)), 6, axis=0), 5, axis=1)
+    depth = 20.0 + 0.3 * np.arange(lab.shape[0])[:, None] + rng.normal(0, 0.5, lab.shape)
+    R = lab.shape[0]
+    whole = np.full(lab.shape, -1.0)
+    _own_plane_kernel(lab, depth, 6, 4.5, whole, 0, R)
+    assert np.isfinite(whole).sum() > 0.5 * (lab >= 0).sum()
+    for cuts in ([0, 17, R], [0, 1, 30, 31, R]):
+        parts = np.full(lab.shape, -1.0)
+        for a, b in itertools.pairwise(cuts):
+            _own_plane_kernel(lab, depth, 6, 4.5, parts, a, b)
+        np.testing.assert_array_equal(parts, whole)

@@ -168,29 +168,16 @@ def potts_weight(labels: np.ndarray) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _solve3(A, y):
-    """Least squares of a 3-column design through its normal equations; NaN when the
-    points are (nearly) collinear."""
-    M = A.T @ A
-    det = np.linalg.det(M)
-    if abs(det) < 1e-9 * max(M[0, 0], 1.0) ** 3:
-        return np.full(3, np.nan)
-    return np.linalg.solve(M, A.T @ y)
-
-
-@njit(cache=True, nogil=True)
 def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cover - numba
     """For each pixel of a region in rows ``r0:r1``, ``other[r, c]``: the other region
     with most members within ``half`` (Chebyshev; ties to the lower label), -1 if none;
     then for such pixels the local plane of its own (``dep[..., 0]``) and of the other
-    region (``dep[..., 1]``) at the pixel (:func:`_plane` over the members within
+    region (``dep[..., 1]``) at the pixel (:func:`_window_plane` over the members within
     ``2 half``). Rows outside ``r0:r1`` are neither read from ``other``/``dep`` nor
     written, so disjoint row ranges run on threads side by side."""
     R, C = lab.shape
     reach = 2 * half
-    buf_r = np.empty((2 * reach + 1) ** 2)
-    buf_c = np.empty((2 * reach + 1) ** 2)
-    buf_d = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((2 * reach + 1) ** 2)
     seen = np.empty((2 * half + 1) ** 2, np.int64)
     for r in range(r0, r1):
         for c in range(C):
@@ -204,39 +191,24 @@ def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cove
                 continue
             for j in range(2):
                 x = own if j == 0 else best
-                m = 0
-                for rr in range(max(r - reach, 0), min(r + reach + 1, R)):
-                    for cc in range(max(c - reach, 0), min(c + reach + 1, C)):
-                        if lab[rr, cc] == x:
-                            buf_r[m] = rr - r
-                            buf_c[m] = cc - c
-                            buf_d[m] = depth[rr, cc]
-                            m += 1
-                dep[r, c, j] = _plane(buf_r[:m], buf_c[:m], buf_d[:m], gate)
+                dep[r, c, j] = _window_plane(lab, depth, r, c, reach, x, False, gate, 0, buf)
 
 
 @njit(cache=True, nogil=True)
-def _own_plane_kernel(lab, depth, reach, gate, out):
-    """For each pixel of a region, ``out[r, c]``: its region's local plane at the pixel
-    (:func:`_plane`) over the other members within ``reach`` (Chebyshev; the pixel
-    itself left out); NaN elsewhere and with fewer than 3 other members."""
+def _own_plane_kernel(lab, depth, reach, gate, out, r0, r1):  # pragma: no cover - numba
+    """For each pixel of a region in rows ``r0:r1``, ``out[r, c]``: its region's local
+    plane at the pixel (:func:`_window_plane`) over the other members within ``reach``
+    (Chebyshev; the pixel itself left out); NaN elsewhere and with fewer than 3 other
+    members. Only rows ``r0:r1`` of ``out`` are written, so disjoint row ranges run on
+    threads side by side (the result does not depend on the split)."""
     R, C = lab.shape
-    n = (2 * reach + 1) ** 2
-    buf_r, buf_c, buf_d = np.empty(n), np.empty(n), np.empty(n)
-    for r in range(R):
+    buf = np.empty((2 * reach + 1) ** 2)
+    for r in range(r0, r1):
         for c in range(C):
             out[r, c] = np.nan
             x = lab[r, c]
-            if x < 0:
-                continue
-            m = 0
-            for rr in range(max(r - reach, 0), min(r + reach + 1, R)):
-                for cc in range(max(c - reach, 0), min(c + reach + 1, C)):
-                    if lab[rr, cc] == x and (rr != r or cc != c):
-                        buf_r[m], buf_c[m], buf_d[m] = rr - r, cc - c, depth[rr, cc]
-                        m += 1
-            if m >= 3:
-                out[r, c] = _plane(buf_r[:m], buf_c[:m], buf_d[:m], gate)
+            if x >= 0:
+                out[r, c] = _window_plane(lab, depth, r, c, reach, x, True, gate, 3, buf)
 
 
 @njit(cache=True, nogil=True)
@@ -281,32 +253,68 @@ def _band_planes(lab, depth, half: int, gate: float, n_jobs: int = 1):
 
 
 @njit(cache=True, nogil=True)
-def _plane(dr, dc, d, gate):  # pragma: no cover - numba
-    """A robust plane through the depths ``d`` at offsets ``(dr, dc)``, evaluated at
-    (0, 0): least squares, the points off it by more than ``gate`` dropped, least
-    squares again; the median with fewer than 3 non-collinear points (taken only then:
-    a plane's value does not need it)."""
-    m = d.size
-    keep = np.ones(m, np.bool_)
+def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # pragma: no cover
+    """A robust plane through the depths of the pixels labelled ``x`` within ``reach``
+    of ``(r, c)`` (Chebyshev; the pixel itself left out when ``skip_self``), evaluated
+    at ``(r, c)``: least squares, the members off it by more than ``gate`` dropped,
+    least squares again; the median of the members with fewer than 3 non-collinear
+    ones (taken only then: a plane's value does not need it); NaN with fewer than
+    ``min_m`` members.
+
+    Each fit solves the 3 x 3 normal equations from sums gathered in one scan of the
+    window (no design matrix, no gathered copy): the offsets' sums are integers, exact
+    in float64; the second fit's members are those within ``gate`` of the first plane.
+    ``buf`` (at least the window's size) holds the members' depths for the median."""
+    R, C = lab.shape
     value = np.nan
+    c0 = c1 = c2 = 0.0
+    r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
+    c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
     for it in range(2):
-        k = int(keep.sum())
-        if k < 3:
-            return np.median(d) if it == 0 else value
-        A = np.empty((k, 3))
-        y = np.empty(k)
-        j = 0
-        for i in range(m):
-            if keep[i]:
-                A[j, 0], A[j, 1], A[j, 2], y[j] = 1.0, dr[i], dc[i], d[i]
-                j += 1
-        coef = _solve3(A, y)
-        if np.isnan(coef[0]):
-            return np.median(d) if it == 0 else value
-        value = coef[0]
-        for i in range(m):
-            keep[i] = abs(coef[0] + coef[1] * dr[i] + coef[2] * dc[i] - d[i]) <= gate
+        n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+        for rr in range(r_lo, r_hi):
+            for cc in range(c_lo, c_hi):
+                if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
+                    continue
+                u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
+                if it == 1 and abs(c0 + c1 * u + c2 * v - z) > gate:
+                    continue
+                n += 1.0
+                sr += u
+                sc += v
+                srr += u * u
+                src += u * v
+                scc += v * v
+                sd += z
+                srd += u * z
+                scd += v * z
+        if it == 0 and n < min_m:
+            return np.nan
+        if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+            if it == 1:
+                return value
+            m = 0
+            for rr in range(r_lo, r_hi):
+                for cc in range(c_lo, c_hi):
+                    if lab[rr, cc] == x and not (skip_self and rr == r and cc == c):
+                        buf[m] = depth[rr, cc]
+                        m += 1
+            return np.median(buf[:m])
+        # cofactors of M = [[n, sr, sc], [sr, srr, src], [sc, src, scc]] (symmetric)
+        k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
+        k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
+        det = n * k00 + sr * k01 + sc * k02
+        c0 = (k00 * sd + k01 * srd + k02 * scd) / det
+        c1 = (k01 * sd + k11 * srd + k12 * scd) / det
+        c2 = (k02 * sd + k12 * srd + k22 * scd) / det
+        value = c0
     return value
+
+
+@njit(cache=True, nogil=True)
+def _det_sym3(n, sr, sc, srr, src, scc):  # pragma: no cover - numba
+    """The determinant of the symmetric ``[[n, sr, sc], [sr, srr, src], [sc, src, scc]]``."""
+    return n * (srr * scc - src * src) + sr * (sc * src - sr * scc) + sc * (sr * src - srr * sc)
 
 
 def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
@@ -586,7 +594,9 @@ def band_depths(
     moved = i[ok]
     near, to = np.zeros(0, np.int64), np.zeros(0)
     if NEAR_DEPTHS:
-        near, to = near_depths(s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half)
+        near, to = near_depths(
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
+        )
     depth[near] = to
     moved = np.union1d(np.asarray(moved, np.int64), near)
     if FAR_INSIDE:
@@ -625,13 +635,15 @@ def _inside(lab: np.ndarray) -> np.ndarray:
     return np.where(lab >= 0, out, 0)
 
 
-def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int):
+def near_depths(
+    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1
+):
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
     measured prior favour it (see :data:`NEAR_FWHM`).
 
     The regions are re-formed on ``depth`` (after the bands' labelling); each member's
-    plane is :func:`_plane` over the other members within ``2 half`` (the pixel left
+    plane is :func:`_window_plane` over the other members within ``2 half`` (the pixel left
     out). A pixel is offered its plane when it lies more than ``NEAR_FWHM`` FWHM off it,
     at least :data:`NEAR_INSIDE` of its 8-neighbours are members of its region (not at
     its border, where the plane extrapolates), and fewer than 2 of its 8-neighbours lie
@@ -651,7 +663,7 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
         The surfaces' depths (bins) after the bands' labelling.
     solo : ndarray (n,) int64
         The surfaces alone in their pixels.
-    counts, background, fwhm, irf, half
+    counts, background, fwhm, irf, half, n_jobs
         As :func:`band_depths`.
 
     Returns
@@ -666,7 +678,12 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
     none = np.zeros(0, np.int64), np.zeros(0)
     D, gate, big = _solo_regions(s, depth, solo, fwhm)
     plane = np.full((R, C), np.nan)
-    _own_plane_kernel(big, D, 2 * int(half), gate, plane)
+    reach = 2 * int(half)
+    on_parts(
+        lambda i0, i1: _own_plane_kernel(big, D, reach, float(gate), plane, i0, i1),
+        R,
+        min(int(n_jobs), R // 16),  # rows of at least 16 per thread
+    )
     has = np.isfinite(plane)
     off = has & (np.abs(D - plane) > NEAR_FWHM * float(fwhm))
     cand = off & (_shared(D - plane, 0.5 * float(fwhm)) < 2) & (_inside(big) >= NEAR_INSIDE)
@@ -684,11 +701,10 @@ def near_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, 
 def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragma: no cover
     """Per pixel, ``region[r, c]``: the region holding at least ``need`` of its
     8-neighbours (-1 if none); for a pixel with a depth that is not a member of that
-    region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_plane` over
+    region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_window_plane` over
     its members within ``reach``, Chebyshev); NaN elsewhere."""
     R, C = big.shape
-    n = (2 * reach + 1) ** 2
-    buf_r, buf_c, buf_d = np.empty(n), np.empty(n), np.empty(n)
+    buf = np.empty((2 * reach + 1) ** 2)
     for r in range(R):
         for c in range(C):
             region[r, c] = -1
@@ -713,14 +729,7 @@ def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragm
             region[r, c] = best
             if best < 0 or big[r, c] == best or np.isnan(depth[r, c]):
                 continue
-            m = 0
-            for rr in range(max(r - reach, 0), min(r + reach + 1, R)):
-                for cc in range(max(c - reach, 0), min(c + reach + 1, C)):
-                    if big[rr, cc] == best:
-                        buf_r[m], buf_c[m], buf_d[m] = rr - r, cc - c, depth[rr, cc]
-                        m += 1
-            if m >= 3:
-                plane[r, c] = _plane(buf_r[:m], buf_c[:m], buf_d[:m], gate)
+            plane[r, c] = _window_plane(big, depth, r, c, reach, best, False, gate, 3, buf)
 
 
 def _shared_any(surfaces, depth, D, tol: float) -> np.ndarray:
@@ -749,7 +758,7 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
 
     On issue #15's single-surface cells these are a dim pixel's missed return replaced
     by a background cluster or a far neighbour's pooled return (benchmarks/README.md,
-    "far28, session 20"). A pixel is offered the plane (:func:`_plane` over the region's
+    "far28, session 20"). A pixel is offered the plane (:func:`_window_plane` over the region's
     members within ``2 half``) when its depth lies more than the gate off it and none of
     its 8-neighbours holds a surface (any slot) within the gate of its depth: a lone
     depth, not a strand or an edge that continues through the pixel (without this
