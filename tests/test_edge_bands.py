@@ -454,10 +454,10 @@ def test_dark_bands_offers_only_the_surfaces_stage_5c_restored():
     assert moved.size == 0
 
 
-def test_band_depths_runs_dark_bands_only_when_switched_on(monkeypatch):
+def test_band_depths_runs_dark_bands_with_the_measured_prior(monkeypatch):
     from splidar.detection import _7b_edge_bands as eb
 
-    s, counts, band = _dark_band(0.5)
+    s, counts, _ = _dark_band(0.5)
     calls = []
 
     def spy(*a, q, **k):
@@ -466,10 +466,11 @@ def test_band_depths_runs_dark_bands_only_when_switched_on(monkeypatch):
 
     monkeypatch.setattr(eb, "dark_bands", spy)
     eb.band_depths(s, counts, _background(), fwhm=3.0, irf=IRF, half=5)
-    assert calls == [] and not eb.DARK_BANDS  # off (benchmarks/README.md, dark29)
-    monkeypatch.setattr(eb, "DARK_BANDS", True)
+    assert eb.DARK_BANDS and len(calls) == 1  # on since dark29 (benchmarks/README.md)
+    assert 0.0 < calls[0] < 1.0  # the fraction of the band's pixels the labelling moved
+    monkeypatch.setattr(eb, "DARK_BANDS", False)
     eb.band_depths(s, counts, _background(), fwhm=3.0, irf=IRF, half=5)
-    assert len(calls) == 1 and 0.0 < calls[0] < 1.0  # the measured prior
+    assert len(calls) == 1
 
 
 def test_windows_reads_lazy_counts_as_numpy():

@@ -40,7 +40,10 @@ and a prior measured on the detection (:func:`near_depths`): the "near" wrong de
 a pixel's own peak moved a few bins by a Poisson fluctuation, which the labelling of
 two regions never sees. Last (:data:`FAR_INSIDE`), a lone single-surface pixel inside a
 region but not a member of it (its depth far off the region's plane and shared by no
-8-neighbour) is offered the plane the same way (:func:`far_inside_depths`).
+8-neighbour) is offered the plane the same way (:func:`far_inside_depths`). And
+(:data:`DARK_BANDS`) the lines of lone surfaces that stage 5c restored on the pool's
+strength beside another region are offered that region's plane by band, on their summed
+own counts (:func:`dark_bands`).
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
 not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
@@ -120,13 +123,15 @@ NEAR_INSIDE = 7
 #: (benchmarks/README.md, "far28, session 20").
 FAR_INSIDE = True
 #: Decide stage 5c's restorations along a depth edge by band, on their summed own
-#: counts (:func:`dark_bands`) in :func:`band_depths`. **Off**: measured, not adopted
-#: (benchmarks/README.md, "dark29, session 21"): on issue #15's single-surface cells 19
-#: of the 418 candidates (seeds 0-2) lie on the wrong side, in the scene's dark stripe
-#: (x0.1 reflectivity), where the band's summed counts hold no more than background at
-#: either depth: with the measured prior no band moves, with none (``q = 1/2``) 82 true
-#: surfaces move off for 4 fixed.
-DARK_BANDS = False
+#: counts with a prior measured on the detection (:func:`dark_bands`), last in
+#: :func:`band_depths`. Measured (benchmarks/README.md, "dark29, session 21"):
+#: ``bench_detection`` 3 of 64 cells better (false surfaces 183 -> 182, 134 -> 128, 177
+#: -> 171 at PPP 1-4, SBR 0.1), none worse; issue #15's single-surface cells and the
+#: sheet and net cubes unchanged (the prior, 5-8 nats there, moves no band): the far
+#: wrong depths stage 5c leaves in those cells lie in the scene's dark stripe (x0.1
+#: reflectivity), whose pixels hold no more than background at either depth, summed or
+#: not (with no prior, ``q = 1/2``, 82 true surfaces moved off for 4 fixed).
+DARK_BANDS = True
 #: Max-flow capacities are integers: nats times this.
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
@@ -927,7 +932,7 @@ def _dark_band_kernel(big, depth, rows, cols, half, gate, other, plane):  # prag
 
 def dark_bands(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, q: float):
     """Stage 5c's restorations along a depth edge, decided by band on their summed own
-    counts (:data:`DARK_BANDS`; off, see there).
+    counts (:data:`DARK_BANDS`).
 
     A lone surface that stage 5c (``"dark_regions"``) restored, a member of a region
     with another region within ``half`` (the band of :func:`band_depths`) whose local
