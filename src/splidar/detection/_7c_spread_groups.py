@@ -45,8 +45,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from ._7b_edge_bands import _window_counts
-from ._quality import _shifted_irf
+from ._7b_edge_bands import _windows, group_llr
 
 __all__ = ["AXES", "GATE_FWHM", "REACH", "SPREAD_GROUPS", "SpreadGroups", "spread_groups"]
 
@@ -142,63 +141,6 @@ def continued_axes(row, col, depth, cand, shape, gate: float, reach: int) -> np.
             both &= side
         out += both
     return out
-
-
-def group_llr(y, g, b, group, n_iter: int = 30) -> np.ndarray:
-    """``max_{s >= 0} sum_{p in G} sum_t [y_pt log(1 + s g_pt / b_pt) - s g_pt]`` per
-    group ``G``: the joint own-count log-likelihood ratio of one shared intensity.
-
-    Parameters
-    ----------
-    y, g, b : ndarray (n, L, W)
-        Raw counts, the IRF about each member's depth, the background (> 0).
-    group : ndarray (n,) int
-        Each member's group, ``0..m-1``.
-    n_iter : int
-        Newton steps (the function is concave in ``s``).
-
-    Returns
-    -------
-    ndarray (m,)
-        Nats, >= 0; a one-member group gives ``profile_llr`` of its member.
-    """
-    m = int(group.max(initial=-1)) + 1
-    G = np.bincount(group, weights=g.sum(axis=(1, 2)), minlength=m)
-    nz = y > 0
-    ge = np.broadcast_to(group[:, None, None], y.shape)[nz]
-    ye, gv, bv = y[nz].astype(np.float64), g[nz], b[nz]
-    slope = np.bincount(ge, weights=ye * gv / bv, minlength=m) - G
-    yg = np.bincount(ge, weights=ye * gv, minlength=m)
-    s = np.where(slope > 0, np.maximum(yg / np.maximum(G, 1e-12), 1e-3), 0.0)
-    for _ in range(n_iter):
-        den = bv + s[ge] * gv
-        q = ye * gv / den
-        d1 = np.bincount(ge, weights=q, minlength=m) - G
-        d2 = -np.bincount(ge, weights=q * gv / den, minlength=m)
-        step = np.where(d2 < 0, d1 / np.where(d2 < 0, d2, -1.0), 0.0)
-        s = np.where(slope > 0, np.maximum(s - step, 0.0), 0.0)
-    llr = np.bincount(ge, weights=ye * np.log1p(s[ge] * gv / bv), minlength=m) - s * G
-    return np.maximum(llr, 0.0)
-
-
-def _windows(counts, background, rows, cols, depth, irf):
-    """The own counts ``y``, the IRF ``g`` and the background ``b`` (n, L, W) over the
-    IRF's window about each depth (the window and arithmetic of stage 7b's likelihoods)."""
-    irf = np.atleast_2d(np.asarray(irf, np.float64))
-    peak = np.argmax(irf, axis=1)
-    T = int(np.shape(counts)[-1])
-    W = min(irf.shape[1] + 2, T)
-    tm = background.temporal
-    tm = tm - tm.mean(axis=-1, keepdims=True)
-    d = np.clip(depth, 0.0, T - 1.0)
-    lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
-    t = lo[:, None] + np.arange(W)
-    g = _shifted_irf(irf, peak, d - lo, W)
-    y = np.empty((rows.size, int(np.shape(counts)[2]), W))
-    _window_counts(np.asarray(counts), rows, cols, lo, y)
-    bw = background.spatial[rows, cols][:, :, None] + np.moveaxis(tm[:, t], 0, 1)
-    bw = np.maximum(bw, 0).astype(np.float32, copy=False)
-    return y, g, np.maximum(bw.astype(np.float64), 1e-6)
 
 
 def spread_groups(
