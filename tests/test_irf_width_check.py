@@ -151,3 +151,42 @@ def test_cli_irf_bin_width_ps_resamples_and_errors_in_one_line(finer_case, capsy
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert "--bin-width-ps" in err
+
+
+def test_load_irf_width_check_leaves_stuck_pixels_out(finer_case, caplog):
+    # two stuck pixels (300 counts every bin) held the pair histogram's noise: the data's
+    # width was undetermined and the 8 x wide IRF passed unwarned (the foreign23 cube)
+    d, _ = finer_case
+    y = np.load(d / "scan.npy")
+    y[5, 7] = 300
+    y[20, 3] = 300
+    np.save(d / "stuck.npy", y)
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        load(d / "stuck.npy", irf=str(d / "irf_2ps.npy"), bin_width_ps=16.0)
+    assert len(_width_logs(caplog)) == 1
+
+
+def test_load_irf_width_check_heavy_background_is_not_decided(tmp_path, caplog):
+    # 50 background counts a bin: the pair counts' variance is about 100 x their mean
+    # (m n (1 + m + n) for Poisson voxels), so the Poisson bracket was 10 x too narrow:
+    # seed 1 read 1.83 bins in [1.41, 2.83] for a 3-bin pulse (a bias of the pair
+    # width at low SBR, benchmarks/README.md irfw29) and the check decided on it; with
+    # the variance widened the bracket is [0.5, 45] and the check is skipped
+    irf = gaussian_irf(3.0)
+    np.save(tmp_path / "scan.npy", _scene(irf, ppp=100.0, sbr=0.01, T=200, seed=1))
+    np.save(tmp_path / "irf.npy", irf)
+    with caplog.at_level(logging.INFO, logger="splidar.io"):
+        load(tmp_path / "scan.npy", irf=str(tmp_path / "irf.npy"))
+    assert not _width_logs(caplog)
+    assert "not determined; not checked" in caplog.text
+
+
+def test_pair_lag_fwhm_one_pixel_over_the_budget_terminates():
+    # the pixel subset of a lowered budget cannot shrink below one pixel: it used to
+    # loop for ever when one pixel alone held more pairs than the budget
+    from splidar.io import _pair_lag_fwhm
+
+    y = np.random.default_rng(0).poisson(3.0 + 40 * gaussian_irf(3.0, length=200), 200)
+    b = np.flatnonzero(y)
+    f = _pair_lag_fwhm(np.zeros(b.size, int), b, y[b], 200, None, budget=100)
+    assert 1.0 < f < 6.0
