@@ -449,6 +449,18 @@ def w_irf_finer_csv(sc: Scene, d: Path, case: Case) -> Written:
     )
 
 
+def w_irf_finer_step(sc: Scene, d: Path, case: Case) -> Written:
+    """As :func:`w_irf_finer`, loaded with the IRF's sample step given (irfw29's
+    ``irf_bin_width_ps=2`` / ``--irf-bin-width-ps 2``: the fix its warning names)."""
+    w = w_irf_finer(sc, d, case)
+    return Written(
+        w.path,
+        {**w.load_kwargs, "irf_bin_width_ps": 2.0},
+        [*w.cli_args, "--irf-bin-width-ps", "2"],
+        note="IRF .npy at 2 ps with its step given",
+    )
+
+
 def _cases() -> list[Case]:
     return [
         Case("npy (R,C,T) u16, T1024 16ps, IRF peak 30/100", 1024, 16.0,
@@ -467,6 +479,8 @@ def _cases() -> list[Case]:
         Case("photons npz pixel+t_ps, IRF csv", 1000, 8.0, Pulse(6.0, 4.0), w_photons_flat),
         Case("photons h5 x/y/toa_ns table", 600, 20.0, Pulse(3.5), w_photons_h5_table),
         Case("IRF at 2 ps, cube at 16 ps", 600, 16.0, Pulse(4.0, 3.0), w_irf_finer),
+        Case("IRF at 2 ps given irf_bin_width_ps=2, cube at 16 ps", 600, 16.0,
+             Pulse(4.0, 3.0), w_irf_finer_step),
         Case("IRF csv time_ps at 2 ps, cube at 16 ps", 600, 16.0, Pulse(4.0, 3.0),
              w_irf_finer_csv),
     ]  # fmt: skip

@@ -129,22 +129,43 @@ def irf_on_bins(irf, bin_width_ps: float | None):
     if a.shape[0] < a.shape[1]:
         a = a.T
     n = a.shape[0]
-    ratio = float(bin_width_ps) / step_ps  # samples per cube bin
-    # bin edges placed so that the peak sample's centre is a bin's centre: the depth
-    # reference (the IRF's maximum) stays where the pulse peaks, not up to half a bin off
-    peak = int(np.argmax(a.sum(axis=1)))
-    first = ((peak + 0.5) - ratio / 2) % ratio
-    inner = first + ratio * np.arange(int(math.ceil((n - first) / ratio)))
-    edges = np.unique(np.concatenate([[0.0], inner[(inner > 0) & (inner < n)], [float(n)]]))
-    n_out = edges.size - 1
-    cum = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a, axis=0)])
-    out = np.diff(
-        np.column_stack([np.interp(edges, np.arange(n + 1), cum[:, j]) for j in range(a.shape[1])]),
-        axis=0,
-    ).T
+    out = resample_irf(a.T, step_ps, float(bin_width_ps))
+    n_out = out.shape[1]
     log.warning(
         "IRF '%s' is sampled every %g ps, the cube's bins are %g ps: resampled to %d bins "
         "(%d samples before)",
         p.name, step_ps, bin_width_ps, n_out, n,
     )  # fmt: skip
     return out, f"file {p} (resampled from {step_ps:g} ps to {float(bin_width_ps):g} ps bins)"
+
+
+def resample_irf(irf, step_ps: float, bin_width_ps: float) -> np.ndarray:
+    """An IRF sampled every ``step_ps`` picoseconds, on bins of ``bin_width_ps``.
+
+    Parameters
+    ----------
+    irf : ndarray, shape (L, n)
+        One row per wavelength, ``n`` samples ``step_ps`` apart.
+    step_ps, bin_width_ps : float
+        The IRF's sample step and the cube's bin width, picoseconds (> 0).
+
+    Returns
+    -------
+    ndarray, shape (L, m)
+        The IRF integrated over each bin (its cumulative sum interpolated at the bin
+        edges, ``m ~ n step_ps / bin_width_ps``); the bin edges placed so that the peak
+        sample's centre (of the rows' sum) is a bin's centre: the depth reference (the
+        IRF's maximum) stays where the pulse peaks; the end bins partial.
+    """
+    a = np.asarray(irf, dtype=np.float64).T  # (n, L)
+    n = a.shape[0]
+    ratio = float(bin_width_ps) / float(step_ps)  # samples per cube bin
+    peak = int(np.argmax(a.sum(axis=1)))
+    first = ((peak + 0.5) - ratio / 2) % ratio
+    inner = first + ratio * np.arange(int(math.ceil((n - first) / ratio)))
+    edges = np.unique(np.concatenate([[0.0], inner[(inner > 0) & (inner < n)], [float(n)]]))
+    cum = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a, axis=0)])
+    return np.diff(
+        np.column_stack([np.interp(edges, np.arange(n + 1), cum[:, j]) for j in range(a.shape[1])]),
+        axis=0,
+    ).T

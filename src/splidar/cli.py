@@ -486,6 +486,14 @@ def _input_options(p: argparse.ArgumentParser) -> None:
         help="variable of the --irf file holding the IRF when it holds several arrays "
         "(e.g. IRF in a .mat file beside the counts)",
     )
+    g.add_argument(
+        "--irf-bin-width-ps",
+        type=_positive(float),
+        metavar="PS",
+        help="sample step of the --irf file (or the file's own IRF) in picoseconds when it "
+        "was recorded at another bin width than the cube's: resampled onto the cube's bins "
+        "(splidar warns when the IRF's width and the data's pulse width differ by over 2x)",
+    )
     irf.add_argument(
         "--irf-fwhm",
         type=_positive(float),
@@ -1457,7 +1465,7 @@ def _load_kwargs(args) -> dict[str, Any]:
     load_kw = _given(
         args,
         ("variable", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "channels", "time_axis")
-        + ("wavelength_axis", "irf_variable"),
+        + ("wavelength_axis", "irf_variable", "irf_bin_width_ps"),
     )
     if getattr(args, "bin_width_m", None) is not None:  # range bin -> round-trip time
         load_kw["bin_width_ps"] = args.bin_width_m * 2.0 / 299_792_458.0 * 1e12
@@ -1612,7 +1620,7 @@ _API_OPTIONS = (
     _DETECT_OPTS
     + _RECON_OPTS
     + ("window", "bin_width", "time_unit", "irf_fwhm", "bin_width_ps", "variable", "channels")
-    + ("time_axis", "wavelength_axis", "irf_variable")
+    + ("time_axis", "wavelength_axis", "irf_variable", "irf_bin_width_ps")
 )
 _NAME_RE = re.compile(
     r"`("

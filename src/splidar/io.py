@@ -39,7 +39,7 @@ from ._containers import (
     _summary,
 )
 from ._files import savez
-from ._irf_text import irf_on_bins, read_irf_text
+from ._irf_text import irf_on_bins, read_irf_text, resample_irf
 from ._memory import check_memory
 from ._photon_table import find_photon_table, table_as_flat
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
@@ -842,15 +842,27 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
 _PAIR_BUDGET = 50_000_000  # pairs of non-empty voxels per pass of the pair-lag width
 
 
-def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None, bounds=None) -> float:
+def _pair_lag_fwhm(
+    pix,
+    b,
+    w,
+    n_bins: int,
+    max_lag: int | None,
+    bounds=None,
+    budget: int | None = None,
+    var_scale: float = 1.0,
+) -> float:
     """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count).
 
     The voxels of one pixel may repeat a bin (one per wavelength): pairs across them
     are lag-0 pairs too. Above ``_PAIR_BUDGET`` pairs, every k-th pixel is used
-    (deterministic; the peak and the floor scale alike). ``bounds``: a list given gets
+    (deterministic; the peak and the floor scale alike; ``budget`` lowers that bound,
+    the width check's; ``var_scale`` multiplies the lags' variance the bracket reads).
+    ``bounds``: a list given gets
     the FWHMs of the half-maximum crossing's ``_WIDTH_Z``-sigma bracket (lower, upper;
     :func:`_half_max_bounds`).
     """
+    budget = _PAIR_BUDGET if budget is None else budget
     stride = 2 * n_bins + 1
     key = np.asarray(pix, dtype=np.int64) * stride + np.asarray(b, dtype=np.int64)
     order = np.argsort(key, kind="stable")
@@ -864,8 +876,8 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None, bounds=None) -> 
         hi = np.searchsorted(key, key + lag, side="right")
         cnt = hi - np.arange(key.size) - 1
         total = int(cnt.sum())
-        if total > _PAIR_BUDGET:
-            k = math.ceil(total / _PAIR_BUDGET)
+        if total > budget:
+            k = math.ceil(total / budget)
             keep = (key // stride) % k == 0
             log.info(
                 "IRF width: %s voxel pairs at lags <= %d; using every %d-th pixel",
@@ -873,6 +885,9 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None, bounds=None) -> 
                 lag,
                 k,
             )
+            if keep.all():  # one pixel holds them all: no subset to take (terminates)
+                budget = total
+                continue
             key, w = key[keep], w[keep]
             continue
         i = np.repeat(np.arange(key.size), cnt)
@@ -888,7 +903,7 @@ def _pair_lag_fwhm(pix, b, w, n_bins: int, max_lag: int | None, bounds=None) -> 
         h *= tri
         # Poisson variance of each lag's pair count, times the triangle factor; lag 0
         # counts every pair twice (ordered)
-        var = np.maximum(h, 1.0) * tri
+        var = np.maximum(h, 1.0) * tri * var_scale
         var[0] *= 2.0
         # 5 sd as always; 7 once a window without a peak was passed (more tests made)
         k_half = _half_max_lag(h, 7.0 if searched else 5.0)
@@ -1198,6 +1213,194 @@ def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
         return fwhm, k
 
 
+# --------------------------------------------------------------------------------------
+# a supplied IRF's width against the data's own (irfw29)
+# --------------------------------------------------------------------------------------
+#: factor by which a supplied IRF's photon-pair width may differ from the data's before
+#: ``load`` warns. With the true IRF the ratio (IRF / data, where the check decides) lies
+#: within 0.71-1.35 over 156 cubes of Gaussian 1-10, exp-tail 3/6 and 2/25 and the
+#: measured pulse at PPP 1-50, SBR 0.2-1, and 0.74-1.62 on bench_robustness's sensors
+#: (benchmarks/README.md, irfw29; irf24 found 0.63-1.49 for load's pooled estimate): 2
+#: leaves a margin above that spread; an IRF recorded at another bin width is off by the
+#: ratio of the steps (2, 2.5, 4, 8, 10, ...).
+_IRF_WIDTH_FACTOR = 2.0
+#: voxels the width check reads at most: evenly spaced whole rows of pixels (a few
+#: rows of a large cube; the pair-lag width is a per-pixel statistic)
+_CHECK_VOXELS = 1 << 24
+#: the width check decides only where the data's width is known to better than the
+#: factor it tests: its 3-sigma bracket's half-length below this fraction of the width
+#: (the bracket within 0.5-1.5 x the width; irf24's "determined" is 1, which let an
+#: exp tail 2/25 at PPP 4 SBR 0.2 read 9.5 bins in [1.4, 19.8] for a 28-bin pulse)
+_CHECK_PRECISION = 0.5
+#: voxel pairs the width check's pair-lag histogram counts at most per lag window
+#: (every k-th pixel above it, as estimate_irf_fwhm's 50M; about 0.1 s)
+_CHECK_PAIRS = 2_000_000
+#: pixels holding more than this many times the median pixel's photons are left out of
+#: the width check's pairs (stuck pixels; the pairs of a pixel grow as its count squared)
+_HOT = 10.0
+
+
+def _irf_pair_width(irf) -> float | None:
+    """The photon-pair width (FWHM, bins) of an IRF ``(L, n)`` itself: the statistic of
+    :func:`estimate_irf_fwhm` on the noise-free autocorrelation of the rows' sum (each
+    row normalised to its sum), its own floor flattened and removed as there (median of
+    the outer quarter of a lag window grown from 32 until the half-maximum lies below a
+    quarter of it). For a Gaussian this is its FWHM; for any other shape it is the width
+    the data's estimate measures for that pulse, so the two compare without the shape's
+    own bias (a tailed pulse's pair width is not its FWHM). None for an IRF of no mass."""
+    from scipy.signal import fftconvolve
+
+    a = np.asarray(irf, dtype=np.float64)
+    a = a.reshape(-1, a.shape[-1])
+    s = a.sum(axis=1)
+    if not np.any(s > 0):
+        return None
+    a = a[s > 0] / s[s > 0, None]
+    peaks = np.argmax(a, axis=1)  # each row's depth reference is its peak: aligned there
+    g = np.zeros(a.shape[1] + int(peaks.max() - peaks.min()))
+    for row, p in zip(a, peaks, strict=True):
+        g[peaks.max() - p : peaks.max() - p + row.size] += row
+    n = g.size
+    if n < 3:
+        return 0.5
+    h = fftconvolve(g, g[::-1])[n - 1 :] * (n / (n - np.arange(n)))  # lags 0..n-1
+    top = max(n // 2, 2)
+    lag = min(32, top)
+    while True:
+        hh = h[: lag + 1]
+        floor, _ = _pair_floor(hh)
+        if floor >= hh[0]:  # an IRF filling its window: no baseline of its own to remove
+            floor = 0.0
+        peak = float(hh[0]) - floor
+        if peak <= 0:
+            return None
+        above = hh - floor - peak / 2
+        below = np.flatnonzero(above <= 0)
+        if below.size:
+            k = int(below[0])
+            k_half = (k - 1) + above[k - 1] / (above[k - 1] - above[k])
+        else:
+            k_half = float(lag)
+        if k_half < lag / 4 or lag >= top:
+            return max(2.0 * k_half / math.sqrt(2.0), 0.5)
+        lag = min(2 * lag, top)
+
+
+def _sample_rows(n_rows: int, per_row: int) -> np.ndarray:
+    """Evenly spaced rows holding at most ``_CHECK_VOXELS`` voxels (at least one)."""
+    m = min(n_rows, max(_CHECK_VOXELS // max(per_row, 1), 1))
+    return np.unique(np.linspace(0, n_rows - 1, m).round().astype(np.int64))
+
+
+def _data_pair_width(counts, n_bins: int, sparse=None):
+    """The data's photon-pair width on single pixels of a bounded sample (evenly spaced
+    rows, ``_CHECK_VOXELS`` voxels at most; photon lists the same rows): (FWHM, its
+    ``_WIDTH_Z``-sigma bracket, pixels read), or None where it is not determined (no
+    pair peak, or a bracket's half-length over ``_CHECK_PRECISION`` of the width: weak
+    data). Never raises on valid data."""
+    n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
+    n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
+    if n_bins < 8:  # no lag window with an outer quarter to read the floor from
+        return None
+    rows = _sample_rows(n_rows, n_cols * n_l * n_bins)
+    if sparse is not None:
+        uniq, w = sparse
+        pix = (np.asarray(uniq) // n_bins) // n_l
+        keep = np.isin(pix // n_cols, rows)
+        pix, b, w = pix[keep], np.asarray(uniq)[keep] % n_bins, np.asarray(w)[keep]
+    else:
+        if hasattr(counts, "compute") and not isinstance(counts, np.ndarray):
+            mid = (n_rows - rows.size) // 2  # lazy data: one band of rows (few chunks)
+            sub = np.asarray(counts[mid : mid + rows.size].compute())
+        else:
+            sub = np.asarray(counts[rows] if rows.size < n_rows else counts)
+        flat = sub.reshape(-1, n_bins)
+        rowi, b = np.nonzero(flat)
+        w = flat[rowi, b]
+        pix = rowi // n_l
+    # hot (stuck) pixels: counts in every bin, pairs growing as their square, would
+    # swamp the others' peak with their floor's noise; a pixel's width does not depend
+    # on its brightness, so those above _HOT x the median pixel are left out
+    tot = np.bincount(pix, weights=w)
+    hot = tot > _HOT * np.median(tot[tot > 0]) if np.any(tot > 0) else tot > 0
+    if np.any(hot):
+        keep = ~hot[pix]
+        pix, b, w = pix[keep], b[keep], w[keep]
+    # a pair count a b of Poisson voxels (means m, n) has variance m n (1 + m + n), not
+    # its mean m n: the Poisson variance of the pair histogram holds where a voxel
+    # holds well under a photon; with more (heavy background) the bracket is widened
+    # by 1 + 2 x the pair-weighted photons per voxel (50 a bin gave a 1.5-bin "width"
+    # for a 3-bin pulse with a bracket 10 x too narrow)
+    tot = np.bincount(pix, weights=w)
+    per_voxel = float(np.sum(tot**3) / max(np.sum(tot**2), 1.0)) / n_bins
+    bounds: list = []
+    try:
+        fwhm = _pair_lag_fwhm(
+            pix, b, w, n_bins, None, bounds, budget=_CHECK_PAIRS, var_scale=1.0 + 2.0 * per_voxel
+        )
+    except SplidarError:
+        return None
+    if not bounds or (bounds[1] - bounds[0]) / 2 > _CHECK_PRECISION * fwhm:
+        return None
+    return fwhm, (float(bounds[0]), float(bounds[1])), rows.size * n_cols
+
+
+def _check_irf_width(irf_a, src: str, counts, n_bins: int, bin_width_ps, sparse=None):
+    """Warn (once, from :func:`load`) when a supplied IRF's width and the data's own
+    pulse width (:func:`estimate_irf_fwhm`'s photon-pair statistic on both, single
+    pixels of a bounded sample) differ by more than ``_IRF_WIDTH_FACTOR`` and the IRF's
+    lies outside the data's ``_WIDTH_Z``-sigma bracket: the usual cause is an IRF
+    recorded at another bin width than the cube's, read one sample per bin. Nothing is
+    changed (the fix is ``irf_bin_width_ps=``); undetermined widths (weak data) skip the
+    check (INFO). Returns the ratio (IRF / data) or None when not determined."""
+    from .irf import irf_fwhm
+
+    mine = _irf_pair_width(irf_a)
+    got = _data_pair_width(counts, n_bins, sparse) if mine is not None else None
+    if got is None:
+        log.info("IRF width check: the data's pulse width is not determined; not checked")
+        return None
+    w, (lo, hi), n_pix = got
+    ratio = mine / w
+    log.info(
+        "IRF width check: the IRF's photon-pair width %.2f bins, the data's %.2f (%.2f-%.2f "
+        "at %g sigma, %d pixels): ratio %.2f",
+        mine, w, lo, hi, _WIDTH_Z, n_pix, ratio,
+    )  # fmt: skip
+    if max(ratio, 1 / ratio) <= _IRF_WIDTH_FACTOR or lo <= mine <= hi:
+        return ratio
+    try:
+        fw = f"FWHM {float(np.max(irf_fwhm(irf_a))):.2f} bins, "
+    except SplidarError:
+        fw = ""
+    if src.startswith("gaussian"):
+        cause = "irf_fwhm= is the FWHM in bins of the cube, not in picoseconds"
+    elif bin_width_ps:
+        step, s_lo, s_hi = (bin_width_ps * x / mine for x in (w, lo, hi))
+        cause = (
+            f"an IRF recorded at another bin width is read one sample per bin: if it was "
+            f"sampled every {step:.3g} ps ({s_lo:.3g}-{s_hi:.3g} ps would match; the cube's "
+            f"bins are {bin_width_ps:g} ps), pass irf_bin_width_ps={step:.3g} (its sample "
+            "step) to resample it"
+        )
+    else:
+        cause = (
+            f"an IRF recorded at another bin width is read one sample per bin (it would "
+            f"match sampled {ratio:.3g} times {'finer' if ratio > 1 else 'coarser'} than "
+            "the cube's bins): pass bin_width_ps= and irf_bin_width_ps= (its sample step) "
+            "to resample it"
+        )
+    log.warning(
+        "the IRF (%s) is %.1f times %s than the pulse in the data: %sa photon-pair width "
+        "of %.2f bins against %.2f bins from the data's photon-pair time differences "
+        "(%.2f-%.2f at %g sigma). Likely cause: %s; or pass irf='estimate-shape' to take "
+        "the pulse from the data. The IRF is used as given.",
+        src, max(ratio, 1 / ratio), "wider" if ratio > 1 else "narrower", fw, mine, w,
+        lo, hi, _WIDTH_Z, cause,
+    )  # fmt: skip
+    return ratio
+
+
 def _block_sum(counts, k: int) -> np.ndarray:
     """``counts`` (R, C[, L], T) summed over ``k x k`` pixel blocks (edges padded)."""
     a = np.asarray(counts)
@@ -1372,6 +1575,7 @@ def load(
     irf=None,
     irf_fwhm: float | None = None,
     irf_variable: str | None = None,
+    irf_bin_width_ps: float | None = None,
     bin_width_ps: float | None = None,
     wavelengths_nm=None,
     library=None,
@@ -1422,6 +1626,13 @@ def load(
         Use a Gaussian IRF of this FWHM in bins instead (data without a measured IRF).
     irf_variable : str, optional
         Variable of the IRF file to read (see :func:`load_irf`).
+    irf_bin_width_ps : float, optional
+        The supplied IRF's sample step in picoseconds (``irf=`` or the file's own), when
+        it was recorded at another bin width than the cube's: resampled onto the cube's
+        bins (needs the cube's bin width; overrides a text IRF's time column). A
+        supplied IRF (or ``irf_fwhm``) whose width differs from the data's own pulse
+        width by more than a factor 2 is warned about, naming this option; nothing is
+        rescaled without it (docs/usage.md).
     bin_width_ps : float, optional
         Overrides the bin width in picoseconds (e.g. known for bin-index data).
     wavelengths_nm : array_like (L,), optional
@@ -1465,7 +1676,8 @@ def load(
     p = _check_channels_apply(_check_path(path), channels)
     if _ext(p) == ".zarr":
         cube = _load_zarr(
-            p, irf=irf, irf_fwhm=irf_fwhm, irf_variable=irf_variable, variable=variable,
+            p, irf_opts=(irf, irf_fwhm, irf_variable, irf_bin_width_ps),
+            bin_width_ps=bin_width_ps, variable=variable,
             time_axis=time_axis if wavelength_axis is None else (time_axis, wavelength_axis),
         )  # fmt: skip
         return _override(cube, bin_width_ps, wavelengths_nm, library)
@@ -1490,18 +1702,9 @@ def load(
         counts, meta, from_save = _binned_cube(d, p, name, window, meta, axes)
         bw_ps = _scalar(d["bin_width_ps"], "bin_width_ps") if "bin_width_ps" in d else None
     file_irf, wl, lib = d.get("irf"), d.get("wavelengths_nm"), _library_from(d)
-    n_bins = counts.shape[-1]
-    irf, resampled = irf_on_bins(irf, bw_ps if bin_width_ps is None else bin_width_ps)
-    irf_a, irf_src = _resolve_irf(
-        irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
-    )
-    irf_src = resampled or irf_src
-    if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
-        irf_a = _crop_irf(irf_a, n_bins)
-    if irf_src != "file":
-        meta["irf_source"] = irf_src
-    elif not from_save:
-        meta.setdefault("irf_source", "file")
+    irf_opts = (irf, irf_fwhm, irf_variable, irf_bin_width_ps)
+    bw = bw_ps if bin_width_ps is None else bin_width_ps
+    irf_a = _cube_irf(irf_opts, file_irf, counts, bw, sparse, from_save, meta)
     cube = Cube(
         counts,
         irf=irf_a,
@@ -1511,6 +1714,68 @@ def load(
         metadata=meta,
     )
     return _override(cube, bin_width_ps, wavelengths_nm, library)
+
+
+def _cube_irf(irf_opts, file_irf, counts, bw_ps, sparse, from_save: bool, meta: dict):
+    """The cube's IRF ``(L, n)`` for :func:`load` (``meta["irf_source"]`` set): the text
+    IRF's time column or ``irf_bin_width_ps`` resampled onto the bins of ``bw_ps``
+    picoseconds, cropped to T - 1 samples, its width checked against the data's
+    (:func:`_check_irf_width`; not for a saved Cube's own IRF nor an estimated one)."""
+    irf, irf_fwhm, irf_variable, irf_bin_width_ps = irf_opts
+    n_bins = counts.shape[-1]
+    if irf_bin_width_ps is None:
+        irf, resampled = irf_on_bins(irf, bw_ps)
+    else:
+        step = _check_irf_step(irf_bin_width_ps, irf, irf_fwhm, file_irf, bw_ps)
+    irf_a, irf_src = _resolve_irf(
+        irf, irf_fwhm, irf_variable, file_irf, counts, n_bins, sparse=sparse
+    )
+    if irf_bin_width_ps is not None:
+        irf_a, resampled = _irf_step_on_bins(irf_a, irf_src, step, float(bw_ps))
+    irf_src = resampled or irf_src
+    if not (from_save and irf_src == "file"):  # a saved Cube's IRF fits already: exact
+        irf_a = _crop_irf(irf_a, n_bins)
+        if not irf_src.startswith("estimated"):
+            _check_irf_width(irf_a, irf_src, counts, n_bins, bw_ps, sparse)
+    if irf_src != "file":
+        meta["irf_source"] = irf_src
+    elif not from_save:
+        meta.setdefault("irf_source", "file")
+    return irf_a
+
+
+def _check_irf_step(irf_bin_width_ps, irf, irf_fwhm, file_irf, bw_ps) -> float:
+    """``irf_bin_width_ps`` checked: positive, a supplied IRF to apply to, a known bin
+    width of the cube."""
+    step = check_positive(irf_bin_width_ps, "irf_bin_width_ps")
+    if (
+        irf_fwhm is not None
+        or (isinstance(irf, str) and irf in ("estimate", "estimate-shape"))
+        or (irf is None and file_irf is None)
+    ):
+        raise SplidarError(
+            "`irf_bin_width_ps` is the sample step of a supplied IRF (irf= array or file, "
+            "or the file's own); it does not apply to irf_fwhm= or an estimated IRF."
+        )
+    if bw_ps is None:
+        raise SplidarError(
+            "`irf_bin_width_ps` needs the cube's bin width to resample the IRF onto, and "
+            "the file does not give it: pass bin_width_ps= too."
+        )
+    return step
+
+
+def _irf_step_on_bins(irf_a, src: str, step_ps: float, bw_ps: float):
+    """``irf_a`` (L, n) sampled every ``step_ps`` on bins of ``bw_ps`` ps, and a note for
+    ``metadata["irf_source"]`` (None when the steps agree within 0.1 %)."""
+    if math.isclose(step_ps, bw_ps, rel_tol=1e-3):
+        return irf_a, None
+    out = resample_irf(irf_a, step_ps, bw_ps)
+    log.info(
+        "IRF (%s) resampled from %g ps samples to the cube's %g ps bins: %d -> %d samples",
+        src, step_ps, bw_ps, irf_a.shape[1], out.shape[1],
+    )  # fmt: skip
+    return out, f"{src} (resampled from {step_ps:g} ps to {bw_ps:g} ps bins, irf_bin_width_ps)"
 
 
 def _check_cube_options(bin_width, time_unit) -> None:
@@ -1894,7 +2159,7 @@ class _BareZarr(dict):
         return self.keys()
 
 
-def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable, variable=None, time_axis=None) -> Cube:
+def _load_zarr(p: Path, *, irf_opts, bin_width_ps, variable=None, time_axis=None) -> Cube:
     zarr = _zarr()
     import dask.array as da
 
@@ -1925,19 +2190,17 @@ def _load_zarr(p: Path, *, irf, irf_fwhm, irf_variable, variable=None, time_axis
             f"`counts` in '{p}' must be (rows, cols[, L], T); got shape {counts.shape}."
         )
     file_irf = np.asarray(g["irf"][...]) if "irf" in names else g.attrs.get("irf")
-    irf_a, src = _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, counts.shape[-1])
-    irf_a = _crop_irf(irf_a, counts.shape[-1])
+    bw = g.attrs.get("bin_width_ps") if bin_width_ps is None else bin_width_ps
+    meta = _metadata_from(g.attrs.get("metadata"))
+    if g.attrs.get("kind") != "Cube":  # not written by `save`: record where it came from
+        meta.setdefault("source", str(p))
+    from_save = g.attrs.get("kind") == "Cube"
+    irf_a = _cube_irf(irf_opts, file_irf, counts, bw, None, from_save, meta)
     lib = None
     if "library" in names:
         lib = SpectralLibrary(
             np.asarray(g["library"][...]), class_names=tuple(g.attrs.get("class_names", ()))
         )
-    meta = _metadata_from(g.attrs.get("metadata"))
-    if g.attrs.get("kind") != "Cube":  # not written by `save`: record where it came from
-        meta.setdefault("source", str(p))
-        meta.setdefault("irf_source", src)
-    if src != "file":
-        meta["irf_source"] = src
     return Cube(
         counts,
         irf=irf_a,
