@@ -82,7 +82,7 @@ from ._core import (
     _sweeps_end,
     estimate_alpha,
 )
-from ._graph import build_graph
+from ._graph import build_graph, surface_keys
 from ._result import ConvergenceHistory, Reconstruction
 
 __all__ = [
@@ -167,8 +167,8 @@ def _strip_setup(st: _Strip, shared):
 
 
 def _strip_graph(st: _Strip, su, shared, bridge: bool = False):
-    """The strip's surface graph (colours of the whole image; ``bridge``: the label
-    field's graph, see :func:`~splidar.reconstruction.build_graph`)."""
+    """The strip's surface graph (colours and surface keys of the whole image;
+    ``bridge``: the label field's graph, see :func:`~splidar.reconstruction.build_graph`)."""
     e0 = int(st.row.min()) if st.row.size else 0
     n_rows = int(st.row.max()) - e0 + 1 if st.row.size else 1
     graph = build_graph(
@@ -176,7 +176,11 @@ def _strip_graph(st: _Strip, su, shared, bridge: bool = False):
         links=su.links, gate=su.gate, bridge=bridge,
     )  # fmt: skip
     n_colours = 4 if bridge else 2
-    return dataclasses.replace(graph, parity=((st.row + st.col) % n_colours).astype(np.int64))
+    parity = ((st.row + st.col) % n_colours).astype(np.int64)
+    # the keys of the image's rows: a surface draws the random numbers it draws in memory
+    return dataclasses.replace(
+        graph, parity=parity, key=surface_keys(st.row, st.col, st.depth, st.slot)
+    )
 
 
 def _phase_one_state(su, graph, u, shared):
