@@ -968,6 +968,11 @@ def potts_marginals(
     unary : ndarray (S, K)
         Log-likelihood of each label.
     graph : SurfaceGraph
+        Its ``key`` (what each surface is: pixel and rank by depth) keys every random
+        number: a surface's draws by its key, a bond's by its two surfaces' keys, a
+        cluster's by the smallest key of its surfaces. The same surfaces in another
+        order give the same marginals, and a change of the surfaces at one place
+        changes the random numbers there only (a graph without keys: the indices).
     gamma : float or ndarray (n_chains,)
         Interaction strength (nats per disagreeing link between two surfaces of degree
         4), >= 0; one per chain (their marginals pooled with equal weights) or one for
