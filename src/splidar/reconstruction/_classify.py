@@ -44,7 +44,11 @@ Three steps, each a function here, run by :func:`classify_surfaces` (and so by
    mean field) cannot do from a wrong start; the heat-bath sweep moves the surfaces on
    region boundaries, which SW rarely cuts loose. Two independent chains, each of 12
    sweeps discarded and 12 kept, are pooled (random numbers: a counter-based hash of
-   (seed, sweep, index), so the result does not depend on the number of threads). One
+   (seed, sweep, key), so the result does not depend on the number of threads; since
+   session 21 the key is what is drawn for, not its index in the arrays: a surface's
+   pixel and rank by depth there, a link's two surfaces, a cluster's smallest surface
+   key, so that adding or removing a surface changes the random numbers at that place
+   only and the labels far from it stay as they were). One
    chain of 15 + 30 sweeps (the first version) gave the same labels but over-confident
    marginals on finely textured scenes (Art: ECE 0.10-0.16): once settled, a chain
    rarely relabels a whole patch, so it reports one labelling of the patches as
@@ -132,7 +136,19 @@ GAMMA = 1.5
 #: the last burn-in sweep (sweeps 5, 8, 11 of 12), on about 8,192 surfaces' terms
 _ADAPT = (4, 1_000_000, 3)
 _MPL_SITES = 8192
+#: grid of the re-estimated strength (nats): the estimate's own noise
+_G_STEP = 0.01
 _HI = 1.0
+#: grids (``log2`` of the brightness prior's mean, nats of ``log pi``) on which the
+#: likelihood's and the sampler's global inputs are rounded: a change of the surfaces at
+#: one place moves them by about ``1 / S`` and leaves them on their grid point
+_ABAR_STEP = 1.0 / 16.0
+_LOGPI_STEP = 0.01
+
+
+def _on_grid_log2(x: float, step: float) -> float:
+    """``x > 0`` rounded to the grid ``2**(step * n)``."""
+    return float(2.0 ** (round(math.log2(x) / step) * step))
 
 
 @njit(cache=True, inline="always")
@@ -244,9 +260,12 @@ def class_loglik(
     out = np.zeros((S, K))
     if S == 0:
         return out
-    # the brightness prior: a0 = 1 (exponential, vague) at the data's mean brightness
+    # the brightness prior: a0 = 1 (exponential, vague) at the data's mean brightness,
+    # on a grid of 2**(1/16) (a vague prior's mean: 2 % either way is nothing), so that
+    # adding or removing a surface leaves every other surface's likelihood bit for bit
+    # (near-ties between classes, e.g. surfaces without photons, would flip otherwise)
     net = np.maximum((y - b).sum(axis=1), 0.0) / np.maximum(eta.sum(axis=1), 1e-12)
-    abar = max(float(net.mean()), 1e-3)
+    abar = _on_grid_log2(max(float(net.mean()), 1e-3), _ABAR_STEP)
     _loglik_kernel(y, b, eta, c, al, 1.0, abar, out)
     return out
 
@@ -319,17 +338,33 @@ def _find(parent, i):
 
 
 @njit(cache=True, inline="always")
-def _uniform(seed, it, idx, salt):
-    """Counter-based uniform in [0, 1): splitmix64 of (seed, sweep, index, salt). The same
-    numbers whatever the number of threads or the order of the loop."""
-    x = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15)
-    x ^= np.uint64(it) * np.uint64(0xBF58476D1CE4E5B9) + np.uint64(salt)
-    x ^= np.uint64(idx) * np.uint64(0x94D049BB133111EB)
+def _mix(x):
+    """splitmix64's finaliser of the uint64 ``x``."""
     x += np.uint64(0x9E3779B97F4A7C15)
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    x = x ^ (x >> np.uint64(31))
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True, inline="always")
+def _uniform(seed, it, key, salt):
+    """Counter-based uniform in [0, 1): splitmix64 of (seed, sweep, key, salt). The same
+    numbers whatever the number of threads or the order of the loop; ``key`` (uint64)
+    says what is drawn for (a surface's :func:`~splidar.reconstruction._graph.surface_keys`,
+    a link's :func:`_pair_key`, a cluster's smallest surface key), not where it sits in
+    the arrays."""
+    x = np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15)
+    x ^= np.uint64(it) * np.uint64(0xBF58476D1CE4E5B9) + np.uint64(salt)
+    x ^= np.uint64(key) * np.uint64(0x94D049BB133111EB)
+    x = _mix(x)
     return float(x >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@njit(cache=True, inline="always")
+def _pair_key(a, b):
+    """Key of the link between the surfaces of keys ``a`` and ``b`` (either order)."""
+    lo, hi = (a, b) if a < b else (b, a)
+    return _mix(_mix(lo) ^ hi)
 
 
 @njit(cache=True, inline="always")
@@ -353,7 +388,7 @@ def _draw(logp, x):
 
 
 @njit(cache=True, parallel=_PARALLEL)
-def _heat_bath(unary, indptr, indices, gam_e, order, start, u, seed, it, work, counts, keep):
+def _heat_bath(unary, indptr, indices, gam_e, order, start, u, key, seed, it, work, counts, keep):
     """One heat-bath sweep of single surfaces, colour by colour: ``order[start[c]:start[c
     + 1]]`` are the surfaces of colour c (surfaces of one colour are never linked, so each
     part-sweep is exact in parallel). ``work`` (S, K): scratch rows, one per surface (no
@@ -369,7 +404,7 @@ def _heat_bath(unary, indptr, indices, gam_e, order, start, u, seed, it, work, c
             for e in range(indptr[s], indptr[s + 1]):
                 lp[u[indices[e]]] += gam_e[e]
             # salts 1, 2 (red, black), then 5, 6: 3 and 4 are the bonds' and clusters'
-            u[s] = _draw(lp, _uniform(seed, it, s, 1 + colour + 2 * (colour > 1)))
+            u[s] = _draw(lp, _uniform(seed, it, key[s], 1 + colour + 2 * (colour > 1)))
             if keep:
                 tot = 0.0
                 for k in range(K):
@@ -379,25 +414,110 @@ def _heat_bath(unary, indptr, indices, gam_e, order, start, u, seed, it, work, c
 
 
 @njit(cache=True, parallel=_PARALLEL)
-def _bonds(indptr, indices, p_bond, u, seed, it, bond):
+def _bonds(indptr, indices, p_bond, u, ekey, seed, it, bond):
+    """Bond of every link between equal labels with probability ``p_bond``, drawn for
+    the link's key ``ekey`` (CSR order; set on the entry ``s -> j`` with ``j > s``)."""
     S = indptr.size - 1
     for s in prange(S):
         for e in range(indptr[s], indptr[s + 1]):
             j = indices[e]
-            bond[e] = j > s and u[j] == u[s] and _uniform(seed, it, e, 3) < p_bond[e]
+            bond[e] = j > s and u[j] == u[s] and _uniform(seed, it, ekey[e], 3) < p_bond[e]
 
 
 @njit(cache=True, parallel=_PARALLEL)
-def _draw_clusters(csum, root, logpi, u, seed, it):
+def _draw_clusters(csum, root, ckey, logpi, u, seed, it):
     """New label of every cluster root from its summed log-likelihoods (``csum``, which
-    is overwritten) plus ``logpi``."""
+    is overwritten) plus ``logpi``, drawn for the cluster's key ``ckey[root]`` (the
+    smallest key of its surfaces)."""
     S, K = csum.shape
     for s in prange(S):
         if root[s] == s:
             lp = csum[s]
             for k in range(K):
                 lp[k] += logpi[k]
-            u[s] = _draw(lp, _uniform(seed, it, s, 4))
+            u[s] = _draw(lp, _uniform(seed, it, ckey[s], 4))
+
+
+@njit(cache=True)
+def _colour_order(parity):
+    """``(start, order)``: ``order[start[c]:start[c + 1]]`` are the surfaces of colour c,
+    in index order (colours 0..max(parity), at least 2)."""
+    S = parity.size
+    n_colours = 2
+    for s in range(S):
+        n_colours = max(n_colours, parity[s] + 1)
+    start = np.zeros(n_colours + 1, np.int64)
+    for s in range(S):
+        start[parity[s] + 1] += 1
+    for c in range(n_colours):
+        start[c + 1] += start[c]
+    order = np.empty(S, np.int64)
+    fill = start[:-1].copy()
+    for s in range(S):
+        order[fill[parity[s]]] = s
+        fill[parity[s]] += 1
+    return start, order
+
+
+@njit(cache=True)
+def _link_keys(indptr, indices, key):
+    """Key of every link (CSR order) from its two surfaces' keys (:func:`_pair_key`)."""
+    ekey = np.empty(indices.size, np.uint64)
+    for s in range(indptr.size - 1):
+        for e in range(indptr[s], indptr[s + 1]):
+            ekey[e] = _pair_key(key[s], key[indices[e]])
+    return ekey
+
+
+@njit(cache=True)
+def _mpl_sites(key, n_sites):
+    """The surfaces whose terms enter the strength's pseudo-likelihood: a share ``2**-m``
+    chosen by their keys (the top ``m`` bits of a hash of the key are 0), ``m`` the
+    largest with ``S / 2**m >= n_sites`` (so ``n_sites`` to ``2 n_sites`` of them, all
+    when ``S < 2 n_sites``). Removing or adding a surface leaves the others' choice as it
+    is (a stride through the arrays would shift every later one), except where ``S``
+    crosses ``n_sites * 2**m``."""
+    S = key.size
+    m = 0
+    while (S >> (m + 1)) >= n_sites:
+        m += 1
+    if m == 0:
+        return np.arange(S)
+    keep = np.empty(S, np.bool_)
+    for s in range(S):
+        keep[s] = (_mix(key[s] ^ np.uint64(0x5851F42D4C957F2D)) >> np.uint64(64 - m)) == 0
+    return np.nonzero(keep)[0]
+
+
+@njit(cache=True)
+def _clusters(indptr, indices, bond, unary, key, parent, root, csum, ckey):
+    """Union-find of the bonded links: ``root[s]`` the smallest index of s's cluster,
+    ``csum[root]`` the sum of the cluster's ``unary`` rows (in index order), ``ckey[root]``
+    the smallest key of its surfaces (what the cluster's draw is keyed by)."""
+    S, K = unary.shape
+    for s in range(S):
+        parent[s] = s
+    for s in range(S):
+        for e in range(indptr[s], indptr[s + 1]):
+            if bond[e]:
+                rs = _find(parent, s)
+                rj = _find(parent, indices[e])
+                if rs < rj:
+                    parent[rj] = rs
+                elif rj < rs:
+                    parent[rs] = rj
+    # a root is the smallest index of its cluster: one forward pass
+    for s in range(S):
+        r = _find(parent, s)
+        root[s] = r
+        if r == s:
+            ckey[s] = key[s]
+            for k in range(K):
+                csum[s, k] = unary[s, k]
+        else:
+            ckey[r] = min(ckey[r], key[s])
+            for k in range(K):
+                csum[r, k] += unary[s, k]
 
 
 @njit(cache=True)
@@ -408,6 +528,7 @@ def _swendsen_wang(
     indices,
     wunit,
     parity,
+    key,
     u,
     n_burn,
     n_keep,
@@ -426,71 +547,50 @@ def _swendsen_wang(
     accumulates the label of every surface over the ``n_keep`` sweeps after ``n_burn``.
     Link strengths ``g * wunit``; after the burn-in sweeps ``it = a_from, a_from +
     a_step, ...`` below ``a_to``, ``g`` is replaced by the maximum pseudo-likelihood
-    strength of the current labels within ``[lo, hi]``. Returns the final ``g``."""
+    strength of the current labels within ``[lo, hi]``, rounded to :data:`_G_STEP`
+    (unless at a bound).
+    Every random number is keyed by ``key`` (uint64 (S,), what each surface is): a
+    surface's draw by its key, a bond's by its two surfaces' keys, a cluster's by the
+    smallest key of its surfaces, so that a change of the surfaces at one place changes
+    the random numbers there only. Returns the final ``g``."""
     S, K = unary.shape
     parent = np.empty(S, np.int64)
     root = np.empty(S, np.int64)
+    ckey = np.empty(S, np.uint64)
     bond = np.zeros(indices.size, np.bool_)
+    ekey = _link_keys(indptr, indices, key)
+    sites = _mpl_sites(key, _MPL_SITES)
     gam_e = g * wunit
     p_bond = np.empty(gam_e.size)
     for e in range(gam_e.size):
         p_bond[e] = -math.expm1(-gam_e[e])
     csum = np.empty((S, K))
     work = np.empty((S, K))
-    # the surfaces of each colour, in index order (colours 0..max(parity))
-    n_colours = 2
-    for s in range(S):
-        n_colours = max(n_colours, parity[s] + 1)
-    start = np.zeros(n_colours + 1, np.int64)
-    for s in range(S):
-        start[parity[s] + 1] += 1
-    for c in range(n_colours):
-        start[c + 1] += start[c]
-    order = np.empty(S, np.int64)
-    fill = start[:-1].copy()
-    for s in range(S):
-        order[fill[parity[s]]] = s
-        fill[parity[s]] += 1
+    start, order = _colour_order(parity)
     for it in range(n_burn + n_keep):
-        _bonds(indptr, indices, p_bond, u, seed, it, bond)
-        for s in range(S):
-            parent[s] = s
-        for s in range(S):
-            for e in range(indptr[s], indptr[s + 1]):
-                if bond[e]:
-                    rs = _find(parent, s)
-                    rj = _find(parent, indices[e])
-                    if rs < rj:
-                        parent[rj] = rs
-                    elif rj < rs:
-                        parent[rs] = rj
-        # a root is the smallest index of its cluster: one forward pass
-        for s in range(S):
-            r = _find(parent, s)
-            root[s] = r
-            if r == s:
-                for k in range(K):
-                    csum[s, k] = unary[s, k]
-            else:
-                for k in range(K):
-                    csum[r, k] += unary[s, k]
-        _draw_clusters(csum, root, logpi, u, seed, it)
+        _bonds(indptr, indices, p_bond, u, ekey, seed, it, bond)
+        _clusters(indptr, indices, bond, unary, key, parent, root, csum, ckey)
+        _draw_clusters(csum, root, ckey, logpi, u, seed, it)
         for s in range(S):
             u[s] = u[root[s]]
         # SW moves whole regions but rarely the surfaces on their boundaries (bonded
         # to their region with probability ~0.95): a heat-bath sweep moves those
         keep = it >= n_burn
         _heat_bath(
-            unary, indptr, indices, gam_e, order, start, u, seed, it, work, counts, keep and rb
-        )
+            unary, indptr, indices, gam_e, order, start, u, key, seed, it, work, counts,
+            keep and rb,
+        )  # fmt: skip
         if keep and not rb:
             for s in range(S):
                 counts[s, u[s]] += 1
         if a_from <= it < min(a_to, n_burn) and (it - a_from) % a_step == 0:
-            # every stride-th surface's term: about _MPL_SITES of them
-            gn = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, max(1, S // _MPL_SITES))
-            # moves under 0.01 (the estimate's own noise) leave the links as they are
-            if abs(gn - g) >= 0.01:
+            gn = _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, sites)
+            # on a grid of _G_STEP (the estimate's own noise): a change of the labels at
+            # one place moves the estimate by far less, and leaves the links elsewhere
+            # as they are unless it crosses a half-step
+            if lo < gn < hi:
+                gn = max(lo, min(hi, math.floor(gn / _G_STEP + 0.5) * _G_STEP))
+            if abs(gn - g) > 0.5 * _G_STEP:
                 g = gn
                 _set_links(wunit, g, gam_e, p_bond)
     return g
@@ -545,7 +645,8 @@ def _side_contrast(ll, indptr, indices, margin, out):
                 mab = max(mab, a[k] + b[k])
             # mab - ma - mb <= 0: log-ratio of one class for both sides against the
             # best class of each side
-            out[e] = min(1.0, math.exp(mab - ma - mb + margin))
+            # (ma + mb first: the same bits for the link j ~ s, whose sides are swapped)
+            out[e] = min(1.0, math.exp(mab - (ma + mb) + margin))
 
 
 def link_contrast(loglik: np.ndarray, graph, margin: float) -> np.ndarray:
@@ -620,11 +721,11 @@ def link_gamma(graph, gamma: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _cut_weights(u, indptr, indices, wunit, K, stride, n):
-    """``n[i, k]``: weight of the links of surface ``s = i * stride`` that label k would
+def _cut_weights(u, indptr, indices, wunit, K, sites, n):
+    """``n[i, k]``: weight of the links of surface ``s = sites[i]`` that label k would
     cut under labels ``u``; ``n[i, K]``: the same for its own label ``u[s]``."""
     for i in range(n.shape[0]):
-        s = i * stride
+        s = sites[i]
         tot = 0.0
         for k in range(K):
             n[i, k] = 0.0
@@ -663,13 +764,12 @@ def _pl_derivatives(n, g):
 
 
 @njit(cache=True)
-def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, stride=1):
+def _mpl_gamma(u, indptr, indices, wunit, K, g, lo, hi, sites):
     """Newton ascent of the (concave) log pseudo-likelihood of the labels ``u`` in the
-    strength ``g``, kept within ``[lo, hi]``. The sum over surfaces runs over every
-    ``stride``-th one (an unbiased subsample of the sum's terms)."""
-    S = indptr.size - 1
-    n = np.empty(((S + stride - 1) // stride, K + 1))
-    _cut_weights(u, indptr, indices, wunit, K, stride, n)
+    strength ``g``, kept within ``[lo, hi]``. The sum over surfaces runs over ``sites``
+    (all, or an unbiased subsample of the sum's terms: :func:`_mpl_sites`)."""
+    n = np.empty((sites.size, K + 1))
+    _cut_weights(u, indptr, indices, wunit, K, sites, n)
     for _ in range(50):
         d1, d2 = _pl_derivatives(n, g)
         if d2 < -1e-12:
@@ -783,7 +883,17 @@ def estimate_gamma(
         return lo
     g0 = min(max(1.0, lo), hi)
     return float(
-        _mpl_gamma(u, graph.indptr, graph.indices, np.ascontiguousarray(wunit), K, g0, lo, hi)
+        _mpl_gamma(
+            u,
+            graph.indptr,
+            graph.indices,
+            np.ascontiguousarray(wunit),
+            K,
+            g0,
+            lo,
+            hi,
+            np.arange(u.size),
+        )  # fmt: skip
     )
 
 
@@ -858,6 +968,11 @@ def potts_marginals(
     unary : ndarray (S, K)
         Log-likelihood of each label.
     graph : SurfaceGraph
+        Its ``key`` (what each surface is: pixel and rank by depth) keys every random
+        number: a surface's draws by its key, a bond's by its two surfaces' keys, a
+        cluster's by the smallest key of its surfaces. The same surfaces in another
+        order give the same marginals, and a change of the surfaces at one place
+        changes the random numbers there only (a graph without keys: the indices).
     gamma : float or ndarray (n_chains,)
         Interaction strength (nats per disagreeing link between two surfaces of degree
         4), >= 0; one per chain (their marginals pooled with equal weights) or one for
@@ -910,12 +1025,13 @@ def potts_marginals(
     if link_weights is not None:
         wunit = wunit * np.asarray(link_weights, np.float64)
     wunit = np.ascontiguousarray(wunit)
+    key = _graph_keys(graph, S)
     a_from, a_to, a_step = (0, 0, 1) if estimate is None else _ADAPT
     lo, hi = (0.0, 0.0) if estimate is None else estimate
     g_out = np.empty(int(n_chains))
     for c in range(int(n_chains)):
         g_out[c] = _swendsen_wang(
-            un, lp, graph.indptr, graph.indices, wunit, graph.parity, u0.copy(),
+            un, lp, graph.indptr, graph.indices, wunit, graph.parity, key, u0.copy(),
             int(n_burn), int(n_keep),
             int(seed) + 7919 * c, counts, bool(rao_blackwell),
             float(gam[c]), a_from, a_to, a_step, float(lo), float(hi),
@@ -923,6 +1039,14 @@ def potts_marginals(
     counts += 0.5 / K
     marg = counts / counts.sum(axis=1, keepdims=True)
     return (marg, g_out) if return_gamma else marg
+
+
+def _graph_keys(graph, S: int) -> np.ndarray:
+    """The surfaces' keys of ``graph`` (its indices for a graph without keys)."""
+    key = getattr(graph, "key", None)
+    if key is None:
+        return np.arange(S, dtype=np.uint64)
+    return np.ascontiguousarray(key, np.uint64)
 
 
 def unknown_llr(y: np.ndarray, background: np.ndarray, eta: np.ndarray, signatures, label):
@@ -1098,7 +1222,9 @@ def classify_surfaces(
     bounds = (min(gamma, math.log1p(math.sqrt(K))), _HI * gamma) if estimate else None
     g_used = float(gamma)
     for i in range(n_rounds):
-        logpi = np.log(np.maximum(pi, 1e-6))
+        # log pi on a grid of _LOGPI_STEP nats (far below its sampling error): one
+        # surface more or less moves pi by ~1 / S and leaves every cluster's draw as is
+        logpi = np.round(np.log(np.maximum(pi, 1e-6)) / _LOGPI_STEP) * _LOGPI_STEP
         # independent chains, kept sweeps pooled: one chain rarely flips a whole patch
         # once it has settled, so its marginals miss the other modes (over-confident)
         marg, g_c = potts_marginals(

@@ -8,7 +8,7 @@ import numpy as np
 
 from ._kernels import bridge_csr, graph_csr
 
-__all__ = ["SurfaceGraph", "build_graph", "irf_fwhm"]
+__all__ = ["SurfaceGraph", "build_graph", "irf_fwhm", "surface_keys"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +28,10 @@ class SurfaceGraph:
         ``"depth"`` or ``"all"``.
     gate : float
         Depth gate in bins (``inf`` for ``"all"``).
+    key : ndarray (S,), uint64
+        What each surface is, independent of its place in the arrays
+        (:func:`surface_keys`): the label sampler keys its random numbers by it.
+        ``None`` (a graph built by hand): the surfaces' indices.
     """
 
     indptr: np.ndarray
@@ -35,6 +39,7 @@ class SurfaceGraph:
     parity: np.ndarray
     links: str
     gate: float
+    key: np.ndarray | None = None
 
     @property
     def n_edges(self) -> int:
@@ -44,6 +49,68 @@ class SurfaceGraph:
     @property
     def degree(self) -> np.ndarray:
         return np.diff(self.indptr)
+
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLD = np.uint64(0x9E3779B97F4A7C15)
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser, elementwise on uint64 (wraps modulo 2**64)."""
+    x = x + _GOLD
+    x = (x ^ (x >> np.uint64(30))) * _M1
+    x = (x ^ (x >> np.uint64(27))) * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+def surface_keys(row: np.ndarray, col: np.ndarray, depth: np.ndarray, slot=None) -> np.ndarray:
+    """A 64-bit key of what each surface is: its pixel and its rank by depth there.
+
+    ``key = mix(mix(mix(row) ^ col) ^ rank)`` (splitmix64's finaliser ``mix``), ``rank``
+    = 0 for the nearest surface of the pixel, 1 for the next... (ties by ``slot``, then
+    by index). It does not depend on where the surface sits in the arrays, on the other
+    pixels' surfaces or on the image's size: adding or removing a surface changes the
+    keys of the deeper surfaces of its own pixel only. The label sampler draws every
+    random number from such keys (:func:`splidar.reconstruction.potts_marginals`), so a
+    change of the detection at one place changes the random numbers there only.
+
+    Parameters
+    ----------
+    row, col : ndarray (S,), int
+        Pixel of each surface (the image's rows, not a strip's).
+    depth : ndarray (S,)
+        Depth, any unit (only its order within a pixel is used).
+    slot : ndarray (S,), optional
+        Tie-break between surfaces of one pixel at the same depth.
+
+    Returns
+    -------
+    ndarray (S,), uint64
+
+    Examples
+    --------
+    >>> k = surface_keys(np.array([0, 0, 3]), np.array([1, 1, 2]), np.array([9.0, 4.0, 5.0]))
+    >>> k2 = surface_keys(np.array([0, 3]), np.array([1, 2]), np.array([4.0, 5.0]))
+    >>> bool(k[1] == k2[0] and k[2] == k2[1] and k[0] != k[1])
+    True
+    """
+    row = np.asarray(row, np.int64)
+    col = np.asarray(col, np.int64)
+    S = row.size
+    if S == 0:
+        return np.zeros(0, np.uint64)
+    tie = np.zeros(S, np.int64) if slot is None else np.asarray(slot, np.int64)
+    order = np.lexsort((tie, np.asarray(depth, np.float64), col, row))
+    r, c = row[order], col[order]
+    first = np.ones(S, bool)
+    first[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+    start = np.maximum.accumulate(np.where(first, np.arange(S), 0))
+    rank = np.empty(S, np.int64)
+    rank[order] = np.arange(S) - start
+    x = _mix64(row.astype(np.uint64))
+    x = _mix64(x ^ col.astype(np.uint64))
+    return _mix64(x ^ rank.astype(np.uint64))
 
 
 def irf_fwhm(irf: np.ndarray) -> np.ndarray:
@@ -110,8 +177,9 @@ def build_graph(
     S = int(row.size)
     rows, cols = image_shape
     parity = ((row + col) % (4 if bridge else 2)).astype(np.int64)
+    key = surface_keys(row, col, depth, slot)
     if S == 0:
-        return SurfaceGraph(np.zeros(1, np.int64), np.zeros(0, np.int64), parity, links, gate)
+        return SurfaceGraph(np.zeros(1, np.int64), np.zeros(0, np.int64), parity, links, gate, key)
     n_slots = max(int(n_slots), int(slot.max()) + 1)
     g = np.inf if links == "all" else float(gate)
     indptr, indices = graph_csr(
@@ -125,4 +193,4 @@ def build_graph(
             np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
             int(rows), int(cols), n_slots, g, indptr, indices,
         )  # fmt: skip
-    return SurfaceGraph(indptr, indices, parity, links, float(gate))
+    return SurfaceGraph(indptr, indices, parity, links, float(gate), key)
