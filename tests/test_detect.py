@@ -789,6 +789,35 @@ def test_reject_spill_over_matches_numpy_reference_on_random_tables():
             np.testing.assert_array_equal(got, ref)
 
 
+def test_llr_at_equals_the_sum_over_every_bin():
+    # the spill-over test's own log-likelihood ratio takes the logarithm at the bins
+    # holding photons only: the same value as the sum over every bin of the support
+    from splidar.detection._kernels import _interp_irf
+    from splidar.detection._quality import _llr_at
+
+    g = np.asarray(IRF, float)[None]
+    pk = np.array([float(g.argmax())])
+    rng = np.random.default_rng(5)
+    n, W = 40, 13
+    counts = rng.poisson(rng.choice([0.05, 0.8], (n, 1, 1)), (n, 1, W)).astype(np.int32)
+    bkg = rng.uniform(0.02, 0.3, (n, 1, W)).astype(np.float32)
+    bkg[:, :, :2] = 0.0  # outside the support
+    d = rng.uniform(20.0, 40.0, n)
+    offset = np.round(d).astype(np.int64) - W // 2
+    for i in range(n):
+        sig = rng.uniform(0.5, 6.0, 1)
+        ref = 0.0
+        for w in range(W):
+            b = bkg[i, 0, w]
+            if b > 0:
+                gv = _interp_irf(g[0], w - (d[i] - offset[i]) + pk[0])
+                ref += counts[i, 0, w] * np.log1p(sig[0] * gv / max(np.float64(b), 1e-9))
+                ref -= sig[0] * gv
+        got = _llr_at.py_func(i, sig, d, offset, counts, bkg, g, pk)
+        assert got == ref
+        np.testing.assert_allclose(_llr_at(i, sig, d, offset, counts, bkg, g, pk), ref, rtol=1e-13)
+
+
 # ----------------------------------------------------------------------------------------
 # slope recovery (_slopes.py, issue #3)
 # ----------------------------------------------------------------------------------------

@@ -463,7 +463,9 @@ def _spill_suspect(
 @njit(cache=True, nogil=True)
 def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
     """Own-pixel log-likelihood ratio of candidate ``i`` for a return of ``sig`` (L,)
-    photons against background only (``_own_llr`` for one candidate)."""
+    photons against background only (``_own_llr`` for one candidate). The logarithm is
+    taken at the bins holding photons only (most bins are empty at low flux; an empty
+    bin's term ``0 * log1p(.)`` adds exactly 0, so the sum is the same bit for bit)."""
     L = counts.shape[1]
     W = counts.shape[2]
     dw = d[i] - offset[i]
@@ -474,7 +476,9 @@ def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
             if not b > 0:
                 continue  # outside the support
             g = _interp_irf(irf[l], w - dw + peak[l])
-            llr += counts[i, l, w] * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
+            n = counts[i, l, w]
+            if n != 0:
+                llr += n * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
             llr -= sig[l] * g
     return llr
 
