@@ -789,6 +789,22 @@ def test_reject_spill_over_matches_numpy_reference_on_random_tables():
             np.testing.assert_array_equal(got, ref)
 
 
+def test_by_pixel_equals_the_stable_argsort_and_its_run_starts():
+    # the counting sort gives np.argsort(kind="stable") and the runs' searchsorted starts
+    from splidar.detection._quality import _by_pixel
+
+    rng = np.random.default_rng(9)
+    R, C = 7, 13
+    for n in (0, 1, 50, 600):
+        row = rng.integers(0, R, n).astype(np.int32)
+        col = rng.integers(0, C, n).astype(np.int32)
+        order, starts = _by_pixel(row, col, (R, C))
+        pix = row.astype(np.int64) * C + col
+        ref = np.argsort(pix, kind="stable")
+        np.testing.assert_array_equal(order, ref)
+        np.testing.assert_array_equal(starts, np.searchsorted(pix[ref], np.arange(R * C + 1)))
+
+
 def test_llr_at_equals_the_sum_over_every_bin():
     # the spill-over test's own log-likelihood ratio takes the logarithm at the bins
     # holding photons only: the same value as the sum over every bin of the support

@@ -95,11 +95,30 @@ _NEIGHBOURS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or 
 
 def _by_pixel(row, col, image_shape):
     """Candidates grouped by pixel: ``order`` sorts them by pixel (stable: a pixel's
-    candidates keep their table order), ``starts`` (R * C + 1) delimits each pixel's run."""
+    candidates keep their table order), ``starts`` (R * C + 1) delimits each pixel's run.
+
+    A counting sort (:func:`_pixel_order`): the same arrays as ``np.argsort(pix,
+    kind="stable")`` and ``np.searchsorted(pix[order], np.arange(R * C + 1))`` in one
+    pass over the candidates and one over the pixels (5-10x faster on 290k candidates;
+    the clean-up passes group the table this way eight times)."""
     R, C = image_shape
     pix = np.asarray(row, np.int64) * C + np.asarray(col, np.int64)
-    order = np.argsort(pix, kind="stable")
-    return order, np.searchsorted(pix[order], np.arange(R * C + 1))
+    starts = np.zeros(R * C + 1, np.int64)
+    np.cumsum(np.bincount(pix, minlength=R * C), out=starts[1:])
+    return _pixel_order(pix, starts), starts
+
+
+@njit(cache=True, nogil=True)
+def _pixel_order(pix, starts):
+    """Candidate indices sorted by pixel ``pix``, stable (a counting sort; ``starts``: the
+    cumulative counts per pixel, ``R * C + 1``)."""
+    fill = starts[:-1].copy()
+    order = np.empty(pix.size, np.int64)
+    for i in range(pix.size):
+        p = pix[i]
+        order[fill[p]] = i
+        fill[p] += 1
+    return order
 
 
 def _dense(row, col, image_shape, values, fill):
