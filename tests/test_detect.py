@@ -971,6 +971,30 @@ def test_recover_slopes_fields_match_box_filter_reference():
     assert np.all(new["presence_llr"] >= -3.0) and np.all(np.isfinite(new["presence_z"]))
 
 
+@pytest.mark.parametrize("rate", [0.02, 0.5, 5.0])
+def test_filtered_window_equals_the_full_reflected_sum(rate):
+    # the window's matched filter from the bins holding photons only gives the full
+    # sum over the IRF (indices reflected at the series' ends) bit for bit
+    from splidar.detection._fast import _refl
+    from splidar.detection._slopes import _filtered_window
+
+    rng = np.random.default_rng(2)
+    T, W = 120, 13
+    g = np.asarray(gaussian_irf(2.5), np.float64)
+    n = g.size
+    cvw, nz_t, nz_v = np.empty(W), np.empty(W + n, np.int64), np.empty(W + n)
+    for base in (-n, -3, 0, 40, T - W - n + 1, T - W - n + 2, T - W):
+        yt = rng.poisson(rate, T).astype(np.uint16)
+        _filtered_window(yt, g, base, cvw, nz_t, nz_v)
+        ref = np.empty(W)
+        for w in range(W):
+            cv = 0.0
+            for j in range(n):
+                cv += g[j] * yt[_refl(base + w + j, T)]
+            ref[w] = cv
+        np.testing.assert_array_equal(cvw, ref)
+
+
 def test_recover_slopes_replacement_needs_own_counts_not_to_reject_it():
     # the disc's centre holds a kept surface 4.5 bins off the ramp (within 2 FWHM of the
     # plane: a box-biased depth). The sheared test finds the ramp's depth there; it

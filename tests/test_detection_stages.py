@@ -842,3 +842,21 @@ def test_coherent_equals_a_plain_loop_over_the_queries(mode):
     ref = _coherent_reference(surf, keep, (R, C), query, 3.0, mode)
     assert ref.any() and not ref[query].all()
     np.testing.assert_array_equal(got, ref)
+
+
+def test_raster_sorted_is_true_exactly_when_lexsort_keeps_the_order():
+    rng = np.random.default_rng(4)
+    for n in (0, 1, 2, 5, 40):
+        for _ in range(200):
+            row = np.sort(rng.integers(0, 3, n)).astype(np.int32)
+            col = rng.integers(0, 3, n).astype(np.int32)
+            start = rng.integers(0, 4, n).astype(np.int32)
+            if rng.random() < 0.5:  # raster order, or a near miss of it
+                o = np.lexsort((start, col, row))
+                row, col, start = row[o], col[o], start[o]
+                if n > 1 and rng.random() < 0.3:
+                    i = rng.integers(0, n - 1)
+                    start[[i, i + 1]] = start[[i + 1, i]]
+            order = np.lexsort((start, col, row))
+            ref = not np.any(order[1:] < order[:-1])
+            assert _4_map._raster_sorted(row, col, start) == ref
