@@ -381,12 +381,16 @@ def _filtered_window(yt, g, base, cvw, nz_t, nz_v):
             nz_t[m] = t
             nz_v[m] = yt[t]
             m += 1
+    k0 = 0  # the first photon bin at or after the sample's first bin
     for w in range(W):
+        while k0 < m and nz_t[k0] < base + w:
+            k0 += 1
         cv = 0.0
-        for k in range(m):
+        for k in range(k0, m):
             jj = nz_t[k] - base - w
-            if 0 <= jj < n:
-                cv += g[jj] * nz_v[k]
+            if jj >= n:
+                break
+            cv += g[jj] * nz_v[k]
         cvw[w] = cv
 
 
