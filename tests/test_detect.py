@@ -789,6 +789,51 @@ def test_reject_spill_over_matches_numpy_reference_on_random_tables():
             np.testing.assert_array_equal(got, ref)
 
 
+def test_by_pixel_equals_the_stable_argsort_and_its_run_starts():
+    # the counting sort gives np.argsort(kind="stable") and the runs' searchsorted starts
+    from splidar.detection._quality import _by_pixel
+
+    rng = np.random.default_rng(9)
+    R, C = 7, 13
+    for n in (0, 1, 50, 600):
+        row = rng.integers(0, R, n).astype(np.int32)
+        col = rng.integers(0, C, n).astype(np.int32)
+        order, starts = _by_pixel(row, col, (R, C))
+        pix = row.astype(np.int64) * C + col
+        ref = np.argsort(pix, kind="stable")
+        np.testing.assert_array_equal(order, ref)
+        np.testing.assert_array_equal(starts, np.searchsorted(pix[ref], np.arange(R * C + 1)))
+
+
+def test_llr_at_equals_the_sum_over_every_bin():
+    # the spill-over test's own log-likelihood ratio takes the logarithm at the bins
+    # holding photons only: the same value as the sum over every bin of the support
+    from splidar.detection._kernels import _interp_irf
+    from splidar.detection._quality import _llr_at
+
+    g = np.asarray(IRF, float)[None]
+    pk = np.array([float(g.argmax())])
+    rng = np.random.default_rng(5)
+    n, W = 40, 13
+    counts = rng.poisson(rng.choice([0.05, 0.8], (n, 1, 1)), (n, 1, W)).astype(np.int32)
+    bkg = rng.uniform(0.02, 0.3, (n, 1, W)).astype(np.float32)
+    bkg[:, :, :2] = 0.0  # outside the support
+    d = rng.uniform(20.0, 40.0, n)
+    offset = np.round(d).astype(np.int64) - W // 2
+    for i in range(n):
+        sig = rng.uniform(0.5, 6.0, 1)
+        ref = 0.0
+        for w in range(W):
+            b = bkg[i, 0, w]
+            if b > 0:
+                gv = _interp_irf(g[0], w - (d[i] - offset[i]) + pk[0])
+                ref += counts[i, 0, w] * np.log1p(sig[0] * gv / max(np.float64(b), 1e-9))
+                ref -= sig[0] * gv
+        got = _llr_at.py_func(i, sig, d, offset, counts, bkg, g, pk)
+        assert got == ref
+        np.testing.assert_allclose(_llr_at(i, sig, d, offset, counts, bkg, g, pk), ref, rtol=1e-13)
+
+
 # ----------------------------------------------------------------------------------------
 # slope recovery (_slopes.py, issue #3)
 # ----------------------------------------------------------------------------------------
@@ -924,6 +969,30 @@ def test_recover_slopes_fields_match_box_filter_reference():
     np.testing.assert_array_equal(new["counts"][:, 0], raw.sum(axis=1))
     np.testing.assert_allclose(new["background"][:, 0], 0.08 * W, rtol=1e-5)
     assert np.all(new["presence_llr"] >= -3.0) and np.all(np.isfinite(new["presence_z"]))
+
+
+@pytest.mark.parametrize("rate", [0.02, 0.5, 5.0])
+def test_filtered_window_equals_the_full_reflected_sum(rate):
+    # the window's matched filter from the bins holding photons only gives the full
+    # sum over the IRF (indices reflected at the series' ends) bit for bit
+    from splidar.detection._fast import _refl
+    from splidar.detection._slopes import _filtered_window
+
+    rng = np.random.default_rng(2)
+    T, W = 120, 13
+    g = np.asarray(gaussian_irf(2.5), np.float64)
+    n = g.size
+    cvw, nz_t, nz_v = np.empty(W), np.empty(W + n, np.int64), np.empty(W + n)
+    for base in (-n, -3, 0, 40, T - W - n + 1, T - W - n + 2, T - W):
+        yt = rng.poisson(rate, T).astype(np.uint16)
+        _filtered_window(yt, g, base, cvw, nz_t, nz_v)
+        ref = np.empty(W)
+        for w in range(W):
+            cv = 0.0
+            for j in range(n):
+                cv += g[j] * yt[_refl(base + w + j, T)]
+            ref[w] = cv
+        np.testing.assert_array_equal(cvw, ref)
 
 
 def test_recover_slopes_replacement_needs_own_counts_not_to_reject_it():

@@ -806,3 +806,57 @@ def test_fine_on_threads_equals_one_fine_response_call():
         _fine_on_threads(c[sl], y[sl], sp[sl], dev, win, out, workers)
         for a, b in zip(out, ref, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+def _coherent_reference(surf, keep, image_shape, query, tol, mode):
+    """Stage 4's coherence rule for the fine split's returns, as a plain loop."""
+    R, C = image_shape
+    row, col, dep = surf["row"], surf["col"], surf["depth_bin"]
+    out = np.zeros(row.size, bool)
+    for i in np.flatnonzero(query):
+        for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            rr, cc = row[i] + dr, col[i] + dc
+            if not (0 <= rr < R and 0 <= cc < C):
+                continue
+            nb = dep[keep & (row == rr) & (col == cc)]
+            if np.any(np.abs(nb - dep[i]) <= tol) and (
+                mode < 2 or (nb.size >= 2 and np.ptp(nb) >= tol)
+            ):
+                out[i] = True
+    return out
+
+
+@pytest.mark.parametrize("mode", [1, 2])
+def test_coherent_equals_a_plain_loop_over_the_queries(mode):
+    rng = np.random.default_rng(7)
+    R, C = 9, 11
+    n = 260
+    surf = dict(
+        row=rng.integers(0, R, n).astype(np.int32),
+        col=rng.integers(0, C, n).astype(np.int32),
+        depth_bin=rng.choice([20.0, 23.0, 40.0], n) + rng.normal(0, 1.5, n),
+    )
+    keep = rng.random(n) < 0.7
+    query = rng.random(n) < 0.5
+    got = _4_map._coherent(surf, keep, (R, C), query, 3.0, mode)
+    ref = _coherent_reference(surf, keep, (R, C), query, 3.0, mode)
+    assert ref.any() and not ref[query].all()
+    np.testing.assert_array_equal(got, ref)
+
+
+def test_raster_sorted_is_true_exactly_when_lexsort_keeps_the_order():
+    rng = np.random.default_rng(4)
+    for n in (0, 1, 2, 5, 40):
+        for _ in range(200):
+            row = np.sort(rng.integers(0, 3, n)).astype(np.int32)
+            col = rng.integers(0, 3, n).astype(np.int32)
+            start = rng.integers(0, 4, n).astype(np.int32)
+            if rng.random() < 0.5:  # raster order, or a near miss of it
+                o = np.lexsort((start, col, row))
+                row, col, start = row[o], col[o], start[o]
+                if n > 1 and rng.random() < 0.3:
+                    i = rng.integers(0, n - 1)
+                    start[[i, i + 1]] = start[[i + 1, i]]
+            order = np.lexsort((start, col, row))
+            ref = not np.any(order[1:] < order[:-1])
+            assert _4_map._raster_sorted(row, col, start) == ref

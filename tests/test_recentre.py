@@ -100,3 +100,17 @@ def test_restore_agreed_restores_a_rejected_candidate_its_neighbours_hold():
     two = t.keep.copy()
     two[:2] = False  # the north and south neighbours lose their surface
     assert not restore_agreed(t, two, **kw).any()
+
+
+def test_small_median_equals_np_median_with_ties_and_even_counts():
+    # the agreement kernel's median (an insertion sort into a kept buffer) gives
+    # np.median's value bit for bit: odd and even counts, ties, 1 to 16 values
+    from splidar.detection._5_recentre import _small_median
+
+    rng = np.random.default_rng(3)
+    srt = np.empty(16)
+    for n in range(1, 17):
+        for _ in range(50):
+            vals = np.empty(16)
+            vals[:n] = rng.choice([rng.normal(50, 3, n), np.round(rng.normal(50, 2, n))])
+            assert _small_median(vals, srt, n) == np.median(vals[:n])

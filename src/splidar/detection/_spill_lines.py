@@ -56,6 +56,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import _interp_irf
+from ._quality import _by_pixel
 from ._slopes import _row_bands, _split
 
 __all__ = ["SpillLines", "reject_spill_lines"]
@@ -183,8 +184,7 @@ def reject_spill_lines(
     own = np.maximum(cnt[idx] - bkg[idx], 0.0)
     del cnt, bkg
     pix = row * C + col
-    order = np.argsort(pix, kind="stable")
-    starts = np.searchsorted(pix[order], np.arange(R * C + 1))
+    order, starts = _by_pixel(row, col, (R, C))
     n_pix = np.diff(starts)[pix]
     test = np.flatnonzero(n_pix > 1)  # crowded pixels only
     if test.size == 0:
