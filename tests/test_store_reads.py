@@ -262,3 +262,36 @@ def test_likelihoods_kept_zarr_cube_reads_the_windows_only(tmp_path, monkeypatch
     with _slopes.kept_counts(x):
         got = _7b_edge_bands._likelihoods(x, bg, rows, cols, dep, irf, n_jobs=2)
     np.testing.assert_array_equal(got, want)
+
+
+def test_write_rows_writes_each_chunk_once(tmp_path, monkeypatch):
+    """The moved surfaces' histograms written into the store (stages 7 / 7b with
+    ``store=``): each chunk holding some of the rows written once (a write per row
+    decoded and encoded its chunk each time), the values those of single writes in
+    order (a repeated row keeps its last value)."""
+    from splidar.detection import _table
+
+    monkeypatch.setattr(_table, "HIST_CHUNK", 8)
+    rng = np.random.default_rng(9)
+    base = rng.random((40, 2, 1, 5)).astype(np.float32)
+    idx = np.array([33, 2, 5, 17, 2, 39, 6, 18])  # row 2 twice; chunks 0, 2, 4
+    values = rng.random((idx.size, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = _table.store_histograms(g, "h", base.shape, data=base)
+    store = z.store_path.store
+    written = []
+    real = type(store).set
+
+    async def counted(self, key, value, *a, **k):
+        written.append(key)
+        return await real(self, key, value, *a, **k)
+
+    monkeypatch.setattr(type(store), "set", counted)
+    _table.write_rows(z, idx, values)
+    want = base.copy()
+    for i, v in zip(idx, values, strict=True):
+        want[i] = v
+    np.testing.assert_array_equal(z[...], want)
+    assert sorted(written) == sorted(set(written)) and len(written) == 3
+    _table.write_rows(z, idx[:0], values[:0])  # nothing to write: no error
+    assert len(written) == 3
