@@ -199,3 +199,99 @@ def test_nonzero_equals_flatnonzero(dtype):
         idx, val = _nonzero(x)
         np.testing.assert_array_equal(idx, np.flatnonzero(x))
         np.testing.assert_array_equal(val, x[np.flatnonzero(x)])
+
+
+@pytest.mark.parametrize("budget", [None, 0])
+def test_sparse_windows_equal_the_zarr_arrays_windows(tmp_path, monkeypatch, budget):
+    """``_Sparse.windows`` (stage 7b's likelihoods on a kept Zarr cube) gives each
+    pixel's counts over its own window of bins, the array's values, from the kept
+    nonzero counts or (``budget=0``) from chunks decoded again; ``pixels`` the whole
+    series (window 0 to T); no pixel, no error."""
+    from splidar.detection import _slopes
+
+    if budget is not None:
+        monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
+    rng = np.random.default_rng(7)
+    a = (rng.random((45, 9, 2, 30)) < 0.1) * rng.integers(1, 200, (45, 9, 2, 30))
+    a = a.astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
+    )
+    z[:] = a
+    sp = _slopes._Sparse(z)
+    rows, cols = np.r_[rng.integers(0, 45, 80), 44, 0], np.r_[rng.integers(0, 9, 80), 8, 0]
+    for W in (1, 7, 30):
+        lo = rng.integers(0, 30 - W + 1, rows.size)
+        got = sp.windows(rows, cols, lo, W)
+        assert got.dtype == a.dtype and got.shape == (rows.size, 2, W)
+        want = np.stack([a[r, c, :, t : t + W] for r, c, t in zip(rows, cols, lo, strict=True)])
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(sp.pixels(rows, cols), a[rows, cols])
+    assert sp.windows(rows[:0], cols[:0], rows[:0], 5).shape == (0, 2, 5)
+
+
+def test_likelihoods_kept_zarr_cube_reads_the_windows_only(tmp_path, monkeypatch):
+    """Stage 7b's likelihoods on a Zarr cube kept sparse (detect's stages 5-7) read each
+    depth's window from the kept counts, never a pixel's whole series, and equal the
+    in-memory cube's bit for bit."""
+    from splidar.detection import _7b_edge_bands, _slopes
+    from splidar.detection._result import Background
+
+    rng = np.random.default_rng(8)
+    R, C, L, T = 20, 12, 1, 60
+    a = rng.poisson(0.05, (R, C, L, T)).astype(np.uint8)
+    a[:, :, 0, 20:24] += rng.poisson(2.0, (R, C, 4)).astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, C, L, T), dtype=a.dtype
+    )
+    z[:] = a
+    x = da.from_zarr(tmp_path / "c.zarr")
+    bg = Background(
+        spatial=rng.uniform(0.01, 0.1, (R, C, L)).astype(np.float32),
+        temporal=np.full((L, T), 0.05, np.float32),
+    )
+    irf = np.exp(-0.5 * ((np.arange(9) - 4) / 1.2) ** 2)[None]
+    rows, cols = rng.integers(0, R, 50), rng.integers(0, C, 50)
+    dep = np.stack([rng.uniform(0, T - 1, 50), rng.uniform(15, 25, 50)], 1)
+    want = _7b_edge_bands._likelihoods(a, bg, rows, cols, dep, irf)
+
+    def whole(*args):
+        raise AssertionError("a pixel's whole series read")
+
+    monkeypatch.setattr(_7b_edge_bands, "_pixels", whole)
+    with _slopes.kept_counts(x):
+        got = _7b_edge_bands._likelihoods(x, bg, rows, cols, dep, irf, n_jobs=2)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_write_rows_writes_each_chunk_once(tmp_path, monkeypatch):
+    """The moved surfaces' histograms written into the store (stages 7 / 7b with
+    ``store=``): each chunk holding some of the rows written once (a write per row
+    decoded and encoded its chunk each time), the values those of single writes in
+    order (a repeated row keeps its last value)."""
+    from splidar.detection import _table
+
+    monkeypatch.setattr(_table, "HIST_CHUNK", 8)
+    rng = np.random.default_rng(9)
+    base = rng.random((40, 2, 1, 5)).astype(np.float32)
+    idx = np.array([33, 2, 5, 17, 2, 39, 6, 18])  # row 2 twice; chunks 0, 2, 4
+    values = rng.random((idx.size, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = _table.store_histograms(g, "h", base.shape, data=base)
+    store = z.store_path.store
+    written = []
+    real = type(store).set
+
+    async def counted(self, key, value, *a, **k):
+        written.append(key)
+        return await real(self, key, value, *a, **k)
+
+    monkeypatch.setattr(type(store), "set", counted)
+    _table.write_rows(z, idx, values)
+    want = base.copy()
+    for i, v in zip(idx, values, strict=True):
+        want[i] = v
+    np.testing.assert_array_equal(z[...], want)
+    assert sorted(written) == sorted(set(written)) and len(written) == 3
+    _table.write_rows(z, idx[:0], values[:0])  # nothing to write: no error
+    assert len(written) == 3

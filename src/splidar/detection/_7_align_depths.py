@@ -22,6 +22,7 @@ from ._kernels import _llr_one, _select_scale
 from ._quality import _shifted_irf, align_depths
 from ._result import STAGES, StoredHistograms, Surfaces
 from ._slopes import _row_bands, _zarr_of, pixels_of, support_sums, surface_fields
+from ._table import write_rows
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -489,8 +490,7 @@ def _window_fields(s: Surfaces, idx, refit, counts, background, scales, irf) -> 
     if not new.size:
         histograms = s.histograms
     elif isinstance(s.histograms, StoredHistograms):  # the detection's own store
-        for m in np.flatnonzero(refit):
-            s.histograms.array[int(idx[m])] = hist[m]
+        write_rows(s.histograms.array, idx[refit], hist[refit])  # a chunk written once
         histograms = s.histograms
     else:
         histograms = np.array(s.histograms)

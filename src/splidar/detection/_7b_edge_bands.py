@@ -70,6 +70,7 @@ from scipy.sparse import csgraph
 from ._7_align_depths import _pixels
 from ._quality import _shifted_irf
 from ._result import STAGES, Surfaces
+from ._slopes import sparse_of
 from ._threads import on_parts
 
 __all__ = [
@@ -416,7 +417,8 @@ def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> n
     """:func:`profile_llr` of the pixels ``(rows, cols)`` at their two depths ``dep``
     (n, 2): (n, 2), in blocks of pixels on ``n_jobs`` threads (each block's result is
     its own, so the threads never change it). An in-memory cube is read over each
-    depth's window alone; others (Dask, Zarr) a pixel's whole series at once."""
+    depth's window alone, and so is a Zarr cube whose nonzero counts detect keeps
+    (``_slopes.sparse_of``); others (Dask) a pixel's whole series at once."""
     irf = np.atleast_2d(np.asarray(irf, np.float64))
     peak = np.argmax(irf, axis=1)
     T = int(np.shape(counts)[-1])
@@ -426,19 +428,25 @@ def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> n
     tm = background.temporal
     tm = tm - tm.mean(axis=-1, keepdims=True)  # as Background.at: (L, T)
 
+    # a Zarr cube kept sparse (stages 5-7 of detect): read over the windows too
+    kept = None if isinstance(counts, np.ndarray) else sparse_of(counts)
+
     def block(a):
         sl = slice(a, a + _BLOCK)
         r, c = rows[sl], cols[sl]
-        y = None if isinstance(counts, np.ndarray) else _pixels(counts, r, c)  # (n, L, T)
+        whole = not isinstance(counts, np.ndarray) and kept is None
+        y = _pixels(counts, r, c) if whole else None  # (n, L, T)
         sp = background.spatial[r, c]  # (n, L)
         for j in range(2):
             d = np.clip(dep[sl, j], 0.0, T - 1.0)
             lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
             t = lo[:, None] + np.arange(W)  # (n, W)
             g = _shifted_irf(irf, peak, d - lo, W)  # (n, L, W)
-            if y is None:  # the window alone
+            if isinstance(counts, np.ndarray):  # the window alone
                 yw = np.empty((r.size, counts.shape[2], W))
                 _window_counts(counts, r, c, lo, yw)
+            elif y is None:
+                yw = kept.windows(r, c, lo, W).astype(np.float64)  # (n, L, W)
             else:
                 yw = y[np.arange(y.shape[0])[:, None], :, t]
                 yw = np.moveaxis(yw, -1, 1).astype(np.float64)  # (n, L, W)

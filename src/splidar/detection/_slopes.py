@@ -1062,25 +1062,48 @@ class _Sparse:
 
     def pixels(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The entries ``[rows[i], cols[i]]``, ``(n,) + row[1:]``."""
+        return self.windows(rows, cols, np.zeros(np.size(rows), np.int64), self.row[-1])
+
+    def windows(self, rows: np.ndarray, cols: np.ndarray, lo: np.ndarray, width: int):
+        """The entries ``[rows[i], cols[i], ..., lo[i] : lo[i] + width]`` (the last axis
+        cut to ``width`` entries from ``lo[i]``, ``0 <= lo[i] <= row[-1] - width``; the
+        array has at least 3 axes, a cube's counts 4), ``(n,) + row[1:-1] + (width,)``:
+        only the nonzero entries inside the windows are written (:func:`_gather`)."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        px = int(np.prod(self.row[1:]))  # entries per pixel
-        out = np.zeros((rows.size,) + self.row[1:], self.dtype)
-        flat = out.reshape(rows.size, px)
+        lo, width = np.asarray(lo, np.int64), int(width)
+        mid, n_t = self.row[1:-1], self.row[-1]  # the axes after the columns
+        n_mid = int(np.prod(mid))
+        out = np.zeros((rows.size * n_mid, width), self.dtype)
+        # each window's first entry in its pixel, for every middle index (n, n_mid)
+        heads = (np.arange(n_mid, dtype=np.int64) * n_t)[None, :] + lo[:, None]
         chunk = rows // self.step
-        with self.lock:
-            for k in np.unique(chunk):
-                sel = np.flatnonzero(chunk == k)
+        for k in np.unique(chunk):
+            sel = np.flatnonzero(chunk == k)
+            dst = (sel[:, None] * n_mid + np.arange(n_mid)).reshape(-1)
+            with self.lock:
                 got = self._chunk(int(k))
-                if isinstance(got, np.ndarray):
-                    out[sel] = got[rows[sel] - k * self.step, cols[sel]]
+                if isinstance(got, np.ndarray):  # decoded (over the budget): a buffer
+                    y = got[rows[sel] - k * self.step, cols[sel]].reshape(sel.size * n_mid, n_t)
+                    t = np.repeat(lo[sel], n_mid)[:, None] + np.arange(width)
+                    out[dst] = np.take_along_axis(y, t, axis=1)
                     continue
-                idx, val = got
-                first = ((rows[sel] - k * self.step) * self.row[0] + cols[sel]) * px
-                i0 = np.searchsorted(idx, first)
-                i1 = np.searchsorted(idx, first + px)
-                for s, a, b, f in zip(sel, i0, i1, first, strict=True):
-                    flat[s, idx[a:b] - f] = val[a:b]
-        return out
+            idx, val = got  # kept as they are once made: read without the lock
+            first = ((rows[sel] - k * self.step) * self.row[0] + cols[sel]) * (n_mid * n_t)
+            _gather(idx, val, (first[:, None] + heads[sel]).reshape(-1), width, dst, out)
+        return out.reshape((rows.size,) + mid + (width,))
+
+
+@njit(cache=True, nogil=True)
+def _gather(idx, val, starts, width, dst, out):  # pragma: no cover - numba
+    """``out[dst[i], j - starts[i]] = val[p]`` for every entry ``p`` of the sparse
+    ``(idx, val)`` (``idx`` ascending) with ``starts[i] <= j = idx[p] < starts[i] +
+    width``: each window found by bisection, its entries copied."""
+    for i in range(starts.size):
+        s0 = starts[i]
+        p = np.searchsorted(idx, s0)
+        while p < idx.size and idx[p] < s0 + width:
+            out[dst[i], idx[p] - s0] = val[p]
+            p += 1
 
 
 def _nonzero(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1123,6 +1146,12 @@ def pixels_of(counts, rows, cols):
     :func:`kept_counts` context, or None (not kept)."""
     sp = _KEPT.get(getattr(counts, "name", None))
     return None if sp is None else sp.pixels(rows, cols)
+
+
+def sparse_of(counts):
+    """The sparse chunks (:class:`_Sparse`: ``.pixels``, ``.windows``) of a cube in a
+    :func:`kept_counts` context, or None (not kept)."""
+    return _KEPT.get(getattr(counts, "name", None))
 
 
 class _ChunkRows:

@@ -252,6 +252,22 @@ def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: b
     return z
 
 
+def write_rows(z, idx, values) -> None:
+    """``z[idx[i]] = values[i]`` for a Zarr array ``z`` (e.g. a detection's stored
+    histograms, :func:`store_histograms`), as one orthogonal selection: each chunk
+    holding some of the rows is read, changed and written once, not once per row
+    (a row's write decodes and encodes its whole chunk: 4,096 histograms). Where an
+    index repeats, its last value is written, as in a loop of single writes."""
+    idx = np.asarray(idx, np.int64).reshape(-1)
+    if idx.size == 0:
+        return
+    values = np.asarray(values)
+    # the last occurrence of each index, in ascending order
+    _, first_rev = np.unique(idx[::-1], return_index=True)
+    last = idx.size - 1 - first_rev
+    z.set_orthogonal_selection((idx[last],), values[last])
+
+
 #: Threads that remove a directory's entries (:func:`remove_tree`).
 REMOVE_THREADS = 8
 
