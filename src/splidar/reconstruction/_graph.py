@@ -30,7 +30,7 @@ class SurfaceGraph:
         Depth gate in bins (``inf`` for ``"all"``).
     key : ndarray (S,), uint64
         What each surface is, independent of its place in the arrays
-        (:func:`surface_keys`): the label sampler keys its random numbers by it.
+        (``surface_keys``): the label sampler keys its random numbers by it.
         ``None`` (a graph built by hand): the surfaces' indices.
     """
 
