@@ -2,7 +2,11 @@
 
 For every cell of simulated families (scene x photon regime x background x IRF), the
 detection runs with all passes (the default) and with each pass left out
-(``passes=`` without it), on the same cubes (several seeds). Reported per pass: the
+(``passes=`` without it), on the same cubes (several seeds); and with each sub-rule of
+stage 7b (``edge_bands``) switched off on its own, the labelling and the other sub-rules
+kept: ``-7b:near_depths``, ``-7b:far_inside``, ``-7b:dark_bands`` (module constants of
+``splidar.detection._7b_edge_bands``, not ``passes=`` entries; :func:`rules_off` sets
+them for one detection and restores them). Reported per pass: the
 change of F_true (tau = 3 bins), of false surfaces per 100 true ones and of the depth
 error DAE (bins) when the pass is *removed*, averaged over cells and seeds, with the
 run-to-run noise: the standard error of the mean paired difference over the seeds
@@ -32,11 +36,13 @@ import argparse
 import json
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from splidar.detection import PASSES, detect
+from splidar.detection import _7b_edge_bands as _7b
 from splidar.metrics import evaluate
 from splidar.scenes import art_scene, multispectral_scene, single_surface_scene, two_layer_scene
 
@@ -87,12 +93,36 @@ def scenes(shape, n_bins, irfs, families):
     return out
 
 
+#: Stage 7b's sub-rules: variant suffix -> the module constant of ``_7b_edge_bands``
+#: that switches it (each runs in ``band_depths`` after the bands' labelling).
+RULES_7B = {"near_depths": "NEAR_DEPTHS", "far_inside": "FAR_INSIDE", "dark_bands": "DARK_BANDS"}
+
+
+@contextmanager
+def rules_off(rules=()):
+    """Switch the named stage-7b sub-rules (keys of :data:`RULES_7B`) off for the ``with``
+    block, and restore the module's values after it (also on an error). For the benchmark
+    only: the detector itself has no option for them."""
+    names = [RULES_7B[r] for r in rules]
+    saved = {n: getattr(_7b, n) for n in names}
+    try:
+        for n in names:
+            setattr(_7b, n, False)
+        yield
+    finally:
+        for n, v in saved.items():
+            setattr(_7b, n, v)
+
+
 def variants():
-    """The default, each pass left out, and no pass at all."""
-    out = {"all": PASSES}
+    """Variant name -> ``(passes, stage-7b sub-rules off)``: the default, each pass left
+    out, each sub-rule of stage 7b left out (the pass kept), and no pass at all."""
+    out = {"all": (PASSES, ())}
     for p in PASSES:
-        out[f"-{p}"] = tuple(q for q in PASSES if q != p)
-    out["none"] = ()
+        out[f"-{p}"] = (tuple(q for q in PASSES if q != p), ())
+    for r in RULES_7B:
+        out[f"-7b:{r}"] = (PASSES, (r,))
+    out["none"] = ((), ())
     return out
 
 
@@ -112,11 +142,12 @@ def run(args) -> list[dict]:
             for bg in ("uniform",) if fam == "art" else ("uniform", "decaying"):
                 for seed in seeds:
                     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=seed)
-                    for name, passes in variants().items():
+                    for name, (passes, off) in variants().items():
                         if args.variants and name not in args.variants.split(","):
                             continue
                         t0 = time.perf_counter()
-                        det = detect(sim.cube, passes=passes)
+                        with rules_off(off):
+                            det = detect(sim.cube, passes=passes)
                         ev = evaluate(det.points, sim.truth, tau=TAU)
                         rows.append(
                             dict(
@@ -142,8 +173,9 @@ def summarise(rows: list[dict]) -> list[dict]:
     cell = lambda r: (r["family"], r["irf"], r["ppp"], r["bg"])  # noqa: E731
     base = {cell(r) + (r["seed"],): r for r in rows if r["variant"] == "all"}
     out = []
+    present = {r["variant"] for r in rows}
     for name in variants():
-        if name == "all":
+        if name == "all" or name not in present:
             continue
         row = {"variant": name}
         for k in ("f_true", "false_per_100", "dae"):
@@ -194,9 +226,32 @@ def table(summary: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def real_files(data: Path) -> None:
+def _moved_7b(det) -> int:
+    """How many surfaces stage 7b (``edge_bands``) moved in a detection."""
+    from splidar.detection._result import STAGES
+
+    m = det.surfaces.moved_by
+    return 0 if m is None else int(np.sum(np.asarray(m) == STAGES.index("edge_bands")))
+
+
+def _differ(a, b) -> int:
+    """Surfaces of one detection that the other lacks (same pixel and depth to 1e-6 bins),
+    counted both ways."""
+
+    def key(d):
+        s = d.surfaces
+        z = np.round(np.asarray(s.depth_bin, np.float64), 6).tolist()
+        return set(zip(s.row.tolist(), s.col.tolist(), z, strict=True))
+
+    ka, kb = key(a), key(b)
+    return len(ka ^ kb)
+
+
+def real_files(data: Path, rules: bool = False) -> None:
     """On the measured files (no truth): what each pass added and removed, by
-    ``Detection.provenance`` (one detection each, default options)."""
+    ``Detection.provenance`` (one detection each, default options); with ``rules``,
+    also each stage-7b sub-rule switched off (:func:`rules_off`): the surfaces stage 7b
+    moved and the surfaces that differ from the default."""
     from real_data import REAL
 
     import splidar
@@ -212,6 +267,14 @@ def real_files(data: Path) -> None:
         print(f"\n== {name}: {desc}; {cube.shape}; {len(det.surfaces)} surfaces, "
               f"{time.perf_counter() - t0:.1f} s")  # fmt: skip
         print(det.provenance_table())
+        if not rules:
+            continue
+        print(f"   all: stage 7b moved {_moved_7b(det)}")
+        for r in RULES_7B:
+            with rules_off((r,)):
+                other = detect(cube)
+            n, m, d = len(other.surfaces), _moved_7b(other), _differ(det, other)
+            print(f"   -7b:{r}: {n} surfaces, stage 7b moved {m}; {d} differ from all")
 
 
 def main(argv=None) -> int:
@@ -240,10 +303,16 @@ def main(argv=None) -> int:
         help="instead: the provenance (surfaces each pass added and removed) on the "
         "measured files of ../shared/data (face, tower, 21 km; no truth there)",
     )
+    ap.add_argument(
+        "--real-rules",
+        action="store_true",
+        help="with --real: also each stage-7b sub-rule switched off (3 more detections a "
+        "file): the surfaces stage 7b moved and how many surfaces differ from the default",
+    )
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.real:
-        real_files(IRF_SAMPLE.parent)
+        real_files(IRF_SAMPLE.parent, rules=args.real_rules)
         return 0
     rows = json.loads(Path(args.from_json).read_text())["rows"] if args.from_json else run(args)
     if args.variants:  # no differences to summarise: the rows themselves
