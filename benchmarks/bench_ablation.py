@@ -114,15 +114,25 @@ def rules_off(rules=()):
             setattr(_7b, n, v)
 
 
-def variants():
+def variants(combos=()):
     """Variant name -> ``(passes, stage-7b sub-rules off)``: the default, each pass left
-    out, each sub-rule of stage 7b left out (the pass kept), and no pass at all."""
+    out, each sub-rule of stage 7b left out (the pass kept), no pass at all, and the
+    ``combos``: each a sequence of those left out together (pass names or ``7b:RULE``),
+    named ``"-a -b"`` (whether two passes do the same job: their joint loss against the
+    sum of the single ones)."""
     out = {"all": (PASSES, ())}
     for p in PASSES:
         out[f"-{p}"] = (tuple(q for q in PASSES if q != p), ())
     for r in RULES_7B:
         out[f"-7b:{r}"] = (PASSES, (r,))
     out["none"] = ((), ())
+    for combo in combos:
+        rules = tuple(c[3:] for c in combo if c.startswith("7b:"))
+        drop = [c for c in combo if not c.startswith("7b:")]
+        unknown = [c for c in drop if c not in PASSES] + [r for r in rules if r not in RULES_7B]
+        if unknown:
+            raise ValueError(f"unknown pass or 7b rule(s) {unknown} in {combo}")
+        out[" ".join(f"-{c}" for c in combo)] = (tuple(q for q in PASSES if q not in drop), rules)
     return out
 
 
@@ -142,7 +152,7 @@ def run(args) -> list[dict]:
             for bg in ("uniform",) if fam == "art" else ("uniform", "decaying"):
                 for seed in seeds:
                     sim = scene.simulate(ppp=ppp, sbr=sbr, background=bg, rng=seed)
-                    for name, (passes, off) in variants().items():
+                    for name, (passes, off) in variants(args.combos).items():
                         if args.variants and name not in args.variants.split(","):
                             continue
                         t0 = time.perf_counter()
@@ -162,7 +172,7 @@ def run(args) -> list[dict]:
     return rows
 
 
-def summarise(rows: list[dict]) -> list[dict]:
+def summarise(rows: list[dict], combos=()) -> list[dict]:
     """Per variant: the mean paired change against "all" (the effect of removing the
     pass) over cells and seeds, its run-to-run noise and the cells it helps or hurts.
 
@@ -174,7 +184,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     base = {cell(r) + (r["seed"],): r for r in rows if r["variant"] == "all"}
     out = []
     present = {r["variant"] for r in rows}
-    for name in variants():
+    for name in variants(combos):
         if name == "all" or name not in present:
             continue
         row = {"variant": name}
@@ -293,7 +303,8 @@ def main(argv=None) -> int:
         "--variants",
         default="",
         help="run only these variants, comma-separated (e.g. 'all' for the default "
-        "detection alone, to compare two versions of the code; default: every one)",
+        "detection alone, to compare two versions of the code, printed row by row; with "
+        "'all' and others, summarised; default: every one)",
     )
     ap.add_argument("--json", help="also write every row and the summary to this file")
     ap.add_argument("--from-json", help="summarise the rows of an earlier --json run")
@@ -309,13 +320,24 @@ def main(argv=None) -> int:
         help="with --real: also each stage-7b sub-rule switched off (3 more detections a "
         "file): the surfaces stage 7b moved and how many surfaces differ from the default",
     )
+    ap.add_argument(
+        "--combo",
+        action="append",
+        default=[],
+        metavar="A,B",
+        help="also leave these out together (pass names or 7b:RULE, comma-separated; "
+        "repeatable), e.g. --combo align_depths,edge_bands --variants 'all,-align_depths "
+        "-edge_bands'",
+    )
     args = ap.parse_args(argv)
+    args.combos = [tuple(c.split(",")) for c in args.combo]
     t0 = time.perf_counter()
     if args.real:
         real_files(IRF_SAMPLE.parent, rules=args.real_rules)
         return 0
     rows = json.loads(Path(args.from_json).read_text())["rows"] if args.from_json else run(args)
-    if args.variants:  # no differences to summarise: the rows themselves
+    chosen = set(args.variants.split(",")) if args.variants else set()
+    if chosen and (chosen == {"all"} or "all" not in chosen):  # nothing to pair: the rows
         for r in rows:
             print(
                 f"{r['family']:6s} {r['irf']:8s} PPP {r['ppp']:<3g} SBR {r['sbr']:<5g} "
@@ -325,7 +347,7 @@ def main(argv=None) -> int:
         if args.json:
             Path(args.json).write_text(json.dumps({"rows": rows}, indent=1))
         return 0
-    summary = summarise(rows)
+    summary = summarise(rows, args.combos)
     print(table(summary))
     print(f"# {len(rows)} detections in {time.perf_counter() - t0:.0f} s")
     if args.json:
