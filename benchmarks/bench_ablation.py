@@ -4,7 +4,7 @@ For every cell of simulated families (scene x photon regime x background x IRF),
 detection runs with all passes (the default) and with each pass left out
 (``passes=`` without it), on the same cubes (several seeds); and with each sub-rule of
 stage 7b (``edge_bands``) switched off on its own, the labelling and the other sub-rules
-kept: ``-7b:near_depths``, ``-7b:far_inside``, ``-7b:dark_bands`` (module constants of
+kept: ``-7b:near_depths``, ``-7b:far_inside`` (module constants of
 ``splidar.detection._7b_edge_bands``, not ``passes=`` entries; :func:`rules_off` sets
 them for one detection and restores them). Reported per pass: the
 change of F_true (tau = 3 bins), of false surfaces per 100 true ones and of the depth
@@ -95,7 +95,7 @@ def scenes(shape, n_bins, irfs, families):
 
 #: Stage 7b's sub-rules: variant suffix -> the module constant of ``_7b_edge_bands``
 #: that switches it (each runs in ``band_depths`` after the bands' labelling).
-RULES_7B = {"near_depths": "NEAR_DEPTHS", "far_inside": "FAR_INSIDE", "dark_bands": "DARK_BANDS"}
+RULES_7B = {"near_depths": "NEAR_DEPTHS", "far_inside": "FAR_INSIDE"}
 
 
 @contextmanager

@@ -13,7 +13,6 @@ from splidar.detection import STAGES
 from splidar.detection._7b_edge_bands import (
     _windows,
     band_depths,
-    dark_bands,
     far_inside_depths,
     min_cut_labels,
     near_depths,
@@ -496,64 +495,12 @@ def test_own_plane_kernel_same_on_any_split_of_rows():
         np.testing.assert_array_equal(parts, whole)
 
 
-def _dark_band(dim_photons: float, stage: str = "dark_regions"):
-    """The dim region's first 2 columns took the bright region's depth (``_band(2)``),
-    their surfaces restored by ``stage``: the surfaces, counts and the band's mask."""
-    counts = np.random.default_rng(7).poisson(_lam(dim_photons)).astype(np.uint16)
-    s = _surfaces(_band(2))
-    band = (s.col >= 12) & (s.col < 14)
-    code = np.where(band, STAGES.index(stage), STAGES.index("map")).astype(np.int8)
-    return replace(s, stage=code), counts, band
-
-
-def test_dark_bands_moves_a_restored_band_its_summed_counts_place_on_the_other_side():
-    # 0.5 photons per pixel: no pixel shows the dim side, the band's 40 pixels together do
-    s, counts, band = _dark_band(0.5)
-    moved, to = dark_bands(
-        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
-        fwhm=3.0, irf=IRF, half=5, q=0.01,
-    )  # fmt: skip
-    assert np.array_equal(np.sort(moved), np.flatnonzero(band))
-    np.testing.assert_allclose(to, D_DIM, atol=0.5)
-
-
-def test_dark_bands_keeps_a_band_its_counts_do_not_place_off_its_depth():
-    # no photons on the dim side: the prior (q = 0.01, 4.6 nats) keeps the band
-    s, counts, _ = _dark_band(0.0)
-    moved, _ = dark_bands(
-        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
-        fwhm=3.0, irf=IRF, half=5, q=0.01,
-    )  # fmt: skip
-    assert moved.size == 0
-
-
-def test_dark_bands_offers_only_the_surfaces_stage_5c_restored():
-    # the same band kept by the map (its own counts passed the presence test): not offered
-    s, counts, _ = _dark_band(0.5, stage="map")
-    moved, _ = dark_bands(
-        s, np.asarray(s.depth_bin), np.arange(len(s)), counts, _background(),
-        fwhm=3.0, irf=IRF, half=5, q=0.01,
-    )  # fmt: skip
-    assert moved.size == 0
-
-
-def test_band_depths_runs_dark_bands_with_the_measured_prior(monkeypatch):
+def test_band_depths_has_no_dark_band_rule():
+    # dark_bands (dark29) removed in session 22: inside run-to-run noise on issue #15's
+    # cells and Art, no move on the measured files (benchmarks/README.md, "abl30")
     from splidar.detection import _7b_edge_bands as eb
 
-    s, counts, _ = _dark_band(0.5)
-    calls = []
-
-    def spy(*a, q, **k):
-        calls.append(q)
-        return np.zeros(0, np.int64), np.zeros(0)
-
-    monkeypatch.setattr(eb, "dark_bands", spy)
-    eb.band_depths(s, counts, _background(), fwhm=3.0, irf=IRF, half=5)
-    assert eb.DARK_BANDS and len(calls) == 1  # on since dark29 (benchmarks/README.md)
-    assert 0.0 < calls[0] < 1.0  # the fraction of the band's pixels the labelling moved
-    monkeypatch.setattr(eb, "DARK_BANDS", False)
-    eb.band_depths(s, counts, _background(), fwhm=3.0, irf=IRF, half=5)
-    assert len(calls) == 1
+    assert not hasattr(eb, "DARK_BANDS") and not hasattr(eb, "dark_bands")
 
 
 def test_windows_reads_lazy_counts_as_numpy():

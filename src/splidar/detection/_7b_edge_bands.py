@@ -40,10 +40,10 @@ and a prior measured on the detection (:func:`near_depths`): the "near" wrong de
 a pixel's own peak moved a few bins by a Poisson fluctuation, which the labelling of
 two regions never sees. Last (:data:`FAR_INSIDE`), a lone single-surface pixel inside a
 region but not a member of it (its depth far off the region's plane and shared by no
-8-neighbour) is offered the plane the same way (:func:`far_inside_depths`). And
-(:data:`DARK_BANDS`) the lines of lone surfaces that stage 5c restored on the pool's
-strength beside another region are offered that region's plane by band, on their summed
-own counts (:func:`dark_bands`).
+8-neighbour) is offered the plane the same way (:func:`far_inside_depths`). (A fourth
+rule, stage 5c's restorations beside another region decided by band on their summed own
+counts, ``dark_bands``, was removed in session 22: benchmarks/README.md, "abl30, session
+22", its effect inside run-to-run noise and nil on the measured files.)
 
 A straight band shifted by a row costs no more boundary than before, so the prior does
 not pull edges; it keeps a lone pixel (4 ``beta``) or a ragged boundary from moving on
@@ -74,7 +74,6 @@ from ._slopes import sparse_of
 from ._threads import on_parts
 
 __all__ = [
-    "DARK_BANDS",
     "FAR_INSIDE",
     "GATE_FWHM",
     "MIN_REGION",
@@ -123,16 +122,6 @@ NEAR_INSIDE = 7
 #: (any slot), offered the plane with a prior measured on the detection. Measured
 #: (benchmarks/README.md, "far28, session 20").
 FAR_INSIDE = True
-#: Decide stage 5c's restorations along a depth edge by band, on their summed own
-#: counts with a prior measured on the detection (:func:`dark_bands`), last in
-#: :func:`band_depths`. Measured (benchmarks/README.md, "dark29, session 21"):
-#: ``bench_detection`` 3 of 64 cells better (false surfaces 183 -> 182, 134 -> 128, 177
-#: -> 171 at PPP 1-4, SBR 0.1), none worse; issue #15's single-surface cells and the
-#: sheet and net cubes unchanged (the prior, 5-8 nats there, moves no band): the far
-#: wrong depths stage 5c leaves in those cells lie in the scene's dark stripe (x0.1
-#: reflectivity), whose pixels hold no more than background at either depth, summed or
-#: not (with no prior, ``q = 1/2``, 82 true surfaces moved off for 4 fixed).
-DARK_BANDS = True
 #: Max-flow capacities are integers: nats times this.
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
@@ -689,13 +678,6 @@ def band_depths(
         )
         depth[far] = to
         moved = np.union1d(moved, far)
-    if DARK_BANDS:  # q: the fraction of the band's pixels the labelling moved
-        q = max(int(ok.sum()), 1) / max(zr.size, 2)
-        dark, to = dark_bands(
-            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, q=q
-        )
-        depth[dark] = to
-        moved = np.union1d(moved, dark)
     return depth, moved, beta
 
 
@@ -917,103 +899,6 @@ def _plane_moves(s: Surfaces, solo, counts, background, zr, zc, D, plane, q: flo
     at = np.full(s.image_shape, -1, np.int64)
     at[s.row[solo], s.col[solo]] = solo
     return at[zr[go], zc[go]], plane[zr[go], zc[go]]
-
-
-@njit(cache=True, nogil=True)
-def _dark_band_kernel(big, depth, rows, cols, half, gate, other, plane):  # pragma: no cover
-    """For each pixel ``(rows[i], cols[i])`` of a region, ``other[i]``: the other region
-    with most members within ``half`` (Chebyshev; ties to the lower label; -1 if none),
-    and ``plane[i]``: that region's local plane at the pixel (:func:`_window_plane` over its
-    members within ``2 half``), NaN without one (as :func:`_band_kernel`'s second
-    plane, for the given pixels alone)."""
-    reach = 2 * half
-    buf = np.empty((2 * reach + 1) ** 2)
-    seen = np.empty((2 * half + 1) ** 2, np.int64)
-    for i in range(rows.size):
-        r, c = rows[i], cols[i]
-        plane[i] = np.nan
-        best = _most_members(big, r, c, half, big[r, c], seen)
-        other[i] = best
-        if best >= 0:
-            plane[i] = _window_plane(big, depth, r, c, reach, best, False, gate, 0, buf)
-
-
-def dark_bands(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, q: float):
-    """Stage 5c's restorations along a depth edge, decided by band on their summed own
-    counts (:data:`DARK_BANDS`).
-
-    A lone surface that stage 5c (``"dark_regions"``) restored, a member of a region
-    with another region within ``half`` (the band of :func:`band_depths`) whose local
-    plane at the pixel lies more than the FWHM off its depth, is a *candidate*: its depth
-    rests on the pool, not on its own 0-2 photons (benchmarks/README.md, "dark28,
-    session 20"). The candidates are joined into bands, 8-connected, of one region and
-    one other region. A band moves onto the other region's plane (each pixel to the
-    plane at its place) when its summed own counts favour it against the prior,
-    ``L_B(plane) - L_B(own) > log((1 - q) / q)``: ``L_B`` the joint profile
-    log-likelihood ratio of the band's raw counts with one intensity shared
-    (:func:`group_llr`), ``q`` the prior probability that a band pixel belongs to the
-    other side (:func:`band_depths` passes the fraction of its band pixels that the
-    labelling moved on this detection).
-
-    Parameters
-    ----------
-    surfaces, depth, solo, counts, background, fwhm, irf, half
-        As :func:`near_depths` (``depth`` after the far depths).
-    q : float
-        The prior probability, in (0, 1).
-
-    Returns
-    -------
-    moved : ndarray (m,) int64
-        Indices of the surfaces moved.
-    to : ndarray (m,) float64
-        Their new depths (bins).
-    """
-    s = surfaces
-    none = np.zeros(0, np.int64), np.zeros(0)
-    if s.stage is None or solo.size == 0 or not 0.0 < q < 1.0:
-        return none
-    D, gate, big = _solo_regions(s, depth, solo, fwhm)
-    i = solo[np.asarray(s.stage)[solo] == STAGES.index("dark_regions")]
-    i = i[big[s.row[i], s.col[i]] >= 0]
-    r, c = np.asarray(s.row[i], np.int64), np.asarray(s.col[i], np.int64)
-    other = np.empty(i.size, np.int64)
-    plane = np.empty(i.size)
-    _dark_band_kernel(big, D, r, c, int(half), gate, other, plane)
-    T = int(np.shape(counts)[-1])
-    with np.errstate(invalid="ignore"):
-        ok = (other >= 0) & (np.abs(plane - D[r, c]) > float(fwhm))
-        ok &= (plane >= 0.0) & (plane <= T - 1)
-    i, r, c, other, plane = i[ok], r[ok], c[ok], other[ok], plane[ok]
-    if i.size == 0:
-        return none
-    band = _dark_groups(r, c, big[r, c], other, s.image_shape)
-    y0, g0, b0 = _windows(counts, background, r, c, D[r, c], irf)
-    y1, g1, b1 = _windows(counts, background, r, c, plane, irf)
-    gain = group_llr(y1, g1, b1, band) - group_llr(y0, g0, b0, band)
-    go = (gain - np.log((1.0 - q) / q))[band] > 0.0  # prior odds q / (1 - q)
-    return i[go], plane[go]
-
-
-def _dark_groups(r, c, own, other, shape) -> np.ndarray:
-    """(n,) int64 bands of the pixels ``(r, c)``: 8-connected components of the pixels
-    sharing their region ``own`` and other region ``other``."""
-    R, C = shape
-    node = np.full((R, C), -1, np.int64)
-    node[r, c] = np.arange(r.size)
-    a, b = [], []
-    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
-        rr, cc = r + dr, c + dc
-        ok = (rr >= 0) & (rr < R) & (cc >= 0) & (cc < C)
-        u, v = np.flatnonzero(ok), node[rr[ok], cc[ok]]
-        same = v >= 0
-        u, v = u[same], v[same]
-        same = (own[u] == own[v]) & (other[u] == other[v])
-        a.append(u[same])
-        b.append(v[same])
-    a, b = np.concatenate(a), np.concatenate(b)
-    g = sparse.coo_matrix((np.ones(a.size), (a, b)), shape=(r.size, r.size))
-    return csgraph.connected_components(g.tocsr(), directed=False)[1].astype(np.int64)
 
 
 def relabel_edge_bands(
