@@ -1345,14 +1345,18 @@ def _data_pair_width(counts, n_bins: int, sparse=None):
     return fwhm, (float(bounds[0]), float(bounds[1])), rows.size * n_cols
 
 
-def _check_irf_width(irf_a, src: str, counts, n_bins: int, bin_width_ps, sparse=None):
-    """Warn (once, from :func:`load`) when a supplied IRF's width and the data's own
-    pulse width (:func:`estimate_irf_fwhm`'s photon-pair statistic on both, single
-    pixels of a bounded sample) differ by more than ``_IRF_WIDTH_FACTOR`` and the IRF's
-    lies outside the data's ``_WIDTH_Z``-sigma bracket: the usual cause is an IRF
-    recorded at another bin width than the cube's, read one sample per bin. Nothing is
-    changed (the fix is ``irf_bin_width_ps=``); undetermined widths (weak data) skip the
-    check (INFO). Returns the ratio (IRF / data) or None when not determined."""
+def _check_irf_width(
+    irf_a, src: str, counts, n_bins: int, bin_width_ps, sparse=None, fix: str = "load"
+):
+    """Warn (once, from :func:`load`, or from ``detect`` for a Cube built from arrays:
+    :func:`_check_cube_irf`) when a supplied IRF's width and the data's own pulse width
+    (:func:`estimate_irf_fwhm`'s photon-pair statistic on both, single pixels of a
+    bounded sample) differ by more than ``_IRF_WIDTH_FACTOR`` and the IRF's lies outside
+    the data's ``_WIDTH_Z``-sigma bracket: the usual cause is an IRF recorded at another
+    bin width than the cube's, read one sample per bin. Nothing is changed (the fix,
+    named by ``fix``: ``"load"``'s ``irf_bin_width_ps=``, ``"cube"``'s
+    :func:`splidar.irf.resample_irf`); undetermined widths (weak data) skip the check
+    (INFO). Returns the ratio (IRF / data) or None when not determined."""
     from .irf import irf_fwhm
 
     mine = _irf_pair_width(irf_a)
@@ -1375,6 +1379,8 @@ def _check_irf_width(irf_a, src: str, counts, n_bins: int, bin_width_ps, sparse=
         fw = ""
     if src.startswith("gaussian"):
         cause = "irf_fwhm= is the FWHM in bins of the cube, not in picoseconds"
+    elif fix == "cube":
+        cause = _cube_cause(ratio, w, lo, hi, mine, bin_width_ps)
     elif bin_width_ps:
         step, s_lo, s_hi = (bin_width_ps * x / mine for x in (w, lo, hi))
         cause = (
@@ -1393,12 +1399,65 @@ def _check_irf_width(irf_a, src: str, counts, n_bins: int, bin_width_ps, sparse=
     log.warning(
         "the IRF (%s) is %.1f times %s than the pulse in the data: %sa photon-pair width "
         "of %.2f bins against %.2f bins from the data's photon-pair time differences "
-        "(%.2f-%.2f at %g sigma). Likely cause: %s; or pass irf='estimate-shape' to take "
-        "the pulse from the data. The IRF is used as given.",
+        "(%.2f-%.2f at %g sigma). Likely cause: %s; or %s to take the pulse from the "
+        "data. The IRF is used as given.",
         src, max(ratio, 1 / ratio), "wider" if ratio > 1 else "narrower", fw, mine, w,
         lo, hi, _WIDTH_Z, cause,
+        "estimate it (splidar.io.estimate_irf(counts))" if fix == "cube"
+        else "pass irf='estimate-shape'",
     )  # fmt: skip
     return ratio
+
+
+def _cube_cause(ratio: float, w: float, lo: float, hi: float, mine: float, bin_width_ps):
+    """The likely cause and its fix for a Cube built from arrays (no ``load`` option to
+    name): resample the IRF onto the bins with :func:`splidar.irf.resample_irf`."""
+    if bin_width_ps:
+        step, s_lo, s_hi = (bin_width_ps * x / mine for x in (w, lo, hi))
+        return (
+            f"an IRF recorded at another bin width is read one sample per bin by Cube: if "
+            f"it was sampled every {step:.3g} ps ({s_lo:.3g}-{s_hi:.3g} ps would match; "
+            f"the cube's bins are {bin_width_ps:g} ps), build the Cube with "
+            f"irf=splidar.irf.resample_irf(irf, {step:.3g}, {bin_width_ps:g}) (its sample "
+            "step, the bin width)"
+        )
+    return (
+        f"an IRF recorded at another bin width is read one sample per bin by Cube (it "
+        f"would match sampled {ratio:.3g} times {'finer' if ratio > 1 else 'coarser'} "
+        "than the cube's bins): build the Cube with irf=splidar.irf.resample_irf(irf, "
+        "step_ps, bin_width_ps) (its sample step, the bin width)"
+    )
+
+
+#: the attribute a Cube's IRF width check leaves on it (a memo: once per Cube object;
+#: not a field, so equality, ``dataclasses.replace`` and results ignore it)
+_WIDTH_CHECKED = "_irf_width_checked"
+
+
+def _checked(cube: Cube) -> Cube:
+    """``cube``, marked as having had its IRF's width checked (``load`` did, or it was
+    estimated from the data or saved with it): ``detect`` does not check it again."""
+    object.__setattr__(cube, _WIDTH_CHECKED, True)
+    return cube
+
+
+def _check_cube_irf(cube: Cube) -> float | None:
+    """:func:`_check_irf_width` for ``detect``: a Cube built from arrays
+    (``Cube(counts, irf=...)``, the path simulation groups take) is checked once, the
+    first time it is detected on (a Cube from :func:`load` was checked there). Warns
+    only; never raises on valid data; the result of ``detect`` does not depend on it.
+    Returns the ratio (IRF / data) or None (not determined, or checked before)."""
+    if getattr(cube, _WIDTH_CHECKED, False):
+        return None
+    _checked(cube)
+    try:
+        return _check_irf_width(
+            cube.irf, "the Cube's IRF", cube.counts, cube.n_bins, cube.bin_width_ps,
+            fix="cube",
+        )  # fmt: skip
+    except (SplidarError, ValueError, MemoryError) as exc:  # a check, never an obstacle
+        log.info("IRF width check: not checked (%s)", exc)
+        return None
 
 
 def _block_sum(counts, k: int) -> np.ndarray:
@@ -1680,7 +1739,7 @@ def load(
             bin_width_ps=bin_width_ps, variable=variable,
             time_axis=time_axis if wavelength_axis is None else (time_axis, wavelength_axis),
         )  # fmt: skip
-        return _override(cube, bin_width_ps, wavelengths_nm, library)
+        return _checked(_override(cube, bin_width_ps, wavelengths_nm, library))
     d = _read_any(p, channels)
     flat = variable is None and "counts" not in d and _FLAT_LIST_KEYS <= d.keys()
     d, time_unit, n_wl, flat = _photon_table(d, p, time_unit, flat, variable)
@@ -1713,7 +1772,7 @@ def load(
         library=lib,
         metadata=meta,
     )
-    return _override(cube, bin_width_ps, wavelengths_nm, library)
+    return _checked(_override(cube, bin_width_ps, wavelengths_nm, library))
 
 
 def _cube_irf(irf_opts, file_irf, counts, bw_ps, sparse, from_save: bool, meta: dict):
