@@ -776,8 +776,11 @@ def estimate_irf_fwhm(counts, *, max_lag: int | None = None) -> float:
     photons from one surface differ by the IRF's autocorrelation whatever the pixel's
     depth, so no per-pixel peak alignment (and none of its self-alignment bias at a
     few photons per pixel) is needed. Background pairs add a floor, made flat by
-    dividing lag ``k`` by the ``T - k`` bin pairs it spans. The floor is the median
-    of the outer quarter of the lag window, and
+    dividing lag ``k`` by the ``T - k`` bin pairs it spans. The pairs of a return with
+    its own pixel's background are flat in ``k`` already, and that division tilts them
+    up: under heavy background and on short records the width reads too narrow (a 3-bin
+    pulse at SBR 0.01, T 200: 1.5 bins; ``load``'s IRF check removes the tilt,
+    ``_cross_tilt``). The floor is the median of the outer quarter of the lag window, and
     the FWHM of the autocorrelation peak above it is read at the half-maximum
     crossing (linear interpolation); for a Gaussian IRF this is ``sqrt(2)`` times the
     IRF's FWHM, which is what is returned. For a skewed or heavy-tailed pulse it is
@@ -851,6 +854,7 @@ def _pair_lag_fwhm(
     bounds=None,
     budget: int | None = None,
     var_scale: float = 1.0,
+    tilt: bool | None = None,
 ) -> float:
     """:func:`estimate_irf_fwhm` on sparse voxels (pixel, bin, count).
 
@@ -860,8 +864,10 @@ def _pair_lag_fwhm(
     the width check's; ``var_scale`` multiplies the lags' variance the bracket reads).
     ``bounds``: a list given gets
     the FWHMs of the half-maximum crossing's ``_WIDTH_Z``-sigma bracket (lower, upper;
-    :func:`_half_max_bounds`).
+    :func:`_half_max_bounds`). ``tilt``: remove the signal-background pairs' tilt
+    (:func:`_cross_tilt`; the width check's; None: ``TILT_LOAD``, off).
     """
+    tilt = TILT_LOAD[0] if tilt is None else tilt
     budget = _PAIR_BUDGET if budget is None else budget
     stride = 2 * n_bins + 1
     key = np.asarray(pix, dtype=np.int64) * stride + np.asarray(b, dtype=np.int64)
@@ -905,6 +911,10 @@ def _pair_lag_fwhm(
         # counts every pair twice (ordered)
         var = np.maximum(h, 1.0) * tri * var_scale
         var[0] *= 2.0
+        # ... but a return's pairs with its own pixel's background are flat in k: the
+        # triangle tilts them up towards the floor's lags (heavy background, short T)
+        if tilt:
+            h -= _cross_tilt(h, n_bins)
         # 5 sd as always; 7 once a window without a peak was passed (more tests made)
         k_half = _half_max_lag(h, 7.0 if searched else 5.0)
         if k_half is not None and bounds is not None:
@@ -933,6 +943,53 @@ def _pair_lag_fwhm(
 
 #: sigmas of the half-maximum crossing's bracket (the width's uncertainty, irf24)
 _WIDTH_Z = 3.0
+
+
+#: the signal-background pairs' tilt is removed where its fitted size stands this many
+#: standard errors above 0 (the significance the IRF estimate uses elsewhere; rob30)
+_TILT_Z = 3.0
+#: the tilt's removal in ``load``'s width and ``estimate_irf_fwhm`` (False: measured,
+#: not adopted: it mends the width at heavy background but moves load's IRF on tailed
+#: pulses at PPP 1-4, SBR 0.2, where a narrower IRF scores better; benchmarks/README.md
+#: rob30, ``bench_pair_tilt.py``). The width check removes it (``_data_pair_width``).
+TILT_LOAD = [False]
+#: the same in the width check (benchmarks: [False] restores the width check before rob30)
+TILT_CHECK = [True]
+
+
+def _cross_tilt(h: np.ndarray, n_bins: int) -> np.ndarray | float:
+    """The tilt the triangle correction gives the pairs of returns with their own
+    pixel's background, per lag of the triangle-corrected pair histogram ``h``; 0 where
+    it does not stand ``_TILT_Z`` standard errors above 0.
+
+    A pixel of ``S`` signal photons over ``b`` background photons a bin holds ``2 S b``
+    such pairs at every lag shorter than its return's distance to the record's ends (a
+    background photon after the return, one before), not ``(T - k)``-proportional as the
+    background's own pairs: times ``T / (T - k)`` they become ``2 S b (1 + u)``, ``u =
+    k / (T - k)``, which raises the floor read at the outer lags above the level under
+    the peak and moves the half-maximum in (a 3-bin pulse at SBR 0.01, 50 counts a bin,
+    T 200, read 1.4-1.7 bins; benchmarks/README.md rob30). Its size ``C = sum 2 S b``
+    is the slope in ``u`` of a least-squares line through the outer half of the lags
+    (the peak's own tail there only lowers it: its standard error from the residuals),
+    and ``C u`` is removed. A per-pixel ``S b`` from the counts was measured and
+    dropped: at SBR 0.01 ``S`` is 1 % of a pixel's photons, and a 1 % bias of ``b``
+    doubles it."""
+    lag = h.size - 1
+    if lag < 8:
+        return 0.0
+    k = np.arange(lag // 2, lag + 1)
+    u = k / (n_bins - k)
+    x = u - u.mean()
+    sxx = float(np.sum(x * x))
+    if sxx <= 0:
+        return 0.0
+    c = float(np.sum(x * (h[k] - h[k].mean()))) / sxx
+    resid = h[k] - h[k].mean() - c * x
+    se = math.sqrt(float(np.sum(resid * resid)) / (k.size - 2) / sxx)
+    if c <= _TILT_Z * se:
+        return 0.0
+    j = np.arange(lag + 1)
+    return c * j / (n_bins - j)
 
 
 def _half_max_bounds(h: np.ndarray, var: np.ndarray, k_half: float) -> tuple[float, float]:
@@ -1336,8 +1393,9 @@ def _data_pair_width(counts, n_bins: int, sparse=None):
     bounds: list = []
     try:
         fwhm = _pair_lag_fwhm(
-            pix, b, w, n_bins, None, bounds, budget=_CHECK_PAIRS, var_scale=1.0 + 2.0 * per_voxel
-        )
+            pix, b, w, n_bins, None, bounds, budget=_CHECK_PAIRS,
+            var_scale=1.0 + 2.0 * per_voxel, tilt=TILT_CHECK[0],
+        )  # fmt: skip
     except SplidarError:
         return None
     if not bounds or (bounds[1] - bounds[0]) / 2 > _CHECK_PRECISION * fwhm:
