@@ -6,8 +6,10 @@ background's own pairs; a return's pairs with its pixel's background are flat in
 ``k``, so the correction tilts them up towards the floor's lags and the width reads too
 narrow where they dominate (SBR 0.01: a 3-bin pulse read 1.4-1.7 bins).
 ``io._cross_tilt`` removes that tilt where it is significant. This bench runs, in one
-sitting, with the tilt removal off (``io.TILT_LOAD = io.TILT_CHECK = [False]``, the code
-before) and on (both ``[True]``; the library's default is on in the width check only):
+sitting, with the tilt removal off (``io.TILT_LOAD = io.TILT_CHECK = io.TILT_RESCUE =
+[False]``, the code before) and on (``--mode all``: everywhere, ``TILT_LOAD = [True]``;
+``--mode default``: the library's, in the width check and in load only where it found
+no return, ``TILT_RESCUE``):
 
 * ``--widths``: ``estimate_irf_fwhm`` and the width check's ``_data_pair_width`` on the
   tilted 32 x 32 plane of ``bench_robustness.basic`` for Gaussian FWHM 1 / 3 / 10, exp
@@ -92,16 +94,26 @@ def heavy_cubes(seeds):
                 yield f"{name}, PPP {ppp:g} SBR {sbr:g} T {T}", seed, irf, cube, truth
 
 
+MODE = ["default"]
+
+
+def _flags(on) -> None:
+    """off (False), on (True: ``MODE``'s), or the library's defaults (None)."""
+    io.TILT_CHECK[0] = bool(on) or on is None
+    io.TILT_RESCUE[0] = bool(on) or on is None
+    io.TILT_LOAD[0] = bool(on) and MODE[0] == "all"
+
+
 def both(f):
     """``f()`` with the tilt removal off, then on."""
     out = []
     for flag in (False, True):
-        io.TILT_LOAD[0] = io.TILT_CHECK[0] = flag
+        _flags(flag)
         try:
             out.append(f())
         except splidar.SplidarError:
             out.append("raises")
-    io.TILT_LOAD[0], io.TILT_CHECK[0] = False, True
+    _flags(None)
     return out
 
 
@@ -222,7 +234,7 @@ def run_real(data: Path):
             continue
         out = []
         for flag in (False, True, False, True):
-            io.TILT_LOAD[0] = io.TILT_CHECK[0] = flag
+            _flags(flag)
             logging.getLogger("splidar").setLevel(logging.ERROR)
             c0 = time.process_time()
             cube = splidar.load(p, **kw)
@@ -233,7 +245,7 @@ def run_real(data: Path):
             w = io._data_pair_width(cube.counts, cube.shape[-1])
             if w is not None:
                 out[-1] += f" (check width {w[0]:.2f})"
-        io.TILT_LOAD[0], io.TILT_CHECK[0] = False, True
+        _flags(None)
         print(f"- {name}: " + "; ".join(out), flush=True)
 
 
@@ -244,7 +256,9 @@ def main() -> None:
     ap.add_argument("--load", action="store_true")
     ap.add_argument("--real", action="store_true")
     ap.add_argument("--data", default=str(_default_data()))
+    ap.add_argument("--mode", choices=("default", "all"), default="default")
     args = ap.parse_args()
+    MODE[0] = args.mode
     logging.basicConfig(level=logging.ERROR)
     t0 = time.perf_counter()
     if args.widths:

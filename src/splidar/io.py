@@ -955,6 +955,9 @@ _TILT_Z = 3.0
 TILT_LOAD = [False]
 #: the same in the width check (benchmarks: [False] restores the width check before rob30)
 TILT_CHECK = [True]
+#: load's width retried with the removal where it found no return (``_pooled_fwhm_or_
+#: untilted``; benchmarks: [False] restores load before rob30)
+TILT_RESCUE = [True]
 
 
 def _cross_tilt(h: np.ndarray, n_bins: int) -> np.ndarray | float:
@@ -1122,7 +1125,7 @@ def _resolve_irf(irf, irf_fwhm, irf_variable, file_irf, counts, n_bins: int, spa
             "nothing to detect. Check the file, its variable and the time window."
         )
     seen: list = []
-    fwhm, k = _pooled_fwhm(counts, n_bins, sparse, seen)
+    fwhm, k = _pooled_fwhm_or_untilted(counts, n_bins, sparse, seen)
     if not gaussian_only:  # the shape (irf20's proposal); its Gaussian fall-back inside
         # its blocks start where a pair peak was first seen (the width's level may be
         # coarser: where the width is determined, irf24)
@@ -1169,7 +1172,34 @@ def _block_index(pix: np.ndarray, n_cols: int, k: int) -> np.ndarray:
     return (r // k) * (-(-n_cols // k)) + c // k
 
 
-def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
+def _pooled_fwhm_or_untilted(counts, n_bins: int, sparse, seen: list) -> tuple[float, int]:
+    """:func:`_pooled_fwhm`; where it finds no return, once more with the pairs of the
+    returns with their pixels' background untilted (:func:`_cross_tilt`): under heavy
+    background the triangle correction's tilt can hide the peak (PPP 100 at SBR 0.01:
+    Gaussian FWHM 10, exp tail 3/6 and the measured pulse raised on 14 of 54 cubes,
+    all load with it; benchmarks/README.md rob30). A file that loaded keeps its width:
+    elsewhere the removal moved tailed pulses' IRFs at PPP 1-2 for the worse
+    (``TILT_LOAD``)."""
+    try:
+        return _pooled_fwhm(counts, n_bins, sparse, seen)
+    except SplidarError as exc:
+        if TILT_LOAD[0] or not TILT_RESCUE[0]:
+            raise
+        first = exc
+    seen.clear()
+    try:
+        out = _pooled_fwhm(counts, n_bins, sparse, seen, tilt=True)
+    except SplidarError:
+        raise first from None  # the message of the width as it was
+    log.warning(
+        "IRF width: the photon-pair peak shows only with the pairs of the returns with "
+        "their pixels' background untilted (heavy background): FWHM %.2f bins",
+        out[0],
+    )
+    return out
+
+
+def _pooled_fwhm(counts, n_bins: int, sparse, seen=None, tilt=None) -> tuple[float, int]:
     """The pair-lag width (:func:`estimate_irf_fwhm`) of ``counts``; when single pixels
     show no pair peak (weak signal: a few tenths of a signal photon per pixel), on
     ``k x k`` pixel blocks, ``k = 2, 4, 8, ...`` while at least ``_MIN_BLOCKS`` blocks
@@ -1183,7 +1213,7 @@ def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
     not the pulse). When no level determines it, the finest level's width (the one taken
     before irf24), with a warning. Returns (FWHM, k); raises
     naming ``irf=`` when no level shows a return. ``seen``: a list given gets the first
-    level whose pairs show a peak (determined or not)."""
+    level whose pairs show a peak (determined or not). ``tilt``: :func:`_pair_lag_fwhm`'s."""
     n_rows, n_cols = int(counts.shape[0]), int(counts.shape[1])
     n_l = int(counts.shape[2]) if counts.ndim == 4 else 1
     if sparse is not None:  # photon lists: (flat voxel index, count) already at hand
@@ -1205,7 +1235,7 @@ def _pooled_fwhm(counts, n_bins: int, sparse, seen=None) -> tuple[float, int]:
             key_p, key_b = u // n_bins, u % n_bins
         bounds: list = []
         try:
-            fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None, bounds)
+            fwhm = _pair_lag_fwhm(key_p, key_b, key_w, n_bins, None, bounds, tilt=tilt)
             if seen is not None and not seen:
                 seen.append(k)
             # the width is taken where it differs from 0 at _WIDTH_Z sigma: its bracket's
