@@ -19,8 +19,13 @@ This bench runs that check, as ``load`` does, on:
   with a Gaussian of half and twice that width;
 * the time of the check on bench_speed's main cube (200 x 200 x 4 x 1500, PPP 30).
 
-Run: ``python benchmarks/bench_irf_width_check.py [--size 32] [--no-sweep] [--no-real]``
-(a few minutes on the 2-core machine).
+``--path cube`` (rob30) runs the check as ``detect`` does on a Cube built from arrays
+(``Cube(counts, irf=...)``, then ``io._check_cube_irf``; an IRF longer than T cropped
+to T - 1 samples first, as a user must) and, in ``speed``, times one ``detect`` on the
+main cube against the check.
+
+Run: ``python benchmarks/bench_irf_width_check.py [--size 32] [--no-sweep] [--no-real]
+[--path load|cube]`` (a few minutes on the 2-core machine).
 """
 
 from __future__ import annotations
@@ -40,6 +45,8 @@ from splidar import io
 from splidar._irf_text import resample_irf
 from splidar.irf import exp_tail_irf, gaussian_irf
 
+#: "load": io._check_irf_width as load runs it; "cube": as detect runs it on a Cube
+PATH = ["load"]
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 DATA = HERE.parents[0] / ".." / "shared" / "data"
@@ -68,7 +75,12 @@ def check(irf, cube):
         counts = cube.counts
         n_bins = counts.shape[-1]
         irf = io._crop_irf(np.atleast_2d(np.asarray(irf, float)), n_bins)
-        r = io._check_irf_width(irf, "given array", counts, n_bins, cube.bin_width_ps)
+        if PATH[0] == "cube":
+            c = splidar.Cube(counts, irf=irf, bin_width_ps=cube.bin_width_ps)
+            t0 = time.perf_counter()  # the Cube's validation is not the check's
+            r = io._check_cube_irf(c)
+        else:
+            r = io._check_irf_width(irf, "given array", counts, n_bins, cube.bin_width_ps)
     finally:
         lg.removeHandler(h)
         lg.setLevel(level)
@@ -249,6 +261,20 @@ def speed() -> None:
     t0 = time.perf_counter()
     io.estimate_irf_fwhm(cube.counts)
     print(f"- for scale: estimate_irf_fwhm on the whole cube {time.perf_counter() - t0:.2f} s")
+    if PATH[0] == "cube":
+        from splidar.detection import detect
+
+        fresh = splidar.Cube(cube.counts, irf=cube.irf, bin_width_ps=cube.bin_width_ps)
+        t0 = time.perf_counter()
+        det = detect(fresh, rng=0)
+        t_det = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        io._check_cube_irf(splidar.Cube(cube.counts, irf=cube.irf))
+        t_chk = time.perf_counter() - t0
+        print(
+            f"- detect (its check included) {t_det:.2f} s, {len(det.points)} points; the "
+            f"check alone {t_chk:.3f} s: {100 * t_chk / t_det:.1f} % of detect"
+        )
 
 
 def main() -> None:
@@ -258,7 +284,9 @@ def main() -> None:
     ap.add_argument("--no-real", action="store_true", help="skip the real files and Art")
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--only", choices=("robustness", "sweep", "art", "real", "speed"))
+    ap.add_argument("--path", choices=("load", "cube"), default="load")
     args = ap.parse_args()
+    PATH[0] = args.path
     logging.basicConfig(level=logging.ERROR)
     parts = {
         "robustness": lambda: robustness(args.size),

@@ -159,7 +159,11 @@ class Cube:
         new array (the caller's is not modified). A 1-D IRF serves every wavelength.
         An IRF longer than T loses its negligible ends (a measured pulse in a long
         record of zeros fits a shorter window).
-        Its peak (argmax) is the depth reference.
+        Its peak (argmax) is the depth reference. Sampled on the cube's bins: an IRF
+        recorded at another step must be resampled (:func:`splidar.irf.resample_irf`);
+        ``detect`` compares its photon-pair width with the data's the first time it
+        runs on this Cube and warns (``splidar.io`` logger) beyond a factor 2, naming
+        the step that would match; nothing is changed.
     bin_width_ps : float, optional
         Width of one time bin in picoseconds; enables depths in metres.
     wavelengths_nm : array_like, shape (L,), optional

@@ -31,6 +31,7 @@ __all__ = [
     "irf_fwhm",
     "irf_peak",
     "normalise_irf",
+    "resample_irf",
     "sample_irf_models",
     "shifted_irf",
     "shifted_irf_window",
@@ -453,6 +454,45 @@ def irf_fwhm(irf) -> float | np.ndarray:
         xr = j - 1 + (g[j - 1] - half) / (g[j - 1] - g[j])
         out[k] = xr - xl
     return float(out[0]) if one else out
+
+
+def resample_irf(irf, step_ps: float, bin_width_ps: float) -> np.ndarray:
+    """An IRF recorded every ``step_ps`` picoseconds, on the cube's bins of ``bin_width_ps``.
+
+    For an IRF array recorded at another step than the cube's bins (a 2 ps IRF for a
+    cube of 16 ps bins): :class:`~splidar.Cube` reads an IRF one sample per bin. The
+    same integration ``splidar.load(..., irf_bin_width_ps=)`` applies.
+
+    Parameters
+    ----------
+    irf : array_like, shape (n,) or (L, n)
+        Non-negative IRF, ``n`` samples ``step_ps`` apart (need not be normalised).
+    step_ps, bin_width_ps : float
+        The IRF's sample step and the cube's bin width, picoseconds (> 0).
+
+    Returns
+    -------
+    ndarray, shape (m,) or (L, m)
+        The IRF integrated over each bin (its cumulative sum interpolated at the bin
+        edges, ``m ~ n step_ps / bin_width_ps``), normalised to sum 1 per row; the peak
+        sample's centre is a bin's centre, so the depth reference (the maximum) stays
+        where the pulse peaks.
+
+    Examples
+    --------
+    >>> g2 = gaussian_irf(24.0)  # a 3-bin pulse recorded 8 x finer
+    >>> g = resample_irf(g2, 2.0, 16.0)
+    >>> round(float(irf_fwhm(g)), 1), round(float(g.sum()), 12)
+    (3.1, 1.0)
+    """
+    from ._irf_text import resample_irf as _resample
+
+    step = check_positive(step_ps, "step_ps")
+    bw = check_positive(bin_width_ps, "bin_width_ps")
+    a = normalise_irf(irf)
+    out = _resample(a, step, bw)
+    out = out / out.sum(axis=1, keepdims=True)
+    return out[0] if np.ndim(irf) == 1 else out
 
 
 def as_irf_models(irf, *, n_wavelengths: int | None = None) -> tuple:

@@ -21,6 +21,7 @@ from .._validation import (
     describe,
 )
 from ..cube import Cube
+from ..io import _check_cube_irf
 from . import _4_map
 from ._1_background import estimate_temporal_background
 from ._2_saliency import coherent_scales, region_scales, saliency_filters
@@ -180,7 +181,7 @@ def detect(
     Parameters
     ----------
     cube : Cube
-        Counts ``(rows, cols, L, T)`` with the IRF.
+        Counts ``(rows, cols, L, T)`` with the IRF (its width checked once: see Cube).
     scales : "auto" or sequence of positive odd int
         Spatial pooling: box sizes ``k_q`` (sorted ascending, with their weights).
         ``"auto"`` (default): ``(1, 3, 7, 11)`` less the boxes whose neighbours share the
@@ -399,12 +400,14 @@ def _by_region(det: Detection, o: dict, store) -> Detection:
 
 def _stuck_pixels_first(cube: Cube, o: dict):
     """The cube without its stuck pixels (:func:`_without_hot_pixels`), how stage 1
-    reads its windows (None: in memory), and when stage 1's timing starts.
+    reads its windows (None: in memory), and when stage 1's timing starts. A Cube built
+    from arrays has its IRF's width checked first (``io._check_cube_irf``: warns only).
 
     A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
     pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
     unless pixels were masked; any other Dask cube is reduced to its totals, then read
     again for the windows (``_tiled.tiled_window_means``)."""
+    _check_cube_irf(cube)  # a Cube built from arrays: its IRF's width (warns only, once)
     t0 = time.perf_counter()
     first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
     cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
