@@ -248,6 +248,26 @@ def _poisson_z(n, mu):
     return np.sqrt(max(dev, 0.0))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _fine_peak(fr, st, en, t):
+    """Whether bin ``t`` of ``[st, en)`` is a peak of the fine response ``fr`` (T,) that
+    :func:`_fine_split` tests: an interior local maximum, or the window's first or last
+    bin (``t`` = 0 or T - 1, at the segment's edge) where ``fr`` falls away from it into
+    the segment: a return whose maximum lies at or past the window's edge (cut there, a
+    wall behind a net at the window's end) has no interior maximum, and the weaker
+    return before it would otherwise never be tested (foreign23's "net" cases)."""
+    T = fr.size
+    if t > st and t < en - 1:
+        return fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]
+    if en - st < 2:
+        return False
+    if t == T - 1 and t == en - 1:
+        return fr[t] > fr[t - 1]
+    if t == 0 and t == st:
+        return fr[t] > fr[t + 1]
+    return False
+
+
 @njit(cache=True, nogil=True)
 def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, cand, vals, acc):
     """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
@@ -260,7 +280,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     (:func:`_poisson_z`; ``n`` the segment's bins, the places a second return was
     looked for: ``z`` against the largest of ``n`` background values): the
     return at ``p`` holds ``fr[p] / gmin`` photons (``gmin``: the smallest ``sum g^2``),
-    a fraction ``tail[k]`` of them in the window ``k = |q - p|`` bins away. Writes the
+    a fraction ``tail[0, k]`` of them in the window ``k = q - p`` bins behind it, ``tail[1, k]``
+    in the window ``k = p - q`` bins in front (its rise, not its tail). Writes the
     accepted peaks in increasing order into ``peaks`` and the cuts (the response's
     minimum between two consecutive peaks) into ``cuts``; returns their number (1: not
     split). ``nr`` and ``mr`` are read only at the interior local maxima of ``fr``.
@@ -270,8 +291,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     if n < 3 or z <= 0:
         return 1
     nc = 0
-    for t in range(st + 1, en - 1):
-        if fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]:
+    for t in range(st, en):
+        if _fine_peak(fr, st, en, t):
             cand[nc] = t
             nc += 1
     if nc < 2:
@@ -300,7 +321,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
             if k < min_sep:
                 ok = False
                 break
-            spill = tail[k] * max(fr[p], 0.0) / gmin if k < tail.size else 0.0
+            side = 0 if q > p else 1  # q behind p: p's tail; in front: its rise
+            spill = tail[side, k] * max(fr[p], 0.0) / gmin if k < tail.shape[1] else 0.0
             if _poisson_z(nr[q], mr[q] + spill) < z_need:
                 ok = False
                 break
@@ -339,8 +361,8 @@ def _fine_of_run(c, y, sp, dev, win, a, b, fr, nr, mr):
     of ``fr`` (a segment's are its run's)."""
     for u in range(a, b):
         fr[u] = np.float32(_fine_f(c, sp, dev, u))
-    for u in range(a + 1, b - 1):
-        if fr[u] >= fr[u - 1] and fr[u] > fr[u + 1]:
+    for u in range(a, b):
+        if _fine_peak(fr, a, b, u):
             n, mu = _fine_counts(y, sp, dev, win, u)
             nr[u] = np.float32(n)
             mr[u] = np.float32(mu)
