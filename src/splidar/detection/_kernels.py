@@ -248,26 +248,6 @@ def _poisson_z(n, mu):
     return np.sqrt(max(dev, 0.0))
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _fine_peak(fr, st, en, t):
-    """Whether bin ``t`` of ``[st, en)`` is a peak of the fine response ``fr`` (T,) that
-    :func:`_fine_split` tests: an interior local maximum, or the window's first or last
-    bin (``t`` = 0 or T - 1, at the segment's edge) where ``fr`` falls away from it into
-    the segment: a return whose maximum lies at or past the window's edge (cut there, a
-    wall behind a net at the window's end) has no interior maximum, and the weaker
-    return before it would otherwise never be tested (foreign23's "net" cases)."""
-    T = fr.size
-    if t > st and t < en - 1:
-        return fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]
-    if en - st < 2:
-        return False
-    if t == T - 1 and t == en - 1:
-        return fr[t] > fr[t - 1]
-    if t == 0 and t == st:
-        return fr[t] > fr[t + 1]
-    return False
-
-
 @njit(cache=True, nogil=True)
 def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, cand, vals, acc):
     """Peaks of the own pixel's fine response ``fr`` in the segment ``[st, en)`` that
@@ -291,8 +271,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     if n < 3 or z <= 0:
         return 1
     nc = 0
-    for t in range(st, en):
-        if _fine_peak(fr, st, en, t):
+    for t in range(st + 1, en - 1):
+        if fr[t] >= fr[t - 1] and fr[t] > fr[t + 1]:
             cand[nc] = t
             nc += 1
     if nc < 2:
@@ -343,6 +323,31 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     return na
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _own_part(fr, peaks, nf, win):
+    """Which of the ``nf`` parts of a split segment is its own (the rest are returns
+    the split added, :func:`find_segments`): the one with the strongest fine response
+    ``fr`` at its peak among those whose half-peak window (``win`` (L, 2), widest over
+    the wavelengths) lies inside the window, else the strongest. A return peaking at
+    or past the window's end shows only its rise there; on strength alone that part
+    took the segment from the return before it (a net before a wall at the window's
+    end, benchmarks/README.md "gap30, session 22")."""
+    T = fr.size
+    lo, hi = win[:, 0].min(), win[:, 1].max()
+    w0 = -1
+    for w in range(nf):
+        if peaks[w] + hi < T and peaks[w] + lo >= 0:
+            if w0 < 0 or fr[peaks[w]] > fr[peaks[w0]]:
+                w0 = w
+    if w0 >= 0:
+        return w0
+    w0 = 0
+    for w in range(1, nf):
+        if fr[peaks[w]] > fr[peaks[w0]]:
+            w0 = w
+    return w0
+
+
 @njit(cache=True, nogil=True)
 def _segment_sums(s, e, a, b):
     m = 0.0
@@ -361,8 +366,8 @@ def _fine_of_run(c, y, sp, dev, win, a, b, fr, nr, mr):
     of ``fr`` (a segment's are its run's)."""
     for u in range(a, b):
         fr[u] = np.float32(_fine_f(c, sp, dev, u))
-    for u in range(a, b):
-        if _fine_peak(fr, a, b, u):
+    for u in range(a + 1, b - 1):
+        if fr[u] >= fr[u - 1] and fr[u] > fr[u + 1]:
             n, mu = _fine_counts(y, sp, dev, win, u)
             nr[u] = np.float32(n)
             mr[u] = np.float32(mu)
@@ -507,10 +512,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     # the fine response's peak (d's, the coarse blend of both, lies
                     # between them)
                     lo = seg_start[u]
-                    w0 = 0  # the strongest part: the rest are returns the split added
-                    for w in range(1, nf):
-                        if fr[f_peaks[w]] > fr[f_peaks[w0]]:
-                            w0 = w
+                    w0 = _own_part(fr, f_peaks, nf, win)  # the rest: parts the split added
                     for w in range(nf):
                         hi = f_cuts[w] if w < nf - 1 else seg_stop[u]
                         pk = f_peaks[w]
