@@ -203,11 +203,12 @@ def split_rule(
         Normalised IRF.
     z : float
         The Poisson z a second return's photons need beside the first (0: no split).
-    data : ndarray (m,), optional
-        The same fraction measured on the data's own returns (:func:`data_tail`):
-        ``tail`` is the larger of the IRF's and this at each offset (and as long as
-        the longer), so a real return's tail heavier than the IRF's is not taken for a
-        second return, and nothing changes where the IRF is right.
+    data : ndarray (2, m) or (m,), optional
+        The same fraction measured on the data's own returns (:func:`data_tail`), after
+        / before the peak (one row: both sides): ``tail`` is the larger of the IRF's
+        and this at each offset and side (and as long as the longer), so a real
+        return's tail heavier than the IRF's is not taken for a second return, and
+        nothing changes where the IRF is right.
 
     reach : float
         A second return is looked for only within ``reach`` FWHMs (the half-peak
@@ -215,11 +216,14 @@ def split_rule(
 
     Returns
     -------
-    (z, tail, gmin, win, reach) : (float, ndarray (n_irf,), float, ndarray (L, 2), int)
+    (z, tail, gmin, win, reach) : (float, ndarray (2, n_irf), float, ndarray (L, 2), int)
         ``win[l]``: offsets from a response's bin to the first and last bin where the
         IRF of a return peaking there is above half its peak (the half-peak window);
-        ``tail[k]``: the fraction of one return's photons in the half-peak window of a
-        bin ``k`` bins from its peak (the largest over the wavelengths and both sides);
+        ``tail[0, k]`` / ``tail[1, k]``: the fraction of one return's photons in the
+        half-peak window of a bin ``k`` bins after / before its peak (the largest over
+        the wavelengths). Each side its own: a tailed return (a SPAD's, a real one)
+        puts its tail behind its peak, so a weaker return in front of it (a net before
+        a wall) is not judged against the tail behind it;
         ``gmin``: the smallest ``sum g^2`` (one photon's matched-filter response);
         ``reach``: in bins (0: anywhere).
     slack : float
@@ -230,22 +234,25 @@ def split_rule(
     g = np.asarray(irf, np.float64)
     L, n = g.shape
     win = np.zeros((L, 2), np.int64)
-    tail = np.zeros(n)
+    tail = np.zeros((2, n))
     for l in range(L):
         p = int(np.argmax(g[l]))
         above = np.flatnonzero(g[l] >= 0.5 * g[l, p])
         lo, hi = int(above[0]) - p, int(above[-1]) - p
         win[l] = lo, hi
-        # a return peaking at 0: its photon at bin u has probability g[p + u]
+        # a return peaking at 0: its photon at bin u has probability g[p + u]; side 0
+        # the window k bins after its peak, side 1 k bins before
         for k in range(n):
-            for sgn in (1, -1):
+            for side, sgn in enumerate((1, -1)):
                 idx = p + sgn * k + np.arange(lo, hi + 1)
                 ok = (idx >= 0) & (idx < n)
-                tail[k] = max(tail[k], float(g[l, idx[ok]].sum()))
+                tail[side, k] = max(tail[side, k], float(g[l, idx[ok]].sum()))
     if data is not None and data.size:
-        m = max(n, data.size)
-        both = np.zeros((2, m))
-        both[0, :n], both[1, : data.size] = tail, data
+        data = np.atleast_2d(np.asarray(data, np.float64))
+        data = np.broadcast_to(data, (2, data.shape[-1]))
+        m = max(n, data.shape[1])
+        both = np.zeros((2, 2, m))
+        both[0, :, :n], both[1, :, : data.shape[1]] = tail, data
         tail = both.max(axis=0)
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     reach_bins = int(np.ceil(reach * fw)) if reach > 0 else 0
@@ -263,7 +270,7 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
     are pooled: their background-subtracted photons in the half-peak window ``k`` bins
     before and after the peak, over their summed matched-filter peak response divided
     by ``sum g^2`` (the photons :func:`~splidar.detection._kernels._fine_split` gives a
-    return), the larger side. Made non-increasing in ``k`` (a running minimum), so that
+    return), each side its own. Made non-increasing in ``k`` (a running minimum), so that
     second returns at a common distance (a scene of close pairs) do not raise it past
     the dip before them. Background: each pixel's median matched-filtered level plus
     the temporal shape ``dev``.
@@ -280,8 +287,9 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
 
     Returns
     -------
-    ndarray (m,) float64
-        ``m = n_irf + 4 x`` the half-peak width; empty when fewer than 20 pixels qualify.
+    ndarray (2, m) float64
+        After / before the peak; ``m = n_irf + 4 x`` the half-peak width; empty (size 0)
+        when fewer than 20 pixels qualify.
     """
     from scipy.ndimage import correlate1d
 
@@ -376,8 +384,8 @@ def _pooled_tail(ya, b, photons, win, i0, m):
                     break
                 out[j] = out[jmin]
             res[l, sl] = out
-    out = _windows(res[None], win, i0, m)[0].max(axis=1)
-    return np.minimum.accumulate(np.maximum(out / photons, 0.0))
+    out = _windows(res[None], win, i0, m)[0].T  # (2, m): after / before the peak
+    return np.minimum.accumulate(np.maximum(out / photons, 0.0), axis=1)
 
 
 def evidence(sal, thr):

@@ -260,7 +260,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     (:func:`_poisson_z`; ``n`` the segment's bins, the places a second return was
     looked for: ``z`` against the largest of ``n`` background values): the
     return at ``p`` holds ``fr[p] / gmin`` photons (``gmin``: the smallest ``sum g^2``),
-    a fraction ``tail[k]`` of them in the window ``k = |q - p|`` bins away. Writes the
+    a fraction ``tail[0, k]`` of them in the window ``k = q - p`` bins behind it, ``tail[1, k]``
+    in the window ``k = p - q`` bins in front (its rise, not its tail). Writes the
     accepted peaks in increasing order into ``peaks`` and the cuts (the response's
     minimum between two consecutive peaks) into ``cuts``; returns their number (1: not
     split). ``nr`` and ``mr`` are read only at the interior local maxima of ``fr``.
@@ -300,7 +301,8 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
             if k < min_sep:
                 ok = False
                 break
-            spill = tail[k] * max(fr[p], 0.0) / gmin if k < tail.size else 0.0
+            side = 0 if q > p else 1  # q behind p: p's tail; in front: its rise
+            spill = tail[side, k] * max(fr[p], 0.0) / gmin if k < tail.shape[1] else 0.0
             if _poisson_z(nr[q], mr[q] + spill) < z_need:
                 ok = False
                 break
@@ -319,6 +321,31 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
                 m = t
         cuts[i] = m
     return na
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _own_part(fr, peaks, nf, win):
+    """Which of the ``nf`` parts of a split segment is its own (the rest are returns
+    the split added, :func:`find_segments`): the one with the strongest fine response
+    ``fr`` at its peak among those whose half-peak window (``win`` (L, 2), widest over
+    the wavelengths) lies inside the window, else the strongest. A return peaking at
+    or past the window's end shows only its rise there; on strength alone that part
+    took the segment from the return before it (a net before a wall at the window's
+    end, benchmarks/README.md "gap30, session 22")."""
+    T = fr.size
+    lo, hi = win[:, 0].min(), win[:, 1].max()
+    w0 = -1
+    for w in range(nf):
+        if peaks[w] + hi < T and peaks[w] + lo >= 0:
+            if w0 < 0 or fr[peaks[w]] > fr[peaks[w0]]:
+                w0 = w
+    if w0 >= 0:
+        return w0
+    w0 = 0
+    for w in range(1, nf):
+        if fr[peaks[w]] > fr[peaks[w0]]:
+            w0 = w
+    return w0
 
 
 @njit(cache=True, nogil=True)
@@ -485,10 +512,7 @@ def find_segments(mask, d, s, e, min_sep, rho, fine, split):
                     # the fine response's peak (d's, the coarse blend of both, lies
                     # between them)
                     lo = seg_start[u]
-                    w0 = 0  # the strongest part: the rest are returns the split added
-                    for w in range(1, nf):
-                        if fr[f_peaks[w]] > fr[f_peaks[w0]]:
-                            w0 = w
+                    w0 = _own_part(fr, f_peaks, nf, win)  # the rest: parts the split added
                     for w in range(nf):
                         hi = f_cuts[w] if w < nf - 1 else seg_stop[u]
                         pk = f_peaks[w]
