@@ -295,3 +295,45 @@ def test_write_rows_writes_each_chunk_once(tmp_path, monkeypatch):
     assert sorted(written) == sorted(set(written)) and len(written) == 3
     _table.write_rows(z, idx[:0], values[:0])  # nothing to write: no error
     assert len(written) == 3
+
+
+def test_open_store_saliency_supports_read_in_pieces(tmp_path, monkeypatch):
+    """The stored saliency's chunks are shards of one-row pieces: the map pass writes each
+    shard once (one file per tile's chunk, as before), a support read back by
+    ``support_sums`` fetches its piece's bytes only, and the values are the ones written."""
+    from splidar.detection import _4_map
+
+    monkeypatch.setattr(_4_map, "SALIENCY_PIECE_BYTES", 3 * 40 * 4)  # 3 columns of T = 40
+    R, C, T = 9, 12, 40
+    rng = np.random.default_rng(4)
+    sal = rng.gamma(2.0, 1.0, (R, C, T)).astype(np.float32)
+    out = _4_map._open_store(tmp_path / "s", (R, C, T), 4, block_cols=6)
+    z = out["saliency"]
+    assert z.shards == (4, 6, T) and z.chunks == (1, 3, T)
+    store = z.store_path.store
+    written, fetched = [], []
+    real_set, real_get = type(store).set, type(store).get
+
+    async def counted_set(self, key, value, *a, **k):
+        written.append(key)
+        return await real_set(self, key, value, *a, **k)
+
+    async def counted_get(self, key, prototype, byte_range=None):
+        got = await real_get(self, key, prototype, byte_range)
+        fetched.append((key, byte_range, 0 if got is None else len(got)))
+        return got
+
+    monkeypatch.setattr(type(store), "set", counted_set)
+    monkeypatch.setattr(type(store), "get", counted_get)
+    for r0 in range(0, R, 4):  # the tiles of 4 x 6 pixels, as the map pass writes them
+        for c0 in range(0, C, 6):
+            _4_map._put(z, r0, c0, sal[r0 : r0 + 4, c0 : c0 + 6])
+    assert len(written) == len(set(written)) == 3 * 2  # each shard written once
+    np.testing.assert_array_equal(z[...], sal)
+    fetched.clear()
+    mass, ev = support_sums(z, 1.5, np.array([5]), np.array([7]), np.array([10]), np.array([19]))
+    assert mass[0] == np.float64(sal[5, 7, 10:19].astype(np.float64).sum())
+    assert ev[0] == np.maximum(sal[5, 7, 10:19].astype(np.float64) / 1.5 - 1.0, 0.0).sum()
+    # the shard's index and one piece (a row of 3 columns), never the whole shard
+    assert fetched and all(r is not None for _, r, _ in fetched)
+    assert max(n for *_, n in fetched) == 3 * T * 4
