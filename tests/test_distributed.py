@@ -108,7 +108,7 @@ def test_detect_dask_store_written_by_the_tiles(tmp_path):
     cube, lazy = _cubes(*_varying_cube(shape=(20, 16), n_bins=100, seed=3), (5, 16, 1, 100))
     a = splidar.detect(cube, rng=0)
     b = splidar.detect(lazy, rng=0, block_rows=6, store=tmp_path / "s")
-    assert isinstance(b.saliency, zarr.Array) and b.saliency.shards[0] == 6
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[0] == 6
     _assert_same_detection(a, b)
 
 
@@ -121,7 +121,7 @@ def test_detect_dask_store_written_by_2d_tiles(tmp_path, monkeypatch):
     a = splidar.detect(cube, rng=0)
     monkeypatch.setattr(_tiled, "TILE_COLS", 7)
     b = splidar.detect(lazy, rng=0, block_rows=6, store=tmp_path / "s")
-    assert isinstance(b.saliency, zarr.Array) and b.saliency.shards[:2] == (6, 7)
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[:2] == (6, 7)
     _assert_same_detection(a, b)
     # each tile stored its candidates' histograms under its own key (row and column)
     np.testing.assert_array_equal(np.asarray(b.surfaces.histograms), a.surfaces.histograms)

@@ -39,7 +39,7 @@ def test_detect_store_writes_arrays_to_zarr_and_matches_memory(tmp_path):
     lazy = load(tmp_path / "c.zarr")
     a = splidar.detect(cube, rng=1, block_rows=7)
     b = splidar.detect(lazy, rng=1, block_rows=7, n_jobs=2, store=tmp_path / "det")
-    assert isinstance(b.saliency, zarr.Array) and b.saliency.shards[0] == 7
+    assert isinstance(b.saliency, zarr.Array) and b.saliency.chunks[0] == 7
     np.testing.assert_array_equal(np.asarray(b.saliency), a.saliency)
     np.testing.assert_array_equal(np.asarray(b.mask), a.mask)
     assert np.ndim(a.threshold) == 3

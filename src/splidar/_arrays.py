@@ -12,17 +12,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["row_blocks", "sample_rows", "sum_over_rows", "write_chunks"]
+__all__ = ["row_blocks", "sample_rows", "sum_over_rows"]
 
 #: Values read at once by :func:`row_blocks` (about 64 MB of float32).
 _BLOCK_VALUES = 1 << 24
-
-
-def write_chunks(z) -> tuple[int, ...]:
-    """The pieces a Zarr array is written by without reading back: its shards when it is
-    sharded (Zarr's ``chunks`` are then the inner chunks, each a part of a shard file),
-    else its chunks."""
-    return tuple(getattr(z, "shards", None) or z.chunks)
 
 
 def row_blocks(a, *, max_values: int = _BLOCK_VALUES) -> Iterator[np.ndarray]:

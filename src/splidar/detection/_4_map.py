@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .._arrays import write_chunks
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration, split_rule
@@ -337,7 +336,7 @@ def _buffer(work, key: str, shape, dtype) -> np.ndarray:
 
 def _put(dst, r0: int, c0: int, value: np.ndarray) -> None:
     """``dst[r0:, c0:] = value`` (``value`` an ``(r, c, ...)`` array); a Zarr array is
-    written one chunk (a sharded one, one shard) at a time.
+    written one chunk at a time.
 
     Zarr (3.x) takes a write that covers exactly one chunk as it is; a write over several
     chunks makes each one a new fill-value array and copies its part in (two passes over
@@ -346,7 +345,7 @@ def _put(dst, r0: int, c0: int, value: np.ndarray) -> None:
     them (rows and columns cut at the chunk grid), so the stored values are the same.
     """
     r1, c1 = r0 + value.shape[0], c0 + value.shape[1]
-    chunks = write_chunks(dst) if type(dst).__module__.startswith("zarr") else None
+    chunks = getattr(dst, "chunks", None) if type(dst).__module__.startswith("zarr") else None
     if chunks is None:
         dst[r0:r1, c0:c1] = value
         return
@@ -633,41 +632,16 @@ def _open_store(store, shape, block_rows: int, block_cols=None) -> dict:
     R, C, T = shape
     ch = (min(block_rows, R), C if block_cols is None else min(block_cols, C), T)
     # the saliency's float noise does not compress (zstd: 1.1 x, at a fifth of the disk's
-    # write speed); the sparse mask ~150 x with Zarr's default zstd. The saliency's chunks
-    # are shards of small inner chunks (:func:`saliency_pieces`): the stages that read it
-    # back at a few surfaces' supports (``support_sums``) decode those pieces only
+    # write speed); the sparse mask ~150 x with Zarr's default zstd
     out = dict(
         saliency=g.create_array(
-            "saliency",
-            shape=shape,
-            shards=ch,
-            chunks=saliency_pieces(ch, 4),
-            dtype="float32",
-            compressors=None,
-        ),  # fmt: skip
+            "saliency", shape=shape, chunks=ch, dtype="float32", compressors=None
+        ),
         mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
     )
     out = {k: writer(v) for k, v in out.items()}
     out["threshold"] = None
     return out
-
-
-#: Most bytes of one inner chunk of the stored saliency (:func:`saliency_pieces`).
-SALIENCY_PIECE_BYTES = 1 << 19
-
-
-def saliency_pieces(chunk, itemsize: int) -> tuple[int, int, int]:
-    """The inner chunks of a stored saliency's shards of shape ``chunk`` = (rows, cols, T):
-    one row, and the most columns that divide ``cols`` and hold at most
-    :data:`SALIENCY_PIECE_BYTES` (at least one column: a pixel's whole series).
-
-    A voxel read by coordinate selection decodes its inner chunk (512 kB at most, e.g. a
-    row of a 90-column tile at T = 1000: 360 kB) instead of its whole shard (16 x 90 x
-    1000 float32: 5.8 MB); a shard is still written as one file by one task."""
-    rows, cols, T = (int(x) for x in chunk)
-    per_col = T * int(itemsize)
-    fit = [d for d in range(1, cols + 1) if cols % d == 0 and d * per_col <= SALIENCY_PIECE_BYTES]
-    return (1, max(fit, default=1), T)
 
 
 def writer(z):

@@ -17,7 +17,6 @@ from types import MappingProxyType
 
 import numpy as np
 
-from .._arrays import write_chunks
 from ._result import Background, DataReduction, Detection, StoredHistograms, Surfaces
 from ._threshold import ThresholdField
 
@@ -163,7 +162,7 @@ def _merge_pixels(arrays: list, label: np.ndarray):
             m = label == i
             dst[m] = np.asarray(a)[m] if isinstance(a, np.ndarray) else _rows(a, m)
         return dst
-    step = int(write_chunks(dst)[0])  # whole shards (chunks): none read back and merged
+    step = int(dst.chunks[0])
     for r0 in range(0, dst.shape[0], step):
         lab = label[r0 : r0 + step]
         if not (lab > 0).any():
