@@ -140,3 +140,37 @@ def test_move_far_depths_moved_surface_fields_follow_its_depth():
     keys = ("depth_bin", "offset", "start", "stop", "histograms", "signal", "counts")
     for k in keys + ("scale_index", "presence_llr", "presence_z"):
         assert np.array_equal(getattr(lazy, k), getattr(out, k)), k
+
+
+def test_window_fields_threads_give_the_same_fields():
+    # 12 x 12 pixels, every one refitted at a depth off its window (144 surfaces: the
+    # split over threads starts at 64): n_jobs 2 (and a lazy cube) gives n_jobs 1's
+    # fields bit for bit
+    from splidar.detection._7_align_depths import _window_fields
+
+    rng = np.random.default_rng(3)
+    n, W, scales = 144, 9, np.array([1, 3])
+    rows, cols = np.divmod(np.arange(n), 12)
+    depth = rng.uniform(30, 170, n)
+    counts = rng.poisson(0.3, (12, 12, 2, T)).astype(np.uint16)
+    surf = Surfaces(
+        row=rows, col=cols, slot=np.zeros(n, int), depth_bin=depth,
+        start=depth.astype(int) - 2, stop=depth.astype(int) + 3, scale_index=np.zeros(n, int),
+        offset=np.zeros(n, int), histograms=np.zeros((n, 2, 2, W), np.float32),
+        signal=np.full((n, 2, 2), 0.8), counts=np.ones((n, 2)), background=np.zeros((n, 2)),
+        saliency_mass=np.ones(n), image_shape=(12, 12), n_slots=1,
+        presence_llr=np.zeros(n), presence_z=np.zeros(n),
+    )  # fmt: skip
+    bg = Background(
+        spatial=np.full((12, 12, 2), 0.3, np.float32), temporal=np.full((2, T), 0.3, np.float32)
+    )
+    irf = np.repeat(gaussian_irf(3.0)[None], 2, axis=0)
+    idx, refit = np.arange(n), np.arange(n) % 3 > 0
+    one = _window_fields(surf, idx, refit, counts, bg, scales, irf, n_jobs=1)
+    import dask.array as da
+
+    for cube, nj in ((counts, 2), (da.from_array(counts, chunks=(5, 12, 2, T)), 2)):
+        two = _window_fields(surf, idx, refit, cube, bg, scales, irf, n_jobs=nj)
+        for k in ("offset", "histograms", "signal", "scale_index", "presence_llr", "presence_z"):
+            assert np.array_equal(getattr(two, k), getattr(one, k)), k
+    assert np.asarray(one.histograms).any() and not np.array_equal(one.offset, surf.offset)

@@ -23,6 +23,7 @@ from ._quality import _shifted_irf, align_depths
 from ._result import STAGES, StoredHistograms, Surfaces
 from ._slopes import _row_bands, _zarr_of, pixels_of, support_sums, surface_fields
 from ._table import write_rows
+from ._threads import on_parts
 from ._tiled import is_dask
 
 __all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
@@ -68,6 +69,7 @@ def align_surface_depths(
     scales=None,
     saliency=None,
     threshold=None,
+    n_jobs: int = 1,
 ) -> DepthAlignment:
     """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
 
@@ -90,6 +92,9 @@ def align_surface_depths(
     saliency, threshold : optional
         ``Detection.saliency`` and ``.threshold``: the ``saliency_mass`` and ``evidence``
         of a surface whose support moved are summed over the new support.
+    n_jobs : int
+        Threads for the moved surfaces' fields (:func:`_window_fields`); the result does
+        not depend on it.
 
     Returns
     -------
@@ -111,7 +116,9 @@ def align_surface_depths(
     far = np.zeros(0, np.int64)
     if FAR_DEPTHS and counts is not None and background is not None and scales is not None:
         out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf)
-        out, refit = _moved_fields(out, s.depth_bin, far, counts, background, scales, irf)
+        out, refit = _moved_fields(
+            out, s.depth_bin, far, counts, background, scales, irf, n_jobs=n_jobs
+        )
         out = _support_fields(out, refit, saliency, threshold)
     moved = np.flatnonzero(out.depth_bin != np.asarray(s.depth_bin, np.float64))
     code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
@@ -120,7 +127,7 @@ def align_surface_depths(
     return DepthAlignment(out, int(moved.size), time.perf_counter() - t0)
 
 
-def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf) -> tuple:
+def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf, *, n_jobs=1) -> tuple:
     """Every field of the surfaces stage 7 moved at their new depths (``old``: the
     depths before it; ``far``: those :func:`_far_moves` moved, whose supports and own
     counts followed already). A depth the sheared pool moved inside its support keeps
@@ -146,7 +153,8 @@ def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf) -> tup
     idx = np.union1d(refit, sheared)
     if not idx.size:
         return s, refit
-    return _window_fields(s, idx, np.isin(idx, refit), counts, background, scales, irf), refit
+    refit_m = np.isin(idx, refit)
+    return _window_fields(s, idx, refit_m, counts, background, scales, irf, n_jobs=n_jobs), refit
 
 
 #: One-sided alternatives extrapolate a neighbour's surface over two pixels along one of
@@ -294,6 +302,7 @@ def move_far_depths(
     scales,
     saliency=None,
     threshold=None,
+    n_jobs: int = 1,
 ) -> tuple[Surfaces, int]:
     """Move surfaces far from what their neighbours hold where the own counts favour it.
 
@@ -330,7 +339,8 @@ def move_far_depths(
     out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf)
     if moved.size == 0:
         return surfaces, 0
-    out = _window_fields(out, moved, np.ones(moved.size, bool), counts, background, scales, irf)
+    ones = np.ones(moved.size, bool)
+    out = _window_fields(out, moved, ones, counts, background, scales, irf, n_jobs=n_jobs)
     return _support_fields(out, moved, saliency, threshold), int(moved.size)
 
 
@@ -414,7 +424,9 @@ def _follow(start, stop, own_counts, own_bg, i, old, to, y, b, W, T) -> None:
     own_bg[i] = b[:, start[i] : stop[i]].sum(axis=-1)
 
 
-def _window_fields(s: Surfaces, idx, refit, counts, background, scales, irf) -> Surfaces:
+def _window_fields(
+    s: Surfaces, idx, refit, counts, background, scales, irf, *, n_jobs: int = 1
+) -> Surfaces:
     """``offset``, clean ``histograms``, ``signal``, ``scale_index``, ``presence_llr``
     and ``presence_z`` of surfaces ``idx`` recomputed at their depths over their
     supports, as extraction computes them; where ``refit`` (``idx.size``, bool) is
@@ -430,7 +442,9 @@ def _window_fields(s: Surfaces, idx, refit, counts, background, scales, irf) -> 
     ``presence_llr`` the own counts' log-likelihood ratio with the local scale's signal
     (``_llr_one``, as ``extract_surfaces``) over the surface's window; ``presence_z``
     the local scale's z at the depth (``surface_fields``, as ``_local_z``). The raw
-    counts are read a band of rows at a time from a lazy cube (``_row_bands``)."""
+    counts are read a band of rows at a time from a lazy cube (``_row_bands``); each
+    band's surfaces are split over ``n_jobs`` threads (``surface_fields`` releases the
+    GIL; every surface's fields are computed alone, so the split changes no value)."""
     scales = np.asarray(scales, np.int64)
     refit = np.asarray(refit, bool)
     irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
@@ -455,13 +469,18 @@ def _window_fields(s: Surfaces, idx, refit, counts, background, scales, irf) -> 
     win = np.asarray(s.offset, np.int64)[idx].copy()
     s_pool = np.zeros((n, L))
     for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2):
-        part = {k: v[sel] for k, v in o.items()}
-        surface_fields(
-            y, int(y0), sp, dev, rows[sel], cols[sel], depth[sel], s_pool[sel], scales, irf,
-            peak, gsq, W, int(qloc), *part.values(),
-        )  # fmt: skip
-        for k, v in part.items():
-            o[k][sel] = v
+
+        def fields(a, b, sel=sel, y=y, y0=y0):
+            ss = sel[a:b]
+            part = {k: v[ss] for k, v in o.items()}
+            surface_fields(
+                y, int(y0), sp, dev, rows[ss], cols[ss], depth[ss], s_pool[ss], scales, irf,
+                peak, gsq, W, int(qloc), *part.values(),
+            )  # fmt: skip
+            for k, v in part.items():
+                o[k][ss] = v
+
+        on_parts(fields, sel.size, n_jobs if sel.size >= 64 else 1)
         for m in sel:
             if refit[m]:
                 win[m] = o["offset"][m]

@@ -961,7 +961,8 @@ def relabel_edge_bands(
     for k, i in enumerate(moved):
         _follow(start, stop, own_counts, own_bg, i, old[i], depth[i], ys[k], bs[k], W, T)
     out = replace(s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg)
-    out = _window_fields(out, moved, np.ones(moved.size, bool), counts, background, scales, irf)
+    ones = np.ones(moved.size, bool)
+    out = _window_fields(out, moved, ones, counts, background, scales, irf, n_jobs=n_jobs)
     out = _support_fields(out, moved, saliency, threshold)
     code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
     code[moved] = STAGES.index("edge_bands")

@@ -507,6 +507,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
         aligned = align_surface_depths(
             surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
             scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
+            n_jobs=o["n_jobs"],
         )  # fmt: skip
         surfaces = aligned.surfaces
     banded = None
