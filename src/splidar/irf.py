@@ -478,6 +478,13 @@ def resample_irf(irf, step_ps: float, bin_width_ps: float) -> np.ndarray:
         sample's centre is a bin's centre, so the depth reference (the maximum) stays
         where the pulse peaks.
 
+    Raises
+    ------
+    SplidarError
+        ``step_ps`` or ``bin_width_ps`` not a finite number > 0, or ``irf`` not a
+        non-negative numeric array of one or two dimensions with a positive sum
+        (:func:`normalise_irf`'s checks).
+
     Examples
     --------
     >>> g2 = gaussian_irf(24.0)  # a 3-bin pulse recorded 8 x finer
