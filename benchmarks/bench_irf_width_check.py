@@ -1,8 +1,8 @@
 """False alarms and hits of ``load``'s IRF width check (irfw29).
 
 ``splidar.load`` compares a supplied IRF's photon-pair width with the data's own
-(:func:`splidar.io._check_irf_width`) and warns when they differ by more than
-``io._IRF_WIDTH_FACTOR`` (and the IRF's width lies outside the data's 3-sigma bracket).
+(:func:`splidar._irf_width.check_irf_width`) and warns when they differ by more than
+``_irf_width._IRF_WIDTH_FACTOR`` (and the IRF's width lies outside the data's 3-sigma bracket).
 This bench runs that check, as ``load`` does, on:
 
 * every cube of ``bench_robustness.py`` (its sensors: T, bin widths, narrow and wide,
@@ -20,7 +20,7 @@ This bench runs that check, as ``load`` does, on:
 * the time of the check on bench_speed's main cube (200 x 200 x 4 x 1500, PPP 30).
 
 ``--path cube`` (rob30) runs the check as ``detect`` does on a Cube built from arrays
-(``Cube(counts, irf=...)``, then ``io._check_cube_irf``; an IRF longer than T cropped
+(``Cube(counts, irf=...)``, then ``_irf_width.check_cube_irf``; an IRF longer than T cropped
 to T - 1 samples first, as a user must) and, in ``speed``, times one ``detect`` on the
 main cube against the check.
 
@@ -41,11 +41,11 @@ from pathlib import Path
 import numpy as np
 
 import splidar
-from splidar import io
+from splidar import _irf_width, io
 from splidar._irf_text import resample_irf
 from splidar.irf import exp_tail_irf, gaussian_irf
 
-#: "load": io._check_irf_width as load runs it; "cube": as detect runs it on a Cube
+#: "load": _irf_width.check_irf_width as load runs it; "cube": as detect runs it on a Cube
 PATH = ["load"]
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -78,9 +78,9 @@ def check(irf, cube):
         if PATH[0] == "cube":
             c = splidar.Cube(counts, irf=irf, bin_width_ps=cube.bin_width_ps)
             t0 = time.perf_counter()  # the Cube's validation is not the check's
-            r = io._check_cube_irf(c)
+            r = _irf_width.check_cube_irf(c)
         else:
-            r = io._check_irf_width(irf, "given array", counts, n_bins, cube.bin_width_ps)
+            r = _irf_width.check_irf_width(irf, "given array", counts, n_bins, cube.bin_width_ps)
     finally:
         lg.removeHandler(h)
         lg.setLevel(level)
@@ -223,7 +223,7 @@ def real() -> None:
             logging.getLogger("splidar").setLevel(logging.ERROR)
             cube = splidar.load(p, **kw)
             fw = float(np.max(splidar.irf.irf_fwhm(cube.irf)))
-            gfw = io._irf_pair_width(cube.irf)
+            gfw = _irf_width._irf_pair_width(cube.irf)
             logging.getLogger("splidar").setLevel(logging.WARNING)
         res = []
         for label, irf in (
@@ -252,7 +252,7 @@ def speed() -> None:
     for k in range(3):
         r, warned, s = check(cube.irf, cube)
         t0 = time.perf_counter()
-        io._data_pair_width(cube.counts, cube.shape[-1])
+        _irf_width._data_pair_width(cube.counts, cube.shape[-1])
         t_data = time.perf_counter() - t0
         print(
             f"- round {k}: ratio {_fmt(r)}, warned {warned}, {s:.3f} s "
@@ -269,7 +269,7 @@ def speed() -> None:
         det = detect(fresh, rng=0)
         t_det = time.perf_counter() - t0
         t0 = time.perf_counter()
-        io._check_cube_irf(splidar.Cube(cube.counts, irf=cube.irf))
+        _irf_width.check_cube_irf(splidar.Cube(cube.counts, irf=cube.irf))
         t_chk = time.perf_counter() - t0
         print(
             f"- detect (its check included) {t_det:.2f} s, {len(det.points)} points; the "

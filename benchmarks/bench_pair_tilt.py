@@ -1,21 +1,21 @@
 """The photon-pair width under heavy background: the signal-background pairs' tilt
 (rob30).
 
-``io._pair_lag_fwhm`` flattens its pair histogram by ``T / (T - k)``, right for the
-background's own pairs; a return's pairs with its pixel's background are flat in the lag
-``k``, so the correction tilts them up towards the floor's lags and the width reads too
-narrow where they dominate (SBR 0.01: a 3-bin pulse read 1.4-1.7 bins).
-``io._cross_tilt`` removes that tilt where it is significant. This bench runs, in one
-sitting, with the tilt removal off (``io.TILT_LOAD = io.TILT_CHECK = io.TILT_RESCUE =
-[False]``, the code before) and on (``--mode all``: everywhere, ``TILT_LOAD = [True]``;
-``--mode default``: the library's, in the width check and in load only where it found
-no return, ``TILT_RESCUE``):
+``splidar._irf_width.pair_lag_fwhm`` flattens its pair histogram by ``T / (T - k)``,
+right for the background's own pairs; a return's pairs with its pixel's background are
+flat in the lag ``k``, so the correction tilts them up towards the floor's lags and the
+width reads too narrow where they dominate (SBR 0.01: a 3-bin pulse read 1.4-1.7 bins).
+``_irf_width._cross_tilt`` removes that tilt where it is significant. This bench runs,
+in one sitting, with the tilt removal off (``_irf_width.TILT_LOAD = TILT_CHECK =
+TILT_RESCUE = [False]``, the code before) and on (``--mode all``: everywhere,
+``TILT_LOAD = [True]``; ``--mode default``: the library's, in the width check and in
+load only where it found no return, ``TILT_RESCUE``):
 
 * ``--widths``: ``estimate_irf_fwhm`` and the width check's ``_data_pair_width`` on the
   tilted 32 x 32 plane of ``bench_robustness.basic`` for Gaussian FWHM 1 / 3 / 10, exp
   tail 3/6 and 2/25 and the measured pulse at heavy background (PPP 100 SBR 0.01, PPP
   20 SBR 0.05, PPP 20 SBR 0.1 at T 150) and two controls; the pulse's own pair width
-  (``io._irf_pair_width``) is the truth;
+  (``_irf_width._irf_pair_width``) is the truth;
 * ``--load``: the IRF ``load`` builds without one (``io._resolve_irf``) on those cubes,
   on ``bench_irf_estimate.py --load-cells``' 16 cells and on ``--weak``'s 24 cells:
   whether the array changes (``np.array_equal``), and ``process(rng=0)`` F_true / false
@@ -46,7 +46,7 @@ from bench_robustness import _sim, basic, measured_irf  # noqa: E402
 from real_data import REAL, _default_data  # noqa: E402
 
 import splidar  # noqa: E402
-from splidar import io  # noqa: E402
+from splidar import _irf_width, io  # noqa: E402
 from splidar.irf import exp_tail_irf, gaussian_irf, irf_fwhm  # noqa: E402
 from splidar.metrics import evaluate  # noqa: E402
 
@@ -99,9 +99,9 @@ MODE = ["default"]
 
 def _flags(on) -> None:
     """off (False), on (True: ``MODE``'s), or the library's defaults (None)."""
-    io.TILT_CHECK[0] = bool(on) or on is None
-    io.TILT_RESCUE[0] = bool(on) or on is None
-    io.TILT_LOAD[0] = bool(on) and MODE[0] == "all"
+    _irf_width.TILT_CHECK[0] = bool(on) or on is None
+    _irf_width.TILT_RESCUE[0] = bool(on) or on is None
+    _irf_width.TILT_LOAD[0] = bool(on) and MODE[0] == "all"
 
 
 def both(f):
@@ -134,10 +134,10 @@ def run_widths(seeds):
     for name, seed, irf, cube, _ in heavy_cubes(seeds):
         y = cube.counts
         e = both(lambda y=y: io.estimate_irf_fwhm(y))
-        c = both(lambda y=y: io._data_pair_width(y, y.shape[-1]))
+        c = both(lambda y=y: _irf_width._data_pair_width(y, y.shape[-1]))
         c = [x if x in (None, "raises") else (x[0], x[1]) for x in c]
         print(
-            f"| {name} ({io._irf_pair_width(irf[None, :]):.2f}) | {seed} | {_w(e[0])} -> "
+            f"| {name} ({_irf_width._irf_pair_width(irf[None, :]):.2f}) | {seed} | {_w(e[0])} -> "
             f"{_w(e[1])} | {_w(c[0])} -> {_w(c[1])} |",
             flush=True,
         )
@@ -156,7 +156,7 @@ def _score(cube, irf, truth, true):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c = dataclasses.replace(cube, irf=np.atleast_2d(np.asarray(irf, float)))
-        rec = splidar.process(io._checked(c), rng=0)
+        rec = splidar.process(_irf_width.mark_checked(c), rng=0)
     m = evaluate(rec.points, truth, tau=tau)
     return f"{m.f_true:.3f} / {m.f_false} / {depth_bias(rec.points, truth, tau):+.2f}"
 
@@ -242,7 +242,7 @@ def run_real(data: Path):
             md5 = hashlib.md5(np.ascontiguousarray(cube.irf).tobytes()).hexdigest()[:8]
             fw = float(np.max(irf_fwhm(cube.irf)))
             out.append(f"{'on' if flag else 'off'} {md5} FWHM {fw:.3f} {t:.2f} s")
-            w = io._data_pair_width(cube.counts, cube.shape[-1])
+            w = _irf_width._data_pair_width(cube.counts, cube.shape[-1])
             if w is not None:
                 out[-1] += f" (check width {w[0]:.2f})"
         _flags(None)

@@ -373,11 +373,11 @@ def test_estimate_irf_fwhm_dense_cube_uses_a_pixel_subset(monkeypatch, caplog):
     # regression: above the pair budget it raised "too many photon pairs" (Art at PPP 64:
     # 53M pairs); now every k-th pixel is used. The budget is lowered to keep the test
     # small (the budget counts pairs of non-empty voxels: ~60 per pixel here).
-    from splidar import io as sio
+    from splidar import _irf_width
 
     y = _simulated(4.0, 40.0, 0.01, shape=(40, 40))
     full = estimate_irf_fwhm(y)
-    monkeypatch.setattr(sio, "_PAIR_BUDGET", 20_000)
+    monkeypatch.setattr(_irf_width, "_PAIR_BUDGET", 20_000)
     with caplog.at_level("INFO", logger="splidar.io"):
         sub = estimate_irf_fwhm(y)
     assert "every" in caplog.text
@@ -565,10 +565,10 @@ def test_load_real_irf_sample(shared_data):
 def test_estimate_irf_fwhm_too_few_pairs_raises_clear_error():
     # regression: with no photon pair inside any pixel, bincount returned int64 and the
     # triangle correction crashed with a casting error instead of saying what is wrong
-    from splidar.io import _pair_lag_fwhm
+    from splidar._irf_width import pair_lag_fwhm
 
     with pytest.raises(SplidarError, match="too few to estimate the IRF"):
-        _pair_lag_fwhm(np.array([0, 1]), np.array([3, 50]), np.array([1, 1]), 100, None)
+        pair_lag_fwhm(np.array([0, 1]), np.array([3, 50]), np.array([1, 1]), 100, None)
 
 
 def test_load_npz_fortran_order_and_big_endian_read_exactly(tmp_path):

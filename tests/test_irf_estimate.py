@@ -347,7 +347,7 @@ def test_half_max_bounds_bracket_the_crossing():
     # curve of few pairs with lag 0 lifted by its noise (the measured pulse at PPP 1,
     # SBR 0.2, seed 0: lag 0 85 pairs over the floor, lags 1-12 about 30): the crossing
     # reads < 1 lag and the bracket reaches far beyond it (the width is not determined)
-    from splidar.io import _half_max_bounds, _half_max_lag
+    from splidar._irf_width import _half_max_bounds, _half_max_lag
 
     k = np.arange(33.0)
     for scale in (1e4, 1e6):

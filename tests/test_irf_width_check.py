@@ -185,11 +185,11 @@ def test_load_irf_width_check_heavy_background_is_not_decided(tmp_path, caplog):
 def test_pair_lag_fwhm_one_pixel_over_the_budget_terminates():
     # the pixel subset of a lowered budget cannot shrink below one pixel: it used to
     # loop for ever when one pixel alone held more pairs than the budget
-    from splidar.io import _pair_lag_fwhm
+    from splidar._irf_width import pair_lag_fwhm
 
     y = np.random.default_rng(0).poisson(3.0 + 40 * gaussian_irf(3.0, length=200), 200)
     b = np.flatnonzero(y)
-    f = _pair_lag_fwhm(np.zeros(b.size, int), b, y[b], 200, None, budget=100)
+    f = pair_lag_fwhm(np.zeros(b.size, int), b, y[b], 200, None, budget=100)
     assert 1.0 < f < 6.0
 
 
@@ -231,11 +231,11 @@ def test_detect_cube_irf_width_check_without_bin_width_names_the_ratio(caplog):
 
 def test_detect_cube_irf_width_check_does_not_change_the_result(caplog):
     # the check only warns: the same detection as a Cube marked checked (no check run)
-    from splidar.io import _checked
+    from splidar._irf_width import mark_checked
 
     y, irf, cube = _cube_case(k=4)
     a = detect(cube, passes=())
-    b = detect(_checked(Cube(y, irf=_finer(irf, 4), bin_width_ps=16.0)), passes=())
+    b = detect(mark_checked(Cube(y, irf=_finer(irf, 4), bin_width_ps=16.0)), passes=())
     assert np.array_equal(a.points.depth_bin, b.points.depth_bin)
     assert np.array_equal(a.points.intensity, b.points.intensity)
 
@@ -247,12 +247,12 @@ def test_detect_cube_irf_width_check_does_not_change_the_result(caplog):
 )
 def test_detect_cube_matched_irf_is_quiet(caplog, irf):
     # the true IRF on the cube's bins: checked (INFO, ratio in 0.6-1.6), no warning
-    from splidar.io import _check_cube_irf
+    from splidar._irf_width import check_cube_irf
 
     cube = Cube(_scene(irf, ppp=8.0, seed=3), irf=irf)
     with caplog.at_level(logging.INFO, logger="splidar.io"):
-        ratio = _check_cube_irf(cube)
-        assert _check_cube_irf(cube) is None  # once per Cube
+        ratio = check_cube_irf(cube)
+        assert check_cube_irf(cube) is None  # once per Cube
     assert not _width_logs(caplog)
     assert 0.6 < ratio < 1.6
 
@@ -262,11 +262,57 @@ def test_detect_loaded_cube_is_not_checked_again(finer_case, caplog):
     d, _ = finer_case
     with caplog.at_level(logging.INFO, logger="splidar.io"):
         cube = load(d / "scan.npy", irf=str(d / "irf_2ps.npy"), bin_width_ps=16.0)
-        from splidar.io import _check_cube_irf
+        from splidar._irf_width import check_cube_irf
 
-        assert _check_cube_irf(cube) is None
+        assert check_cube_irf(cube) is None
     assert len(_width_logs(caplog)) == 1
     assert sum("IRF width check" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_check_cube_irf_leaves_the_cube_unchanged_and_collectable(caplog):
+    # the once-per-Cube memo was a hidden attribute set on the user's frozen Cube
+    # (object.__setattr__); it is now kept beside it, weakly: the Cube keeps its fields
+    # only, and is collected as soon as the user drops it (the memo entry with it)
+    import gc
+    import weakref
+
+    from splidar import _irf_width
+
+    _, _, cube = _cube_case()
+    before = dict(vars(cube))
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        _irf_width.check_cube_irf(cube)
+    assert len(_width_logs(caplog)) == 1
+    assert vars(cube).keys() == before.keys()  # no new attribute
+    assert all(vars(cube)[k] is v for k, v in before.items())
+    assert _irf_width.is_checked(cube)
+    key, ref = id(cube), weakref.ref(cube)
+    del cube
+    gc.collect()
+    assert ref() is None  # the memo does not keep it alive
+    assert key not in _irf_width._CHECKED
+
+
+def test_detect_second_call_does_not_rerun_the_width_check(monkeypatch, caplog):
+    # the same Cube detected twice: the check runs (and warns) once; an equal Cube
+    # built anew is a new object and is checked again
+    from splidar import _irf_width
+
+    calls = []
+    real = _irf_width.check_irf_width
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(_irf_width, "check_irf_width", counted)
+    y, irf, cube = _cube_case(k=4)
+    with caplog.at_level(logging.WARNING, logger="splidar.io"):
+        detect(cube, passes=())
+        detect(cube, passes=())
+        assert len(calls) == 1 and len(_width_logs(caplog)) == 1
+        detect(Cube(y, irf=_finer(irf, 4), bin_width_ps=16.0), passes=())
+    assert len(calls) == 2
 
 
 def test_resample_irf_puts_a_finer_irf_on_the_bins():
@@ -291,12 +337,13 @@ def test_pair_lag_fwhm_tilt_mends_the_heavy_background_width(seed):
     # tilted them up to the floor's lags: a 3-bin pulse read 1.50 / 1.64 bins (seeds
     # 0 / 1; load's estimate keeps that, TILT_LOAD); with the tilt removed 3.1-3.3, as
     # the same pulse at SBR 1 (3.1-3.2)
-    from splidar.io import _pair_lag_fwhm, estimate_irf_fwhm
+    from splidar._irf_width import pair_lag_fwhm
+    from splidar.io import estimate_irf_fwhm
 
     y = _scene(gaussian_irf(3.0), ppp=100.0, sbr=0.01, T=200, seed=seed)
     flat = y.reshape(-1, 200)
     pix, b = np.nonzero(flat)
-    assert 2.5 < _pair_lag_fwhm(pix, b, flat[pix, b], 200, None, tilt=True) < 4.0
+    assert 2.5 < pair_lag_fwhm(pix, b, flat[pix, b], 200, None, tilt=True) < 4.0
     assert estimate_irf_fwhm(y) < 2.0  # load's width is unchanged (measured, rob30)
 
 
@@ -316,7 +363,7 @@ def test_load_irf_width_check_removes_the_signal_background_tilt(tmp_path, caplo
 def test_cross_tilt_leaves_a_flat_floor_alone():
     # no return's pairs with background to remove: the histogram is left as it is
     # (the widths of the clean cubes do not move), and a tilt is removed as fitted
-    from splidar.io import _cross_tilt
+    from splidar._irf_width import _cross_tilt
 
     rng = np.random.default_rng(0)
     k = np.arange(33)

@@ -12,6 +12,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from .._irf_width import check_cube_irf
 from .._memory import check_detect_memory
 from .._validation import (
     SplidarError,
@@ -21,7 +22,6 @@ from .._validation import (
     describe,
 )
 from ..cube import Cube
-from ..io import _check_cube_irf
 from . import _4_map
 from ._1_background import estimate_temporal_background
 from ._2_saliency import coherent_scales, region_scales, saliency_filters
@@ -401,13 +401,14 @@ def _by_region(det: Detection, o: dict, store) -> Detection:
 def _stuck_pixels_first(cube: Cube, o: dict):
     """The cube without its stuck pixels (:func:`_without_hot_pixels`), how stage 1
     reads its windows (None: in memory), and when stage 1's timing starts. A Cube built
-    from arrays has its IRF's width checked first (``io._check_cube_irf``: warns only).
+    from arrays has its IRF's width checked first (once per Cube, warns only:
+    ``splidar._irf_width.check_cube_irf``).
 
     A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
     pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
     unless pixels were masked; any other Dask cube is reduced to its totals, then read
     again for the windows (``_tiled.tiled_window_means``)."""
-    _check_cube_irf(cube)  # a Cube built from arrays: its IRF's width (warns only, once)
+    check_cube_irf(cube)  # a Cube built from arrays: its IRF's width (warns only, once)
     t0 = time.perf_counter()
     first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
     cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
