@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ._bin_hints import grouping_hint, memory_hint
 from ._containers import (
     _CONTAINER_EXTS,
     _check_channels_apply,
@@ -48,7 +49,7 @@ from ._irf_width import (
     mark_checked,
     pair_lag_fwhm,
 )
-from ._memory import check_memory
+from ._memory import available_bytes, check_memory
 from ._photon_table import find_photon_table, table_as_flat
 from ._validation import SplidarError, check_choice, check_int, check_positive, describe
 from .cube import Cube, as_counts
@@ -344,20 +345,10 @@ def bin_photons(
     return _dense(*_bin_sparse(times, pixel_index, shape, window, bin_width))
 
 
-def _bin_width_hint(span: float, bin_width: float, nbytes: int) -> str:
-    """A round bin width (1, 2 or 5 x 10^k) that brings the binned cube under 1 GiB."""
-    if not np.isfinite(span):
-        return ""
-    need = bin_width * nbytes / 2**30
-    exponent = math.floor(math.log10(need))
-    width = next(m * 10.0**exponent for m in (1, 2, 5, 10) if m * 10.0**exponent >= need)
-    n_bins = max(math.ceil(span / width - 1e-12), 1)
-    mib = nbytes / math.ceil(span / bin_width - 1e-12) * n_bins / 2**20
-    return f"; e.g. `bin_width` {width:g} gives T = {n_bins} bins ({mib:.0f} MiB)"
-
-
-def _bin_sparse(times, pixel_index, shape, window, bin_width):
-    """Non-empty voxels of the binned cube: (flat index, count, rows, cols, T)."""
+def _bin_sparse(times, pixel_index, shape, window, bin_width, irf_fwhm=None):
+    """Non-empty voxels of the binned cube: (flat index, count, rows, cols, T). Refused
+    above 8 GiB, naming a bin width that fits and suits the pulse (``irf_fwhm``: ``load``'s,
+    in bins of ``bin_width``; else measured on the photons: :func:`_bin_hints.memory_hint`)."""
     start, stop, bw = _check_window(window, bin_width)
     try:
         rows, cols = (check_int(s, "shape", minimum=1) for s in shape)
@@ -383,7 +374,7 @@ def _bin_sparse(times, pixel_index, shape, window, bin_width):
     n_bins = max(n_bins, 1)
     nbytes = n_pix * n_bins * 2
     if nbytes > _MAX_CUBE_BYTES:
-        hint = _bin_width_hint(stop - start, bw, nbytes)
+        hint = memory_hint(t, pix, (start, stop), bw, nbytes, irf_fwhm)
         raise SplidarError(
             f"binning into T = {n_bins} bins of width {bw:g} over {(rows, cols)} pixels would "
             f"allocate {nbytes / 2**30:.1f} GiB; pass a larger `bin_width` or a narrower "
@@ -1364,7 +1355,7 @@ def load(
     if flat or _is_cell_of_numbers(v):
         src = f"{p.name}:{name}"
         pl = _flat_photon_lists(d, p) if flat else photon_lists_from_cells(v, source=src)
-        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit, n_wl)
+        counts, md, sparse = _bin_lists(pl, window, bin_width, time_unit, n_wl, irf_fwhm)
         meta.update(md)
         bw_ps = md.get("bin_width_ps")
     else:
@@ -1412,6 +1403,7 @@ def _cube_irf(irf_opts, file_irf, counts, bw_ps, sparse, from_save: bool, meta: 
         meta["irf_source"] = irf_src
     elif not from_save:
         meta.setdefault("irf_source", "file")
+    grouping_hint(irf_a, n_bins, meta)  # a wide IRF in bins: a coarser binning (warns only)
     return irf_a
 
 
@@ -1654,9 +1646,11 @@ def _check_times(pl: PhotonLists) -> None:
         )
 
 
-def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1):
+def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1, irf_fwhm=None):
     """Bin photon lists: (counts, metadata, sparse voxels). ``n_wl`` > 1: a photon table's
-    wavelengths folded into the columns (``cols x n_wl``), unfolded here."""
+    wavelengths folded into the columns (``cols x n_wl``), unfolded here. A cube that
+    does not fit is refused naming a bin width that does and suits the pulse
+    (:func:`_bin_hints.memory_hint`; ``irf_fwhm``: ``load``'s, bins)."""
     bw = 1.0 if bin_width is None else check_positive(bin_width, "bin_width")
     _check_times(pl)
     if pl.n_photons == 0 and window is None:
@@ -1676,7 +1670,7 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1):
         )
     start, stop, bw = _check_window(window, bw)
     uniq, cnt, rows, cols, n_bins = _bin_sparse(
-        pl.times, pl.pixel_index, pl.shape, (start, stop), bw
+        pl.times, pl.pixel_index, pl.shape, (start, stop), bw, irf_fwhm
     )
     if pl.n_photons and not cnt.size:
         raise SplidarError(
@@ -1685,8 +1679,17 @@ def _bin_lists(pl: PhotonLists, window, bin_width, time_unit, n_wl: int = 1):
             f"{pl.times.max():g}. Pass a window (and time unit) that covers them."
         )
     nbytes = rows * cols * n_bins * 2
-    check_memory(nbytes, f"binning {pl.source} into {rows} x {cols} x {n_bins} bins",
-                 "pass a larger bin width, a narrower window or crop the photon lists")  # fmt: skip
+    try:
+        check_memory(
+            nbytes,
+            f"binning {pl.source} into {rows} x {cols} x {n_bins} bins",
+            "pass a larger bin width, a narrower window or crop the photon lists",
+        )
+    except SplidarError as exc:
+        hint = memory_hint(
+            pl.times, pl.pixel_index, (start, stop), bw, nbytes, irf_fwhm, available_bytes()
+        )
+        raise SplidarError(f"{exc.args[0].rstrip('.')}{hint}.") from None
     counts = _dense(uniq, cnt, rows, cols, n_bins)
     factor = TIME_UNITS_PS[time_unit]
     md = {
