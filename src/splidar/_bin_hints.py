@@ -41,8 +41,10 @@ log = logging.getLogger("splidar.io")
 #: Gaussian FWHMs of 2-4 bins (benchmarks/README.md, "Lead, session 22")
 FWHM_BINS = 4.0
 #: ``load`` hints at grouping when the IRF's FWHM spans more bins than this: grouping by
-#: ``k = floor(FWHM / FWHM_BINS) >= 2`` then leaves at least 5 bins per FWHM (tower and
-#: 21 km at real_data.py's 64 / 128 ps bins, FWHM about 9 bins, stay quiet)
+#: ``k = floor(FWHM / FWHM_BINS) >= 2`` then leaves at least 5 bins per FWHM. The 21 km
+#: file at real_data.py's 128 ps (its estimated FWHM under 10 bins) is quiet; the tower at
+#: 64 ps (10.5 bins) is told 128 ps (its 100 ps: surfaces within 0.2 %, detection 1.4x
+#: faster; benchmarks/README.md, "lay31, session 23")
 HINT_ABOVE = 10.0
 #: bytes the memory guard's suggested bin width keeps the binned cube under
 _TARGET_BYTES = 2**30
