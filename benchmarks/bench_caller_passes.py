@@ -52,12 +52,13 @@ def record(base: Path, rows: int) -> None:
     shutil.rmtree(store, ignore_errors=True)
     clean_up = _detect._clean_up
 
-    def keep(cube, o, mp, held, bg, corr, rng):
+    def keep(cube, o, mp, held, hists, bg, corr, rng):
         shutil.rmtree(base / "candidate_histograms", ignore_errors=True)
         shutil.copytree(store / "candidate_histograms", base / "candidate_histograms")
         with open(base / "state.pkl", "wb") as f:
-            pickle.dump(dict(o=o, mp=mp, table=held[0], bg=bg, corr=corr, rng=rng), f)
-        return clean_up(cube, o, mp, held, bg, corr, rng)
+            state = dict(o=o, mp=mp, table=held[0], hists=hists, bg=bg, corr=corr, rng=rng)
+            pickle.dump(state, f)
+        return clean_up(cube, o, mp, held, hists, bg, corr, rng)
 
     _detect._clean_up = keep
     try:
@@ -90,9 +91,12 @@ def replay(base: Path) -> tuple[float, float, bool, dict]:
     # code has it)
     kept = getattr(_slopes, "kept_counts", None)
     with kept(cube.counts) if kept else contextlib.nullcontext():
-        done = _detect._clean_up(cube, o, mp, [st["table"]], st["bg"], st["corr"], st["rng"])
+        hists = st["hists"]
+        done = _detect._clean_up(cube, o, mp, [st["table"]], hists, st["bg"], st["corr"], st["rng"])
         t1 = time.perf_counter()
-        surfaces, _, _, _ = _detect._select_and_align(cube, o, mp, done, t1, store, st["bg"])
+        surfaces, _, _, _ = _detect._select_and_align(
+            cube, o, mp, [hists], done, t1, store, st["bg"]
+        )
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     ref = np.load(base / "surfaces.npz")
     same = all(

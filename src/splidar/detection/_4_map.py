@@ -26,6 +26,7 @@ from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pas
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
+from ._windows import SupportWindows
 
 __all__ = ["CandidateMap", "MapOptions", "assemble_map", "map_candidates", "map_plan"]
 
@@ -591,6 +592,17 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     slot = surf.pop("_slot")  # rows of the _BY_SLOT arrays (see _extract)
     rows = slot[idx]
     out = {k: v[rows] if k in _BY_SLOT else v[idx] for k, v in surf.items() if k != "histograms"}
+    own = out.get("own_counts")
+    if own is not None and (own.size == 0 or (own.min() >= -(2**15) and own.max() < 2**15)):
+        # compact_columns' type for it, from the block on (the table takes int16 where
+        # every block's fit, as compacting the whole column gives; the same values)
+        out["own_counts"] = own.astype(np.int16)
+    # the table's candidates' histograms over their supports only (zero elsewhere in
+    # the window: _kernels._clean_responses), the block's dense array released
+    hist = SupportWindows.pack(
+        surf.pop("histograms"), rows, first=out["start"] - out["offset"],
+        length=np.maximum(out["stop"] - out["start"], 0),
+    )  # fmt: skip
     return _BlockOut(
         n_voxels=n_vox,
         n_photons_kept=kept,
@@ -598,8 +610,8 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
         surf=out,
         n_candidates=n_cand,
         n_rejected=n_cand - int(keep.sum()),
-        histograms=surf["histograms"],
-        kept=rows,
+        histograms=hist,
+        kept=np.arange(rows.size, dtype=np.int64),
     )
 
 
@@ -693,9 +705,9 @@ def _threshold(spatial, dev, table, null: NullCalibration):
 
 def _table(outs, image_shape, coherent=(0.0, 0)) -> CandidateTable:
     keys = list(outs[0].surf.keys())
-    # column by column, the blocks' parts released once joined (the calling process
-    # holds one column twice at most, not the whole table)
-    surf = {k: np.concatenate([o.surf.pop(k) for o in outs], axis=0) for k in keys}
+    # column by column, each block's part released once copied in (the calling process
+    # holds one column and one block's part of it, not the whole table)
+    surf = {k: _join([o.surf for o in outs], k) for k in keys}
     # where each candidate's histograms are: block and row in that block's array
     hist_block = np.concatenate([np.full(o.kept.size, b, np.int64) for b, o in enumerate(outs)])
     hist_row = np.concatenate([o.kept for o in outs])
@@ -721,6 +733,22 @@ def _table(outs, image_shape, coherent=(0.0, 0)) -> CandidateTable:
         keep, hist_block, hist_row = keep[order], hist_block[order], hist_row[order]
     origin = np.full(keep.size, stage_code("map"), np.int8)
     return CandidateTable(surf, keep, origin, hist_block, hist_row, image_shape)
+
+
+def _join(parts: list, key: str) -> np.ndarray:
+    """``np.concatenate`` of the parts' ``key`` arrays (popped from the dicts ``parts``,
+    each released once copied): the same values and type."""
+    first = [p[key] for p in parts]
+    shape = (sum(int(a.shape[0]) for a in first), *first[0].shape[1:])
+    out = np.empty(shape, np.result_type(*first))
+    del first
+    a = 0
+    for p in parts:
+        v = p.pop(key)
+        out[a : a + v.shape[0]] = v
+        a += v.shape[0]
+        del v
+    return out
 
 
 def _raster_sorted(row, col, start) -> bool:

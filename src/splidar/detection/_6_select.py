@@ -12,12 +12,17 @@ import numpy as np
 from ._kernels import select_sorted
 from ._result import Surfaces
 from ._table import CandidateTable, _position_in_pixel, _raster_ordered
+from ._windows import SupportWindows
 
 __all__ = ["select_surfaces"]
 
 #: Surfaces whose histograms :func:`_gather` reads at a time (about 13 MB at Q = 4, L = 1,
-#: W = 13): the calling process holds one such part when they go to a store.
+#: W = 13): the calling process holds one such part when they go to a store. Fewer where
+#: a part would exceed :data:`GATHER_BYTES` (a long IRF's wide window: W = 681 at the face
+#: file's native bin made a part 0.7 GB).
 GATHER_CHUNK = 2**16
+#: Bytes of one part of :func:`_gather` (at most; at least one surface).
+GATHER_BYTES = 2**26
 
 
 def _select(surf: dict, keep: np.ndarray, k_max: int):
@@ -66,22 +71,32 @@ def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None)
     shape = (idx.size,) + tuple(histograms[0].shape[1:])
     if out is None:
         out = np.empty(shape, np.float32)
-    stored = any(not isinstance(h, np.ndarray) for h in histograms)
+    stored = any(not isinstance(h, (np.ndarray, SupportWindows)) for h in histograms)
     pool = None
     if stored and idx.size:
         from concurrent.futures import ThreadPoolExecutor
 
         pool = ThreadPoolExecutor(GATHER_THREADS)
+    row_bytes = 4 * max(int(np.prod(shape[1:], dtype=np.int64)), 1)
+    chunk = int(min(GATHER_CHUNK, max(1, GATHER_BYTES // row_bytes)))
     try:
-        for a in range(0, idx.size, GATHER_CHUNK):
-            part = idx[a : a + GATHER_CHUNK]
-            hist = np.empty((part.size,) + shape[1:], np.float32)
+        for a in range(0, idx.size, chunk):
+            part = idx[a : a + chunk]
+            # in memory the part is written where it goes (no copy of it)
+            direct = isinstance(out, np.ndarray) and out.flags.c_contiguous
+            hist = out[a : a + part.size] if direct else np.empty((part.size,) + shape[1:], "f4")
             hb, hr = table.hist_block[part], table.hist_row[part]
 
             def read(b, hist=hist, hb=hb, hr=hr):
                 sel = np.flatnonzero(hb == b)
                 src = table.extra_histograms if b == -1 else histograms[b]
                 rows = hr[sel]
+                if isinstance(src, SupportWindows) and rows.size:
+                    if sel.size == hist.shape[0]:  # the whole part from one block
+                        src.rows(rows, hist)
+                    else:
+                        hist[sel] = src.rows(rows)
+                    return
                 if isinstance(src, np.ndarray) or rows.size == 0:
                     hist[sel] = src[rows]
                     return
@@ -96,7 +111,8 @@ def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None)
                     read(b)
             else:  # every block's rows land in their own rows of ``hist``
                 list(pool.map(read, blocks))
-            out[a : a + part.size] = hist
+            if not direct:
+                out[a : a + part.size] = hist
     finally:
         if pool is not None:
             pool.shutdown()

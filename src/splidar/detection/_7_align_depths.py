@@ -70,6 +70,7 @@ def align_surface_depths(
     saliency=None,
     threshold=None,
     n_jobs: int = 1,
+    overwrite: bool = False,
 ) -> DepthAlignment:
     """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
 
@@ -95,6 +96,10 @@ def align_surface_depths(
     n_jobs : int
         Threads for the moved surfaces' fields (:func:`_window_fields`); the result does
         not depend on it.
+    overwrite : bool
+        Write the moved surfaces' histograms into ``surfaces.histograms`` itself (the
+        input's array changes) instead of a copy of the ``(S, Q, L, W)`` array: for a
+        caller that holds no other use of it (``detect``; the same result).
 
     Returns
     -------
@@ -117,8 +122,9 @@ def align_surface_depths(
     if FAR_DEPTHS and counts is not None and background is not None and scales is not None:
         out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf)
         out, refit = _moved_fields(
-            out, s.depth_bin, far, counts, background, scales, irf, n_jobs=n_jobs
-        )
+            out, s.depth_bin, far, counts, background, scales, irf, n_jobs=n_jobs,
+            overwrite=overwrite,
+        )  # fmt: skip
         out = _support_fields(out, refit, saliency, threshold)
     moved = np.flatnonzero(out.depth_bin != np.asarray(s.depth_bin, np.float64))
     code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
@@ -127,7 +133,9 @@ def align_surface_depths(
     return DepthAlignment(out, int(moved.size), time.perf_counter() - t0)
 
 
-def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf, *, n_jobs=1) -> tuple:
+def _moved_fields(
+    s: Surfaces, old, far, counts, background, scales, irf, *, n_jobs=1, overwrite=False
+) -> tuple:
     """Every field of the surfaces stage 7 moved at their new depths (``old``: the
     depths before it; ``far``: those :func:`_far_moves` moved, whose supports and own
     counts followed already). A depth the sheared pool moved inside its support keeps
@@ -154,7 +162,10 @@ def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf, *, n_j
     if not idx.size:
         return s, refit
     refit_m = np.isin(idx, refit)
-    return _window_fields(s, idx, refit_m, counts, background, scales, irf, n_jobs=n_jobs), refit
+    out = _window_fields(
+        s, idx, refit_m, counts, background, scales, irf, n_jobs=n_jobs, overwrite=overwrite
+    )
+    return out, refit
 
 
 #: One-sided alternatives extrapolate a neighbour's surface over two pixels along one of
@@ -425,7 +436,16 @@ def _follow(start, stop, own_counts, own_bg, i, old, to, y, b, W, T) -> None:
 
 
 def _window_fields(
-    s: Surfaces, idx, refit, counts, background, scales, irf, *, n_jobs: int = 1
+    s: Surfaces,
+    idx,
+    refit,
+    counts,
+    background,
+    scales,
+    irf,
+    *,
+    n_jobs: int = 1,
+    overwrite: bool = False,
 ) -> Surfaces:
     """``offset``, clean ``histograms``, ``signal``, ``scale_index``, ``presence_llr``
     and ``presence_z`` of surfaces ``idx`` recomputed at their depths over their
@@ -444,7 +464,9 @@ def _window_fields(
     the local scale's z at the depth (``surface_fields``, as ``_local_z``). The raw
     counts are read a band of rows at a time from a lazy cube (``_row_bands``); each
     band's surfaces are split over ``n_jobs`` threads (``surface_fields`` releases the
-    GIL; every surface's fields are computed alone, so the split changes no value)."""
+    GIL; every surface's fields are computed alone, so the split changes no value).
+    With ``overwrite``, an in-memory ``s.histograms`` gets the new rows in place (no
+    copy of the whole array; :func:`align_surface_depths`)."""
     scales = np.asarray(scales, np.int64)
     refit = np.asarray(refit, bool)
     irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
@@ -511,6 +533,9 @@ def _window_fields(
     elif isinstance(s.histograms, StoredHistograms):  # the detection's own store
         write_rows(s.histograms.array, idx[refit], hist[refit])  # a chunk written once
         histograms = s.histograms
+    elif overwrite and isinstance(s.histograms, np.ndarray) and s.histograms.flags.writeable:
+        histograms = s.histograms  # the caller's own array (no copy of every surface's)
+        histograms[new] = hist[refit]
     else:
         histograms = np.array(s.histograms)
         histograms[new] = hist[refit]

@@ -912,6 +912,7 @@ def relabel_edge_bands(
     saliency=None,
     threshold=None,
     n_jobs: int = 1,
+    overwrite: bool = False,
 ) -> EdgeBands:
     """Stage 7b: the bands beside depth edges labelled jointly (see the module).
 
@@ -933,6 +934,9 @@ def relabel_edge_bands(
         and ``evidence`` summed over its new support.
     n_jobs : int
         Threads (:func:`band_depths`; never changes the result).
+    overwrite : bool
+        The moved surfaces' histograms written into ``surfaces.histograms`` itself (as
+        :func:`~splidar.detection._7_align_depths.align_surface_depths`' option).
 
     Returns
     -------
@@ -962,7 +966,9 @@ def relabel_edge_bands(
         _follow(start, stop, own_counts, own_bg, i, old[i], depth[i], ys[k], bs[k], W, T)
     out = replace(s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg)
     ones = np.ones(moved.size, bool)
-    out = _window_fields(out, moved, ones, counts, background, scales, irf, n_jobs=n_jobs)
+    out = _window_fields(
+        out, moved, ones, counts, background, scales, irf, n_jobs=n_jobs, overwrite=overwrite
+    )
     out = _support_fields(out, moved, saliency, threshold)
     code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
     code[moved] = STAGES.index("edge_bands")

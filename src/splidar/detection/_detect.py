@@ -292,9 +292,9 @@ def detect(
     mp, held, n_map = _map_pass(cube, filters, nul, o, store, tiled)  # 4
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    out = _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0, store)  # 5, 6, 7
+    hists, mp = [mp.histograms], dataclasses.replace(mp, histograms=())  # freed by stage 6
+    out = _stages_5_to_7(cube, o, mp, held, hists, bg, corr, rng, t0, store)  # 5, 6, 7
     done, surfaces, moves, t_sel, n_kept = out
-    mp = dataclasses.replace(mp, histograms=())
     timings["quality_and_selection"] = time.perf_counter() - t0
     if any(p.name == "slopes" and p.ran for p in done):
         timings["slopes"] = next(p.seconds for p in done if p.name == "slopes")
@@ -309,13 +309,14 @@ def _split() -> tuple:
     return (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
 
 
-def _stages_5_to_7(cube, o, mp, held, bg, corr, rng, t0: float, store):
+def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, store):
     """The clean-up passes (5), the selection (6) and the depth alignment (7): ``(done,
     surfaces, aligned, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
-    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``)."""
+    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``).
+    ``hists``: ``[the map's per-block histograms]``, emptied once stage 6 has read them."""
     with kept_counts(cube.counts):
-        done = _clean_up(cube, o, mp, held, bg, corr, rng)
-        return done, *_select_and_align(cube, o, mp, done, t0, store, bg)
+        done = _clean_up(cube, o, mp, held, hists[0], bg, corr, rng)
+        return done, *_select_and_align(cube, o, mp, hists, done, t0, store, bg)
 
 
 def _stages_1_2(counts, corr, irf, o: dict, windows):
@@ -481,17 +482,19 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
     return o
 
 
-def _select_and_align(cube, o, mp, done, t0: float, store, bg):
+def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     """Stages 6, 7 and 7b: at most ``max_surfaces`` per pixel, then the depth alignment
     and the bands beside depth edges; with the selection's own seconds (since ``t0``,
     less the clean-up passes'). Returns ``(surfaces, (aligned, banded), t_sel, n_kept)``.
 
     With a ``store``, the surfaces' histograms are written there part by part and stay
     there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed.
-    The last pass's table is released (``done[-1]`` keeps its counts only)."""
+    The last pass's table and the candidates' histograms (``hists``, emptied) are
+    released before stage 7 (``done[-1]`` keeps its counts only); stages 7 and 7b write
+    their moved surfaces' histograms into the selection's array (no other use of it)."""
     out = None if store is None else functools.partial(_stored_histograms, store)
     surfaces = select_surfaces(
-        done[-1].table, mp.histograms, max_surfaces=o["max_surfaces"],
+        done[-1].table, hists.pop(), max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
         histograms_out=out,
     )  # fmt: skip
@@ -508,7 +511,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
         aligned = align_surface_depths(
             surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
             scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
-            n_jobs=o["n_jobs"],
+            n_jobs=o["n_jobs"], overwrite=True,
         )  # fmt: skip
         surfaces = aligned.surfaces
     banded = None
@@ -517,7 +520,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
         banded = relabel_edge_bands(
             surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"], irf=o["irf"],
             scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
-            n_jobs=o["n_jobs"],
+            n_jobs=o["n_jobs"], overwrite=True,
         )  # fmt: skip
         surfaces = banded.surfaces
     return surfaces, (aligned, banded), t_sel, n_kept
@@ -598,7 +601,7 @@ def _map_options(o: dict, T: int) -> MapOptions:
     )
 
 
-def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
+def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> list:
     """Stage 5: the clean-up passes over the candidate table ``held.pop()`` of the whole
     image (they need the neighbours across block borders), in order; a pass not in
     ``passes`` (or without the presence test) is recorded as not run. Only the last
@@ -622,7 +625,7 @@ def _clean_up(cube, o: dict, mp, held: list, bg, corr, rng) -> list:
     table = run("recentre", lambda t: recentre_runs(
         t, irf=irf, peak=peak, fwhm=fwhm, pfa=surface_pfa, n_bins=T,
         llr_level=PRESENCE_LLR, secondary_llr=PRESENCE_SECONDARY,
-        max_kept=o["max_surfaces"], histograms=mp.histograms, scales=o["scales"]))  # fmt: skip
+        max_kept=o["max_surfaces"], histograms=hists, scales=o["scales"]))  # fmt: skip
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
         vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,

@@ -537,7 +537,7 @@ def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) ->
         g = zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+")
         # read once by the selection, then removed: uncompressed (store_histograms)
         res.histograms = store_histograms(
-            g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=res.histograms,
+            g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=np.asarray(res.histograms),
             compressed=False,
         )  # fmt: skip
 

@@ -1,0 +1,177 @@
+"""Candidates' windows stored over their supports only (not a stage: a container).
+
+The map pass (stage 4) computes each candidate's clean histograms ``(Q, L, W)`` over a
+window of ``W`` bins about its peak, zero outside the candidate's support ``[start,
+stop)`` (``eq:background_final``; ``_kernels._clean_responses``). With a long IRF the
+window is wide (``W = 681`` bins at the face file's native bin) and so are the supports,
+but a candidate's support is a part of its window only (median 245 of 681 bins there):
+the dense ``(S, Q, L, W)`` arrays of every candidate were the largest arrays of a
+detection after the saliency (``benchmarks/README.md``, "mem31, session 23").
+:class:`SupportWindows` keeps each row's bins inside its support, one after the other in
+one flat array, and gives the dense rows back where they are indexed (zero outside the
+support, the same values bit for bit).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["SupportWindows"]
+
+
+@njit(cache=True, nogil=True)
+def _pack(dense, rows, first, length, pos, out):
+    """``out[pos[i]:pos[i + 1]]`` = ``dense[rows[i], :, first[i]:first[i] + length[i]]``
+    (``dense`` (S, M, W)), row ``i``'s M parts one after the other."""
+    M = dense.shape[1]
+    for i in range(rows.size):
+        r, a, m, p = rows[i], first[i], length[i], pos[i]
+        for k in range(M):
+            for w in range(m):
+                out[p + k * m + w] = dense[r, k, a + w]
+
+
+@njit(cache=True, nogil=True)
+def _unpack(data, idx, first, length, pos, out):
+    """``out[i]`` (M, W) = row ``idx[i]``: its stored bins, zero elsewhere."""
+    M, W = out.shape[1], out.shape[2]
+    zero = out.dtype.type(0)
+    for i in range(idx.size):
+        j = idx[i]
+        a, m, p = first[j], length[j], pos[j]
+        for k in range(M):
+            for w in range(a):
+                out[i, k, w] = zero
+            for w in range(m):
+                out[i, k, a + w] = data[p + k * m + w]
+            for w in range(a + m, W):
+                out[i, k, w] = zero
+
+
+class SupportWindows:
+    """A read-only stand-in for an ``(n, *inner, W)`` array of windows that are zero
+    outside one run of bins per row (a candidate's support in its window).
+
+    ``w[key]`` gives the selected rows as a dense NumPy array (integers, slices, integer
+    or boolean arrays on the first axis); ``np.asarray(w)`` gives them all. Memory:
+    ``sum_i prod(inner) x length_i`` values and 16 bytes per row, against
+    ``n x prod(inner) x W`` values dense.
+
+    Parameters
+    ----------
+    data : ndarray (sum_i prod(inner) * length_i,)
+        Row ``i``'s bins ``[first_i, first_i + length_i)`` of every inner index (C order),
+        from ``pos[i]``.
+    first, length : ndarray (n,), int
+        First window bin and number of bins kept per row.
+    pos : ndarray (n + 1,), int64
+        Where each row starts in ``data``.
+    inner : tuple of int
+        The shape between the row and the window axes (``(Q, L)`` for histograms).
+    width : int
+        W, the window's bins.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> dense = np.zeros((3, 2, 6), np.float32)
+    >>> dense[0, :, 1:3] = 1.0
+    >>> dense[2, :, 4:] = 2.0
+    >>> w = SupportWindows.pack(dense, np.arange(3), first=[1, 0, 4], length=[2, 0, 2])
+    >>> w.shape, w.data.size, bool(np.array_equal(np.asarray(w), dense))
+    ((3, 2, 6), 8, True)
+    >>> w[np.array([2])][0, 1].tolist()
+    [0.0, 0.0, 0.0, 0.0, 2.0, 2.0]
+    """
+
+    __slots__ = ("data", "first", "length", "pos", "inner", "width", "__weakref__")
+
+    def __init__(self, data, first, length, pos, inner: tuple, width: int):
+        self.data = data
+        self.first = first
+        self.length = length
+        self.pos = pos
+        self.inner = tuple(int(k) for k in inner)
+        self.width = int(width)
+
+    @classmethod
+    def pack(cls, dense: np.ndarray, rows, *, first, length) -> SupportWindows:
+        """Rows ``rows`` of ``dense`` (S, *inner, W), each kept over ``[first, first +
+        length)`` (its values elsewhere must be zero: they are not stored)."""
+        dense = np.asarray(dense)
+        inner, W = dense.shape[1:-1], dense.shape[-1]
+        M = int(np.prod(inner, dtype=np.int64))
+        rows = np.ascontiguousarray(rows, np.int64)
+        first = np.ascontiguousarray(first, np.int64)
+        length = np.ascontiguousarray(length, np.int64)
+        first = np.where(length > 0, first, 0)  # an empty support: nothing stored
+        if rows.size and (first.min() < 0 or length.min() < 0 or int((first + length).max()) > W):
+            raise ValueError("a support lies outside its window")
+        pos = np.zeros(rows.size + 1, np.int64)
+        np.cumsum(length * M, out=pos[1:])
+        data = np.empty(int(pos[-1]), dense.dtype)
+        if rows.size:
+            _pack(np.ascontiguousarray(dense).reshape(-1, M, W), rows, first, length, pos, data)
+        small = np.int32 if W < 2**31 else np.int64
+        return cls(data, first.astype(small), length.astype(small), pos, inner, W)
+
+    @property
+    def shape(self) -> tuple:
+        return (int(self.first.size), *self.inner, self.width)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.data.dtype
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (data and the per-row positions)."""
+        return int(self.data.nbytes + self.first.nbytes + self.length.nbytes + self.pos.nbytes)
+
+    def __len__(self) -> int:
+        return int(self.first.size)
+
+    def rows(self, idx, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``idx`` (integer array) dense, into ``out`` (``(idx.size, *inner, W)``)
+        or a new array."""
+        idx = np.ascontiguousarray(idx, np.int64).reshape(-1)
+        n = len(self)
+        if idx.size and (idx.min() < -n or idx.max() >= n):
+            raise IndexError(f"row index out of range for {n} rows")
+        idx = np.where(idx < 0, idx + n, idx)
+        shape = (idx.size, *self.inner, self.width)
+        if out is None:
+            out = np.empty(shape, self.data.dtype)
+        elif out.shape != shape or not out.flags.c_contiguous:
+            raise ValueError(f"`out` must be a C-contiguous array of shape {shape}")
+        M = int(np.prod(self.inner, dtype=np.int64))
+        flat = out.reshape(idx.size, M, self.width)
+        if idx.size:
+            _unpack(self.data, idx, self.first, self.length, self.pos, flat)
+        return out
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, tuple):
+            head, rest = key[0], key[1:]
+            return self[head][(slice(None), *rest)] if np.ndim(head) else self[head][rest]
+        if isinstance(key, (int, np.integer)):
+            return self.rows(np.array([key]))[0]
+        if isinstance(key, slice):
+            return self.rows(np.arange(len(self))[key])
+        key = np.asarray(key)
+        if key.dtype == bool:
+            key = np.flatnonzero(key)
+        return self.rows(key)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self.rows(np.arange(len(self)))
+        return a if dtype is None else a.astype(dtype, copy=False)

@@ -1,0 +1,183 @@
+"""The map's candidate histograms kept over their supports only (``_windows.py``): the
+same histograms as the dense windows, less memory, released before stage 7."""
+
+import gc
+import weakref
+
+import numpy as np
+import pytest
+
+from splidar.detection import _4_map, _6_select, _detect, detect
+from splidar.detection._windows import SupportWindows
+from splidar.scenes import single_surface_scene, two_layer_scene
+
+
+@pytest.fixture(scope="module")
+def long_irf_cube():
+    """A single surface seen through a wide exponential-tail IRF (W of about 140 bins)."""
+    scene = single_surface_scene((16, 16), n_bins=500, irf=("exp_tail", 5.0, 10.0))
+    return scene.simulate(ppp=8.0, sbr=1.0, rng=0).cube
+
+
+def test_support_windows_rows_are_the_dense_rows():
+    rng = np.random.default_rng(0)
+    n, Q, L, W = 40, 3, 2, 17
+    first = rng.integers(0, W, n)
+    length = rng.integers(0, W + 1, n)
+    length = np.minimum(length, W - first)
+    length[:3] = 0
+    dense = np.zeros((n + 5, Q, L, W), np.float32)
+    rows = rng.permutation(n + 5)[:n]
+    for i, r in enumerate(rows):
+        dense[r, ..., first[i] : first[i] + length[i]] = rng.random((Q, L, length[i]))
+    w = SupportWindows.pack(dense, rows, first=first, length=length)
+    ref = dense[rows]
+    assert w.shape == ref.shape and len(w) == n and w.dtype == np.float32
+    assert w.data.size == Q * L * int(length.sum())
+    np.testing.assert_array_equal(np.asarray(w), ref)
+    idx = np.array([5, 0, 39, 5, -1])
+    np.testing.assert_array_equal(w[idx], ref[idx])
+    np.testing.assert_array_equal(w[7], ref[7])
+    np.testing.assert_array_equal(w[3:9], ref[3:9])
+    np.testing.assert_array_equal(w[idx, 1], ref[idx, 1])
+    mask = np.zeros(n, bool)
+    mask[::3] = True
+    np.testing.assert_array_equal(w[mask], ref[mask])
+    out = np.full((idx.size, Q, L, W), np.nan, np.float32)
+    assert w.rows(idx, out) is out
+    np.testing.assert_array_equal(out, ref[idx])
+    with pytest.raises(IndexError):
+        w[np.array([n])]
+    with pytest.raises(ValueError):
+        SupportWindows.pack(dense, rows[:1], first=[W - 1], length=[2])
+
+
+def test_map_candidates_keeps_histograms_over_supports_only(long_irf_cube):
+    """Each block's histograms hold the table's candidates' supports only (a long IRF's
+    window is mostly outside them), zero elsewhere as the dense windows are."""
+    det_opts = dict(rng=0, passes=())
+    seen = {}
+    real = _detect._map_pass
+
+    def spy(*a, **k):
+        mp, held, n = real(*a, **k)
+        seen["mp"], seen["table"] = mp, held[0]
+        return mp, held, n
+
+    mp_pass = pytest.MonkeyPatch()
+    mp_pass.setattr(_detect, "_map_pass", spy)
+    try:
+        detect(long_irf_cube, **det_opts)
+    finally:
+        mp_pass.undo()
+    mp, table = seen["mp"], seen["table"]
+    hists = mp.histograms
+    assert all(isinstance(h, SupportWindows) for h in hists)
+    Q, L, W = hists[0].shape[1:]
+    assert W == mp.width and W > 100
+    cols = table.columns
+    n = sum(len(h) for h in hists)
+    assert n == len(table)
+    span = (np.asarray(cols["stop"], np.int64) - np.asarray(cols["start"], np.int64)).sum()
+    assert sum(h.data.size for h in hists) == Q * L * int(span)
+    dense_bytes = n * Q * L * W * 4
+    assert sum(h.nbytes for h in hists) < 0.7 * dense_bytes
+    idx = np.arange(n)
+    h = _6_select._gather(table, idx, hists)
+    off = np.asarray(cols["offset"], np.int64)[:, None] + np.arange(W)
+    lo, hi = np.asarray(cols["start"])[:, None], np.asarray(cols["stop"])[:, None]
+    outside = (off < lo) | (off >= hi)
+    assert np.all(h.transpose(0, 3, 1, 2)[outside] == 0)
+    assert np.any(h > 0)
+
+
+class _Dense:
+    """The dense layout of the histograms (main's until session 23), for comparison."""
+
+    @staticmethod
+    def pack(dense, rows, *, first, length):
+        return np.ascontiguousarray(dense[rows])
+
+
+def test_detect_with_support_windows_equals_the_dense_histograms(long_irf_cube, monkeypatch):
+    """The same Detection bit for bit: surfaces, histograms, presence statistics,
+    provenance (the selection's histograms gathered in many small parts)."""
+    a = detect(long_irf_cube, rng=0)
+    monkeypatch.setattr(_6_select, "GATHER_BYTES", 5000)
+    b = detect(long_irf_cube, rng=0)
+    monkeypatch.undo()
+    monkeypatch.setattr(_4_map, "SupportWindows", _Dense)
+    c = detect(long_irf_cube, rng=0)
+    assert len(a.surfaces) > 100
+    for other in (b, c):
+        for name, x in vars(a.surfaces).items():
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(getattr(other.surfaces, name), x, err_msg=name)
+                assert getattr(other.surfaces, name).dtype == x.dtype
+        np.testing.assert_array_equal(other.saliency, a.saliency)
+        np.testing.assert_array_equal(other.mask, a.mask)
+        assert [(r.stage, r.added, r.removed, r.moved) for r in other.provenance] == [
+            (r.stage, r.added, r.removed, r.moved) for r in a.provenance
+        ]
+
+
+def test_detect_releases_candidate_histograms_before_depth_alignment(long_irf_cube, monkeypatch):
+    """Stage 7 runs without the candidates' histograms in memory (stage 6 read them)."""
+    refs, alive = [], []
+    select, align = _detect.select_surfaces, _detect.align_surface_depths
+
+    def spy_select(table, histograms, **kw):
+        refs.extend(weakref.ref(h) for h in histograms)
+        return select(table, histograms, **kw)
+
+    def spy_align(*a, **k):
+        gc.collect()
+        alive.append(sum(r() is not None for r in refs))
+        return align(*a, **k)
+
+    monkeypatch.setattr(_detect, "select_surfaces", spy_select)
+    monkeypatch.setattr(_detect, "align_surface_depths", spy_align)
+    detect(long_irf_cube, rng=0)
+    assert refs and alive == [0]
+
+
+def test_detect_stages_7_write_moved_histograms_in_place_with_the_same_result(monkeypatch):
+    """Stages 7 and 7b write their moved surfaces' histograms into the selection's array
+    (no copy of every surface's); the Detection is the one a copy gives."""
+    from splidar.detection import _7_align_depths
+
+    align, band = _detect.align_surface_depths, _detect.relabel_edge_bands
+    shared = []
+
+    def spy(fn, copy):
+        def run(surfaces, **kw):
+            assert kw["overwrite"] is True
+            if copy:
+                kw["overwrite"] = False
+            before = np.array(surfaces.histograms)
+            res = fn(surfaces, **kw)
+            changed = bool((res.surfaces.histograms != before).any())
+            shared.append((np.shares_memory(surfaces.histograms, res.surfaces.histograms), changed))
+            return res
+
+        return run
+
+    monkeypatch.setattr(_detect, "align_surface_depths", spy(align, False))
+    monkeypatch.setattr(_detect, "relabel_edge_bands", spy(band, False))
+    cube = (
+        two_layer_scene((32, 32), n_bins=150)
+        .simulate(ppp=4, sbr=0.25, background="decaying", rng=0)
+        .cube
+    )
+    a = detect(cube, rng=0)
+    assert [x[0] for x in shared] == [True, True]
+    monkeypatch.setattr(_detect, "align_surface_depths", spy(align, True))
+    monkeypatch.setattr(_detect, "relabel_edge_bands", spy(band, True))
+    b = detect(cube, rng=0)
+    # a copy where a stage refitted histograms (at least one of them did)
+    assert [x[0] for x in shared[2:]] == [not x[1] for x in shared[2:]]
+    assert any(x[1] for x in shared[2:])
+    for name, x in vars(a.surfaces).items():
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(getattr(b.surfaces, name), x, err_msg=name)
+    assert _7_align_depths.align_surface_depths is align
