@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 
 from splidar import gaussian_irf
-from splidar.detection._7_align_depths import move_far_depths
+from splidar.detection._7a_align_depths import move_far_depths
 from splidar.detection._result import Background, Surfaces
 
 T = 200
@@ -146,7 +146,7 @@ def test_window_fields_threads_give_the_same_fields():
     # 12 x 12 pixels, every one refitted at a depth off its window (144 surfaces: the
     # split over threads starts at 64): n_jobs 2 (and a lazy cube) gives n_jobs 1's
     # fields bit for bit
-    from splidar.detection._7_align_depths import _window_fields
+    from splidar.detection._depth_fields import _window_fields
 
     rng = np.random.default_rng(3)
     n, W, scales = 144, 9, np.array([1, 3])

@@ -1,4 +1,4 @@
-"""Stage 7 (clean-up): move depths that the 4-neighbours' plane places elsewhere.
+"""Stage 7's first rules (``"align_depths"``): depths the 4-neighbours' plane places elsewhere.
 
 On a steep slope the 3 x 3 box has a lobe per row and a low-count peak can fall on a
 neighbour row's: where the opposite pairs of 4-neighbours place a depth more than half
@@ -7,26 +7,23 @@ pool's peak near their prediction, unless the own counts favour the current dept
 by more than their noise (:func:`~splidar.detection._quality.align_depths`). Then a
 surface far (more than 2 FWHM) from what its neighbours offer moves there when the own
 counts favour it against a prior (:func:`move_far_depths`). Adds or removes no surface.
+These rules decide depths (:func:`aligned_depths`); stage 7 (``_7_depths.place_depths``)
+runs them before stage 7b's rules and the moved surfaces' fields follow once, after
+both (``_depth_fields``).
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 from numba import njit
 
-from ._4_map import _local_scale
-from ._kernels import _llr_one, _select_scale
+from ._depth_fields import _follow, _pixels, _support_fields, _window_fields, follow_supports
 from ._quality import _shifted_irf, align_depths
-from ._result import STAGES, StoredHistograms, Surfaces
-from ._slopes import _row_bands, _zarr_of, pixels_of, support_sums, surface_fields
-from ._table import write_rows
-from ._threads import on_parts
-from ._tiled import is_dask
+from ._result import Surfaces
 
-__all__ = ["DepthAlignment", "align_surface_depths", "move_far_depths"]
+__all__ = ["aligned_depths", "move_far_depths"]
 
 #: A pixel whose own counts favour its current depth over the sheared pool's peak by
 #: more than this many standard deviations of the background noise keeps it: the pool
@@ -50,28 +47,9 @@ OWN_Z = 1.0
 FAR_DEPTHS = True
 
 
-@dataclass(frozen=True)
-class DepthAlignment:
-    """The surfaces with aligned depths, how many moved and the time it took."""
-
-    surfaces: Surfaces
-    n_moved: int
-    seconds: float
-
-
-def align_surface_depths(
-    surfaces: Surfaces,
-    *,
-    fwhm: float,
-    irf: np.ndarray,
-    counts=None,
-    background=None,
-    scales=None,
-    saliency=None,
-    threshold=None,
-    n_jobs: int = 1,
-) -> DepthAlignment:
-    """Align the depths of ``surfaces`` with their 4-neighbours' plane (see the module).
+def aligned_depths(surfaces: Surfaces, *, fwhm: float, irf, counts=None, background=None) -> tuple:
+    """The depths of ``surfaces`` after the sheared pool and, with ``counts`` and
+    ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the module).
 
     Parameters
     ----------
@@ -82,27 +60,21 @@ def align_surface_depths(
         The normalised IRF: the background's noise on the clean histograms (the matched
         filter's response) is ``b sum_t g(t)^2`` per bin.
     counts : array_like (rows, cols, L, T), optional
-        The cube's raw counts; with ``background`` (:class:`Background`), the far depths
-        are re-decided too (:func:`move_far_depths`, when ``FAR_DEPTHS``) and every
-        moved surface's fields follow its depth (:func:`_moved_fields`).
+        The cube's raw counts.
     background : Background, optional
-    scales : ndarray (Q,) int, optional
-        The box sizes of the clean histograms (``Detection.scales``): a moved surface's
-        histograms are recomputed at its new depth with them. Required with ``counts``.
-    saliency, threshold : optional
-        ``Detection.saliency`` and ``.threshold``: the ``saliency_mass`` and ``evidence``
-        of a surface whose support moved are summed over the new support.
-    n_jobs : int
-        Threads for the moved surfaces' fields (:func:`_window_fields`); the result does
-        not depend on it.
 
     Returns
     -------
-    DepthAlignment
-        ``surfaces.moved_by`` holds ``"align_depths"``'s index in ``STAGES`` for the
-        surfaces it moved.
+    surfaces : Surfaces
+        ``depth_bin`` moved; the supports (``start``, ``stop``) and own ``counts`` /
+        ``background`` of the surfaces whose depth left its support followed
+        (``_depth_fields.follow_supports``); the window fields not yet.
+    refit : ndarray (m,) int64
+        The surfaces whose support moved (their window fields to be recomputed).
+    moved : ndarray (n,) int64
+        Every surface whose depth changed (``refit`` among them; the others moved inside
+        their support: only their presence statistics follow).
     """
-    t0 = time.perf_counter()
     s = surfaces
     g2 = np.sum(np.atleast_2d(np.asarray(irf, np.float64)) ** 2, axis=-1)  # (L,)
     width = np.maximum(s.stop - s.start, 1).astype(np.float64)
@@ -112,49 +84,21 @@ def align_surface_depths(
         s.row, s.col, s.slot, s.depth_bin, s.offset, s.histograms[:, 0].sum(axis=1),
         image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
     )  # fmt: skip
+    old = np.asarray(s.depth_bin, np.float64)
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     far = np.zeros(0, np.int64)
-    if FAR_DEPTHS and counts is not None and background is not None and scales is not None:
+    if FAR_DEPTHS and counts is not None and background is not None:
         out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf)
-        out, refit = _moved_fields(
-            out, s.depth_bin, far, counts, background, scales, irf, n_jobs=n_jobs
-        )
-        out = _support_fields(out, refit, saliency, threshold)
-    moved = np.flatnonzero(out.depth_bin != np.asarray(s.depth_bin, np.float64))
-    code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
-    code[moved] = STAGES.index("align_depths")
-    out = replace(out, moved_by=code)
-    return DepthAlignment(out, int(moved.size), time.perf_counter() - t0)
-
-
-def _moved_fields(s: Surfaces, old, far, counts, background, scales, irf, *, n_jobs=1) -> tuple:
-    """Every field of the surfaces stage 7 moved at their new depths (``old``: the
-    depths before it; ``far``: those :func:`_far_moves` moved, whose supports and own
-    counts followed already). A depth the sheared pool moved inside its support keeps
-    its window and support; only the presence statistics follow it. One it moved out
-    of its support is treated as a far move: its support (shifted with the depth, cut
-    to the new window), own counts and window follow it. Returns the surfaces and the
-    indices of those whose support moved (``far`` and the latter: their
-    ``saliency_mass`` and ``evidence`` are recomputed by :func:`_support_fields`)."""
-    d = np.asarray(s.depth_bin, np.float64)
-    sheared = np.setdiff1d(np.flatnonzero(d != np.asarray(old, np.float64)), far)
-    out_of = sheared[(d[sheared] < s.start[sheared]) | (d[sheared] >= s.stop[sheared])]
-    if out_of.size:
-        start, stop = np.array(s.start), np.array(s.stop)
-        own_counts = np.array(s.counts, np.float64)
-        own_bg = np.array(s.background, np.float64)
-        ys = _pixels(counts, s.row[out_of], s.col[out_of]).astype(np.float64)
-        bs = np.maximum(background.at(s.row[out_of], s.col[out_of]).astype(np.float64), 1e-6)
-        W, T = int(s.histograms.shape[-1]), int(np.shape(counts)[-1])
-        for m, i in enumerate(out_of):
-            _follow(start, stop, own_counts, own_bg, i, old[i], d[i], ys[m], bs[m], W, T)
-        s = replace(s, start=start, stop=stop, counts=own_counts, background=own_bg)
-    refit = np.union1d(far, out_of)
-    idx = np.union1d(refit, sheared)
-    if not idx.size:
-        return s, refit
-    refit_m = np.isin(idx, refit)
-    return _window_fields(s, idx, refit_m, counts, background, scales, irf, n_jobs=n_jobs), refit
+    d = np.asarray(out.depth_bin, np.float64)
+    moved = np.flatnonzero(d != old)
+    # a depth the sheared pool moved out of its support: treated as a far move
+    sheared = np.setdiff1d(moved, far)
+    out_of = sheared[(d[sheared] < out.start[sheared]) | (d[sheared] >= out.stop[sheared])]
+    if out_of.size and counts is not None and background is not None:
+        out = follow_supports(out, out_of, old, counts, background)
+    else:
+        out_of = np.zeros(0, np.int64)
+    return out, np.union1d(far, out_of), moved
 
 
 #: One-sided alternatives extrapolate a neighbour's surface over two pixels along one of
@@ -253,43 +197,6 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
             for k in range(K):
                 if abs(D[r, c, k] - alt[i, u]) <= far:
                     alt[i, u] = np.nan  # the pixel holds that return already
-
-
-def _pixels(counts, rows, cols) -> np.ndarray:
-    """The raw counts of a few pixels, ``(n, L, T)``: read at once from a Dask array.
-
-    A Dask array that only reads a Zarr array (``splidar.load`` of a Zarr cube) is read
-    by this process from the Zarr array itself, a chunk of rows at a time (each chunk
-    holding a pixel decoded once, as Dask's ``vindex`` does), not through the active
-    scheduler: on a cluster the workers' reads were serialised and sent over.
-    """
-    if is_dask(counts):
-        kept = pixels_of(counts, rows, cols)  # kept sparse during the detection
-        if kept is not None:
-            return kept
-        z = _zarr_of(counts)
-        if z is not None:
-            try:
-                return _pixels_by_chunk(z, counts.chunks[0], rows, cols)
-            except OSError:  # a path the workers see and this process does not
-                pass
-        return np.asarray(counts.vindex[rows, cols].compute())
-    if isinstance(counts, np.ndarray):
-        return counts[rows, cols]
-    return np.stack([np.asarray(counts[r, c]) for r, c in zip(rows, cols, strict=True)])
-
-
-def _pixels_by_chunk(z, row_chunks, rows, cols) -> np.ndarray:
-    """Pixels ``(rows, cols)`` of the Zarr array ``z``, read a chunk of rows at a time."""
-    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    edges = np.cumsum((0,) + tuple(int(n) for n in row_chunks))
-    band = np.searchsorted(edges, rows, side="right") - 1
-    out = np.empty((rows.size,) + tuple(z.shape[2:]), z.dtype)
-    for b in np.unique(band):
-        sel = np.flatnonzero(band == b)
-        y = np.asarray(z[int(edges[b]) : int(edges[b + 1])])
-        out[sel] = y[rows[sel] - edges[b], cols[sel]]
-    return out
 
 
 def move_far_depths(
@@ -408,137 +315,3 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> t
         s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
     )  # fmt: skip
     return out, np.array(moved, np.int64)
-
-
-def _follow(start, stop, own_counts, own_bg, i, old, to, y, b, W, T) -> None:
-    """The support of surface ``i`` moved from depth ``old`` to ``to``, in place: shifted
-    with the depth and cut to the new window (the extraction's rule,
-    ``extract_surfaces``: the window about the integer depth), its raw counts and
-    background (``y``, ``b``: the pixel's (L, T)) summed over it (``reconstruct`` takes
-    the IRF's fraction over the support)."""
-    shift = int(np.rint(to - old))
-    off = min(max(int(np.rint(to)) - W // 2, 0), max(T - W, 0))
-    start[i] = max(start[i] + shift, 0, off)
-    stop[i] = max(min(stop[i] + shift, T, off + W), start[i])
-    own_counts[i] = y[:, start[i] : stop[i]].sum(axis=-1)
-    own_bg[i] = b[:, start[i] : stop[i]].sum(axis=-1)
-
-
-def _window_fields(
-    s: Surfaces, idx, refit, counts, background, scales, irf, *, n_jobs: int = 1
-) -> Surfaces:
-    """``offset``, clean ``histograms``, ``signal``, ``scale_index``, ``presence_llr``
-    and ``presence_z`` of surfaces ``idx`` recomputed at their depths over their
-    supports, as extraction computes them; where ``refit`` (``idx.size``, bool) is
-    False, the surface keeps its window (``offset``, histograms, ``signal``,
-    ``scale_index``: its depth moved inside its support) and only the presence
-    statistics, which depend on the depth, are recomputed.
-
-    The histograms are :func:`~splidar.detection._slopes.surface_fields`' (the slopes
-    pass's extraction from the raw counts: ``max(Box_q(Y (*) g) - bhat, 0)`` of every
-    scale over the window of ``W`` bins about the integer depth, ``eq:background_final``)
-    set to zero outside the support as in ``extract_surfaces``; ``signal`` their sums
-    over time; ``scale_index`` the selected scale (``_select_scale``, ``eq:scale_sel``);
-    ``presence_llr`` the own counts' log-likelihood ratio with the local scale's signal
-    (``_llr_one``, as ``extract_surfaces``) over the surface's window; ``presence_z``
-    the local scale's z at the depth (``surface_fields``, as ``_local_z``). The raw
-    counts are read a band of rows at a time from a lazy cube (``_row_bands``); each
-    band's surfaces are split over ``n_jobs`` threads (``surface_fields`` releases the
-    GIL; every surface's fields are computed alone, so the split changes no value)."""
-    scales = np.asarray(scales, np.int64)
-    refit = np.asarray(refit, bool)
-    irf = np.ascontiguousarray(np.atleast_2d(np.asarray(irf, np.float64)))
-    L, T = background.temporal.shape
-    Q, W = scales.size, int(s.histograms.shape[-1])
-    tm = background.temporal
-    dev = (tm - tm.mean(axis=-1, keepdims=True)).astype(np.float32)  # as stage 1
-    sp = np.ascontiguousarray(background.spatial, np.float32)
-    peak = irf.argmax(axis=1).astype(np.int64)
-    gsq = (irf**2).sum(axis=1)
-    qloc = _local_scale(scales)
-    n = idx.size
-    o = dict(
-        offset=np.empty(n, np.int64), histograms=np.empty((n, Q, L, W), np.float32),
-        signal=np.empty((n, Q, L)), counts=np.empty((n, L)), background=np.empty((n, L)),
-        presence_llr=np.empty(n), presence_z=np.empty(n),
-    )  # fmt: skip
-    raw = np.zeros((n, L, W))
-    rows, cols = s.row[idx], s.col[idx]
-    depth = np.asarray(s.depth_bin, np.float64)[idx]
-    # the window the presence test reads: the new one, or the surface's own (kept)
-    win = np.asarray(s.offset, np.int64)[idx].copy()
-    s_pool = np.zeros((n, L))
-    for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2):
-
-        def fields(a, b, sel=sel, y=y, y0=y0):
-            ss = sel[a:b]
-            part = {k: v[ss] for k, v in o.items()}
-            surface_fields(
-                y, int(y0), sp, dev, rows[ss], cols[ss], depth[ss], s_pool[ss], scales, irf,
-                peak, gsq, W, int(qloc), *part.values(),
-            )  # fmt: skip
-            for k, v in part.items():
-                o[k][ss] = v
-
-        on_parts(fields, sel.size, n_jobs if sel.size >= 64 else 1)
-        for m in sel:
-            if refit[m]:
-                win[m] = o["offset"][m]
-            raw[m] = y[rows[m] - y0, cols[m], :, win[m] : win[m] + W]
-    hist = o["histograms"]
-    qbar = np.array(s.scale_index)
-    signal = np.array(s.signal, np.float64)
-    tot, d_q = np.empty(W, np.float32), np.empty(Q, np.int64)
-    for m, i in enumerate(idx):
-        inside = (win[m] + np.arange(W) >= s.start[i]) & (win[m] + np.arange(W) < s.stop[i])
-        raw[m][:, ~inside] = 0.0
-        if refit[m]:
-            hist[m][..., ~inside] = 0.0  # zero outside the support (eq:background_final)
-            # the selected scale (eq:scale_sel) on the clean responses summed over L
-            qbar[i] = _select_scale(hist[m].sum(axis=1, dtype=np.float32), tot, d_q)
-            signal[i] = hist[m].sum(axis=-1, dtype=np.float64)
-        bh = np.maximum(sp[rows[m], cols[m]][:, None] + dev[:, win[m] : win[m] + W], 0)
-        o["presence_llr"][m] = _llr_one(
-            raw[m], bh.astype(np.float32), inside, depth[m] - win[m],
-            np.ascontiguousarray(signal[i, qloc], np.float64), irf, peak.astype(np.float64),
-            L, W,
-        )  # fmt: skip
-    new = idx[refit]
-    offset = np.array(s.offset)
-    offset[new] = o["offset"][refit]
-    if not new.size:
-        histograms = s.histograms
-    elif isinstance(s.histograms, StoredHistograms):  # the detection's own store
-        write_rows(s.histograms.array, idx[refit], hist[refit])  # a chunk written once
-        histograms = s.histograms
-    else:
-        histograms = np.array(s.histograms)
-        histograms[new] = hist[refit]
-    llr = z = None
-    if s.presence_llr is not None:
-        llr = np.array(s.presence_llr, np.float64)
-        llr[idx] = o["presence_llr"]
-    if s.presence_z is not None:  # the local scale's z at the depth (as _local_z)
-        z = np.array(s.presence_z, np.float64)
-        z[idx] = o["presence_z"]
-    return replace(
-        s, offset=offset, histograms=histograms, signal=signal, scale_index=qbar,
-        presence_llr=llr, presence_z=z,
-    )  # fmt: skip
-
-
-def _support_fields(s: Surfaces, idx, saliency, threshold) -> Surfaces:
-    """``saliency_mass`` and ``evidence`` of surfaces ``idx`` summed over their supports
-    (:func:`~splidar.detection._slopes.support_sums`, as the slope pass computes its
-    surfaces': the map's run at a depth a surface moved to may not exist); unchanged
-    without ``saliency``."""
-    if saliency is None or threshold is None or not np.size(idx):
-        return s
-    mass, ev = support_sums(saliency, threshold, s.row[idx], s.col[idx], s.start[idx], s.stop[idx])
-    new_mass = np.array(s.saliency_mass, np.float64)
-    new_mass[idx] = mass
-    new_ev = None
-    if s.evidence is not None:
-        new_ev = np.array(s.evidence, np.float64)
-        new_ev[idx] = ev
-    return replace(s, saliency_mass=new_mass, evidence=new_ev)
