@@ -16,9 +16,11 @@ this order, each on the depths the previous left:
 
 The rules decide depths only (and move the supports of the depths that left them); the
 moved surfaces' window, histograms, signal, selected scale, presence statistics,
-``saliency_mass`` and ``evidence`` follow once, after the last rule
+``saliency_mass`` and ``evidence`` follow once per round, after the last family
 (``_depth_fields``): the same fields as following them after each family
-(``tests/test_depths.py``), one read of the moved pixels fewer.
+(``tests/test_depths.py``). The families run in rounds (:data:`ROUNDS`), each on the
+depths and fields the previous round left, until a round moves no depth: what one family
+moves gives the other new neighbours, which one pass of each in turn never saw.
 """
 
 from __future__ import annotations
@@ -34,12 +36,22 @@ from ._7b_edge_bands import band_depths
 from ._depth_fields import _support_fields, _window_fields, follow_supports
 from ._result import STAGES, Surfaces
 
-__all__ = ["RULES", "DepthPlacement", "place_depths"]
+__all__ = ["ROUNDS", "RULES", "DepthPlacement", "place_depths"]
 
 #: The rule families of stage 7, in the order they run (``passes`` entries and
 #: ``STAGES`` names: ``Detection.provenance`` and ``Surfaces.moved_by`` say which moved a
 #: surface).
 RULES = ("align_depths", "edge_bands")
+#: Rounds of the families at most: a round runs every family and follows the moved
+#: surfaces' fields; the next round starts from its depths, until a round moves no
+#: depth. One family's moves give the other new neighbours and planes (a band moved
+#: onto its region's plane gives a pixel beside it 4-neighbours that agree; a pixel the
+#: sheared pool moved joins a region). Measured (benchmarks/README.md, "mrg31, session
+#: 23"): issue #15's single-surface cells, seeds 0-2, false surfaces 92.3 -> 86.0
+#: (uniform), 119.7 -> 113.7 (decaying), F_true 0.9786 -> 0.9795, 0.9806 -> 0.9813
+#: against one round; 23 of 24 single, sheet and net cubes better or equal. Rounds after
+#: the third moved a few surfaces more on 3 of 24 cubes.
+ROUNDS = 5
 
 
 @dataclass(frozen=True)
@@ -58,14 +70,17 @@ class DepthPlacement:
         The Potts weight of the bands' labelling (nats; NaN when ``"edge_bands"`` did not
         run).
     seconds : Mapping[str, float]
-        Per rule family that ran, its seconds; the fields' following counted with the
-        last family that ran.
+        Per rule family that ran, its seconds (all rounds); the fields' following
+        counted with the last family that ran.
+    rounds : int
+        The rounds run (:data:`ROUNDS` at most; 0 when no family ran).
     """
 
     surfaces: Surfaces
     moved: MappingProxyType
     beta: float
     seconds: MappingProxyType
+    rounds: int
 
 
 def place_depths(
@@ -103,7 +118,8 @@ def place_depths(
         ``Detection.saliency`` and ``.threshold``: a surface whose support moved has its
         ``saliency_mass`` and ``evidence`` summed over the new support.
     rules : sequence of str
-        Which of :data:`RULES` run (in :data:`RULES`' order whatever this order).
+        Which of :data:`RULES` run (in :data:`RULES`' order whatever this order), in
+        rounds (:data:`ROUNDS`) until a round moves no depth.
     n_jobs : int
         Threads for the planes, likelihoods and fields (never changes the result).
 
@@ -116,36 +132,44 @@ def place_depths(
         raise ValueError(f"unknown rules {sorted(unknown)}; known: {RULES}")
     s = surfaces
     code = np.full(len(s), -1, np.int8) if s.moved_by is None else np.array(s.moved_by)
-    refit, moved_any = np.zeros(0, np.int64), np.zeros(0, np.int64)
-    n_moved, seconds, beta = {}, {}, float("nan")
-    for rule in (r for r in RULES if r in rules):
-        t0 = time.perf_counter()
-        before = np.asarray(s.depth_bin, np.float64)
-        if rule == "align_depths":
-            s, support, moved = aligned_depths(
-                s, fwhm=fwhm, irf=irf, counts=counts, background=background
-            )
-        else:
-            depth, moved, beta = band_depths(
-                s, counts, background, fwhm=fwhm, irf=irf, half=int(np.max(scales)) // 2,
-                n_jobs=n_jobs,
-            )  # fmt: skip
-            s = follow_supports(replace(s, depth_bin=depth), moved, before, counts, background)
-            support = moved
-        code[moved] = STAGES.index(rule)
-        refit = np.union1d(refit, support)
-        moved_any = np.union1d(moved_any, moved)
-        n_moved[rule] = int(moved.size)
-        seconds[rule] = time.perf_counter() - t0
-        last = rule
-    if n_moved:
+    moved: dict = {}
+    seconds: dict = {}
+    beta, rounds = float("nan"), 0
+    half = int(np.max(scales)) // 2
+    while rounds < ROUNDS:
+        rounds += 1
+        before = np.array(s.depth_bin, np.float64)
+        refit, moved_any = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        for rule in (r for r in RULES if r in rules):
+            t0 = time.perf_counter()
+            at = np.asarray(s.depth_bin, np.float64)
+            if rule == "align_depths":
+                s, support, now = aligned_depths(
+                    s, fwhm=fwhm, irf=irf, counts=counts, background=background
+                )
+            else:
+                depth, now, beta = band_depths(
+                    s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
+                )
+                s = follow_supports(replace(s, depth_bin=depth), now, at, counts, background)
+                support = now
+            code[now] = STAGES.index(rule)
+            refit, moved_any = np.union1d(refit, support), np.union1d(moved_any, now)
+            moved[rule] = np.union1d(moved.get(rule, np.zeros(0, np.int64)), now)
+            seconds[rule] = seconds.get(rule, 0.0) + time.perf_counter() - t0
+            last = rule
+        if not moved:
+            break
         t0 = time.perf_counter()
         s = _fields(
             s, moved_any, refit, counts, background, scales, irf, saliency, threshold, n_jobs
         )
         seconds[last] += time.perf_counter() - t0
+        if np.array_equal(np.asarray(s.depth_bin, np.float64), before):
+            break
     s = replace(s, moved_by=code)
-    return DepthPlacement(s, MappingProxyType(n_moved), beta, MappingProxyType(seconds))
+    n_moved = MappingProxyType({r: int(m.size) for r, m in moved.items()})
+    return DepthPlacement(s, n_moved, beta, MappingProxyType(seconds), rounds if moved else 0)
 
 
 def _fields(s, moved, refit, counts, background, scales, irf, saliency, threshold, n_jobs):
