@@ -286,28 +286,16 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> t
         others.setdefault(int(pix[j]), []).append(int(j))
     ys = _pixels(counts, rows, cols)  # (n, L, T), the candidates' pixels only
     bs = np.maximum(background.at(rows, cols).astype(np.float64), 1e-6)
-    for m, i in enumerate(cand):
-        y, b = ys[m : m + 1].astype(np.float64), bs[m : m + 1]
-        best, to = np.inf, np.nan
-        for u in np.flatnonzero(~np.isnan(alt[i])):
-            j = src[i, u][src[i, u] >= 0]
-            sp = np.maximum(photons[j].mean(axis=0), 1e-9)[None, :, None]  # (1, L, 1)
-            g = _shifted_irf(irf, peak, np.array([depth[i], alt[i, u]]), T)  # (2, L, T)
-            ll = (y * np.log1p(sp * g / b)).sum(axis=(1, 2)) - (sp * g).sum(axis=(1, 2))
-            v = ll[0] - ll[1]
-            if not isolated[i]:
-                # more than one background photon at the alternative's peak would give
-                tb = min(max(int(np.rint(alt[i, u])), 0), T - 1)
-                v += np.log1p(np.max(sp[0, :, 0] * irf.max(axis=1) / b[0, :, tb]))
-            if v < best:
-                best, to = v, alt[i, u]
-        if best >= (plane_prior if isolated[i] else 0.0) or not 0.0 <= to <= T - 1:
-            continue
+    best, to = _far_scores(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs)
+    prior = np.where(isolated[cand], plane_prior, 0.0)
+    for m in np.flatnonzero((best < prior) & (to >= 0.0) & (to <= T - 1)):
+        i = cand[m]
         same = others.get(int(pix[i]), ())  # keep the slots' depth order
-        if any((s.slot[j] < s.slot[i]) == (depth[j] >= to) for j in same if j != i):
+        if any((s.slot[j] < s.slot[i]) == (depth[j] >= to[m]) for j in same if j != i):
             continue
-        _follow(start, stop, own_counts, own_bg, i, depth[i], to, y[0], b[0], W, T)
-        depth[i] = to
+        y = ys[m].astype(np.float64)
+        _follow(start, stop, own_counts, own_bg, i, depth[i], to[m], y, bs[m], W, T)
+        depth[i] = to[m]
         moved.append(int(i))
     if not moved:
         return s, np.zeros(0, np.int64)
@@ -315,3 +303,51 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> t
         s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
     )  # fmt: skip
     return out, np.array(moved, np.int64)
+
+
+#: Elements of the (pairs, 2, L, T) float64 arrays of :func:`_far_scores`, per block.
+_FAR_BLOCK = 1 << 20
+
+
+def _far_scores(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs) -> tuple:
+    """Per candidate ``cand[m]`` of :func:`_far_moves`, the best alternative's score
+    ``best[m] = L(d) - L(a)`` (plus, beside an edge, the one-photon term; ``inf`` when it
+    has none) and its depth ``to[m]`` (the first of the lowest scores in the order of
+    the directions, as one loop over them finds it).
+
+    Every (candidate, alternative) pair at once, in blocks of pairs: each pair's values
+    are computed as the former loop computed them one at a time (the neighbours' mean
+    intensity summed row by row in their order, the IRF shifted by ``_shifted_irf``, the
+    log-likelihoods summed over (L, T) of each depth), so the scores are the same to
+    the bit (``tests/test_far_depths.py``). ``ys`` (n, L, T) the candidates' raw counts,
+    ``bs`` (n, L, T) their background (float64, >= 1e-6)."""
+    n, L, T = ys.shape
+    best, to = np.full(n, np.inf), np.full(n, np.nan)
+    pm, pu = np.nonzero(~np.isnan(alt[cand]))  # pairs, candidate-major, directions rising
+    g_max = irf.max(axis=1)
+    step = max(_FAR_BLOCK // max(2 * L * T, 1), 1)
+    for a in range(0, pm.size, step):
+        m, u = pm[a : a + step], pu[a : a + step]
+        i = cand[m]
+        j = src[i, u]  # (P, 4); -1: none (2 sources beside an edge, 4 on a plane)
+        has = j >= 0
+        acc = photons[j[:, 0]].copy()
+        for k in range(1, 4):  # as photons[j].mean(axis=0): row by row, then / count
+            add = has[:, k]
+            acc[add] = acc[add] + photons[j[add, k]]
+        sp = np.maximum(acc / has.sum(axis=1)[:, None].astype(acc.dtype), 1e-9)  # (P, L)
+        d = np.stack([depth[i], alt[i, u]], axis=1).ravel()
+        g = _shifted_irf(irf, peak, d, T).reshape(m.size, 2, L, T)
+        y, b, spg = ys[m][:, None].astype(np.float64), bs[m][:, None], sp[:, None, :, None] * g
+        ll = (y * np.log1p(spg / b)).sum(axis=(2, 3)) - spg.sum(axis=(2, 3))
+        v = ll[:, 0] - ll[:, 1]
+        edge = ~isolated[i]
+        if edge.any():  # more than one background photon at the alternative's peak
+            tb = np.clip(np.rint(alt[i[edge], u[edge]]).astype(np.int64), 0, T - 1)
+            bt = bs[m[edge], :, tb]  # (E, L)
+            v[edge] += np.log1p(np.max(sp[edge] * g_max / bt, axis=1))
+        v = np.where(np.isnan(v), np.inf, v)
+        for k in range(m.size):  # the first lowest per candidate, pairs in their order
+            if v[k] < best[m[k]]:
+                best[m[k]], to[m[k]] = v[k], alt[i[k], u[k]]
+    return best, to
