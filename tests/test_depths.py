@@ -90,6 +90,7 @@ def test_place_depths_is_detect_stage_7(before_stage_7):
     assert [r.stage for r in full.provenance][-2:] == list(RULES)
     for rule in RULES:
         assert rec[rule].ran and rec[rule].moved == placed.moved[rule]
+    assert full.options["depth_rounds"] == placed.rounds > 1
 
 
 def test_place_depths_records_the_last_family_that_moved_a_surface(before_stage_7):

@@ -512,6 +512,7 @@ def _select_and_align(cube, o, mp, done, t0: float, store, bg):
             n_jobs=o["n_jobs"],
         )  # fmt: skip
         surfaces = placed.surfaces
+    o["depth_rounds"] = 0 if placed is None else placed.rounds
     return surfaces, placed, t_sel, n_kept
 
 
@@ -693,6 +694,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             n_slopes=rec["slopes"].added,
             n_aligned=rec["align_depths"].moved,
             n_edge_bands=rec["edge_bands"].moved,
+            depth_rounds=o.get("depth_rounds", 0),  # stage 7's rounds (_7_depths.ROUNDS)
             hot_pixels=o["hot_pixels"],
             passes=passes,
             # scales="auto": each candidate box's measured coherence rho (None for 1)
