@@ -7,8 +7,8 @@ falls 2.2 times the sum of each left out alone (-0.0065 against -0.0029). They r
 this order, each on the depths the previous left:
 
 1. ``"align_depths"`` (:func:`~splidar.detection._7a_align_depths.aligned_depths`): the
-   sheared 3 x 3 pool of the 4-neighbours' plane, then the far depths that the
-   4-neighbours' plane or one side's extrapolation place elsewhere;
+   sheared 3 x 3 pool of the 4-neighbours' plane (first round only), then the far
+   depths that the 4-neighbours' plane or one side's extrapolation place elsewhere;
 2. ``"edge_bands"`` (:func:`~splidar.detection._7b_edge_bands.band_depths`): the bands
    beside depth edges labelled jointly between two regions (a Potts field solved by a
    minimum cut), then a region's members off its plane (near depths) and lone far depths
@@ -45,12 +45,14 @@ RULES = ("align_depths", "edge_bands")
 #: Rounds of the families at most: a round runs every family and follows the moved
 #: surfaces' fields; the next round starts from its depths, until a round moves no
 #: depth. One family's moves give the other new neighbours and planes (a band moved
-#: onto its region's plane gives a pixel beside it 4-neighbours that agree; a pixel the
-#: sheared pool moved joins a region). Measured (benchmarks/README.md, "mrg31, session
-#: 23"): issue #15's single-surface cells, seeds 0-2, false surfaces 92.3 -> 86.0
-#: (uniform), 119.7 -> 113.7 (decaying), F_true 0.9786 -> 0.9795, 0.9806 -> 0.9813
-#: against one round; 23 of 24 single, sheet and net cubes better or equal. Rounds after
-#: the third moved a few surfaces more on 3 of 24 cubes.
+#: onto its region's plane leaves a lone far depth beside it with 4-neighbours that
+#: agree; a far depth moved joins a region). The sheared pool runs in the first round
+#: only: run again on a wide IRF (the measured irf-sample pulse, FWHM about 15 bins) it
+#: cost true surfaces (F_true lower on 17 of 36 such cubes, higher on 10), where the far
+#: rules and the bands alone in the later rounds raise it on 16 and lower it on 4 (the
+#: pool re-run only beside the previous round's moves: 13 higher, 14 lower).
+#: Measured (benchmarks/README.md, "mrg31, session 23"; bench_ablation's 36 cells x 2
+#: seeds and issue #15's single-surface cells, seeds 0-2, against one round).
 ROUNDS = 5
 
 
@@ -145,8 +147,9 @@ def place_depths(
             at = np.asarray(s.depth_bin, np.float64)
             if rule == "align_depths":
                 s, support, now = aligned_depths(
-                    s, fwhm=fwhm, irf=irf, counts=counts, background=background
-                )
+                    s, fwhm=fwhm, irf=irf, counts=counts, background=background,
+                    shear=rounds == 1,
+                )  # fmt: skip
             else:
                 depth, now, beta = band_depths(
                     s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs

@@ -47,9 +47,12 @@ OWN_Z = 1.0
 FAR_DEPTHS = True
 
 
-def aligned_depths(surfaces: Surfaces, *, fwhm: float, irf, counts=None, background=None) -> tuple:
-    """The depths of ``surfaces`` after the sheared pool and, with ``counts`` and
-    ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the module).
+def aligned_depths(
+    surfaces: Surfaces, *, fwhm: float, irf, counts=None, background=None, shear: bool = True
+) -> tuple:
+    """The depths of ``surfaces`` after the sheared pool (when ``shear``) and, with
+    ``counts`` and ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the
+    module).
 
     Parameters
     ----------
@@ -62,6 +65,9 @@ def aligned_depths(surfaces: Surfaces, *, fwhm: float, irf, counts=None, backgro
     counts : array_like (rows, cols, L, T), optional
         The cube's raw counts.
     background : Background, optional
+    shear : bool
+        Run the sheared pool (stage 7 runs it in its first round only:
+        ``_7_depths.ROUNDS``).
 
     Returns
     -------
@@ -80,10 +86,12 @@ def aligned_depths(surfaces: Surfaces, *, fwhm: float, irf, counts=None, backgro
     width = np.maximum(s.stop - s.start, 1).astype(np.float64)
     b = np.asarray(s.background, np.float64) / width[:, None]  # per bin, (S, L)
     noise = np.sqrt(2.0 * np.maximum(b, 0.0) @ g2)
-    depth, _ = align_depths(
-        s.row, s.col, s.slot, s.depth_bin, s.offset, s.histograms[:, 0].sum(axis=1),
-        image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
-    )  # fmt: skip
+    depth = s.depth_bin
+    if shear:
+        depth, _ = align_depths(
+            s.row, s.col, s.slot, s.depth_bin, s.offset, s.histograms[:, 0].sum(axis=1),
+            image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
+        )  # fmt: skip
     old = np.asarray(s.depth_bin, np.float64)
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     far = np.zeros(0, np.int64)
