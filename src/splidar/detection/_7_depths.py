@@ -50,10 +50,13 @@ RULES = ("align_depths", "edge_bands")
 #: only: run again on a wide IRF (the measured irf-sample pulse, FWHM about 15 bins) it
 #: cost true surfaces (F_true lower on 17 of 36 such cubes, higher on 10), where the far
 #: rules and the bands alone in the later rounds raise it on 16 and lower it on 4 (the
-#: pool re-run only beside the previous round's moves: 13 higher, 14 lower).
-#: Measured (benchmarks/README.md, "mrg31, session 23"; bench_ablation's 36 cells x 2
-#: seeds and issue #15's single-surface cells, seeds 0-2, against one round).
-ROUNDS = 5
+#: pool re-run only beside the previous round's moves: 13 higher, 14 lower). Two rounds:
+#: issue #15's single-surface cells (seeds 0-2) 92.3 / 119.7 false surfaces with one,
+#: 90.3 / 116.7 with two, 90.3 / 116.3 with three; on the measured files the rounds do
+#: not settle (5 rounds on the face, tower and Art, each moving a few surfaces more) and
+#: stage 7 took 3.5 times one round's time with 5 (face 3.0 -> 10.5 s). Measured
+#: (benchmarks/README.md, "mrg31, session 23").
+ROUNDS = 2
 
 
 @dataclass(frozen=True)
