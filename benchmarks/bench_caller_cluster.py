@@ -5,7 +5,7 @@ its first run) replayed with a LocalCluster of ``--workers`` workers (1 GB, 1 th
 and a Client open, as in ``detect`` on a cluster: the clean-up passes, then the
 selection and depth alignment (``_detect._select_and_align``), whose CPU seconds are
 printed for the calling process and for the workers (psutil), with those of the
-alignment's pixel reads (``_7_align_depths._pixels``) in the calling process. The
+alignment's pixel reads (``_depth_fields._pixels``) in the calling process. The
 surfaces are checked against the saved detection's. Two versions of the code can be
 alternated on the same state (``PYTHONPATH=<other src>``)::
 
@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_caller_passes as bcp  # noqa: E402
 
-from splidar.detection import _7_align_depths, _detect  # noqa: E402
+from splidar.detection import _depth_fields, _detect  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     base = Path(args.dir)
     rec: dict = {}
-    sel, pix = _detect._select_and_align, _7_align_depths._pixels
+    sel, pix = _detect._select_and_align, _depth_fields._pixels
 
     def timed(store, fn):
         def run(*a, **k):
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
         return run
 
     _detect._select_and_align = timed("select+align", sel)
-    _7_align_depths._pixels = timed("pixels", pix)
+    _depth_fields._pixels = timed("pixels", pix)
     with (
         distributed.LocalCluster(
             n_workers=args.workers, threads_per_worker=1, memory_limit="1GB",

@@ -43,7 +43,7 @@ STEPS = (
     "_stuck_pixels_first", "estimate_temporal_background", "calibrate_null", "_map_pass",
     "recentre_runs", "remove_spill_over", "remove_isolated", "restore_dark_regions",
     "recover_slope_surfaces", "restore_enclosed_holes", "remove_stray_clusters",
-    "select_surfaces", "align_surface_depths",
+    "select_surfaces", "place_depths",
 )  # fmt: skip
 
 

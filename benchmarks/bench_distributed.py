@@ -370,7 +370,7 @@ def large(args) -> int:
 _CALLER_STEPS = (
     "map_candidates_tiled", "remove_spill_over", "remove_isolated", "restore_dark_regions",
     "recover_slope_surfaces", "restore_enclosed_holes", "select_surfaces",
-    "align_surface_depths", "_detection",
+    "place_depths", "_detection",
 )  # fmt: skip
 
 

@@ -58,7 +58,7 @@ class _Recorder:
         for name in _WRAPPED:
             if hasattr(_detect, name):
                 setattr(_detect, name, self._wrap(name, getattr(_detect, name)))
-        sel, align = _detect.select_surfaces, _detect.align_surface_depths
+        sel, align = _detect.select_surfaces, _detect.place_depths
 
         def select(table, *a, **k):
             self.final = table
@@ -68,7 +68,7 @@ class _Recorder:
             self.pre_align = surfaces
             return align(surfaces, **k)
 
-        _detect.select_surfaces, _detect.align_surface_depths = select, aligned
+        _detect.select_surfaces, _detect.place_depths = select, aligned
 
     def _wrap(self, name, fn):
         def run(table, *a, **k):

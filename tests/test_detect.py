@@ -1160,7 +1160,7 @@ def test_detect_refine_aligns_box_biased_depths_on_steep_ramp():
 
 
 def test_detect_align_depths_keeps_a_bright_one_pixel_bump(monkeypatch):
-    import splidar.detection._7_align_depths as align_stage
+    import splidar.detection._7a_align_depths as align_stage
 
     # a flat wall with one pixel 5 bins in front of it, every pixel 40 photons: the
     # bump's 4-neighbours place it on the wall (within 2 FWHM) and their sheared pool

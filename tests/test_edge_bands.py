@@ -10,6 +10,7 @@ import pytest
 
 from splidar import gaussian_irf
 from splidar.detection import STAGES
+from splidar.detection._7_depths import place_depths
 from splidar.detection._7b_edge_bands import (
     _windows,
     band_depths,
@@ -17,7 +18,6 @@ from splidar.detection._7b_edge_bands import (
     min_cut_labels,
     near_depths,
     profile_llr,
-    relabel_edge_bands,
 )
 from splidar.detection._result import Background, Surfaces
 
@@ -153,14 +153,14 @@ def test_profile_llr_is_the_maximum_over_the_intensity():
     assert np.allclose(got, np.maximum(grid.max(axis=0), 0.0), atol=1e-3)
 
 
-def test_relabel_edge_bands_records_its_moves():
+def test_place_depths_edge_bands_records_its_moves():
     counts = np.random.default_rng(3).poisson(_lam(dim_photons=1.5)).astype(np.uint16)
-    res = relabel_edge_bands(
+    res = place_depths(
         _surfaces(_band(3)), counts=counts, background=_background(), fwhm=3.0, irf=IRF,
-        scales=np.array([1, 3, 7, 11]),
+        scales=np.array([1, 3, 7, 11]), rules=("edge_bands",),
     )  # fmt: skip
     moved = np.flatnonzero(res.surfaces.moved_by == STAGES.index("edge_bands"))
-    assert res.n_moved == moved.size > 0
+    assert res.moved["edge_bands"] == moved.size > 0
     s = res.surfaces
     # a moved surface's support and window follow its depth
     assert np.all((s.start[moved] <= s.depth_bin[moved]) & (s.depth_bin[moved] < s.stop[moved]))

@@ -3,9 +3,10 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from splidar import gaussian_irf
-from splidar.detection._7_align_depths import move_far_depths
+from splidar.detection._7a_align_depths import move_far_depths
 from splidar.detection._result import Background, Surfaces
 
 T = 200
@@ -146,7 +147,7 @@ def test_window_fields_threads_give_the_same_fields():
     # 12 x 12 pixels, every one refitted at a depth off its window (144 surfaces: the
     # split over threads starts at 64): n_jobs 2 (and a lazy cube) gives n_jobs 1's
     # fields bit for bit
-    from splidar.detection._7_align_depths import _window_fields
+    from splidar.detection._depth_fields import _window_fields
 
     rng = np.random.default_rng(3)
     n, W, scales = 144, 9, np.array([1, 3])
@@ -174,3 +175,57 @@ def test_window_fields_threads_give_the_same_fields():
         for k in ("offset", "histograms", "signal", "scale_index", "presence_llr", "presence_z"):
             assert np.array_equal(getattr(two, k), getattr(one, k)), k
     assert np.asarray(one.histograms).any() and not np.array_equal(one.offset, surf.offset)
+
+
+def _far_scores_loop(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs):
+    """The far rule's scores as the former per-candidate loop of ``_far_moves`` computed
+    them (session 22), the reference of ``_far_scores``."""
+    from splidar.detection._quality import _shifted_irf
+
+    T = ys.shape[-1]
+    best, to = np.full(cand.size, np.inf), np.full(cand.size, np.nan)
+    for m, i in enumerate(cand):
+        y, b = ys[m : m + 1].astype(np.float64), bs[m : m + 1]
+        for u in np.flatnonzero(~np.isnan(alt[i])):
+            j = src[i, u][src[i, u] >= 0]
+            sp = np.maximum(photons[j].mean(axis=0), 1e-9)[None, :, None]
+            g = _shifted_irf(irf, peak, np.array([depth[i], alt[i, u]]), T)
+            ll = (y * np.log1p(sp * g / b)).sum(axis=(1, 2)) - (sp * g).sum(axis=(1, 2))
+            v = ll[0] - ll[1]
+            if not isolated[i]:
+                tb = min(max(int(np.rint(alt[i, u])), 0), T - 1)
+                v += np.log1p(np.max(sp[0, :, 0] * irf.max(axis=1) / b[0, :, tb]))
+            if v < best[m]:
+                best[m], to[m] = v, alt[i, u]
+    return best, to
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_far_scores_equal_the_former_loop_bit_for_bit(L, monkeypatch):
+    # random candidates, alternatives (some missing), 2 or 4 sources, both kinds, counts
+    # and backgrounds; the block split forced small so that pairs span blocks
+    import splidar.detection._7a_align_depths as stage
+
+    rng = np.random.default_rng(11)
+    S, T = 300, 90
+    x = np.arange(15.0)
+    irf = np.stack([np.exp(-0.5 * ((x - 6 - 0.3 * l) / (1.0 + 0.4 * l)) ** 2) for l in range(L)])
+    irf /= irf.sum(axis=1, keepdims=True)
+    peak = np.argmax(irf, axis=1)
+    alt = rng.uniform(-5, T + 5, (S, 4))
+    alt[rng.random((S, 4)) < 0.5] = np.nan
+    src = rng.integers(0, S, (S, 4, 4))
+    isolated = rng.random(S) < 0.4
+    src[~isolated, :, 2:] = -1
+    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
+    photons = rng.gamma(1.0, 3.0, (S, L))
+    depth = rng.uniform(0, T - 1, S)
+    ys = rng.poisson(0.4, (cand.size, L, T)).astype(np.uint16)
+    bs = np.maximum(rng.gamma(0.5, 0.1, (cand.size, L, T)), 1e-6)
+    want = _far_scores_loop(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs)
+    for block in (1 << 20, 7 * 2 * L * T):
+        monkeypatch.setattr(stage, "_FAR_BLOCK", block)
+        got = stage._far_scores(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert np.isfinite(want[0]).sum() > 100

@@ -138,7 +138,7 @@ def test_remove_tree_removes_nested_folders(tmp_path):
 def test_pixels_zarr_equals_vindex(tmp_path):
     """The alignment's pixels read from the Zarr array by chunk of rows equal Dask's
     ``vindex`` (irregular last chunk, repeated pixels, any order)."""
-    from splidar.detection._7_align_depths import _pixels, _pixels_by_chunk
+    from splidar.detection._depth_fields import _pixels, _pixels_by_chunk
     from splidar.detection._slopes import _zarr_of
 
     rng = np.random.default_rng(3)
@@ -164,7 +164,7 @@ def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
     chunks past the byte budget (``budget=0``: all of them after the first) decoded
     again; the chunks are released when the context ends."""
     from splidar.detection import _slopes
-    from splidar.detection._7_align_depths import _pixels
+    from splidar.detection._depth_fields import _pixels
 
     if budget is not None:
         monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)

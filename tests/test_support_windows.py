@@ -124,7 +124,7 @@ def test_detect_with_support_windows_equals_the_dense_histograms(long_irf_cube, 
 def test_detect_releases_candidate_histograms_before_depth_alignment(long_irf_cube, monkeypatch):
     """Stage 7 runs without the candidates' histograms in memory (stage 6 read them)."""
     refs, alive = [], []
-    select, align = _detect.select_surfaces, _detect.align_surface_depths
+    select, align = _detect.select_surfaces, _detect.place_depths
 
     def spy_select(table, histograms, **kw):
         refs.extend(weakref.ref(h) for h in histograms)
@@ -136,48 +136,46 @@ def test_detect_releases_candidate_histograms_before_depth_alignment(long_irf_cu
         return align(*a, **k)
 
     monkeypatch.setattr(_detect, "select_surfaces", spy_select)
-    monkeypatch.setattr(_detect, "align_surface_depths", spy_align)
+    monkeypatch.setattr(_detect, "place_depths", spy_align)
     detect(long_irf_cube, rng=0)
     assert refs and alive == [0]
 
 
-def test_detect_stages_7_write_moved_histograms_in_place_with_the_same_result(monkeypatch):
-    """Stages 7 and 7b write their moved surfaces' histograms into the selection's array
-    (no copy of every surface's); the Detection is the one a copy gives."""
-    from splidar.detection import _7_align_depths
+def test_detect_stage_7_writes_moved_histograms_in_place_with_the_same_result(monkeypatch):
+    """Stage 7 writes its moved surfaces' histograms into the selection's array (no copy
+    of every surface's); the Detection is the one a copy gives."""
+    from splidar.detection import _7_depths
 
-    align, band = _detect.align_surface_depths, _detect.relabel_edge_bands
+    place = _detect.place_depths
     shared = []
 
-    def spy(fn, copy):
+    def spy(copy):
         def run(surfaces, **kw):
             assert kw["overwrite"] is True
             if copy:
                 kw["overwrite"] = False
             before = np.array(surfaces.histograms)
-            res = fn(surfaces, **kw)
+            res = place(surfaces, **kw)
             changed = bool((res.surfaces.histograms != before).any())
             shared.append((np.shares_memory(surfaces.histograms, res.surfaces.histograms), changed))
             return res
 
         return run
 
-    monkeypatch.setattr(_detect, "align_surface_depths", spy(align, False))
-    monkeypatch.setattr(_detect, "relabel_edge_bands", spy(band, False))
+    monkeypatch.setattr(_detect, "place_depths", spy(False))
     cube = (
         two_layer_scene((32, 32), n_bins=150)
         .simulate(ppp=4, sbr=0.25, background="decaying", rng=0)
         .cube
     )
     a = detect(cube, rng=0)
-    assert [x[0] for x in shared] == [True, True]
-    monkeypatch.setattr(_detect, "align_surface_depths", spy(align, True))
-    monkeypatch.setattr(_detect, "relabel_edge_bands", spy(band, True))
+    assert [x[0] for x in shared] == [True]
+    monkeypatch.setattr(_detect, "place_depths", spy(True))
     b = detect(cube, rng=0)
-    # a copy where a stage refitted histograms (at least one of them did)
-    assert [x[0] for x in shared[2:]] == [not x[1] for x in shared[2:]]
-    assert any(x[1] for x in shared[2:])
+    # a copy where the stage refitted histograms (it did here)
+    assert [x[0] for x in shared[1:]] == [not x[1] for x in shared[1:]]
+    assert any(x[1] for x in shared[1:])
     for name, x in vars(a.surfaces).items():
         if isinstance(x, np.ndarray):
             np.testing.assert_array_equal(getattr(b.surfaces, name), x, err_msg=name)
-    assert _7_align_depths.align_surface_depths is align
+    assert _7_depths.place_depths is place

@@ -1,4 +1,8 @@
-"""Stage 7b (clean-up): decide the bands beside depth edges together, not pixel by pixel.
+"""Stage 7b's rules (``"edge_bands"``): the bands beside depth edges decided together.
+
+These rules decide depths (:func:`band_depths`); stage 7 (``_7_depths.place_depths``) runs
+them after stage 7's own (``_7a_align_depths``) and the moved surfaces' fields follow
+once, after both (``_depth_fields``).
 
 Beside a depth edge the multiscale boxes pool a bright region B's returns into the dim
 pixels of its neighbour A: a band of A's pixels takes B's depth. Per pixel the own
@@ -58,18 +62,16 @@ session 18", and its inside condition, "near27, session 19"): see :data:`NEAR_IN
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from ._7_align_depths import _pixels
+from ._depth_fields import _pixels
 from ._quality import _shifted_irf
-from ._result import STAGES, Surfaces
+from ._result import Surfaces
 from ._slopes import sparse_of
 from ._threads import on_parts
 
@@ -79,8 +81,7 @@ __all__ = [
     "MIN_REGION",
     "NEAR_FWHM",
     "NEAR_INSIDE",
-    "EdgeBands",
-    "relabel_edge_bands",
+    "band_depths",
 ]
 
 #: Neighbouring single-surface pixels whose depths differ by at most this many FWHM are
@@ -126,17 +127,6 @@ FAR_INSIDE = True
 _SCALE = 1000.0
 #: Pixels per block of the likelihoods ((block, L, T) float64 arrays).
 _BLOCK = 4096
-
-
-@dataclass(frozen=True)
-class EdgeBands:
-    """The surfaces with the bands' depths decided, how many moved, the Potts weight
-    ``beta`` (nats per pair of 4-neighbours with different labels) and the time."""
-
-    surfaces: Surfaces
-    n_moved: int
-    beta: float
-    seconds: float
 
 
 def region_labels(depth: np.ndarray, gate: float) -> np.ndarray:
@@ -899,78 +889,3 @@ def _plane_moves(s: Surfaces, solo, counts, background, zr, zc, D, plane, q: flo
     at = np.full(s.image_shape, -1, np.int64)
     at[s.row[solo], s.col[solo]] = solo
     return at[zr[go], zc[go]], plane[zr[go], zc[go]]
-
-
-def relabel_edge_bands(
-    surfaces: Surfaces,
-    *,
-    counts,
-    background,
-    fwhm: float,
-    irf,
-    scales,
-    saliency=None,
-    threshold=None,
-    n_jobs: int = 1,
-    overwrite: bool = False,
-) -> EdgeBands:
-    """Stage 7b: the bands beside depth edges labelled jointly (see the module).
-
-    Parameters
-    ----------
-    surfaces : Surfaces
-        After stage 7.
-    counts : array_like (rows, cols, L, T)
-        The cube's raw counts.
-    background : Background
-    fwhm : float
-        The IRF's FWHM (bins).
-    irf : ndarray (L, n_irf)
-    scales : ndarray (Q,) int
-        ``Detection.scales``: the band's reach is the largest box's half-width, and a
-        moved surface's clean histograms are recomputed with them.
-    saliency, threshold : optional
-        ``Detection.saliency`` and ``.threshold``: a moved surface's ``saliency_mass``
-        and ``evidence`` summed over its new support.
-    n_jobs : int
-        Threads (:func:`band_depths`; never changes the result).
-    overwrite : bool
-        The moved surfaces' histograms written into ``surfaces.histograms`` itself (as
-        :func:`~splidar.detection._7_align_depths.align_surface_depths`' option).
-
-    Returns
-    -------
-    EdgeBands
-        ``surfaces.moved_by`` holds ``"edge_bands"``'s index in ``STAGES`` for the
-        surfaces it moved; their fields follow the depth as stage 7's moves do
-        (``_7_align_depths._follow``, ``_window_fields``, ``_support_fields``).
-    """
-    from ._7_align_depths import _follow, _pixels, _support_fields, _window_fields
-
-    t0 = time.perf_counter()
-    s = surfaces
-    half = int(np.max(scales)) // 2
-    depth, moved, beta = band_depths(
-        s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
-    )
-    if moved.size == 0:
-        return EdgeBands(s, 0, beta, time.perf_counter() - t0)
-    start, stop = np.array(s.start), np.array(s.stop)
-    own_counts = np.array(s.counts, np.float64)
-    own_bg = np.array(s.background, np.float64)
-    ys = _pixels(counts, s.row[moved], s.col[moved]).astype(np.float64)
-    bs = np.maximum(background.at(s.row[moved], s.col[moved]).astype(np.float64), 1e-6)
-    W, T = int(s.histograms.shape[-1]), int(np.shape(counts)[-1])
-    old = np.asarray(s.depth_bin, np.float64)
-    for k, i in enumerate(moved):
-        _follow(start, stop, own_counts, own_bg, i, old[i], depth[i], ys[k], bs[k], W, T)
-    out = replace(s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg)
-    ones = np.ones(moved.size, bool)
-    out = _window_fields(
-        out, moved, ones, counts, background, scales, irf, n_jobs=n_jobs, overwrite=overwrite
-    )
-    out = _support_fields(out, moved, saliency, threshold)
-    code = np.full(len(out), -1, np.int8) if out.moved_by is None else np.array(out.moved_by)
-    code[moved] = STAGES.index("edge_bands")
-    out = replace(out, moved_by=code)
-    return EdgeBands(out, int(moved.size), beta, time.perf_counter() - t0)

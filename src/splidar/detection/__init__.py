@@ -18,15 +18,18 @@ flows (one way, see ``docs/detection.md`` for the diagram)::
      |  _5e_enclosed.py      restore_enclosed_holes  holes a surface encloses
      |  _5f_stray_clusters.py remove_stray_clusters  a crowded pixel's small stray clusters
      |  _6_select.py         select_surfaces         K_s per pixel -> Surfaces
-     |  _7_align_depths.py   align_surface_depths    depths the 4-neighbours place elsewhere
-     |  _7b_edge_bands.py    relabel_edge_bands      bands beside depth edges, decided together
+     |  _7_depths.py         place_depths            -> DepthPlacement: depths moved onto a
+     |                         neighbour's plane, two rule families, fields followed once:
+     |    _7a_align_depths.py aligned_depths         depths the 4-neighbours place elsewhere
+     |    _7b_edge_bands.py   band_depths            bands beside depth edges, decided together
      v
     Detection (with ``provenance``: what each stage added or removed)
 
 Modules without a number are the stages' tools: ``_filters`` (matched filter, boxes,
 IRF figures), ``_fast`` and ``_kernels`` (numba kernels), ``_background``, ``_null``,
 ``_threshold``, ``_quality`` and ``_slopes`` (the statistics of the clean-up passes),
-``_table`` (the candidate table the passes share) and ``_result`` (the public results).
+``_table`` (the candidate table the passes share), ``_depth_fields`` (a moved surface's
+fields following its depth) and ``_result`` (the public results).
 """
 
 from ._detect import PASSES, detect

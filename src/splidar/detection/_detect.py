@@ -46,8 +46,7 @@ from ._5d_slopes import SLOPE_PIXELS, recover_slope_surfaces
 from ._5e_enclosed import restore_enclosed_holes
 from ._5f_stray_clusters import remove_stray_clusters
 from ._6_select import select_surfaces
-from ._7_align_depths import align_surface_depths
-from ._7b_edge_bands import relabel_edge_bands
+from ._7_depths import RULES, place_depths
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._regions import merge_by_region
@@ -176,7 +175,7 @@ def detect(
     of ``M`` split between resolved peaks, clean histograms at every scale,
     ``eq:background_final``, selected scale ``eq:scale_sel``, sub-bin depth), kept when
     their evidence beats the null's and their own pixel shows them; 5. clean-up passes;
-    6. at most ``K_s`` surfaces per pixel; 7. depths aligned with the 4-neighbours'; 7b. edge bands.
+    6. at most ``K_s`` surfaces per pixel; 7. depths placed (neighbours' planes, edge bands).
 
     Parameters
     ----------
@@ -310,8 +309,8 @@ def _split() -> tuple:
 
 
 def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, store):
-    """The clean-up passes (5), the selection (6) and the depth alignment (7): ``(done,
-    surfaces, aligned, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
+    """The clean-up passes (5), the selection (6) and the depths placed (7): ``(done,
+    surfaces, placed, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
     nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``).
     ``hists``: ``[the map's per-block histograms]``, emptied once stage 6 has read them."""
     with kept_counts(cube.counts):
@@ -483,15 +482,17 @@ def _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, 
 
 
 def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
-    """Stages 6, 7 and 7b: at most ``max_surfaces`` per pixel, then the depth alignment
-    and the bands beside depth edges; with the selection's own seconds (since ``t0``,
-    less the clean-up passes'). Returns ``(surfaces, (aligned, banded), t_sel, n_kept)``.
+    """Stages 6 and 7: at most ``max_surfaces`` per pixel, then the depths placed (the
+    depth alignment and the bands beside depth edges, :func:`place_depths`); with the
+    selection's own seconds (since ``t0``, less the clean-up passes'). Returns
+    ``(surfaces, placed, t_sel, n_kept)`` (``placed``: the :class:`DepthPlacement`, or
+    None when stage 7 did not run).
 
     With a ``store``, the surfaces' histograms are written there part by part and stay
     there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed.
     The last pass's table and the candidates' histograms (``hists``, emptied) are
-    released before stage 7 (``done[-1]`` keeps its counts only); stages 7 and 7b write
-    their moved surfaces' histograms into the selection's array (no other use of it)."""
+    released before stage 7 (``done[-1]`` keeps its counts only); stage 7 writes
+    its moved surfaces' histograms into the selection's array (no other use of it)."""
     out = None if store is None else functools.partial(_stored_histograms, store)
     surfaces = select_surfaces(
         done[-1].table, hists.pop(), max_surfaces=o["max_surfaces"],
@@ -503,27 +504,20 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     if store is not None:
         surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
         remove_tree(Path(os.fspath(store)) / "candidate_histograms")
-    t_sel, aligned = time.perf_counter() - t0 - sum(p.seconds for p in done), None
+    t_sel, placed = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     if o.get("tiled"):  # the table's pages, released
         _give_back()
-    if "align_depths" in o["passes"] and o["checks"] and len(surfaces):
+    rules = tuple(r for r in RULES if r in o["passes"])
+    if rules and o["checks"] and len(surfaces):
         background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
-        aligned = align_surface_depths(
-            surfaces, fwhm=o["fwhm"], irf=o["irf"], counts=cube.counts, background=background,
-            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
-            n_jobs=o["n_jobs"], overwrite=True,
-        )  # fmt: skip
-        surfaces = aligned.surfaces
-    banded = None
-    if "edge_bands" in o["passes"] and o["checks"] and len(surfaces):
-        background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
-        banded = relabel_edge_bands(
+        placed = place_depths(
             surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"], irf=o["irf"],
-            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold,
+            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold, rules=rules,
             n_jobs=o["n_jobs"], overwrite=True,
         )  # fmt: skip
-        surfaces = banded.surfaces
-    return surfaces, (aligned, banded), t_sel, n_kept
+        surfaces = placed.surfaces
+    o["depth_rounds"] = 0 if placed is None else placed.rounds
+    return surfaces, placed, t_sel, n_kept
 
 
 def _stored_histograms(store, shape):
@@ -649,7 +643,9 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
 
 
 def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, moves, timings) -> tuple:
-    aligned, banded = moves
+    placed = moves  # stage 7: one record per rule family (RULES)
+    ran = {} if placed is None else placed.moved
+    secs = {} if placed is None else placed.seconds
     return (
         StageRecord(
             "map", True, n_map, mp.n_rejected,
@@ -657,16 +653,7 @@ def _provenance(mp, n_map, n_kept, done, n_surfaces, t_sel, moves, timings) -> t
         ),
         *(StageRecord(p.name, p.ran, p.added, p.removed, p.moved, p.seconds) for p in done),
         StageRecord("select", True, 0, n_kept - n_surfaces, seconds=max(t_sel, 0.0)),
-        StageRecord(
-            "align_depths", aligned is not None, 0, 0,
-            0 if aligned is None else aligned.n_moved,
-            0.0 if aligned is None else aligned.seconds,
-        ),
-        StageRecord(
-            "edge_bands", banded is not None, 0, 0,
-            0 if banded is None else banded.n_moved,
-            0.0 if banded is None else banded.seconds,
-        ),
+        *(StageRecord(r, r in ran, 0, 0, ran.get(r, 0), secs.get(r, 0.0)) for r in RULES),
     )  # fmt: skip
 
 
@@ -711,6 +698,7 @@ def _detection(cube, o, bg, nul, mp, surfaces, provenance, timings, store) -> De
             n_slopes=rec["slopes"].added,
             n_aligned=rec["align_depths"].moved,
             n_edge_bands=rec["edge_bands"].moved,
+            depth_rounds=o.get("depth_rounds", 0),  # stage 7's rounds (_7_depths.ROUNDS)
             hot_pixels=o["hot_pixels"],
             passes=passes,
             # scales="auto": each candidate box's measured coherence rho (None for 1)
