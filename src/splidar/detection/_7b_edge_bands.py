@@ -151,13 +151,17 @@ def region_labels(depth: np.ndarray, gate: float) -> np.ndarray:
 
 def potts_weight(labels: np.ndarray) -> float:
     """``log((1 - p) / p)``, ``p`` the fraction of 4-neighbour pairs of labelled pixels
-    (``labels >= 0``) with different labels (at least one such pair counted)."""
+    (``labels >= 0``) with different labels (at least one such pair counted), at most
+    1/2: labels that change across most pairs carry no evidence of smoothness, and a
+    negative weight would reward label changes (negative capacities in the cut; ``p = 1``
+    gave ``-inf`` and a divide-by-zero warning on a 3 x 3 image of three regions), so the
+    weight is then 0 (no prior: each band by its own counts)."""
     pairs = diff = 0
     for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1], labels[1:])):
         both = (a >= 0) & (b >= 0)
         pairs += int(both.sum())
         diff += int((both & (a != b)).sum())
-    p = max(diff, 1) / max(pairs, 2)
+    p = min(max(diff, 1) / max(pairs, 2), 0.5)
     return float(np.log((1.0 - p) / p))
 
 
