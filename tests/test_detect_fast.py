@@ -784,7 +784,7 @@ def test_find_segments_equals_python_reference_on_random_blocks(seed):
     no4 = np.empty((0, 0, 0, 0), np.float32)
     no3 = np.empty((0, 0, 0), np.float32)
     fine = (no4, no4.astype(np.uint16), 0, 0, no3, np.empty((0, 0), np.float32), no3, no3, no3)
-    split = (0.0, np.zeros((2, 1)), 1.0, np.zeros((1, 2), np.int64), 0)
+    split = (0.0, np.zeros((2, 1)), 1.0, np.zeros((1, 2), np.int64), 0, False)
     got = find_segments(mask, d, s, e, 3, 0.5, fine, split)
     ref = _segments_reference(mask, d, s, e, 3, 0.5)
     assert len(ref) > 3 * mask.shape[0] * mask.shape[1]  # several runs and splits per pixel

@@ -513,3 +513,19 @@ def test_windows_reads_lazy_counts_as_numpy():
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_array_equal(a, b)
     assert ref[0].sum() > 0
+
+
+def test_potts_weight_is_never_negative_when_labels_change_across_most_pairs():
+    """Labels differing across every 4-neighbour pair (a 3 x 3 image of three regions,
+    the steep 3 x 3 case) give weight 0, not -inf with a divide-by-zero warning."""
+    import warnings
+
+    from splidar.detection._7b_edge_bands import potts_weight
+
+    stripes = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert potts_weight(stripes) == 0.0
+    smooth = np.zeros((6, 6), np.int64)
+    smooth[:, 3:] = 1  # 6 of 60 pairs differ: log(0.9 / 0.1)
+    assert potts_weight(smooth) == pytest.approx(np.log(9.0))

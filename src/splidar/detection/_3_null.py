@@ -193,7 +193,7 @@ def _fine_on_threads(c, y, sp, dev, win, out: tuple, workers: int) -> None:
 
 def split_rule(
     irf: np.ndarray, z: float, data: np.ndarray | None = None, reach: float = 0.0,
-    slack: float = 0.0,
+    slack: float = 0.0, pool: bool = False,
 ) -> tuple:  # fmt: skip
     """The fine split's settings for :func:`~splidar.detection._kernels.find_segments`.
 
@@ -216,7 +216,8 @@ def split_rule(
 
     Returns
     -------
-    (z, tail, gmin, win, reach) : (float, ndarray (2, n_irf), float, ndarray (L, 2), int)
+    (z, tail, gmin, win, reach, pool) : tuple
+        (float, ndarray (2, n_irf), float, ndarray (L, 2), int, bool).
         ``win[l]``: offsets from a response's bin to the first and last bin where the
         IRF of a return peaking there is above half its peak (the half-peak window);
         ``tail[0, k]`` / ``tail[1, k]``: the fraction of one return's photons in the
@@ -230,6 +231,11 @@ def split_rule(
         The first return's tail may be ``1 + slack`` times the one measured (pixels'
         tails vary about the pooled one): ``tail`` scaled so. Matters only beside
         bright returns; a weak return's tail is a fraction of a photon either way.
+    pool : bool
+        A second return in front of a stronger one that the own photons show by ``z``
+        but not by ``sqrt(z^2 + 2 ln n)`` is accepted when its 3 x 3 neighbourhood's
+        photons at the same place relative to their own first return show it
+        (:func:`~splidar.detection._kernels._fine_split`): the last entry.
     """
     g = np.asarray(irf, np.float64)
     L, n = g.shape
@@ -257,7 +263,7 @@ def split_rule(
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     reach_bins = int(np.ceil(reach * fw)) if reach > 0 else 0
     tail = tail * (1.0 + slack)
-    return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins
+    return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins, bool(pool)
 
 
 def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_000_000):
@@ -296,7 +302,7 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
     g = np.asarray(irf, np.float64)
     R, C, L, T = counts.shape
     n = g.shape[1]
-    _, _, gmin, win, _ = split_rule(g, 0.0)
+    gmin, win = split_rule(g, 0.0)[2:4]
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     m = n + 4 * fw
     lo_u, hi_u = -m + int(win[:, 0].min()), m + int(win[:, 1].max())
@@ -420,10 +426,11 @@ def calibrate_null(
         False alarms per voxel; false surfaces per background-only pixel.
     null : {"empirical", "gamma"}
     min_separation : int
-    split : (float, float, float, float)
-        ``(split_ratio, split_z, split_reach, split_slack)``: how runs of the map split
-        into candidates (as in the map pass: ``SPLIT_RATIO``, ``SPLIT_Z``,
-        ``SPLIT_REACH``, ``SPLIT_TAIL_SLACK``; :func:`split_rule`).
+    split : (float, float, float, float[, float])
+        ``(split_ratio, split_z, split_reach, split_slack[, split_pool])``: how runs of
+        the map split into candidates (as in the map pass: ``SPLIT_RATIO``, ``SPLIT_Z``,
+        ``SPLIT_REACH``, ``SPLIT_TAIL_SLACK``, ``SPLIT_POOL``; :func:`split_rule`;
+        without the fifth, no pooled test).
     rng : Generator
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
     n_jobs : int
@@ -432,7 +439,8 @@ def calibrate_null(
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
     null_ctx = dataclasses.replace(filters, workers=n_jobs)
-    split_ratio, split_z, split_reach, split_slack = split
+    split_ratio, split_z, split_reach, split_slack = split[:4]
+    split_pool = bool(split[4]) if len(split) > 4 else False
     # the first return's tail as the data's returns carry it (not only the IRF's): from
     # the data alone, so an in-memory cube's is measured on a thread of its own beside
     # the null's patches (a Dask cube's reads go to its scheduler, one after the other)
@@ -467,7 +475,7 @@ def calibrate_null(
     )
     # surface-level calibration: evidence of the candidates found in the null patches
     ev_null = []
-    rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_slack)
+    rule = split_rule(filters.corr.irf, split_z, tail, split_reach, split_slack, split_pool)
     # (split as the map pass splits: at d's deep dips, then at the own pixel's)
     for a, lv, dd, (f, n, mu) in zip(p_sim, p_lev, p_d, p_fine, strict=True):
         thr = provisional.threshold_at(lv)

@@ -74,6 +74,14 @@ SPLIT_TAIL_SLACK = 3.0
 #: 0: always. The map pass only (``_4_map._table``, whole image): the null counts
 #: every split part, so its false-alarm rate stays an upper bound.
 SPLIT_COHERENT = 1
+#: The fine split's test pooled over the 3 x 3 neighbourhood (1) for a weaker return in
+#: front of a stronger one that the own pixel's photons show by ``SPLIT_Z`` at its one
+#: place but not by the look-elsewhere bound (``split_rule(pool=)``,
+#: ``_kernels._fine_split``); 0: off. Behind a return never (its tail lies there). A net
+#: 2-3 FWHM before a wall, tailed IRFs: net F_true +0.04 to +0.10; tower +0.55 %; but a
+#: single surface with a 25-bin exponential tail 77 -> 88 false surfaces and
+#: bench_detection +7 (benchmarks/README.md, gap31): off until a guard keeps those.
+SPLIT_POOL = 0
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.
@@ -833,7 +841,9 @@ def map_plan(
     # the null's rule (its tail from the data), else the IRF's
     split = null.split
     if split is None:
-        split = split_rule(filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_TAIL_SLACK)
+        split = split_rule(
+            filters.corr.irf, SPLIT_Z, None, SPLIT_REACH, SPLIT_TAIL_SLACK, bool(SPLIT_POOL)
+        )
     opts = dict(
         image_shape=(R, C),
         width=width,

@@ -305,7 +305,7 @@ def detect(
 def _split() -> tuple:
     """The split rule's constants as stage 3's null runs it (``_4_map``; read at the
     call, so that a patched module constant takes effect)."""
-    return (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK)
+    return (SPLIT_RATIO, SPLIT_Z, SPLIT_REACH, SPLIT_TAIL_SLACK, _4_map.SPLIT_POOL)
 
 
 def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, store):
