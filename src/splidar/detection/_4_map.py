@@ -77,11 +77,14 @@ SPLIT_COHERENT = 1
 #: The fine split's test pooled over the 3 x 3 neighbourhood (1) for a weaker return in
 #: front of a stronger one that the own pixel's photons show by ``SPLIT_Z`` at its one
 #: place but not by the look-elsewhere bound (``split_rule(pool=)``,
-#: ``_kernels._fine_split``); 0: off. Behind a return never (its tail lies there). A net
-#: 2-3 FWHM before a wall, tailed IRFs: net F_true +0.04 to +0.10; tower +0.55 %; but a
-#: single surface with a 25-bin exponential tail 77 -> 88 false surfaces and
-#: bench_detection +7 (benchmarks/README.md, gap31): off until a guard keeps those.
-SPLIT_POOL = 0
+#: ``_kernels._fine_split``); 0: off. Behind a return never (its tail lies there), and
+#: the stronger part must beat the front return's tail by ``SPLIT_Z`` (else it is that
+#: tail: a single surface with a 25-bin exponential tail 76 -> 87 false surfaces
+#: without this, 76 with). A net 2-3 FWHM before a wall, tailed IRFs: net F_true
+#: T4096 0.63 -> 0.75, L4 0.77 -> 0.83; two surfaces 2 / 2.5 FWHM apart 0.743 ->
+#: 0.758 / 0.855 -> 0.889; bench_detection false 5,509 -> 5,515; tower +0.48 %
+#: (benchmarks/README.md, gap31 and gap31b).
+SPLIT_POOL = 1
 #: Depth by the intersection of confidence intervals over the scales (ICI) rather than
 #: the selected scale's (``eq:scale_sel``): mean depth error -25 to -48 % in every cell
 #: measured (single surface PPP 4, SBR 0.25: 0.60 -> 0.34 bins). docs/detection.md.

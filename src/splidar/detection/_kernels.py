@@ -327,10 +327,14 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
     ``sqrt(z^2 + 2 ln n)`` is accepted when the 3 x 3 neighbourhood's photons at the
     same place relative to each pixel's own return near ``p`` (:func:`_pooled_counts`)
     with the own ones beat their background and those returns' rise by ``sqrt(z^2 + 2
-    ln n)``. Behind ``p`` never: a real or SPAD return's tail lies there, and the
-    neighbours' tails heavier than the pooled one would add up. A weak return 2-3 FWHM
-    before a bright tailed one shows 4-5 photons a pixel, z 3.5-3.9 against 4.1-4.3
-    needed (a net before a wall, benchmarks/README.md "gap31, session 23").
+    ln n)``, and ``p``'s own photons ``nr[p]`` beat their background and what ``q``'s
+    return brings behind it (``tail[0]``, ``fr[q] / gmin`` photons) by ``z`` (a split
+    leaves two returns: else ``p`` is ``q``'s tail, a real return split off before a
+    noise bump in its tail). Behind ``p`` never: a real or SPAD return's tail lies there,
+    and the neighbours' tails heavier than the pooled one would add up. A weak return
+    2-3 FWHM before a bright tailed one shows 4-5 photons a pixel, z 3.5-3.9 against
+    4.1-4.3 needed (a net before a wall, benchmarks/README.md "gap31, session 23"; the
+    tail check "gap31b, session 23").
     """
     n = en - st
     if n < 3 or z <= 0:
@@ -378,6 +382,12 @@ def _fine_split(fr, nr, mr, st, en, min_sep, z, tail, gmin, reach, peaks, cuts, 
                 break
             nn, ss, m = _pooled_counts(pool, p, q, tail, gmin, min_sep)
             if _poisson_z(nr[q] + nn, mr[q] * (1 + m) + spill + ss) < z_need:
+                ok = False
+                break
+            # both parts returns of their own: p's photons beat what q's return brings
+            # behind it (its tail) by z at p's one place, else p is q's tail
+            back = tail[0, k] * max(fr[q], 0.0) / gmin if k < tail.shape[1] else 0.0
+            if _poisson_z(nr[p], mr[p] + back) < z:
                 ok = False
                 break
         if ok:
