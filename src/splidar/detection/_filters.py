@@ -59,72 +59,6 @@ class Correlator:
         self.irf = irf
         self.peak = peak
         self.direct = n <= DIRECT_MAX_TAPS and n <= self.n_bins
-        self.edge_mix = None
-        self.edge_mix = self._edge_mix()
-
-    def _edge_mix(self):
-        """Per wavelength and edge bin, the weight ``lam_t`` of the mirrored response in
-        ``lam_t C_t + (1 - lam_t) F`` (``F``: the mean of the ``m`` counts nearest the
-        edge, ``m`` = the IRF's length) that gives a flat Poisson background's response
-        the interior's variance ``sum_j g_j^2``.
-
-        Mirroring reads some counts twice near an edge: bin 0 of a Gaussian IRF of FWHM
-        3 bins has 1.86 times the interior's variance (1.25 at bin 1). Both the null's
-        threshold (one function of the background level for every bin, stage 3) and
-        stage 1's low-quantile shape (its bias model has the interior's variance) assume
-        the interior's noise, so the edge bins passed 8-11 times ``pfa`` and stage 1's
-        shape dipped there (``benchmarks/README.md``, "win36"). ``F`` keeps a flat
-        level's mean and spreads the weight over more counts; ``lam_t`` solves
-        ``var(lam C + (1 - lam) F) = sum g^2`` exactly (no constant). ``None`` when no
-        bin needs it. Returns ``((bins, lam (L, bins)), ...)`` for the left and right edge.
-        """
-        irf = self.irf
-        L, n = irf.shape
-        T = self.n_bins
-        m = min(n, T)
-        if T < 2 * m:
-            return None
-        a = (irf**2).sum(axis=1)  # (L,)
-        ks = np.arange(min(T, 2 * n + 1))
-        imp = np.zeros((ks.size, L, T), np.float32)
-        imp[np.arange(ks.size), :, ks] = 1.0
-        w = np.asarray(self(imp), np.float64)  # w[k, l, t], mirror only (edge_mix None)
-        out = []
-        for side in (0, 1):
-            bins = np.arange(min(n, T)) if side == 0 else np.arange(T - 1, max(T - 1 - n, -1), -1)
-            # by symmetry of the mirror, the right edge's weights are the left's reversed
-            # for the reversed IRF: compute them directly from impulses at the right end
-            if side == 1:
-                imp_r = imp[:, :, ::-1]
-                w_s = np.asarray(self(np.ascontiguousarray(imp_r)), np.float64)
-            else:
-                w_s = w
-            v = (w_s[:, :, bins] ** 2).sum(axis=0)  # (L, bins)
-            c = w_s[:m][:, :, bins].sum(axis=0) / m  # cov(C_t, F) per unit
-            f = 1.0 / m
-            qa = v - 2.0 * c + f
-            qb = 2.0 * c - 2.0 * f
-            qc = f - a[:, None]
-            disc = np.maximum(qb * qb - 4.0 * qa * qc, 0.0)
-            lam = np.where(qa > 0, (-qb + np.sqrt(disc)) / (2.0 * np.where(qa > 0, qa, 1.0)), 1.0)
-            lam = np.where(v > a[:, None] * (1.0 + 1e-5), np.clip(lam, 0.0, 1.0), 1.0)
-            keep = np.flatnonzero((lam < 1.0).any(axis=0))
-            out.append((bins[keep], lam[:, keep]))
-        if all(b.size == 0 for b, _ in out):
-            return None
-        return tuple(out), m
-
-    def _mix_edges(self, x, out) -> None:
-        """``lam_t C_t + (1 - lam_t) F`` in the edge bins (:meth:`_edge_mix`)."""
-        (left, right), m = self.edge_mix
-        T = self.n_bins
-        for (bins, lam), sl in ((left, slice(0, m)), (right, slice(T - m, T))):
-            if bins.size == 0:
-                continue
-            f = np.asarray(x[..., sl], np.float32).mean(axis=-1, dtype=np.float64)  # (..., L)
-            for i, t in enumerate(bins):
-                lt = lam[:, i]
-                out[..., t] = (lt * out[..., t] + (1.0 - lt) * f).astype(np.float32)
 
     def __call__(self, y: np.ndarray, *, workers: int = 1, out=None) -> np.ndarray:
         """Correlate ``y`` (..., L, T) with the IRF; returns float32 of the same shape.
@@ -138,14 +72,9 @@ class Correlator:
         if out is None:
             out = np.empty(x.shape, np.float32)
         if self.direct:
-            correlate_direct(x, self.irf, self.peak, out, n_threads=workers)
-            if self.edge_mix is not None:
-                self._mix_edges(x, out)
-            return out
+            return correlate_direct(x, self.irf, self.peak, out, n_threads=workers)
         if x.ndim < 2 or x.shape[0] <= 1:
             self._correlate(x, out, workers)
-            if self.edge_mix is not None:
-                self._mix_edges(x, out)
             return out
         # chunks of rows of a few MB: the FFT temporaries stay in cache and are reused by
         # the allocator instead of being faulted in afresh for every block (each 1-D
@@ -154,8 +83,6 @@ class Correlator:
         step = max(1, int(_CHUNK_BYTES // max(per_row, 1)))
         for a in range(0, x.shape[0], step):
             self._correlate(x[a : a + step], out[a : a + step], workers)
-        if self.edge_mix is not None:
-            self._mix_edges(x, out)
         return out
 
     def _correlate(self, x, out, workers: int) -> None:
