@@ -15,7 +15,7 @@ from scipy import ndimage, signal, special
 
 from ._fast import low_median as _low_median_kernel
 from ._fast import window_means
-from ._filters import Correlator, edge_moments
+from ._filters import Correlator
 from ._threads import on_parts
 
 logger = logging.getLogger(__name__)
@@ -95,8 +95,6 @@ def temporal_shape(
     on_parts(select_part, L * T, workers)
     prof = prof.reshape(L, T).astype(np.float64)
     var_factor = (corr.irf**2).sum(axis=1) / (kr * kc)
-    if refine:
-        prof = _edge_bias(coarse, prof, corr, var_factor, kr * kc, m)
     if smooth > 1:
         med = ndimage.median_filter(prof, size=(1, smooth), mode="nearest")
         noise = _end_noise(coarse, row_starts.size, col_starts.size, smooth // 2)
@@ -250,43 +248,6 @@ def _end_of_window(
     t = np.arange(h, dtype=np.float64)[::-1]  # bins T - h .. T - 1, counted from the end
     trend = np.maximum(a[:, None] + rise[:, None] * (1.5 * h - t[None, :]) / h, 0.0)
     out[cut, T - h :] = np.minimum(med[cut, T - h :], trend[cut])
-    return out
-
-
-def _edge_bias(coarse, prof, corr: Correlator, var_factor, k2: int, m: int) -> np.ndarray:
-    """The raw ``eq:background_1`` profile with its edge bins' extra low-quantile bias
-    removed, before any smoothing.
-
-    The matched filter mirrors the counts at the window's edges, so a coarse value there
-    has ``v_t / v`` times the interior's variance and ``k_t / k`` times its third
-    cumulant (:func:`~splidar.detection._filters.edge_moments`; 1.86 and 3.4 at bin 0 of
-    a Gaussian IRF of FWHM 3 bins): the median of its lowest 10 % lies lower than
-    inside (``benchmarks/README.md``, "bias18": -32 % against -24 % of the mean at 0.08
-    photons per bin), and the running median and the quadratic fit that follow would
-    spread that dip about 10 bins in (stage 1's shape 3.5 % low over the first bins of
-    the issue's decaying background, which the null's threshold, raised there by the same
-    edge bins' wider spread, had hidden). The difference between
-    :func:`low_quantile_bias` at the edge bin's own moments and at the interior's, at
-    the sampled pixels' levels, is taken off those bins; the other bins are unchanged.
-    """
-    var_ratio, skew_ratio = edge_moments(corr)
-    edge = np.flatnonzero((var_ratio != 1.0).any(axis=0))
-    if edge.size == 0:
-        return prof
-    out = prof.copy()
-    T = prof.shape[1]
-    s = max(1, min(4, T // 256))
-    for l in range(prof.shape[0]):
-        vf = float(var_factor[l])
-        sf = float((corr.irf[l] ** 3).sum()) / k2**2
-        dev = (prof[l] - prof[l].mean()).astype(np.float32)
-        quantum = float(corr.irf[l].max()) / k2
-        lvl = robust_level(coarse[:, l, ::s], dev[::s], vf, quantum=quantum).astype(np.float64)
-        for t in edge:
-            d = np.array([float(dev[t])])
-            own = low_quantile_bias(lvl, d, vf * var_ratio[l, t], sf * skew_ratio[l, t], m)
-            inner = low_quantile_bias(lvl, d, vf, sf, m)
-            out[l, t] = prof[l, t] - (own[0] - inner[0])
     return out
 
 

@@ -16,7 +16,6 @@ __all__ = [
     "Correlator",
     "box",
     "edge_factors",
-    "edge_moments",
     "fisher_sums",
     "irf_fwhm",
     "irf_halfwidth",
@@ -154,21 +153,26 @@ def fisher_sums(irf: np.ndarray) -> np.ndarray:
     )
 
 
-def edge_moments(corr: Correlator) -> tuple[np.ndarray, np.ndarray]:
-    """Per wavelength and bin, ``v_t / v`` and ``k_t / k``: the variance and third
-    cumulant of the matched filter's response to a flat Poisson background, relative to
-    those inside the window (``v = sum_j g_j^2``, ``k = sum_j g_j^3``).
+def edge_factors(corr: Correlator) -> np.ndarray:
+    """Per wavelength and bin, ``min(1, 1 / sqrt(v_t / v))``: the factor that gives the
+    matched filter's response to a flat Poisson background the same noise at the
+    window's edges as inside.
 
-    ``v_t = sum_s w_{t,s}^2`` and ``k_t = sum_s w_{t,s}^3`` with ``w_{t,s}`` the weight of
-    :class:`Correlator`'s response at bin ``t`` on the counts of bin ``s``. In the bins
-    the IRF reaches past an edge the mirrored counts enter the response twice: bin 0 of
-    a Gaussian IRF of FWHM 3 bins has 1.86 times the variance (1.25 at bin 1) and 3.4
-    times the third cumulant. Exact (no constant): computed from unit impulses through
-    the filter itself.
+    ``v_t = sum_k w_{t,k}^2`` with ``w_{t,k}`` the weight of :class:`Correlator`'s
+    response at bin ``t`` on the counts of bin ``k``, ``v = sum_j g_j^2`` its value
+    inside the window. In the bins the IRF reaches past an edge the mirrored counts
+    enter the response twice: bin 0 of a Gaussian IRF of FWHM 3 bins has ``v_t / v =
+    1.86`` (1.25 at bin 1). The null's threshold is one function of the background level
+    for every bin (stage 3), so without the factor it lets through about
+    ``P(Z > z / sqrt(v_t / v)) / pfa`` times ``pfa`` there (11.7 at bin 0, 2.9 at bin 1
+    for ``pfa`` 1e-3; measured on background-only cubes 8-11 and 1.9-2.7,
+    ``benchmarks/README.md``, "win36"). The box filters average pixels whose responses
+    share that ratio, so one factor per bin serves every scale. Exact (no constant):
+    computed from unit impulses through the filter itself.
 
     Returns
     -------
-    var_ratio, skew_ratio : ndarray (L, T), float64
+    factor : ndarray (L, T), float32
         1 except within the IRF's length of either edge.
     """
     irf = np.asarray(corr.irf, np.float64)
@@ -181,34 +185,11 @@ def edge_moments(corr: Correlator) -> tuple[np.ndarray, np.ndarray]:
     imp[np.arange(ks.size), :, ks] = 1.0
     w = np.asarray(corr(imp), np.float64)  # w[i, l, t]: weight of bin ks[i] at bin t
     near = np.unique(np.concatenate([np.arange(min(n, T)), np.arange(max(T - n, 0), T)]))
-    var_ratio, skew_ratio = np.ones((L, T)), np.ones((L, T))
-    var_ratio[:, near] = (w[:, :, near] ** 2).sum(axis=0) / (irf**2).sum(axis=1)[:, None]
-    skew_ratio[:, near] = (w[:, :, near] ** 3).sum(axis=0) / (irf**3).sum(axis=1)[:, None]
-    # float32 rounding of the weights: bins with the interior's moments keep exactly 1
-    var_ratio[np.abs(var_ratio - 1.0) < 1e-5] = 1.0
-    skew_ratio[np.abs(skew_ratio - 1.0) < 1e-5] = 1.0
-    return var_ratio, skew_ratio
-
-
-def edge_factors(corr: Correlator) -> np.ndarray:
-    """Per wavelength and bin, ``min(1, 1 / sqrt(v_t / v))`` of :func:`edge_moments`: the
-    factor that gives the response's deviation from the background the same noise at
-    the window's edges as inside.
-
-    The null's threshold is one function of the background level for every bin (stage
-    3), so without the factor it lets through about ``P(Z > z / sqrt(v_t / v)) / pfa``
-    times ``pfa`` in the edge bins (11.7 at bin 0, 2.9 at bin 1 of a Gaussian IRF of
-    FWHM 3 bins at ``pfa`` 1e-3; measured on background-only cubes 8-11 and 1.9-2.7,
-    ``benchmarks/README.md``, "win36"). The box filters average pixels whose responses
-    share that ratio, so one factor per bin serves every scale.
-
-    Returns
-    -------
-    factor : ndarray (L, T), float32
-        1 except within the IRF's length of either edge.
-    """
-    var_ratio, _ = edge_moments(corr)
-    return np.minimum(1.0, 1.0 / np.sqrt(var_ratio)).astype(np.float32)
+    ratio = np.ones((L, T))
+    ratio[:, near] = (w[:, :, near] ** 2).sum(axis=0) / (irf**2).sum(axis=1)[:, None]
+    # float32 rounding of the weights: bins with the interior's noise keep exactly 1
+    ratio[np.abs(ratio - 1.0) < 1e-5] = 1.0
+    return np.minimum(1.0, 1.0 / np.sqrt(ratio)).astype(np.float32)
 
 
 def irf_halfwidth(irf: np.ndarray) -> int:
