@@ -16,7 +16,7 @@ import numpy as np
 
 from ._background import CLIP
 from ._fast import saliency_wavelength
-from ._filters import Correlator, edge_factors, fisher_sums
+from ._filters import Correlator, fisher_sums
 
 __all__ = [
     "COHERENCE_VOXELS",
@@ -57,7 +57,6 @@ class SaliencyFilters:
     gsq: np.ndarray = None  # (L,) sum of g^2
     fisher: np.ndarray = None  # (L, 3): sum g'^2, sum g g'^2, peak curvature (_fisher_sums)
     quantum: np.ndarray = None  # (L,) max g / K^2: one photon in a coarse voxel
-    edge: np.ndarray = None  # (L, T) float32: the response's noise equalised at the edges
 
 
 def saliency_filters(
@@ -75,7 +74,6 @@ def saliency_filters(
         gsq=(irf**2).sum(axis=1),
         fisher=fisher_sums(irf),
         quantum=irf.max(axis=1) / K**2,
-        edge=edge_factors(corr),
     )
 
 
@@ -155,7 +153,6 @@ def block_saliency(
             keep_cols=keep_cols,
             strip=strip,
             carry=None if carry is None else carry[l],
-            edge=None if ctx.edge is None else ctx.edge[l],
         )
         if spatial is None:
             sp_out[:, :, l] = sp_l

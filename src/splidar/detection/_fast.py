@@ -337,14 +337,12 @@ def _filter_row(
 
 
 @njit(cache=True, nogil=True)
-def _bhat_saliency(s0_, dev, edge, mr, sr_, dr, level, o, jo, overwrite):
+def _bhat_saliency(s0_, dev, mr, sr_, dr, level, o, jo, overwrite):
     """One pixel's ``bhat`` (``eq:background_3``), signed response and saliency
     (``eq:4.s1``) from its level ``s0_`` and filtered series ``mr`` (T,): written
     (``overwrite``, the first wavelength) or added to ``sr_`` and ``dr`` (T,), and to
     ``level[o, jo]`` unless ``level`` is empty (then the caller recomputes ``sum_l
-    bhat`` where it needs it, from the levels and ``dev``). ``edge`` (T,): the
-    response's deviation is multiplied by it (1 except in the bins the IRF reaches past
-    the window's edges, :func:`~splidar.detection._filters.edge_factors`)."""
+    bhat`` where it needs it, from the levels and ``dev``)."""
     T = mr.size
     with_level = level.shape[0] > 0
     if overwrite:  # the first wavelength: no zeroing pass before
@@ -352,7 +350,7 @@ def _bhat_saliency(s0_, dev, edge, mr, sr_, dr, level, o, jo, overwrite):
             bh = s0_ + dev[t]
             if bh < 0:
                 bh = np.float32(0.0)  # eq:background_3
-            x = (mr[t] - bh) * edge[t]
+            x = mr[t] - bh
             dr[t] = x
             sr_[t] = abs(x)  # eq:4.s1
         if with_level:
@@ -365,7 +363,7 @@ def _bhat_saliency(s0_, dev, edge, mr, sr_, dr, level, o, jo, overwrite):
             bh = s0_ + dev[t]
             if bh < 0:
                 bh = np.float32(0.0)  # eq:background_3
-            x = (mr[t] - bh) * edge[t]
+            x = mr[t] - bh
             dr[t] += x
             sr_[t] += abs(x)  # eq:4.s1
         if with_level:
@@ -378,8 +376,8 @@ def _bhat_saliency(s0_, dev, edge, mr, sr_, dr, level, o, jo, overwrite):
 @njit(cache=True, nogil=True)
 def _rows_kernel(
     cf, R, C, T, sr, sc, i_start, i_stop, keep0, jk0, jk1, strip, carry_in, carry_out, scales,
-    weights, sp, estimate, dev, edge, var_factor, quantum, clip, n_iter, step, sal, d, level,
-    box, bidx, overwrite,
+    weights, sp, estimate, dev, var_factor, quantum, clip, n_iter, step, sal, d, level, box,
+    bidx, overwrite,
 ):  # fmt: skip
     """Output rows ``[i_start, i_stop)`` and columns ``[jk0, jk1)`` (block coordinates)
     of one wavelength, in strips of ``strip`` columns (each strip's rows one after the
@@ -422,9 +420,7 @@ def _rows_kernel(
                     sp[o, jo], hint = _level_pixel(
                         coarse[j], step, var_factor, quantum, clip, n_iter, scratch, hint
                     )
-                _bhat_saliency(
-                    sp[o, jo], dev, edge, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite
-                )
+                _bhat_saliency(sp[o, jo], dev, m[j], sal[o, jo], d[o, jo], level, o, jo, overwrite)
     if carry_out.shape[0] > 0:
         for i in range(i_start, i_stop):
             carry_out[i - keep0] = carry[i - i_start]
@@ -486,7 +482,6 @@ def saliency_wavelength(
     keep_cols: slice | None = None,
     strip: int | None = None,
     carry: np.ndarray | None = None,
-    edge: np.ndarray | None = None,
 ) -> np.ndarray:
     """Add one wavelength's saliency, signed response and ``bhat`` to the accumulators.
 
@@ -535,10 +530,6 @@ def saliency_wavelength(
         column 0 (a block to the left wrote them; required then), overwritten with
         those at the last kept column. Passing them on makes every value the one a pass
         over the whole row gives, bit for bit.
-    edge : ndarray (T,) float32, optional
-        Factor of ``x`` in each bin (default 1): the matched filter's background noise
-        made the same at the window's edges as inside
-        (:func:`~splidar.detection._filters.edge_factors`).
 
     Returns
     -------
@@ -578,7 +569,6 @@ def saliency_wavelength(
         sp,
         estimate,
         np.ascontiguousarray(dev, dtype=np.float32),
-        np.ones(T, np.float32) if edge is None else np.ascontiguousarray(edge, dtype=np.float32),
         float(var_factor),
         float(quantum),
         float(clip),

@@ -12,15 +12,7 @@ from scipy import ndimage
 
 from ._fast import correlate_direct
 
-__all__ = [
-    "Correlator",
-    "box",
-    "edge_factors",
-    "fisher_sums",
-    "irf_fwhm",
-    "irf_halfwidth",
-    "reflect_index",
-]
+__all__ = ["Correlator", "box", "fisher_sums", "irf_fwhm", "irf_halfwidth", "reflect_index"]
 
 #: Bytes of padded float32 input per FFT call of :class:`Correlator` (a few MB: in cache).
 _CHUNK_BYTES = 4 << 20
@@ -151,45 +143,6 @@ def fisher_sums(irf: np.ndarray) -> np.ndarray:
         [(dg**2).sum(axis=1), (g * dg**2).sum(axis=1), 2.0 * (a0 - a1) / np.maximum(a0, 1e-300)],
         axis=1,
     )
-
-
-def edge_factors(corr: Correlator) -> np.ndarray:
-    """Per wavelength and bin, ``min(1, 1 / sqrt(v_t / v))``: the factor that gives the
-    matched filter's response to a flat Poisson background the same noise at the
-    window's edges as inside.
-
-    ``v_t = sum_k w_{t,k}^2`` with ``w_{t,k}`` the weight of :class:`Correlator`'s
-    response at bin ``t`` on the counts of bin ``k``, ``v = sum_j g_j^2`` its value
-    inside the window. In the bins the IRF reaches past an edge the mirrored counts
-    enter the response twice: bin 0 of a Gaussian IRF of FWHM 3 bins has ``v_t / v =
-    1.86`` (1.25 at bin 1). The null's threshold is one function of the background level
-    for every bin (stage 3), so without the factor it lets through about
-    ``P(Z > z / sqrt(v_t / v)) / pfa`` times ``pfa`` there (11.7 at bin 0, 2.9 at bin 1
-    for ``pfa`` 1e-3; measured on background-only cubes 8-11 and 1.9-2.7,
-    ``benchmarks/README.md``, "win36"). The box filters average pixels whose responses
-    share that ratio, so one factor per bin serves every scale. Exact (no constant):
-    computed from unit impulses through the filter itself.
-
-    Returns
-    -------
-    factor : ndarray (L, T), float32
-        1 except within the IRF's length of either edge.
-    """
-    irf = np.asarray(corr.irf, np.float64)
-    L, n = irf.shape
-    T = corr.n_bins
-    # the bins within n of an edge read counts within 2 n of it (mirrored or not)
-    m = min(T, 2 * n + 1)
-    ks = np.unique(np.concatenate([np.arange(m), np.arange(T - m, T)]))
-    imp = np.zeros((ks.size, L, T), np.float32)
-    imp[np.arange(ks.size), :, ks] = 1.0
-    w = np.asarray(corr(imp), np.float64)  # w[i, l, t]: weight of bin ks[i] at bin t
-    near = np.unique(np.concatenate([np.arange(min(n, T)), np.arange(max(T - n, 0), T)]))
-    ratio = np.ones((L, T))
-    ratio[:, near] = (w[:, :, near] ** 2).sum(axis=0) / (irf**2).sum(axis=1)[:, None]
-    # float32 rounding of the weights: bins with the interior's noise keep exactly 1
-    ratio[np.abs(ratio - 1.0) < 1e-5] = 1.0
-    return np.minimum(1.0, 1.0 / np.sqrt(ratio)).astype(np.float32)
 
 
 def irf_halfwidth(irf: np.ndarray) -> int:
