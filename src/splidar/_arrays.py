@@ -107,7 +107,7 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     Zarr reads a whole chunk for any voxel of it (5.8 MB for a saliency chunk of
     16 x 90 x 1000 float32): a support of a few bins read this way costs a chunk's read.
     A raw chunk file is the chunk's bytes in C order, so each chunk that holds some of
-    the voxels is mapped (``numpy.memmap``) and only the pages of its voxels are read. A
+    the voxels is mapped (``mmap``, random access) and only the pages of its voxels are read. A
     chunk never written is the fill value. Same values as Zarr's selection; None (Zarr's
     read) when a chunk file is not one whole chunk's bytes.
 
@@ -144,7 +144,23 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
             continue
         if path.stat().st_size != size:
             return None
-        m = np.memmap(path, dtype, "r", shape=chunk)
-        out[sel] = m[tuple(i[sel] % c for i, c in zip(index, chunk, strict=True))]
-        del m
+        out[sel] = _mapped_values(
+            path, dtype, chunk, tuple(i[sel] % c for i, c in zip(index, chunk, strict=True))
+        )
     return out
+
+
+def _mapped_values(path, dtype, chunk: tuple, within: tuple) -> np.ndarray:
+    """The values at ``within`` (index arrays into the chunk) of a raw chunk file, mapped
+    for random access: no read-ahead around each page touched (on a chunk not in the
+    page cache the kernel's default read-ahead reads about 32 pages per voxel; 1.5 s
+    against 0.13 s of wall for dist30's 900 supports, ``benchmarks/README.md``)."""
+    import mmap
+
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        if hasattr(mm, "madvise") and hasattr(mmap, "MADV_RANDOM"):
+            mm.madvise(mmap.MADV_RANDOM)
+        a = np.frombuffer(mm, dtype).reshape(chunk)
+        values = a[within]  # a copy (fancy indexing): the mapping can close
+        del a
+    return values
