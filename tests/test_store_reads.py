@@ -7,6 +7,7 @@ import pytest
 zarr = pytest.importorskip("zarr")
 da = pytest.importorskip("dask.array")
 
+from splidar._arrays import zarr_voxels  # noqa: E402
 from splidar.detection import ThresholdField  # noqa: E402
 from splidar.detection._6_select import _gather  # noqa: E402
 from splidar.detection._slopes import (  # noqa: E402
@@ -58,6 +59,66 @@ def test_support_sums_zarr_equals_band_reads(tmp_path):
     # a Dask saliency is read band by band, with the same sums
     got = support_sums(da.from_array(sal, chunks=(5, C, T)), zt, rows, cols, start, stop)
     np.testing.assert_array_equal(got[0], want[0])
+
+
+def _raw_array(tmp_path, a, chunks, fill=0.0):
+    """``a`` in a raw-stored (no compressor) Zarr array of ``chunks``; its first chunk of
+    rows and columns never written (the fill value)."""
+    g = zarr.open_group(str(tmp_path / "raw.zarr"), mode="w")
+    z = g.create_array(
+        "saliency", shape=a.shape, chunks=chunks, dtype=a.dtype, compressors=None,
+        fill_value=fill,
+    )  # fmt: skip
+    z[chunks[0] :] = a[chunks[0] :]
+    z[: chunks[0], chunks[1] :] = a[: chunks[0], chunks[1] :]
+    want = a.copy()
+    want[: chunks[0], : chunks[1]] = fill
+    return g["saliency"], want
+
+
+def test_zarr_voxels_equals_the_coordinate_selection(tmp_path, monkeypatch):
+    rng = np.random.default_rng(3)
+    R, C, T = 23, 17, 40  # edge chunks of 3 rows and 2 columns (stored padded)
+    a = rng.gamma(2.0, 1.0, (R, C, T)).astype(np.float32)
+    z, want = _raw_array(tmp_path, a, (4, 5, T), fill=0.5)
+    idx = (rng.integers(0, R, 3000), rng.integers(0, C, 3000), rng.integers(0, T, 3000))
+    expected = z.get_coordinate_selection(idx)
+    np.testing.assert_array_equal(expected, want[idx])
+    # read from the chunk files, not through Zarr: the same values (the never-written
+    # chunk is the fill value)
+    monkeypatch.setattr(type(z), "get_coordinate_selection", _fails)
+    monkeypatch.setattr(type(z), "__getitem__", _fails)
+    got = zarr_voxels(z, idx)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, expected)
+    assert zarr_voxels(z, tuple(i[:0] for i in idx)).size == 0
+    # a compressed array, or a chunk file that is not one chunk's raw bytes: Zarr's read
+    g = zarr.open_group(str(tmp_path / "zstd.zarr"), mode="w")
+    zc = g.create_array("s", shape=a.shape, chunks=(4, 5, T), dtype="float32")
+    assert zarr_voxels(zc, idx) is None
+    path = tmp_path / "raw.zarr" / "saliency" / "c" / "1" / "1" / "0"
+    path.write_bytes(path.read_bytes()[:-4])
+    assert zarr_voxels(z, idx) is None
+
+
+def _fails(*args, **kwargs):
+    raise AssertionError("read through Zarr")
+
+
+def test_support_sums_raw_zarr_saliency_reads_the_supports_only(tmp_path, monkeypatch):
+    rng = np.random.default_rng(4)
+    R, C, T = 23, 17, 40
+    sal = rng.gamma(2.0, 1.0, (R, C, T)).astype(np.float32)
+    z, want = _raw_array(tmp_path, sal, (4, 5, T))
+    thr = rng.uniform(0.5, 3.0, (R, C, T)).astype(np.float32)
+    rows, cols, start, stop = _supports(rng, R, C, T, 300)
+    expected = support_sums(want, thr, rows, cols, start, stop)
+    # the map pass's stored saliency (raw chunks) read at the supports' voxels only
+    monkeypatch.setattr(type(z), "get_coordinate_selection", _fails)
+    monkeypatch.setattr(type(z), "__getitem__", _fails)
+    got = support_sums(z, thr, rows, cols, start, stop)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
 
 
 def test_read_rows_slices_the_zarr_array_of_a_loaded_cube(tmp_path):

@@ -87,7 +87,7 @@ import numpy as np
 from numba import njit
 from scipy import stats
 
-from .._arrays import zarr_rows_into
+from .._arrays import zarr_rows_into, zarr_voxels
 from ._fast import _refl as _reflect
 from ._kernels import _llr_one
 
@@ -1318,12 +1318,17 @@ _VOXELS_PER_READ = 1 << 20
 
 
 def _voxels(a, rows, cols, t) -> np.ndarray | None:
-    """``a[rows[i], cols[i], t[i]]`` of an ndarray or a Zarr array (coordinate selection:
-    only the chunks holding the voxels are read); None for any other kind of array."""
+    """``a[rows[i], cols[i], t[i]]`` of an ndarray or a Zarr array; None for any other
+    kind of array. A Zarr array stored raw in a folder (the map pass's saliency) is read
+    at the voxels' pages of its chunk files (:func:`~splidar._arrays.zarr_voxels`), any
+    other by Zarr's coordinate selection (the chunks holding the voxels read whole)."""
     if isinstance(a, np.ndarray):
         return a[rows, cols, t]
     if not hasattr(a, "get_coordinate_selection"):
         return None
+    out = zarr_voxels(a, (rows, cols, t))
+    if out is not None:
+        return out
     out = np.empty(rows.size, a.dtype)
     for i in range(0, rows.size, _VOXELS_PER_READ):
         j = slice(i, i + _VOXELS_PER_READ)
