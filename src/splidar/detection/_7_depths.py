@@ -146,6 +146,9 @@ def place_depths(
     seconds: dict = {}
     beta, rounds = float("nan"), 0
     half = int(np.max(scales)) // 2
+    # what the rules computed in earlier rounds, read back where the inputs are the same
+    ll_memo: dict = {}  # the bands' own-count likelihoods, per (pixel, depth)
+    far_memo: dict = {}  # the far rule's scores, per candidate's inputs
     while rounds < ROUNDS:
         rounds += 1
         before = np.array(s.depth_bin, np.float64)
@@ -156,12 +159,13 @@ def place_depths(
             if rule == "align_depths":
                 s, support, now = aligned_depths(
                     s, fwhm=fwhm, irf=irf, counts=counts, background=background,
-                    shear=rounds == 1,
+                    shear=rounds == 1, memo=far_memo,
                 )  # fmt: skip
             else:
                 depth, now, beta = band_depths(
-                    s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
-                )
+                    s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs,
+                    memo=ll_memo,
+                )  # fmt: skip
                 s = follow_supports(replace(s, depth_bin=depth), now, at, counts, background)
                 support = now
             code[now] = STAGES.index(rule)
