@@ -21,6 +21,16 @@ moved surfaces' window, histograms, signal, selected scale, presence statistics,
 (``tests/test_depths.py``). The families run in rounds (:data:`ROUNDS`), each on the
 depths and fields the previous round left, until a round moves no depth: what one family
 moves gives the other new neighbours, which one pass of each in turn never saw.
+
+A later round recomputes only what the previous round's moves changed, with the same
+result to the bit: the bands' own-count likelihoods (per pixel and depth,
+``_7b_edge_bands._likelihoods``) and the far rule's scores (per candidate, keyed by
+every input of its score, ``_7a_align_depths._memo_far_scores``) are kept over the rounds
+and read back where their inputs are equal. The rules' global parts are recomputed in
+every round: the bands' Potts weight and the near and far-inside priors are fractions
+over the whole image, and the regions' planes (reach twice the largest box's
+half-width) are within reach of a first-round move at 99 % of the face file's pixels
+(benchmarks/README.md, "rnd36, session 24").
 """
 
 from __future__ import annotations
