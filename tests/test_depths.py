@@ -116,3 +116,27 @@ def test_place_depths_rejects_an_unknown_rule(before_stage_7):
     cube, det, truth = before_stage_7
     with pytest.raises(ValueError, match="unknown rules"):
         _run(det, cube.counts, det.surfaces, ("align_depths", "spill_over"))
+
+
+def test_place_depths_later_rounds_equal_the_rules_without_memo(before_stage_7, monkeypatch):
+    # the rounds read the likelihoods and far scores met before from their memos: the
+    # same surfaces as every round computing everything anew, with less work in round 2
+    # (on this small cube the first round's moves change most bands' planes: little less)
+    import splidar.detection._7_depths as stage
+    import splidar.detection._7b_edge_bands as bands
+
+    cube, det, truth = before_stage_7
+    rows = []
+    llr = bands.profile_llr
+    monkeypatch.setattr(bands, "profile_llr", lambda y, *a: rows.append(len(y)) or llr(y, *a))
+    fast = _run(det, cube.counts, det.surfaces, RULES)
+    assert fast.rounds == 2 and sum(fast.moved.values()) > 0
+    fast_rows = sum(rows)
+    a, b = stage.aligned_depths, stage.band_depths
+    monkeypatch.setattr(stage, "aligned_depths", lambda *x, memo, **k: a(*x, memo=None, **k))
+    monkeypatch.setattr(stage, "band_depths", lambda *x, memo, **k: b(*x, memo=None, **k))
+    rows.clear()
+    full = _run(det, cube.counts, det.surfaces, RULES)
+    _same(fast.surfaces, full.surfaces)
+    assert dict(fast.moved) == dict(full.moved) and fast.beta == full.beta
+    assert fast_rows < sum(rows)  # round 2 read some from the memo

@@ -529,3 +529,27 @@ def test_potts_weight_is_never_negative_when_labels_change_across_most_pairs():
     smooth = np.zeros((6, 6), np.int64)
     smooth[:, 3:] = 1  # 6 of 60 pairs differ: log(0.9 / 0.1)
     assert potts_weight(smooth) == pytest.approx(np.log(9.0))
+
+
+def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
+    # a memo filled by one call, then read by another whose pixels partly repeat at the
+    # same depths, partly at new depths (a memo keyed by the pixel alone would return
+    # the old depth's value there)
+    from splidar.detection import _7b_edge_bands as eb
+
+    rng = np.random.default_rng(8)
+    counts = rng.poisson(_lam(2.0)).astype(np.uint16)
+    rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
+    dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
+    dep += rng.uniform(-3, 3, dep.shape)
+    memo: dict = {}
+    first = eb._likelihoods(counts, _background(), rows, cols, dep, IRF, memo=memo)
+    want = eb._likelihoods(counts, _background(), rows, cols, dep, IRF)
+    np.testing.assert_array_equal(first, want)
+    dep2 = dep.copy()
+    dep2[::3, 1] += rng.uniform(0.5, 4, dep2[::3].shape[0])
+    n = len(memo)
+    got = eb._likelihoods(counts, _background(), rows, cols, dep2, IRF, memo=memo)
+    want = eb._likelihoods(counts, _background(), rows, cols, dep2, IRF)
+    np.testing.assert_array_equal(got, want)
+    assert len(memo) == n + dep2[::3].shape[0] and (got[::3, 1] != first[::3, 1]).any()

@@ -229,3 +229,46 @@ def test_far_scores_equal_the_former_loop_bit_for_bit(L, monkeypatch):
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
     assert np.isfinite(want[0]).sum() > 100
+
+
+def test_memo_far_scores_give_the_scores_computed_anew():
+    # random candidates on a 20 x 15 image (one surface per pixel): a memo filled by one
+    # call, then read by a second whose sources' photons, depths and alternatives partly
+    # changed (a memo keyed by the candidate alone would return the old scores there)
+    import splidar.detection._7a_align_depths as stage
+
+    rng = np.random.default_rng(12)
+    R, C, L, T = 20, 15, 2, 90
+    S = R * C
+    rows, cols = np.divmod(np.arange(S), C)
+    x = np.arange(15.0)
+    irf = np.stack([np.exp(-0.5 * ((x - 6 - 0.3 * l) / (1.0 + 0.4 * l)) ** 2) for l in range(L)])
+    irf /= irf.sum(axis=1, keepdims=True)
+    peak = np.argmax(irf, axis=1)
+    alt = rng.uniform(-5, T + 5, (S, 4))
+    alt[rng.random((S, 4)) < 0.5] = np.nan
+    src = rng.integers(0, S, (S, 4, 4))
+    isolated = rng.random(S) < 0.4
+    src[~isolated, :, 2:] = -1
+    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
+    photons = rng.gamma(1.0, 3.0, (S, L))
+    depth = rng.uniform(0, T - 1, S)
+    counts = rng.poisson(0.4, (R, C, L, T)).astype(np.uint16)
+    bg = Background(
+        spatial=rng.gamma(0.5, 0.1, (R, C, L)).astype(np.float32),
+        temporal=np.zeros((L, T), np.float32),
+    )
+    memo: dict = {}
+    for step in range(2):
+        if step:
+            photons[rng.choice(S, 40, replace=False)] *= 1.5
+            depth[rng.choice(S, 20, replace=False)] += 1.0
+            alt[rng.choice(S, 20, replace=False), 0] += 2.0
+        args = (alt, src, isolated, photons, depth, irf, peak)
+        got = stage._memo_far_scores(cand, *args, counts, bg, rows[cand], cols[cand], memo)
+        ys = counts[rows[cand], cols[cand]]
+        bs = np.maximum(bg.at(rows[cand], cols[cand]).astype(np.float64), 1e-6)
+        want = stage._far_scores(cand, *args, ys, bs)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert cand.size < len(memo) < 2 * cand.size

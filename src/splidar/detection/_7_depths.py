@@ -21,6 +21,16 @@ moved surfaces' window, histograms, signal, selected scale, presence statistics,
 (``tests/test_depths.py``). The families run in rounds (:data:`ROUNDS`), each on the
 depths and fields the previous round left, until a round moves no depth: what one family
 moves gives the other new neighbours, which one pass of each in turn never saw.
+
+A later round recomputes only what the previous round's moves changed, with the same
+result to the bit: the bands' own-count likelihoods (per pixel and depth,
+``_7b_edge_bands._likelihoods``) and the far rule's scores (per candidate, keyed by
+every input of its score, ``_7a_align_depths._memo_far_scores``) are kept over the rounds
+and read back where their inputs are equal. The rules' global parts are recomputed in
+every round: the bands' Potts weight and the near and far-inside priors are fractions
+over the whole image, and the regions' planes (reach twice the largest box's
+half-width) are within reach of a first-round move at 99 % of the face file's pixels
+(benchmarks/README.md, "rnd36, session 24").
 """
 
 from __future__ import annotations
@@ -146,6 +156,9 @@ def place_depths(
     seconds: dict = {}
     beta, rounds = float("nan"), 0
     half = int(np.max(scales)) // 2
+    # what the rules computed in earlier rounds, read back where the inputs are the same
+    ll_memo: dict = {}  # the bands' own-count likelihoods, per (pixel, depth)
+    far_memo: dict = {}  # the far rule's scores, per candidate's inputs
     while rounds < ROUNDS:
         rounds += 1
         before = np.array(s.depth_bin, np.float64)
@@ -156,12 +169,13 @@ def place_depths(
             if rule == "align_depths":
                 s, support, now = aligned_depths(
                     s, fwhm=fwhm, irf=irf, counts=counts, background=background,
-                    shear=rounds == 1,
+                    shear=rounds == 1, memo=far_memo,
                 )  # fmt: skip
             else:
                 depth, now, beta = band_depths(
-                    s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
-                )
+                    s, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs,
+                    memo=ll_memo,
+                )  # fmt: skip
                 s = follow_supports(replace(s, depth_bin=depth), now, at, counts, background)
                 support = now
             code[now] = STAGES.index(rule)

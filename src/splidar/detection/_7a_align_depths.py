@@ -48,7 +48,14 @@ FAR_DEPTHS = True
 
 
 def aligned_depths(
-    surfaces: Surfaces, *, fwhm: float, irf, counts=None, background=None, shear: bool = True
+    surfaces: Surfaces,
+    *,
+    fwhm: float,
+    irf,
+    counts=None,
+    background=None,
+    shear: bool = True,
+    memo: dict | None = None,
 ) -> tuple:
     """The depths of ``surfaces`` after the sheared pool (when ``shear``) and, with
     ``counts`` and ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the
@@ -68,6 +75,9 @@ def aligned_depths(
     shear : bool
         Run the sheared pool (stage 7 runs it in its first round only:
         ``_7_depths.ROUNDS``).
+    memo : dict, optional
+        The far rule's scores met before on this cube (:func:`_far_moves`; stage 7's
+        rounds share one): never changes the result.
 
     Returns
     -------
@@ -96,7 +106,7 @@ def aligned_depths(
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     far = np.zeros(0, np.int64)
     if FAR_DEPTHS and counts is not None and background is not None:
-        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf)
+        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf, memo=memo)
     d = np.asarray(out.depth_bin, np.float64)
     moved = np.flatnonzero(d != old)
     # a depth the sheared pool moved out of its support: treated as a far move
@@ -259,10 +269,14 @@ def move_far_depths(
     return _support_fields(out, moved, saliency, threshold), int(moved.size)
 
 
-def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> tuple:
+def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo=None) -> tuple:
     """The far-depth rule of :func:`move_far_depths`: the surfaces with the moved ones'
     ``depth_bin``, ``start``, ``stop``, ``counts`` and ``background`` changed (the other
-    fields not yet), and the moved surfaces' indices."""
+    fields not yet), and the moved surfaces' indices. ``memo``: a dict kept by the
+    caller over calls on the same cube, background and IRF (stage 7's rounds): a
+    candidate whose inputs to its score (pixel, depth, alternatives, isolation and the
+    sources' ``photons``) all equal one met before takes that score
+    (:func:`_memo_far_scores`; the same to the bit)."""
     s = surfaces
     R, C = s.image_shape
     S = len(s)
@@ -292,17 +306,19 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> t
     others: dict = {}  # the candidates' pixels' surfaces
     for j in np.flatnonzero(np.isin(pix, pix[cand])):
         others.setdefault(int(pix[j]), []).append(int(j))
-    ys = _pixels(counts, rows, cols)  # (n, L, T), the candidates' pixels only
-    bs = np.maximum(background.at(rows, cols).astype(np.float64), 1e-6)
-    best, to = _far_scores(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs)
+    args = (alt, src, isolated, photons, depth, irf, peak, counts, background, rows, cols)
+    best, to = _memo_far_scores(cand, *args, {} if memo is None else memo)
     prior = np.where(isolated[cand], plane_prior, 0.0)
-    for m in np.flatnonzero((best < prior) & (to >= 0.0) & (to <= T - 1)):
+    go = np.flatnonzero((best < prior) & (to >= 0.0) & (to <= T - 1))
+    ys = _pixels(counts, rows[go], cols[go])  # (n, L, T), the candidates' moving only
+    bs = np.maximum(background.at(rows[go], cols[go]).astype(np.float64), 1e-6)
+    for k, m in enumerate(go):
         i = cand[m]
         same = others.get(int(pix[i]), ())  # keep the slots' depth order
         if any((s.slot[j] < s.slot[i]) == (depth[j] >= to[m]) for j in same if j != i):
             continue
-        y = ys[m].astype(np.float64)
-        _follow(start, stop, own_counts, own_bg, i, depth[i], to[m], y, bs[m], W, T)
+        y = ys[k].astype(np.float64)
+        _follow(start, stop, own_counts, own_bg, i, depth[i], to[m], y, bs[k], W, T)
         depth[i] = to[m]
         moved.append(int(i))
     if not moved:
@@ -311,6 +327,31 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf) -> t
         s, depth_bin=depth, start=start, stop=stop, counts=own_counts, background=own_bg,
     )  # fmt: skip
     return out, np.array(moved, np.int64)
+
+
+def _memo_far_scores(
+    cand, alt, src, isolated, photons, depth, irf, peak, counts, background, rows, cols, memo
+) -> tuple:
+    """:func:`_far_scores` of the candidates ``cand`` (pixels ``rows``, ``cols``), those
+    whose inputs equal a key of ``memo`` read from it, the others computed (their
+    pixels' counts and background read) and added. A candidate's score is a function of
+    its pixel's counts and background, its depth, its alternatives and their sources'
+    ``photons`` and its isolation alone (each candidate's pairs are its own; the blocks
+    never change a value), so the result is the same to the bit."""
+    keys = []
+    for i, r, c in zip(cand.tolist(), rows.tolist(), cols.tolist(), strict=True):
+        j = src[i][src[i] >= 0]
+        keys.append(
+            (r, c, depth[i], alt[i].tobytes(), src[i].tobytes(), photons[j].tobytes(), isolated[i])
+        )
+    new = np.array([m for m, key in enumerate(keys) if key not in memo], np.int64)
+    if new.size:
+        ys = _pixels(counts, rows[new], cols[new])  # (n, L, T), the new candidates' only
+        bs = np.maximum(background.at(rows[new], cols[new]).astype(np.float64), 1e-6)
+        got = _far_scores(cand[new], alt, src, isolated, photons, depth, irf, peak, ys, bs)
+        memo.update(zip([keys[m] for m in new], zip(*got, strict=True), strict=True))
+    best, to = np.array([memo[key] for key in keys], np.float64).reshape(-1, 2).T
+    return best.copy(), to.copy()
 
 
 #: Elements of the (pairs, 2, L, T) float64 arrays of :func:`_far_scores`, per block.

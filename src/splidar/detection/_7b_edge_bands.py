@@ -396,18 +396,28 @@ def _window_counts(counts, rows, cols, lo, out):  # pragma: no cover - numba
                 out[i, l, k] = counts[rows[i], cols[i], l, lo[i] + k]
 
 
-def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> np.ndarray:
-    """:func:`profile_llr` of the pixels ``(rows, cols)`` at their two depths ``dep``
-    (n, 2): (n, 2), in blocks of pixels on ``n_jobs`` threads (each block's result is
-    its own, so the threads never change it). An in-memory cube is read over each
-    depth's window alone, and so is a Zarr cube whose nonzero counts detect keeps
-    (``_slopes.sparse_of``); others (Dask) a pixel's whole series at once."""
+def _likelihoods(
+    counts, background, rows, cols, dep, irf, n_jobs: int = 1, memo: dict | None = None
+) -> np.ndarray:
+    """:func:`profile_llr` of the pixels ``(rows, cols)`` at their depths ``dep`` (n, k):
+    (n, k), in blocks of pixels on ``n_jobs`` threads (each block's result is its own,
+    so the threads never change it). An in-memory cube is read over each depth's window
+    alone, and so is a Zarr cube whose nonzero counts detect keeps
+    (``_slopes.sparse_of``); others (Dask) a pixel's whole series at once.
+
+    ``memo``: a dict ``{(row, col, depth): llr}`` kept by the caller over calls on the
+    same cube, background and IRF (stage 7's rounds): a (pixel, depth) met before is
+    read from it, the others computed and added. Each value is a function of its pixel
+    and depth alone, so the result is the same to the bit
+    (``tests/test_depths.py``)."""
+    if memo is not None:
+        return _memo_likelihoods(counts, background, rows, cols, dep, irf, n_jobs, memo)
     irf = np.atleast_2d(np.asarray(irf, np.float64))
     peak = np.argmax(irf, axis=1)
     T = int(np.shape(counts)[-1])
     # the IRF's support about a depth (+1 bin for the sub-bin shift): all that counts
     W = min(irf.shape[1] + 2, T)
-    out = np.empty((rows.size, 2))
+    out = np.empty((rows.size, dep.shape[1]))
     tm = background.temporal
     tm = tm - tm.mean(axis=-1, keepdims=True)  # as Background.at: (L, T)
 
@@ -420,7 +430,7 @@ def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> n
         whole = not isinstance(counts, np.ndarray) and kept is None
         y = _pixels(counts, r, c) if whole else None  # (n, L, T)
         sp = background.spatial[r, c]  # (n, L)
-        for j in range(2):
+        for j in range(dep.shape[1]):
             d = np.clip(dep[sl, j], 0.0, T - 1.0)
             lo = np.clip(np.floor(d).astype(np.int64) - int(peak.max()) - 1, 0, T - W)
             t = lo[:, None] + np.arange(W)  # (n, W)
@@ -447,6 +457,27 @@ def _likelihoods(counts, background, rows, cols, dep, irf, n_jobs: int = 1) -> n
         for a in starts:
             block(a)
     return out
+
+
+def _memo_likelihoods(counts, background, rows, cols, dep, irf, n_jobs, memo) -> np.ndarray:
+    """:func:`_likelihoods` with its ``memo``: the (pixel, depth) pairs not in it computed
+    (one depth per row) and added, then every value read from it."""
+    dep = np.asarray(dep, np.float64)
+    keys = list(
+        zip(
+            np.repeat(rows, dep.shape[1]).tolist(),
+            np.repeat(cols, dep.shape[1]).tolist(),
+            dep.ravel().tolist(),
+            strict=True,
+        )
+    )
+    new = [m for m, key in enumerate(keys) if key not in memo]
+    if new:
+        m = np.array(new, np.int64)
+        k = m // dep.shape[1]
+        got = _likelihoods(counts, background, rows[k], cols[k], dep.ravel()[m, None], irf, n_jobs)
+        memo.update(zip([keys[i] for i in new], got[:, 0].tolist(), strict=True))
+    return np.array([memo.get(key, np.nan) for key in keys]).reshape(dep.shape)
 
 
 def group_llr(y, g, b, group, n_iter: int = 30) -> np.ndarray:
@@ -598,7 +629,15 @@ def _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) -> np.ndarray:
 
 
 def band_depths(
-    surfaces: Surfaces, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1
+    surfaces: Surfaces,
+    counts,
+    background,
+    *,
+    fwhm: float,
+    irf,
+    half: int,
+    n_jobs: int = 1,
+    memo: dict | None = None,
 ):
     """The depths of ``surfaces`` after the bands' labelling (see the module), the
     indices of the surfaces moved and the Potts weight ``beta``.
@@ -617,6 +656,9 @@ def band_depths(
         The largest box's half-width (pixels): the band's reach.
     n_jobs : int
         Threads for the planes and the likelihoods (never changes the result).
+    memo : dict, optional
+        The own counts' likelihoods met before on this cube (:func:`_likelihoods`; stage
+        7's rounds share one): never changes the result.
 
     Returns
     -------
@@ -643,7 +685,7 @@ def band_depths(
     ll = (
         np.zeros((0, 2))
         if zr.size == 0
-        else _likelihoods(counts, background, zr, zc, dep[zr, zc], irf, n_jobs)
+        else _likelihoods(counts, background, zr, zc, dep[zr, zc], irf, n_jobs, memo)
     )  # own, other
     T = int(np.shape(counts)[-1])
     pair_a = np.minimum(big[zr, zc], other[zr, zc])
@@ -662,13 +704,14 @@ def band_depths(
     near, to = np.zeros(0, np.int64), np.zeros(0)
     if NEAR_DEPTHS:
         near, to = near_depths(
-            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs
-        )
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, n_jobs=n_jobs,
+            memo=memo,
+        )  # fmt: skip
     depth[near] = to
     moved = np.union1d(np.asarray(moved, np.int64), near)
     if FAR_INSIDE:
         far, to = far_inside_depths(
-            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, memo=memo
         )
         depth[far] = to
         moved = np.union1d(moved, far)
@@ -703,8 +746,9 @@ def _inside(lab: np.ndarray) -> np.ndarray:
 
 
 def near_depths(
-    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1
-):
+    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1,
+    memo: dict | None = None,
+):  # fmt: skip
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
     measured prior favour it (see :data:`NEAR_FWHM`).
@@ -730,7 +774,7 @@ def near_depths(
         The surfaces' depths (bins) after the bands' labelling.
     solo : ndarray (n,) int64
         The surfaces alone in their pixels.
-    counts, background, fwhm, irf, half, n_jobs
+    counts, background, fwhm, irf, half, n_jobs, memo
         As :func:`band_depths`.
 
     Returns
@@ -761,7 +805,7 @@ def near_depths(
     if zr.size == 0:
         return none
     q = max(int(off.sum()), 1) / max(int(has.sum()), 2)
-    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf)
+    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf, memo)
 
 
 @njit(cache=True, nogil=True)
@@ -817,7 +861,9 @@ def _shared_any(surfaces, depth, D, tol: float) -> np.ndarray:
     return out
 
 
-def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int):
+def far_inside_depths(
+    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, memo=None
+):
     """The far wrong depths inside a region: a single-surface pixel that is not a member
     of the region holding at least :data:`NEAR_INSIDE` of its 8-neighbours (its depth
     more than the gate, :data:`GATE_FWHM` FWHM, off every neighbour's), moved onto that
@@ -837,7 +883,7 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
 
     Parameters
     ----------
-    surfaces, depth, solo, counts, background, fwhm, irf, half
+    surfaces, depth, solo, counts, background, fwhm, irf, half, memo
         As :func:`near_depths` (``depth`` after the near depths).
 
     Returns
@@ -863,7 +909,7 @@ def far_inside_depths(surfaces, depth, solo, counts, background, *, fwhm: float,
     if zr.size == 0:
         return none
     q = zr.size / max(int((region >= 0).sum()), 2)
-    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf)
+    return _plane_moves(s, solo, counts, background, zr, zc, D, plane, q, irf, memo)
 
 
 def _solo_regions(s: Surfaces, depth: np.ndarray, solo: np.ndarray, fwhm: float) -> tuple:
@@ -880,13 +926,16 @@ def _solo_regions(s: Surfaces, depth: np.ndarray, solo: np.ndarray, fwhm: float)
     return D, gate, big
 
 
-def _plane_moves(s: Surfaces, solo, counts, background, zr, zc, D, plane, q: float, irf) -> tuple:
+def _plane_moves(
+    s: Surfaces, solo, counts, background, zr, zc, D, plane, q: float, irf, memo=None
+) -> tuple:
     """``(moved, to)``: the lone surfaces at pixels ``(zr, zc)`` whose own counts, with the
     prior log-odds ``log((1 - q) / q)`` of lying on the plane, favour ``plane`` over their
     depth ``D`` (``L(plane) - L(own) + prior > 0``), and their new depths (bins)."""
     none = np.zeros(0, np.int64), np.zeros(0)
     prior = np.log((1.0 - q) / q)
-    ll = _likelihoods(counts, background, zr, zc, np.stack([D[zr, zc], plane[zr, zc]], 1), irf)
+    dep = np.stack([D[zr, zc], plane[zr, zc]], 1)
+    ll = _likelihoods(counts, background, zr, zc, dep, irf, memo=memo)
     go = ll[:, 1] - ll[:, 0] + prior > 0.0
     if not go.any():
         return none
