@@ -124,3 +124,28 @@ def test_reject_isolated_converts_only_the_tested_rows():
     np.testing.assert_array_equal(got, ref)
     assert 0 < ref.sum() < ref.size
     assert peak < 0.6 * copy
+
+
+def test_follow_supports_reads_the_moved_pixels_in_parts(long_irf_cube, monkeypatch):
+    """Stage 7's moved surfaces follow their depth from their pixels' counts read a part
+    at a time (all of them at once were 0.3 float32 cubes on the face): the same
+    supports, counts and background as in one part, a fraction of its bytes traced."""
+    from splidar.detection import _depth_fields
+
+    det = detect(long_irf_cube, rng=0)
+    s = det.surfaces
+    idx = np.arange(len(s))
+    old = np.asarray(s.depth_bin) - 3.0
+    counts = long_irf_cube.counts
+    a = _depth_fields.follow_supports(s, idx, old, counts, det.background)
+    monkeypatch.setattr(_depth_fields, "FOLLOW_BYTES", 20000)
+    whole = len(s) * int(np.prod(counts.shape[2:])) * 16
+    tracemalloc.start()
+    b = _depth_fields.follow_supports(s, idx, old, counts, det.background)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert len(s) > 100
+    assert not np.array_equal(a.start, s.start)
+    for name in ("start", "stop", "counts", "background"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    assert peak < 0.5 * whole
