@@ -198,8 +198,8 @@ def detect(
         ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``, ``"edge_bands"``. What each
         does and its measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
-        Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
-        per tile (Dask task) of whole rows (default: square tiles of that many pixels).
+        Rows per block (default: 64 MB of buffers, all threads' at most a quarter cube); a
+        Dask cube's rows per tile (Dask task) (default: square tiles of that many pixels).
     n_jobs : int, optional
         Threads (default: CPU count, at most 4). A Dask cube's tiles run on the active
         Dask scheduler instead (threads, or a ``dask.distributed.Client`` when one is
