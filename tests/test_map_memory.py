@@ -149,3 +149,22 @@ def test_follow_supports_reads_the_moved_pixels_in_parts(long_irf_cube, monkeypa
     for name in ("start", "stop", "counts", "background"):
         np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
     assert peak < 0.5 * whole
+
+
+def test_finest_sums_equal_the_whole_arrays_sums_without_the_float32_copy():
+    """Stage 7's sheared pool reads the finest scale summed over wavelengths as float64:
+    built a part of the surfaces at a time, the same values as the float32 sum of every
+    surface converted at once, without that float32 array beside the float64 one."""
+    from splidar.detection._7a_align_depths import _finest_sums
+
+    rng = np.random.default_rng(3)
+    for L, S in ((3, 500), (1, 20000)):
+        h = rng.random((S, 2, L, 300), np.float32)
+        ref = np.ascontiguousarray(h[:, 0].sum(axis=1), np.float64)
+        tracemalloc.start()
+        got = _finest_sums(h)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        np.testing.assert_array_equal(got, ref)
+        assert got.dtype == np.float64 and got.flags.c_contiguous
+    assert peak < S * 300 * (8 + 0.75 * 4)
