@@ -11,6 +11,7 @@ sets a lower ceiling, e.g. on a shared machine or in a test.
 
 from __future__ import annotations
 
+import functools
 import os
 
 from ._validation import SplidarError
@@ -21,6 +22,7 @@ __all__ = [
     "check_memory",
     "detect_peak_bytes",
     "format_bytes",
+    "give_back",
     "reconstruct_peak_bytes",
 ]
 
@@ -126,3 +128,28 @@ def check_detect_memory(cube, *, store=None) -> None:
         "the cube as Zarr (splidar.io.save(cube, 'cube.zarr')) and detect it with a store "
         "(store='det.zarr' in Python, --store DIR on the command line)",
     )
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None (another C library, another system)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc.malloc_trim
+    except (OSError, AttributeError, TypeError):
+        return None
+
+
+def give_back() -> None:
+    """Return the freed heap pages to the system (glibc keeps them otherwise: arrays
+    below its mmap threshold, up to 32 MB, and those the map pass's threads allocate in
+    their own arenas stay in the process's resident memory once freed). Called where a
+    detection has just released much memory (the pages of a Dask cube's candidate table
+    between passes, the map's per-block histograms in stage 6): the resident memory then
+    follows what the process holds. No effect on any result."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)

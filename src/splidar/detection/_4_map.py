@@ -685,14 +685,54 @@ def _block_rows(block_rows, scales, width, store_boxes, shape) -> int:
     return min(block_rows, R)
 
 
+#: The in-memory map pass's work buffers (all threads' together, :func:`_run_bytes`) are
+#: kept to at most this fraction of the float32 cube (or ``n_runs x 64 MB`` when that is
+#: more) by taking fewer rows per block: issue #15's peak of at most 2 float32 cubes above
+#: the input holds the map's outputs (saliency and mask, ``1.25 / L`` cubes) and the
+#: candidates besides. The former floor of ``4 h_max`` rows per block made the buffers
+#: 0.8 cubes on the face file at its native bin (95 MB per row of 7,001 bins, 2 threads;
+#: ``benchmarks/README.md``, "mem36, session 24"). A block's rows never change a result.
+WORK_FRACTION = 0.25
+#: Bytes of work buffers per thread the cap never goes below (the default rule asks for
+#: about 64 MB per block): small cubes keep their rows.
+WORK_FLOOR = 64e6
+
+
+def _run_bytes(rows: int, shape, h: int, n_box: int) -> int:
+    """Bytes of one run's work buffers (:func:`_run_rows`) at ``rows`` rows per block: the
+    correlated rows with their halo (``rows + 2 h``, ``C L T`` float32), the signed
+    response and evidence (float32), the candidate voxels (bool) and ``n_box`` box means
+    per wavelength (``C T`` float32 each, when kept for extraction)."""
+    R, C, L, T = shape
+    rows_h = min(rows + 2 * h, R)
+    return int(rows_h * C * L * T * 4 + rows * C * T * (4 + 4 + 1 + 4 * L * n_box))
+
+
+def _capped_rows(block_rows: int, shape, h: int, n_box: int, n_runs: int) -> int:
+    """``block_rows`` (the default rule's), or fewer, so that ``n_runs`` runs' buffers
+    stay within :data:`WORK_FRACTION` of the float32 cube (at least 1 row; never fewer
+    rows than ``n_runs x WORK_FLOOR`` bytes of buffers allow)."""
+    R, C, L, T = shape
+    budget = max(WORK_FRACTION * R * C * L * T * 4, n_runs * WORK_FLOOR)
+    rows = int(block_rows)
+    while rows > 1 and n_runs * _run_bytes(rows, shape, h, n_box) > budget:
+        rows -= 1
+    return rows
+
+
 def _blocks(a: int, b: int, block_rows: int) -> list:
     """Blocks ``(r0, r1)`` of ``block_rows`` rows over ``[a, b)``, from the top."""
     return [(r0, min(b, r0 + block_rows)) for r0 in range(a, b, block_rows)]
 
 
+def _n_runs(R: int, h_max: int, n_jobs: int) -> int:
+    """Runs of blocks (threads) of the in-memory map pass."""
+    return max(1, min(n_jobs, R // (2 * h_max + 1)))
+
+
 def _runs(R: int, h_max: int, n_jobs: int, block_rows: int, store) -> list:
     """Contiguous runs of rows, one per thread; blocks within a run share their halo."""
-    n_run = max(1, min(n_jobs, R // (2 * h_max + 1)))
+    n_run = _n_runs(R, h_max, n_jobs)
     cuts = np.linspace(0, R, n_run + 1).round().astype(int)
     if store is not None:
         # runs start on chunk boundaries: no two threads write one chunk
@@ -932,7 +972,8 @@ def map_candidates(
         Stage 3's thresholds.
     options : MapOptions
     block_rows : int or None
-        Rows per block (None: about 64 MB of work buffers).
+        Rows per block (None: about 64 MB of work buffers, at least ``4 h_max`` rows,
+        all threads' buffers within :data:`WORK_FRACTION` of the float32 cube).
     n_jobs : int
         Threads: runs of blocks in parallel, or threads inside the blocks of one run.
     store : path, optional
@@ -940,7 +981,12 @@ def map_candidates(
     """
     R, C, L, T = counts.shape
     h_max = int(filters.scales.max()) // 2
+    given = block_rows
     opts, block_rows = map_plan(filters, null, options, counts.shape, block_rows)
+    if given is None:  # the default rows, within WORK_FRACTION of the cube
+        n_box = int((filters.scales > 1).sum()) if opts["store_boxes"] else 0
+        n_run = _n_runs(R, h_max, n_jobs)
+        block_rows = _capped_rows(block_rows, counts.shape, h_max, n_box, n_run)
     table = null.table(per_voxel=False)
     if store is None:
         out = dict(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._memory import give_back
 from ._kernels import select_sorted
 from ._result import Surfaces
 from ._table import CandidateTable, _position_in_pixel, _raster_ordered
@@ -63,12 +64,20 @@ def _select(surf: dict, keep: np.ndarray, k_max: int):
 GATHER_THREADS = 4
 
 
-def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None) -> np.ndarray:
+def _gather(
+    table: CandidateTable, idx: np.ndarray, histograms, out=None, release: bool = False
+) -> np.ndarray:
     """The selected candidates' histograms from the blocks' (and passes') arrays (NumPy
     or Zarr), into ``out`` (an array-like of shape ``(idx.size, Q, L, W)``, e.g. a Zarr
     array: filled :data:`GATHER_CHUNK` surfaces at a time) or a new array. Zarr arrays
-    are read on :data:`GATHER_THREADS` threads, a block's array each (the same values)."""
+    are read on :data:`GATHER_THREADS` threads, a block's array each (the same values).
+
+    ``release`` (``histograms`` a list): each block's entry is set to None once the
+    part holding its last selected row is gathered, so that the blocks' arrays are
+    released while the gathered one fills (``idx`` in raster order meets the blocks of
+    rows one after the other)."""
     shape = (idx.size,) + tuple(histograms[0].shape[1:])
+    last = _last_part(table.hist_block[idx], len(histograms)) if release else None
     if out is None:
         out = np.empty(shape, np.float32)
     stored = any(not isinstance(h, (np.ndarray, SupportWindows)) for h in histograms)
@@ -113,10 +122,27 @@ def _gather(table: CandidateTable, idx: np.ndarray, histograms: tuple, out=None)
                 list(pool.map(read, blocks))
             if not direct:
                 out[a : a + part.size] = hist
+            del hist
+            if last is not None:
+                done_ = np.flatnonzero(last < a + part.size)
+                gone = [b for b in done_ if histograms[b] is not None]
+                for b in gone:
+                    histograms[b] = None  # no later part reads it
+                if gone:
+                    give_back()
     finally:
         if pool is not None:
             pool.shutdown()
     return out
+
+
+def _last_part(hb: np.ndarray, n_blocks: int) -> np.ndarray:
+    """Per block, the position after which ``hb`` (the selected rows' blocks, -1 the
+    passes' own array) never names it again (-1: never named)."""
+    last = np.full(n_blocks, -1, np.int64)
+    own = hb >= 0
+    np.maximum.at(last, hb[own].astype(np.int64), np.flatnonzero(own))
+    return last
 
 
 def select_surfaces(
@@ -128,6 +154,7 @@ def select_surfaces(
     n_wavelengths: int,
     width: int,
     histograms_out=None,
+    release: bool = False,
 ) -> Surfaces:
     """Keep at most ``max_surfaces`` kept candidates per pixel as :class:`Surfaces`.
 
@@ -144,6 +171,11 @@ def select_surfaces(
         ``histograms_out(shape)`` gives an array-like the selected histograms are written
         to part by part (e.g. a Zarr array in the detection's store) and that becomes
         ``Surfaces.histograms``; default a NumPy array.
+    release : bool
+        ``histograms`` is a list this call may empty: each block's array is dropped (its
+        entry set to None) once its selected rows are gathered (``detect``, which holds
+        the map's arrays in that list alone: they are released while the surfaces'
+        array fills instead of after it).
     """
     idx, slot = _select(table.columns, table.keep, max_surfaces)
     cols = table.columns
@@ -158,11 +190,11 @@ def select_surfaces(
     if histograms_out is not None:
         hist = histograms_out((idx.size, Q, L, width))
         if idx.size:
-            _gather(table, idx, histograms, hist)
+            _gather(table, idx, histograms, hist, release)
     elif idx.size == 0:
         hist = np.zeros((0, Q, L, width), np.float32)
     else:
-        hist = _gather(table, idx, histograms)
+        hist = _gather(table, idx, histograms, release=release)
     R, C = table.image_shape
     i8, f8 = np.int64, np.float64
     return Surfaces(

@@ -13,7 +13,7 @@ from types import MappingProxyType
 import numpy as np
 
 from .._irf_width import check_cube_irf
-from .._memory import check_detect_memory
+from .._memory import check_detect_memory, give_back
 from .._validation import (
     SplidarError,
     check_choice,
@@ -120,29 +120,6 @@ def _check_weights(weights, scales: np.ndarray) -> np.ndarray:
     return w
 
 
-@functools.cache
-def _malloc_trim():
-    """glibc's ``malloc_trim``, or None (another C library, another system)."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return libc.malloc_trim
-    except (OSError, AttributeError, TypeError):
-        return None
-
-
-def _give_back() -> None:
-    """Return the freed heap pages to the system (glibc keeps them otherwise: the arrays
-    of a few MB to 32 MB each pass frees are below its mmap threshold). Between the
-    passes over a Dask cube's candidate table, the calling process's resident memory then
-    follows what it holds (measured on a 512 x 1024 slab: see bench_distributed.py)."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
-
-
 #: The clean-up passes :func:`detect` can run, in the order they run (``passes``).
 PASSES = (
     "recentre", "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
@@ -221,8 +198,8 @@ def detect(
         ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``, ``"edge_bands"``. What each
         does and its measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
-        Rows per block (default: about 64 MB of work buffers); with a Dask cube, rows
-        per tile (Dask task) of whole rows (default: square tiles of that many pixels).
+        Rows per block (default: 64 MB of buffers, all threads' at most a quarter cube); a
+        Dask cube's rows per tile (Dask task) (default: square tiles of that many pixels).
     n_jobs : int, optional
         Threads (default: CPU count, at most 4). A Dask cube's tiles run on the active
         Dask scheduler instead (threads, or a ``dask.distributed.Client`` when one is
@@ -291,7 +268,7 @@ def detect(
     mp, held, n_map = _map_pass(cube, filters, nul, o, store, tiled)  # 4
     timings["saliency_and_surfaces"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    hists, mp = [mp.histograms], dataclasses.replace(mp, histograms=())  # freed by stage 6
+    hists, mp = [list(mp.histograms)], dataclasses.replace(mp, histograms=())  # stage 6 empties
     out = _stages_5_to_7(cube, o, mp, held, hists, bg, corr, rng, t0, store)  # 5, 6, 7
     done, surfaces, moves, t_sel, n_kept = out
     timings["quality_and_selection"] = time.perf_counter() - t0
@@ -312,7 +289,8 @@ def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, sto
     """The clean-up passes (5), the selection (6) and the depths placed (7): ``(done,
     surfaces, placed, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
     nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``).
-    ``hists``: ``[the map's per-block histograms]``, emptied once stage 6 has read them."""
+    ``hists``: ``[list of the map's per-block histograms]``, which stage 6 empties block by
+    block as it gathers the surfaces' rows (``select_surfaces(release=True)``)."""
     with kept_counts(cube.counts):
         done = _clean_up(cube, o, mp, held, hists[0], bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, hists, done, t0, store, bg)
@@ -497,7 +475,7 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     surfaces = select_surfaces(
         done[-1].table, hists.pop(), max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
-        histograms_out=out,
+        histograms_out=out, release=True,
     )  # fmt: skip
     n_kept = int(done[-1].table.keep.sum())
     done[-1] = dataclasses.replace(done[-1], table=None)
@@ -505,8 +483,7 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
         surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
         remove_tree(Path(os.fspath(store)) / "candidate_histograms")
     t_sel, placed = time.perf_counter() - t0 - sum(p.seconds for p in done), None
-    if o.get("tiled"):  # the table's pages, released
-        _give_back()
+    give_back()  # the table's pages and the map's histograms, released
     rules = tuple(r for r in RULES if r in o["passes"])
     if rules and o["checks"] and len(surfaces):
         background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
@@ -546,7 +523,9 @@ def _map_pass(cube, filters, nul, o, store, tiled: bool):
             store=store,
         )  # fmt: skip
     held, n_map = [mp.candidates.compacted(cube.shape[3])], int(mp.candidates.keep.sum())
-    return dataclasses.replace(mp, candidates=None), held, n_map
+    mp = dataclasses.replace(mp, candidates=None)
+    give_back()  # the blocks' pages (the threads' arenas) and the table before compaction
+    return mp, held, n_map
 
 
 def _check_resources(passes, block_rows, n_jobs, presence: str) -> dict:
@@ -608,7 +587,7 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
 
     def run(name, fn):
         if tiled and name in on:  # the pages the last pass (or the map's tiles) freed
-            _give_back()
+            give_back()
         res = fn(table) if name in on else skipped(name, table)
         if done:
             done[-1] = dataclasses.replace(done[-1], table=None)
@@ -630,6 +609,7 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
         llr_level=-PRESENCE_LLR, agreed=True, max_kept=o["max_surfaces"]))  # fmt: skip
     table = table.without("own_counts", "own_background", "line_support")
     done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
+    give_back()
     table = run("slopes", lambda t: recover_slope_surfaces(
         t, cube.counts, saliency=mp.saliency, threshold=mp.threshold, spatial=mp.spatial,
         dev=bg.dev, irf=irf, scales=o["scales"], width=mp.width, fwhm=fwhm,

@@ -728,7 +728,7 @@ def reject_isolated(
     test = ~shared & ((n_own > 1) if only_extra else True)
     sub = idx[test]
     n = np.asarray(surf["own_counts"])[sub].sum(axis=(1, 2))
-    B = np.asarray(surf["own_background"], np.float64)[sub].sum(axis=(1, 2))
+    B = np.asarray(surf["own_background"])[sub].astype(np.float64).sum(axis=(1, 2))
     p = stats.poisson.sf(n - 1, np.maximum(B, 1e-12))  # P(N >= n | B)
     if n_bins is not None:
         # the candidate's depth was free: any of the T / width windows of the pixel

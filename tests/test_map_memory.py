@@ -1,0 +1,170 @@
+"""Peak memory of ``detect`` on long-IRF cubes (issue #15 point 6): the map pass's work
+buffers bounded by a fraction of the cube, the candidates' histograms released block by
+block as stage 6 gathers them, the isolated test's own windows not copied whole to
+float64; every result the same bit for bit."""
+
+import tracemalloc
+import weakref
+
+import numpy as np
+import pytest
+
+from splidar.detection import _4_map, _6_select, _detect, detect
+from splidar.detection._quality import reject_isolated
+from splidar.detection._windows import SupportWindows
+from splidar.scenes import single_surface_scene
+
+
+@pytest.fixture(scope="module")
+def long_irf_cube():
+    """A single surface seen through a wide exponential-tail IRF (W of about 140 bins)."""
+    scene = single_surface_scene((16, 16), n_bins=500, irf=("exp_tail", 5.0, 10.0))
+    return scene.simulate(ppp=8.0, sbr=1.0, rng=0).cube
+
+
+def _f32(shape) -> int:
+    return int(np.prod(shape)) * 4
+
+
+def test_capped_rows_keeps_the_map_buffers_within_a_quarter_cube():
+    """The face file at its native bin (340 x 340 x 1 x 7,001, scales up to 11, 3 box
+    scales kept, 2 threads): the former floor of 20 rows per block held 0.79 cubes of
+    buffers; the cap keeps them within WORK_FRACTION."""
+    face = (340, 340, 1, 7001)
+    assert 2 * _4_map._run_bytes(20, face, 5, 3) > 0.75 * _f32(face)
+    rows = _4_map._capped_rows(20, face, 5, 3, 2)
+    assert 1 <= rows < 20
+    assert 2 * _4_map._run_bytes(rows, face, 5, 3) <= _4_map.WORK_FRACTION * _f32(face)
+    # the largest such number of rows
+    assert 2 * _4_map._run_bytes(rows + 1, face, 5, 3) > _4_map.WORK_FRACTION * _f32(face)
+    # small cubes keep the default rule's rows (64 MB of buffers per thread at least)
+    assert _4_map._capped_rows(20, (64, 64, 1, 200), 5, 0, 2) == 20
+    # a row too wide for the budget: one row per block
+    assert _4_map._capped_rows(20, (40, 4000, 1, 9000), 5, 3, 2) == 1
+
+
+def test_map_candidates_caps_block_rows_with_the_same_detection(long_irf_cube, monkeypatch):
+    """Fewer rows per block when the buffers would exceed the fraction (patched small
+    here): the same Detection bit for bit, the rows recorded."""
+    a = detect(long_irf_cube, rng=0, n_jobs=2)
+    monkeypatch.setattr(_4_map, "WORK_FRACTION", 0.01)
+    monkeypatch.setattr(_4_map, "WORK_FLOOR", 0.0)
+    b = detect(long_irf_cube, rng=0, n_jobs=2)
+    assert b.options["block_rows"] < a.options["block_rows"]
+    assert len(a.surfaces) > 100
+    for name, x in vars(a.surfaces).items():
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(getattr(b.surfaces, name), x, err_msg=name)
+    np.testing.assert_array_equal(b.saliency, a.saliency)
+    np.testing.assert_array_equal(b.mask, a.mask)
+    np.testing.assert_array_equal(b.background.spatial, a.background.spatial)
+
+
+def test_select_surfaces_releases_each_block_once_gathered(long_irf_cube, monkeypatch):
+    """``detect``'s selection drops a block's histograms once its rows are gathered: while
+    the last block is read the first ones are gone; the surfaces are the same."""
+    a = detect(long_irf_cube, rng=0, n_jobs=1, block_rows=4)
+    refs, alive = [], []
+    select, rows = _detect.select_surfaces, SupportWindows.rows
+
+    def spy_select(table, histograms, **kw):
+        refs.extend(weakref.ref(h) for h in histograms)
+        return select(table, histograms, **kw)
+
+    def spy_rows(self, idx, out=None):
+        alive.append([r() is not None for r in refs])
+        return rows(self, idx, out)
+
+    monkeypatch.setattr(_detect, "select_surfaces", spy_select)
+    monkeypatch.setattr(_6_select, "GATHER_BYTES", 20000)
+    monkeypatch.setattr(SupportWindows, "rows", spy_rows)
+    b = detect(long_irf_cube, rng=0, n_jobs=1, block_rows=4)
+    assert len(refs) == 4 and alive
+    assert alive[-1] == [False, False, False, True]
+    for name, x in vars(a.surfaces).items():
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(getattr(b.surfaces, name), x, err_msg=name)
+
+
+def _windows_table(S=4000, W=300, seed=0):
+    """A candidate table of one candidate per pixel of a 40 x 100 image on a plane (depth
+    about 100), 5 % of them at other depths (isolated), own windows of ``W`` bins with a
+    support each (zero outside it)."""
+    rng = np.random.default_rng(seed)
+    R, C = 40, 100
+    pix = np.arange(S) % (R * C)
+    first = rng.integers(0, W // 2, S)
+    length = rng.integers(1, W // 2, S)
+    inside = (np.arange(W) >= first[:, None]) & (np.arange(W) < (first + length)[:, None])
+    cnt = (rng.poisson(0.3, (S, 1, W)) * inside[:, None]).astype(np.int16)
+    bkg = (rng.random((S, 1, W), np.float32) * 0.2 * inside[:, None]).astype(np.float32)
+    depth = np.full(S, 100.0)
+    odd = rng.random(S) < 0.05
+    depth[odd] = rng.uniform(150.0, 290.0, int(odd.sum()))
+    return dict(
+        row=pix // C, col=pix % C, depth_bin=depth, offset=np.zeros(S, np.int64),
+        own_counts=cnt, own_background=bkg, image_shape=(R, C),
+    )  # fmt: skip
+
+
+def test_reject_isolated_converts_only_the_tested_rows():
+    """No float64 copy of every candidate's window (the face: 0.7 GB at once): the same
+    rejections as with a float64 table, a fraction of that copy's bytes traced."""
+    surf = _windows_table()
+    keep = np.ones(surf["row"].size, bool)
+    ref = reject_isolated(
+        dict(surf, own_background=surf["own_background"].astype(np.float64)), keep,
+        fwhm=3.0, pfa=1e-3, n_bins=2000,
+    )  # fmt: skip
+    copy = surf["own_background"].size * 8
+    tracemalloc.start()
+    got = reject_isolated(surf, keep, fwhm=3.0, pfa=1e-3, n_bins=2000)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    np.testing.assert_array_equal(got, ref)
+    assert 0 < ref.sum() < ref.size
+    assert peak < 0.6 * copy
+
+
+def test_follow_supports_reads_the_moved_pixels_in_parts(long_irf_cube, monkeypatch):
+    """Stage 7's moved surfaces follow their depth from their pixels' counts read a part
+    at a time (all of them at once were 0.3 float32 cubes on the face): the same
+    supports, counts and background as in one part, a fraction of its bytes traced."""
+    from splidar.detection import _depth_fields
+
+    det = detect(long_irf_cube, rng=0)
+    s = det.surfaces
+    idx = np.arange(len(s))
+    old = np.asarray(s.depth_bin) - 3.0
+    counts = long_irf_cube.counts
+    a = _depth_fields.follow_supports(s, idx, old, counts, det.background)
+    monkeypatch.setattr(_depth_fields, "FOLLOW_BYTES", 20000)
+    whole = len(s) * int(np.prod(counts.shape[2:])) * 16
+    tracemalloc.start()
+    b = _depth_fields.follow_supports(s, idx, old, counts, det.background)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert len(s) > 100
+    assert not np.array_equal(a.start, s.start)
+    for name in ("start", "stop", "counts", "background"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    assert peak < 0.5 * whole
+
+
+def test_finest_sums_equal_the_whole_arrays_sums_without_the_float32_copy():
+    """Stage 7's sheared pool reads the finest scale summed over wavelengths as float64:
+    built a part of the surfaces at a time, the same values as the float32 sum of every
+    surface converted at once, without that float32 array beside the float64 one."""
+    from splidar.detection._7a_align_depths import _finest_sums
+
+    rng = np.random.default_rng(3)
+    for L, S in ((3, 500), (1, 20000)):
+        h = rng.random((S, 2, L, 300), np.float32)
+        ref = np.ascontiguousarray(h[:, 0].sum(axis=1), np.float64)
+        tracemalloc.start()
+        got = _finest_sums(h)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        np.testing.assert_array_equal(got, ref)
+        assert got.dtype == np.float64 and got.flags.c_contiguous
+    assert peak < S * 300 * (8 + 0.75 * 4)
