@@ -168,3 +168,58 @@ def test_finest_sums_equal_the_whole_arrays_sums_without_the_float32_copy():
         np.testing.assert_array_equal(got, ref)
         assert got.dtype == np.float64 and got.flags.c_contiguous
     assert peak < S * 300 * (8 + 0.75 * 4)
+
+
+@pytest.mark.parametrize("n_rows", [6, 17])
+def test_move_rows_equals_a_copy_without_a_temporary(n_rows):
+    """Every shift of a halo (overlapping or not, either direction, pieces that do not
+    divide it): the rows of a copy taken first; and no temporary array, where the plain
+    overlapping assignment traces one of all the moved rows."""
+    rng = np.random.default_rng(3)
+    base = rng.random((n_rows, 4, 1, 50)).astype(np.float32)
+    for src in range(n_rows):
+        for dst in range(n_rows):
+            for n in range(n_rows - max(src, dst) + 1):
+                buf = base.copy()
+                want = base.copy()
+                want[dst : dst + n] = base[src : src + n]
+                _4_map._move_rows(buf, dst, src, n)
+                np.testing.assert_array_equal(buf, want, err_msg=f"{dst} {src} {n}")
+    buf = rng.random((12, 4, 1, 500)).astype(np.float32)
+    row = _f32(buf.shape[1:])
+    tracemalloc.start()
+    buf[0:10] = buf[2:12]  # NumPy's overlapping assignment: through a copy of 10 rows
+    plain = tracemalloc.get_traced_memory()[1]
+    tracemalloc.reset_peak()
+    _4_map._move_rows(buf, 0, 2, 10)
+    moved = tracemalloc.get_traced_memory()[1] - tracemalloc.get_traced_memory()[0]
+    tracemalloc.stop()
+    assert plain >= 10 * row
+    assert moved < row
+
+
+@pytest.mark.parametrize("block_rows", [1, 2, 3, 4, 7])
+def test_map_candidates_same_map_when_the_halo_is_longer_than_a_block(block_rows, monkeypatch):
+    """Blocks shorter than their halo of 2 h = 10 rows (the halo moved in pieces, over
+    itself), downwards and, two runs' blocks on one thread, upwards: the same map and
+    candidates as the whole image in one block."""
+    scene = single_surface_scene((24, 10), n_bins=500, irf=("exp_tail", 5.0, 10.0))
+    long_irf_cube = scene.simulate(ppp=8.0, sbr=1.0, rng=1).cube
+    ref = detect(long_irf_cube, rng=0, n_jobs=1, block_rows=24)
+    assert len(ref.surfaces) > 100 and ref.options["block_rows"] == 24
+    for n_jobs in (1, 2):
+        _same(detect(long_irf_cube, rng=0, n_jobs=n_jobs, block_rows=block_rows), ref)
+
+    def upwards(self, k):
+        yield from [b for run in self.blocks for b in run][::-1] if k == 1 else []
+
+    monkeypatch.setattr(_4_map._Schedule, "blocks_for", upwards)
+    _same(detect(long_irf_cube, rng=0, n_jobs=2, block_rows=block_rows), ref)
+
+
+def _same(got, ref) -> None:
+    np.testing.assert_array_equal(got.saliency, ref.saliency)
+    np.testing.assert_array_equal(got.mask, ref.mask)
+    for name, x in vars(ref.surfaces).items():
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(getattr(got.surfaces, name), x, err_msg=name)

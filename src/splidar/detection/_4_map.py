@@ -476,6 +476,27 @@ def _block(
     return _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand)
 
 
+def _move_rows(buf: np.ndarray, dst: int, src: int, n: int) -> None:
+    """``buf[dst : dst + n] = buf[src : src + n]`` (rows of the first axis, in place).
+
+    Where the two ranges overlap (the halo of ``2 h`` rows is longer than the step
+    ``|dst - src|`` between blocks: 10 rows against 5 on the face file at its native
+    bin), NumPy copies through a temporary of all ``n`` rows: a fresh array each block
+    (0.95 GB on the face), its pages faulted in, and twice the bytes copied. Here the
+    rows go in pieces of ``|dst - src|`` rows, each apart from its source, in the order
+    that reads every source row before it is overwritten: the same values, no temporary.
+    """
+    step = dst - src
+    if step == 0 or n <= 0:
+        return
+    k = abs(step)
+    # towards the front: from the first piece on; towards the back: from the last one
+    starts = range(0, n, k) if step < 0 else range((n - 1) // k * k, -1, -k)
+    for i in starts:
+        j = min(n, i + k)
+        buf[dst + i : dst + j] = buf[src + i : src + j]
+
+
 def _run_rows(counts, blocks, ctx: SaliencyFilters, table, opts, out, block_rows: int) -> list:
     """The blocks ``(r0, r1)`` that ``blocks`` yields, one after the other; returns
     ``[(r0, result), ...]``.
@@ -489,7 +510,7 @@ def _run_rows(counts, blocks, ctx: SaliencyFilters, table, opts, out, block_rows
     res = []
     # one buffer per run: a block's correlated rows; the halo it shares with the next
     # block is moved to where that block needs it (no concatenation, no per-block
-    # allocation)
+    # allocation: _move_rows)
     shape = tuple(counts.shape)
     buf = np.empty((min(block_rows + 2 * h, R),) + shape[1:], np.float32)
     nb = min(block_rows, R)
@@ -508,8 +529,7 @@ def _run_rows(counts, blocks, ctx: SaliencyFilters, table, opts, out, block_rows
         e0_new, e1 = max(0, r0 - h), min(R, r1 + h)
         a, b = max(e0_new, have0), min(e1, have1)  # rows already correlated
         if a < b:
-            # moved (overlapping slices are copied as if through a temporary)
-            buf[a - e0_new : b - e0_new] = buf[a - e0 : b - e0]
+            _move_rows(buf, a - e0_new, a - e0, b - a)
         else:
             a = b = e0_new
         e0 = e0_new
