@@ -482,7 +482,8 @@ def _move_rows(buf: np.ndarray, dst: int, src: int, n: int) -> None:
     Where the two ranges overlap (the halo of ``2 h`` rows is longer than the step
     ``|dst - src|`` between blocks: 10 rows against 5 on the face file at its native
     bin), NumPy copies through a temporary of all ``n`` rows: a fresh array each block
-    (0.95 GB on the face), its pages faulted in, and twice the bytes copied. Here the
+    (95 MB on the face) and twice the bytes copied (70 against 20 ms a block there,
+    ``benchmarks/README.md``, "halo36, session 24"). Here the
     rows go in pieces of ``|dst - src|`` rows, each apart from its source, in the order
     that reads every source row before it is overwritten: the same values, no temporary.
     """
