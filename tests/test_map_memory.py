@@ -168,3 +168,58 @@ def test_finest_sums_equal_the_whole_arrays_sums_without_the_float32_copy():
         np.testing.assert_array_equal(got, ref)
         assert got.dtype == np.float64 and got.flags.c_contiguous
     assert peak < S * 300 * (8 + 0.75 * 4)
+
+
+def _far_plane(R=24, T=2000):
+    """A flat plane at bin 1,000 (two photons per pixel there), every pixel (3 i + 1,
+    3 j + 1) a surface at bin 400 holding two background photons there and one at the
+    plane's bin: the far-depth rule's candidates, each to be moved to the plane."""
+    from splidar import gaussian_irf
+    from splidar.detection._result import Background, Surfaces
+
+    rows, cols = np.divmod(np.arange(R * R), R)
+    far = (rows % 3 == 1) & (cols % 3 == 1)
+    depth = np.where(far, 400.0, 1000.0)
+    n = R * R
+    surf = Surfaces(
+        row=rows, col=cols, slot=np.zeros(n, int), depth_bin=depth,
+        start=depth.astype(int) - 2, stop=depth.astype(int) + 3, scale_index=np.zeros(n, int),
+        offset=depth.astype(int) - 2, histograms=np.zeros((n, 1, 1, 5), np.float32),
+        signal=np.full((n, 1, 1), 0.8), counts=np.ones((n, 1)), background=np.zeros((n, 1)),
+        saliency_mass=np.ones(n), image_shape=(R, R), n_slots=2,
+    )  # fmt: skip
+    counts = np.zeros((R, R, 1, T), np.uint16)
+    counts[:, :, 0, 1000] = 2
+    counts[rows[far], cols[far], 0, 1000] = 1
+    counts[rows[far], cols[far], 0, 400] = 1
+    counts[rows[far], cols[far], 0, 401] = 1
+    bg = Background(
+        spatial=np.full((R, R, 1), 0.0016, np.float32),
+        temporal=np.full((1, T), 0.0016, np.float32),
+    )
+    return surf, counts, bg, gaussian_irf(3.0)[None], int(far.sum())
+
+
+def test_far_moves_reads_the_candidates_pixels_in_parts(monkeypatch):
+    """Stage 7's far-depth rule reads its candidates' pixels (raw counts and float64
+    background, (n, L, T)) a part of them at a time, in its scores and in the moves: the
+    same moves, depths, supports, counts and background as in one part, a fraction of
+    the whole pixels' bytes traced."""
+    from splidar.detection import _7a_align_depths as stage
+    from splidar.detection import _depth_fields
+
+    surf, counts, bg, irf, n_far = _far_plane()
+    a, moved_a = stage._far_moves(surf, counts, bg, fwhm=3.0, irf=irf)
+    T = counts.shape[-1]
+    monkeypatch.setattr(_depth_fields, "FOLLOW_BYTES", 4 * 16 * T)  # 4 pixels a part
+    monkeypatch.setattr(stage, "_FAR_BLOCK", 2 * T)  # one pair a block in the scores
+    tracemalloc.start()
+    b, moved_b = stage._far_moves(surf, counts, bg, fwhm=3.0, irf=irf)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert moved_a.size == n_far
+    np.testing.assert_array_equal(moved_b, moved_a)
+    for name in ("depth_bin", "start", "stop", "counts", "background"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    whole = n_far * T * (8 + counts.itemsize)  # every candidate's pixel at once
+    assert peak < 0.5 * whole
