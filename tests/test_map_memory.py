@@ -223,3 +223,56 @@ def test_far_moves_reads_the_candidates_pixels_in_parts(monkeypatch):
         np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
     whole = n_far * T * (8 + counts.itemsize)  # every candidate's pixel at once
     assert peak < 0.5 * whole
+
+
+def test_assemble_map_keeps_the_own_background_as_its_factors(long_irf_cube, monkeypatch):
+    """The candidate table's ``own_background`` (S, L, W) is not stored dense (0.27
+    float32 cubes on the face at its native bin): an ``OwnBackground`` of the spatial
+    level and ``dev`` holding a few numbers a candidate gives every row as the map's
+    kernel wrote it, bit for bit."""
+    from splidar.detection._windows import OwnBackground
+
+    blocks, got = [], {}
+    finish, assemble = _4_map._finish_block, _4_map.assemble_map
+
+    def fb(n_vox, kept, n_ph, surf, keep, opts, n_cand):
+        fields = ("row", "col", "offset", "start", "stop")
+        b = {k: np.array(surf[k]) for k in fields}
+        b["dense"] = surf["own_background"][surf["_slot"]].copy()
+        blocks.append(b)
+        return finish(n_vox, kept, n_ph, surf, keep, opts, n_cand)
+
+    def am(outs, out, filters, *args):
+        got["spatial"], got["dev"] = out["spatial"].copy(), filters.dev
+        got["map"] = assemble(outs, out, filters, *args)
+        return got["map"]
+
+    monkeypatch.setattr(_4_map, "_finish_block", fb)
+    monkeypatch.setattr(_4_map, "assemble_map", am)
+    detect(long_irf_cube, rng=0)
+    col = got["map"].candidates.columns["own_background"]
+    assert isinstance(col, OwnBackground)
+    assert col.row.nbytes * 6 < 0.1 * col.size * 4  # a few numbers a row, not L x W
+    n = 0
+    for b in blocks:
+        W = b["dense"].shape[-1]
+        fields = (b[k] for k in ("row", "col", "offset", "start", "stop"))
+        rows = np.asarray(OwnBackground(got["spatial"], got["dev"], *fields, width=W))
+        assert rows.dtype == np.float32
+        np.testing.assert_array_equal(rows.view(np.uint32), b["dense"].view(np.uint32))
+        n += len(rows)
+    assert n > 100 and any(b["dense"].any() for b in blocks)
+
+
+def test_row_sums_equal_the_whole_windows_sums():
+    """The spill-line test's own background summed over the windows of the kept rows,
+    a part at a time: the same float64 sums as the whole array's, taken."""
+    from splidar.detection._spill_lines import _row_sums
+
+    rng = np.random.default_rng(5)
+    for S, L, W in ((3000, 1, 681), (700, 3, 97)):
+        w = rng.random((S, L, W), np.float32)
+        w[rng.random((S, L, W)) < 0.4] = 0.0
+        idx = np.flatnonzero(rng.random(S) < 0.7)
+        want = w.sum(axis=-1, dtype=np.float64)[idx]
+        np.testing.assert_array_equal(_row_sums(w, idx), want)
