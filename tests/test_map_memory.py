@@ -226,8 +226,8 @@ def test_far_moves_reads_the_candidates_pixels_in_parts(monkeypatch):
 
 
 def test_assemble_map_keeps_the_own_background_as_its_factors(long_irf_cube, monkeypatch):
-    """The candidate table's ``own_background`` (S, L, W) is not stored dense (0.27
-    float32 cubes on the face at its native bin): an ``OwnBackground`` of the spatial
+    """The candidate table's ``own_background`` (S, L, W) is not stored dense (about
+    0.1 float32 cubes on the face at its native bin): an ``OwnBackground`` of the spatial
     level and ``dev`` holding a few numbers a candidate gives every row as the map's
     kernel wrote it, bit for bit."""
     from splidar.detection._windows import OwnBackground
