@@ -223,3 +223,111 @@ def _same(got, ref) -> None:
     for name, x in vars(ref.surfaces).items():
         if isinstance(x, np.ndarray):
             np.testing.assert_array_equal(getattr(got.surfaces, name), x, err_msg=name)
+
+
+def _far_plane(R=24, T=2000):
+    """A flat plane at bin 1,000 (two photons per pixel there), every pixel (3 i + 1,
+    3 j + 1) a surface at bin 400 holding two background photons there and one at the
+    plane's bin: the far-depth rule's candidates, each to be moved to the plane."""
+    from splidar import gaussian_irf
+    from splidar.detection._result import Background, Surfaces
+
+    rows, cols = np.divmod(np.arange(R * R), R)
+    far = (rows % 3 == 1) & (cols % 3 == 1)
+    depth = np.where(far, 400.0, 1000.0)
+    n = R * R
+    surf = Surfaces(
+        row=rows, col=cols, slot=np.zeros(n, int), depth_bin=depth,
+        start=depth.astype(int) - 2, stop=depth.astype(int) + 3, scale_index=np.zeros(n, int),
+        offset=depth.astype(int) - 2, histograms=np.zeros((n, 1, 1, 5), np.float32),
+        signal=np.full((n, 1, 1), 0.8), counts=np.ones((n, 1)), background=np.zeros((n, 1)),
+        saliency_mass=np.ones(n), image_shape=(R, R), n_slots=2,
+    )  # fmt: skip
+    counts = np.zeros((R, R, 1, T), np.uint16)
+    counts[:, :, 0, 1000] = 2
+    counts[rows[far], cols[far], 0, 1000] = 1
+    counts[rows[far], cols[far], 0, 400] = 1
+    counts[rows[far], cols[far], 0, 401] = 1
+    bg = Background(
+        spatial=np.full((R, R, 1), 0.0016, np.float32),
+        temporal=np.full((1, T), 0.0016, np.float32),
+    )
+    return surf, counts, bg, gaussian_irf(3.0)[None], int(far.sum())
+
+
+def test_far_moves_reads_the_candidates_pixels_in_parts(monkeypatch):
+    """Stage 7's far-depth rule reads its candidates' pixels (raw counts and float64
+    background, (n, L, T)) a part of them at a time, in its scores and in the moves: the
+    same moves, depths, supports, counts and background as in one part, a fraction of
+    the whole pixels' bytes traced."""
+    from splidar.detection import _7a_align_depths as stage
+    from splidar.detection import _depth_fields
+
+    surf, counts, bg, irf, n_far = _far_plane()
+    a, moved_a = stage._far_moves(surf, counts, bg, fwhm=3.0, irf=irf)
+    T = counts.shape[-1]
+    monkeypatch.setattr(_depth_fields, "FOLLOW_BYTES", 4 * 16 * T)  # 4 pixels a part
+    monkeypatch.setattr(stage, "_FAR_BLOCK", 2 * T)  # one pair a block in the scores
+    tracemalloc.start()
+    b, moved_b = stage._far_moves(surf, counts, bg, fwhm=3.0, irf=irf)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert moved_a.size == n_far
+    np.testing.assert_array_equal(moved_b, moved_a)
+    for name in ("depth_bin", "start", "stop", "counts", "background"):
+        np.testing.assert_array_equal(getattr(b, name), getattr(a, name), err_msg=name)
+    whole = n_far * T * (8 + counts.itemsize)  # every candidate's pixel at once
+    assert peak < 0.5 * whole
+
+
+def test_assemble_map_keeps_the_own_background_as_its_factors(long_irf_cube, monkeypatch):
+    """The candidate table's ``own_background`` (S, L, W) is not stored dense (about
+    0.1 float32 cubes on the face at its native bin): an ``OwnBackground`` of the spatial
+    level and ``dev`` holding a few numbers a candidate gives every row as the map's
+    kernel wrote it, bit for bit."""
+    from splidar.detection._windows import OwnBackground
+
+    blocks, got = [], {}
+    finish, assemble = _4_map._finish_block, _4_map.assemble_map
+
+    def fb(n_vox, kept, n_ph, surf, keep, opts, n_cand):
+        fields = ("row", "col", "offset", "start", "stop")
+        b = {k: np.array(surf[k]) for k in fields}
+        b["dense"] = surf["own_background"][surf["_slot"]].copy()
+        blocks.append(b)
+        return finish(n_vox, kept, n_ph, surf, keep, opts, n_cand)
+
+    def am(outs, out, filters, *args):
+        got["spatial"], got["dev"] = out["spatial"].copy(), filters.dev
+        got["map"] = assemble(outs, out, filters, *args)
+        return got["map"]
+
+    monkeypatch.setattr(_4_map, "_finish_block", fb)
+    monkeypatch.setattr(_4_map, "assemble_map", am)
+    detect(long_irf_cube, rng=0)
+    col = got["map"].candidates.columns["own_background"]
+    assert isinstance(col, OwnBackground)
+    assert col.row.nbytes * 6 < 0.1 * col.size * 4  # a few numbers a row, not L x W
+    n = 0
+    for b in blocks:
+        W = b["dense"].shape[-1]
+        fields = (b[k] for k in ("row", "col", "offset", "start", "stop"))
+        rows = np.asarray(OwnBackground(got["spatial"], got["dev"], *fields, width=W))
+        assert rows.dtype == np.float32
+        np.testing.assert_array_equal(rows.view(np.uint32), b["dense"].view(np.uint32))
+        n += len(rows)
+    assert n > 100 and any(b["dense"].any() for b in blocks)
+
+
+def test_row_sums_equal_the_whole_windows_sums():
+    """The spill-line test's own background summed over the windows of the kept rows,
+    a part at a time: the same float64 sums as the whole array's, taken."""
+    from splidar.detection._spill_lines import _row_sums
+
+    rng = np.random.default_rng(5)
+    for S, L, W in ((3000, 1, 681), (700, 3, 97)):
+        w = rng.random((S, L, W), np.float32)
+        w[rng.random((S, L, W)) < 0.4] = 0.0
+        idx = np.flatnonzero(rng.random(S) < 0.7)
+        want = w.sum(axis=-1, dtype=np.float64)[idx]
+        np.testing.assert_array_equal(_row_sums(w, idx), want)

@@ -26,7 +26,7 @@ from ._kernels import ORDER_BAND, extract_surfaces, find_segments, threshold_pas
 from ._result import DataReduction
 from ._table import CandidateTable, _rank_in_pixel, stage_code
 from ._threshold import ThresholdField
-from ._windows import SupportWindows
+from ._windows import OwnBackground, SupportWindows
 
 __all__ = ["CandidateMap", "MapOptions", "assemble_map", "map_candidates", "map_plan"]
 
@@ -622,6 +622,9 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     else:
         idx = np.flatnonzero(keep)
     slot = surf.pop("_slot")  # rows of the _BY_SLOT arrays (see _extract)
+    # the own background is not kept: the table's OwnBackground computes it from the
+    # background where it is read (assemble_map), the block's dense array released
+    surf.pop("own_background", None)
     rows = slot[idx]
     out = {k: v[rows] if k in _BY_SLOT else v[idx] for k, v in surf.items() if k != "histograms"}
     own = out.get("own_counts")
@@ -953,6 +956,13 @@ def assemble_map(outs, out, filters, null, store, shape, block_rows, opts) -> Ca
         n_photons=n_kept,
     )
     cands = _table(outs, (R, C), opts["split_coherent"])
+    if "own_counts" in cands.columns:
+        c = cands.columns
+        own_bg = OwnBackground(
+            spatial, filters.dev, c["row"], c["col"], c["offset"], c["start"], c["stop"],
+            width=width,
+        )  # fmt: skip
+        cands = cands.with_columns(own_background=own_bg)
     hists = tuple(o.histograms for o in outs)
     for o in outs:
         o.histograms = None

@@ -194,7 +194,7 @@ def _own_llrs(table: CandidateTable, ii, depths, s, irf, peak) -> np.ndarray:
     cols = table.columns
     off = np.asarray(cols["offset"], np.float64)[ii]
     cnt = np.asarray(cols["own_counts"])[ii]
-    bkg = np.asarray(cols["own_background"])[ii]
+    bkg = np.asarray(cols["own_background"][ii])  # those rows only (OwnBackground)
     return _own_llr(cnt, bkg, irf, peak, depths - off, s)
 
 
@@ -320,7 +320,7 @@ def moved_presence(table, ii, depths, histograms, scales, irf, peak) -> dict:
     qbar = np.asarray(cols["scale_index"], np.int64)[ii]
     sig = np.asarray(cols["signal"], np.float64)[ii]
     cnt = np.asarray(cols["own_counts"])[ii]
-    bkg = np.asarray(cols["own_background"], np.float32)[ii]
+    bkg = np.asarray(cols["own_background"][ii], np.float32)
     for m, i in enumerate(ii):
         w = off[m] + np.arange(W)
         inside = (w >= lo[m]) & (w < hi[m])

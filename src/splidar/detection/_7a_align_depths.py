@@ -19,7 +19,14 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
-from ._depth_fields import _follow, _pixels, _support_fields, _window_fields, follow_supports
+from ._depth_fields import (
+    _follow,
+    _pixels,
+    _support_fields,
+    _window_fields,
+    follow_supports,
+    part_size,
+)
 from ._quality import _shifted_irf, align_depths
 from ._result import Surfaces
 
@@ -323,17 +330,21 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo
     best, to = _memo_far_scores(cand, *args, {} if memo is None else memo)
     prior = np.where(isolated[cand], plane_prior, 0.0)
     go = np.flatnonzero((best < prior) & (to >= 0.0) & (to <= T - 1))
-    ys = _pixels(counts, rows[go], cols[go])  # (n, L, T), the candidates' moving only
-    bs = np.maximum(background.at(rows[go], cols[go]).astype(np.float64), 1e-6)
-    for k, m in enumerate(go):
-        i = cand[m]
-        same = others.get(int(pix[i]), ())  # keep the slots' depth order
-        if any((s.slot[j] < s.slot[i]) == (depth[j] >= to[m]) for j in same if j != i):
-            continue
-        y = ys[k].astype(np.float64)
-        _follow(start, stop, own_counts, own_bg, i, depth[i], to[m], y, bs[k], W, T)
-        depth[i] = to[m]
-        moved.append(int(i))
+    step = part_size(counts)  # the moving candidates' pixels (n, L, T), a part at a time
+    for a in range(0, go.size, step):
+        part = go[a : a + step]
+        ys = _pixels(counts, rows[part], cols[part])
+        bs = np.maximum(background.at(rows[part], cols[part]).astype(np.float64), 1e-6)
+        for k, m in enumerate(part):  # in the candidates' order, as in one part
+            i = cand[m]
+            same = others.get(int(pix[i]), ())  # keep the slots' depth order
+            if any((s.slot[j] < s.slot[i]) == (depth[j] >= to[m]) for j in same if j != i):
+                continue
+            y = ys[k].astype(np.float64)
+            _follow(start, stop, own_counts, own_bg, i, depth[i], to[m], y, bs[k], W, T)
+            depth[i] = to[m]
+            moved.append(int(i))
+        del ys, bs
     if not moved:
         return s, np.zeros(0, np.int64)
     out = replace(
@@ -358,11 +369,14 @@ def _memo_far_scores(
             (r, c, depth[i], alt[i].tobytes(), src[i].tobytes(), photons[j].tobytes(), isolated[i])
         )
     new = np.array([m for m, key in enumerate(keys) if key not in memo], np.int64)
-    if new.size:
-        ys = _pixels(counts, rows[new], cols[new])  # (n, L, T), the new candidates' only
-        bs = np.maximum(background.at(rows[new], cols[new]).astype(np.float64), 1e-6)
-        got = _far_scores(cand[new], alt, src, isolated, photons, depth, irf, peak, ys, bs)
-        memo.update(zip([keys[m] for m in new], zip(*got, strict=True), strict=True))
+    step = part_size(counts)  # the new candidates' pixels (n, L, T), a part at a time
+    for a in range(0, new.size, step):
+        part = new[a : a + step]
+        ys = _pixels(counts, rows[part], cols[part])
+        bs = np.maximum(background.at(rows[part], cols[part]).astype(np.float64), 1e-6)
+        got = _far_scores(cand[part], alt, src, isolated, photons, depth, irf, peak, ys, bs)
+        memo.update(zip([keys[m] for m in part], zip(*got, strict=True), strict=True))
+        del ys, bs
     best, to = np.array([memo[key] for key in keys], np.float64).reshape(-1, 2).T
     return best.copy(), to.copy()
 

@@ -31,6 +31,13 @@ __all__ = ["follow_supports"]
 FOLLOW_BYTES = 2**27
 
 
+def part_size(counts) -> int:
+    """Pixels per part so that their float64 counts and background, ``(n, L, T)`` each,
+    hold about :data:`FOLLOW_BYTES` (at least one pixel)."""
+    per_pixel = 16 * int(np.prod(np.shape(counts)[2:], dtype=np.int64))
+    return max(1, FOLLOW_BYTES // max(per_pixel, 1))
+
+
 def _pixels(counts, rows, cols) -> np.ndarray:
     """The raw counts of a few pixels, ``(n, L, T)``: read at once from a Dask array.
 
@@ -83,7 +90,7 @@ def follow_supports(s: Surfaces, idx, old, counts, background) -> Surfaces:
     old, new = np.asarray(old, np.float64), np.asarray(s.depth_bin, np.float64)
     # the pixels' (L, T) counts and background as float64, a part of them at a time
     # (each surface follows from its own pixel's: the same values in any parts)
-    step = max(1, FOLLOW_BYTES // (16 * int(np.prod(np.shape(counts)[2:], dtype=np.int64))))
+    step = part_size(counts)
     for a in range(0, idx.size, step):
         part = idx[a : a + step]
         ys = _pixels(counts, s.row[part], s.col[part]).astype(np.float64)

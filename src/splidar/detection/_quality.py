@@ -373,7 +373,7 @@ def reject_spill_over(
     if idx.size == 0:
         return rej
     counts = np.asarray(surf["own_counts"])[idx]
-    bkg = np.asarray(surf["own_background"], np.float32)[idx]
+    bkg = np.asarray(surf["own_background"][idx], np.float32)  # those rows only
     own = np.maximum(
         counts.sum(axis=-1, dtype=np.float64) - bkg.sum(axis=-1, dtype=np.float64), 0.0
     )
@@ -728,13 +728,14 @@ def reject_isolated(
     test = ~shared & ((n_own > 1) if only_extra else True)
     sub = idx[test]
     n = np.asarray(surf["own_counts"])[sub].sum(axis=(1, 2))
-    B = np.asarray(surf["own_background"])[sub].astype(np.float64).sum(axis=(1, 2))
+    own_bg = np.asarray(surf["own_background"][sub])  # the tested rows only
+    B = own_bg.astype(np.float64).sum(axis=(1, 2))
     p = stats.poisson.sf(n - 1, np.maximum(B, 1e-12))  # P(N >= n | B)
     if n_bins is not None:
         # the candidate's depth was free: any of the T / width windows of the pixel
         # could have held such a count (look-elsewhere), so the chance that a
         # background-only pixel shows one somewhere is 1 - (1 - p)^(T / width)
-        support = np.asarray(surf["own_background"])[sub] > 0  # (m, L, W)
+        support = own_bg > 0  # (m, L, W)
         width = np.maximum(support.any(axis=1).sum(axis=1), 1)
         p = -np.expm1(np.log1p(-np.minimum(p, 1 - 1e-12)) * (n_bins / width))
     rej[sub] = p > pfa

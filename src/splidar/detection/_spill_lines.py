@@ -180,9 +180,9 @@ def reject_spill_lines(
     depth = np.asarray(surf["depth_bin"], np.float64)[idx]
     # the own signal (S, L) summed over the windows, then taken: no copy of the windows
     cnt = np.asarray(surf["own_counts"]).sum(axis=-1, dtype=np.float64)
-    bkg = np.asarray(surf["own_background"]).sum(axis=-1, dtype=np.float64)
-    own = np.maximum(cnt[idx] - bkg[idx], 0.0)
-    del cnt, bkg
+    own = cnt[idx] - _row_sums(surf["own_background"], idx)
+    own = np.maximum(own, 0.0)
+    del cnt
     pix = row * C + col
     order, starts = _by_pixel(row, col, (R, C))
     n_pix = np.diff(starts)[pix]
@@ -413,3 +413,15 @@ def _lines_kernel(
                         if abs(depth[order[k]] - d) <= fwhm:
                             src[order[k]] = True
             break
+
+
+def _row_sums(windows, idx) -> np.ndarray:
+    """``windows[idx].sum(axis=-1, dtype=float64)``, ``(idx.size, L)``: the rows read
+    a part at a time (an :class:`~splidar.detection._windows.OwnBackground` computes the
+    rows it is given only; each row summed as in the whole array)."""
+    L = int(windows.shape[1])
+    out = np.empty((idx.size, L), np.float64)
+    step = max(1, 2**25 // (4 * L * max(int(windows.shape[-1]), 1)))
+    for a in range(0, idx.size, step):
+        out[a : a + step] = np.asarray(windows[idx[a : a + step]]).sum(axis=-1, dtype=np.float64)
+    return out

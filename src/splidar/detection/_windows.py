@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["SupportWindows"]
+__all__ = ["OwnBackground", "SupportWindows"]
 
 
 @njit(cache=True, nogil=True)
@@ -158,6 +158,109 @@ class SupportWindows:
         if idx.size:
             _unpack(self.data, idx, self.first, self.length, self.pos, flat)
         return out
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, tuple):
+            head, rest = key[0], key[1:]
+            return self[head][(slice(None), *rest)] if np.ndim(head) else self[head][rest]
+        if isinstance(key, (int, np.integer)):
+            return self.rows(np.array([key]))[0]
+        if isinstance(key, slice):
+            return self.rows(np.arange(len(self))[key])
+        key = np.asarray(key)
+        if key.dtype == bool:
+            key = np.flatnonzero(key)
+        return self.rows(key)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self.rows(np.arange(len(self)))
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+#: Bytes of float32 rows :meth:`OwnBackground.rows` computes at a time (its int64 bins
+#: and float temporaries are a few times that).
+PART_BYTES = 2**25
+
+
+class OwnBackground:
+    """The candidates' own background over their windows, ``(n, L, W)`` float32,
+    computed where it is indexed: ``bhat`` (``eq:background_3``, clipped at 0) of the
+    candidate's pixel over the window ``[offset, offset + W)``, zero outside the support
+    ``[start, stop)``, as the map pass's kernel wrote it (``_kernels._window_background``
+    and ``_own_pixel``: the same float32 sums, bit for bit). Stands in for the dense
+    ``own_background`` column of the candidate table (the map pass's maximum on the face
+    file at its native bin 1.83 -> 1.72 float32 cubes without it, ``benchmarks/README.md``,
+    "own36, session 24"): 48 bytes a candidate.
+
+    Parameters
+    ----------
+    spatial : ndarray (R, C, L), float32
+        The background's spatial level ``b_{n,l}`` (``CandidateMap.spatial``).
+    dev : ndarray (L, T)
+        Its temporal deviation ``dev_l(t)`` (``Background.dev``).
+    row, col, offset, start, stop : ndarray (n,), int
+        The candidates' pixels, first window bin and support (bins).
+    width : int
+        W, the window's bins.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> sp = np.full((1, 1, 1), 0.5, np.float32)
+    >>> dev = np.array([[0.0, -1.0, 0.25, 0.0, 0.0]], np.float32)
+    >>> ob = OwnBackground(sp, dev, [0], [0], [0], [1], [3], width=4)
+    >>> ob[0].tolist()
+    [[0.0, 0.0, 0.75, 0.0]]
+    """
+
+    __slots__ = ("spatial", "dev", "row", "col", "offset", "start", "stop", "width")
+
+    def __init__(self, spatial, dev, row, col, offset, start, stop, *, width: int):
+        self.spatial, self.dev = np.asarray(spatial), np.asarray(dev)
+        self.row, self.col = np.array(row, np.int64), np.array(col, np.int64)
+        self.offset = np.array(offset, np.int64)
+        self.start, self.stop = np.array(start, np.int64), np.array(stop, np.int64)
+        self.width = int(width)
+
+    @property
+    def shape(self) -> tuple:
+        return (int(self.row.size), int(self.dev.shape[0]), self.width)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.float32)
+
+    @property
+    def ndim(self) -> int:
+        return 3
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return int(self.row.size)
+
+    def rows(self, idx) -> np.ndarray:
+        """Rows ``idx`` (integer array) dense, ``(idx.size, L, W)`` float32 (computed
+        :data:`PART_BYTES` of them at a time)."""
+        idx = np.arange(len(self))[np.ascontiguousarray(idx, np.int64).reshape(-1)]
+        L, W = self.shape[1:]
+        out = np.empty((idx.size, L, W), np.float32)
+        step = max(1, PART_BYTES // (4 * max(L, 1) * max(W, 1)))
+        for a in range(0, idx.size, step):
+            out[a : a + step] = self._part(idx[a : a + step])
+        return out
+
+    def _part(self, idx) -> np.ndarray:
+        t = self.offset[idx, None] + np.arange(self.width)  # (m, W) bins
+        sp = self.spatial[self.row[idx], self.col[idx]]  # (m, L)
+        T = self.dev.shape[1]  # bins past T (a window wider than T) are outside
+        b = sp[:, :, None] + self.dev[:, np.minimum(t, T - 1)].transpose(1, 0, 2)
+        b = np.where(b < 0, b.dtype.type(0), b).astype(np.float32, copy=False)
+        inside = (t >= np.maximum(self.start, self.offset)[idx, None]) & (t < self.stop[idx, None])
+        b[~np.broadcast_to(inside[:, None, :], b.shape)] = 0.0
+        return b
 
     def __getitem__(self, key) -> np.ndarray:
         if isinstance(key, tuple):
