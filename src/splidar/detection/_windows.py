@@ -49,7 +49,32 @@ def _unpack(data, idx, first, length, pos, out):
                 out[i, k, w] = zero
 
 
-class SupportWindows:
+class _RowIndexing:
+    """NumPy-style indexing of the first axis over a ``rows(idx)`` method: an int, a
+    slice, an integer or boolean array, a tuple whose first entry is one of those (the
+    rest index the rows' other axes); ``np.asarray`` gives every row."""
+
+    __slots__ = ()
+
+    def __getitem__(self, key) -> np.ndarray:
+        if isinstance(key, tuple):
+            head, rest = key[0], key[1:]
+            return self[head][(slice(None), *rest)] if np.ndim(head) else self[head][rest]
+        if isinstance(key, (int, np.integer)):
+            return self.rows(np.array([key]))[0]
+        if isinstance(key, slice):
+            return self.rows(np.arange(len(self))[key])
+        key = np.asarray(key)
+        if key.dtype == bool:
+            key = np.flatnonzero(key)
+        return self.rows(key)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self.rows(np.arange(len(self)))
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+class SupportWindows(_RowIndexing):
     """A read-only stand-in for an ``(n, *inner, W)`` array of windows that are zero
     outside one run of bins per row (a candidate's support in its window).
 
@@ -159,30 +184,13 @@ class SupportWindows:
             _unpack(self.data, idx, self.first, self.length, self.pos, flat)
         return out
 
-    def __getitem__(self, key) -> np.ndarray:
-        if isinstance(key, tuple):
-            head, rest = key[0], key[1:]
-            return self[head][(slice(None), *rest)] if np.ndim(head) else self[head][rest]
-        if isinstance(key, (int, np.integer)):
-            return self.rows(np.array([key]))[0]
-        if isinstance(key, slice):
-            return self.rows(np.arange(len(self))[key])
-        key = np.asarray(key)
-        if key.dtype == bool:
-            key = np.flatnonzero(key)
-        return self.rows(key)
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        a = self.rows(np.arange(len(self)))
-        return a if dtype is None else a.astype(dtype, copy=False)
-
 
 #: Bytes of float32 rows :meth:`OwnBackground.rows` computes at a time (its int64 bins
 #: and float temporaries are a few times that).
 PART_BYTES = 2**25
 
 
-class OwnBackground:
+class OwnBackground(_RowIndexing):
     """The candidates' own background over their windows, ``(n, L, W)`` float32,
     computed where it is indexed: ``bhat`` (``eq:background_3``, clipped at 0) of the
     candidate's pixel over the window ``[offset, offset + W)``, zero outside the support
@@ -261,20 +269,3 @@ class OwnBackground:
         inside = (t >= np.maximum(self.start, self.offset)[idx, None]) & (t < self.stop[idx, None])
         b[~np.broadcast_to(inside[:, None, :], b.shape)] = 0.0
         return b
-
-    def __getitem__(self, key) -> np.ndarray:
-        if isinstance(key, tuple):
-            head, rest = key[0], key[1:]
-            return self[head][(slice(None), *rest)] if np.ndim(head) else self[head][rest]
-        if isinstance(key, (int, np.integer)):
-            return self.rows(np.array([key]))[0]
-        if isinstance(key, slice):
-            return self.rows(np.arange(len(self))[key])
-        key = np.asarray(key)
-        if key.dtype == bool:
-            key = np.flatnonzero(key)
-        return self.rows(key)
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        a = self.rows(np.arange(len(self)))
-        return a if dtype is None else a.astype(dtype, copy=False)
