@@ -200,14 +200,10 @@ def _far_scores_loop(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs
     return best, to
 
 
-@pytest.mark.parametrize("L", [1, 3])
-def test_far_scores_equal_the_former_loop_bit_for_bit(L, monkeypatch):
-    # random candidates, alternatives (some missing), 2 or 4 sources, both kinds, counts
-    # and backgrounds; the block split forced small so that pairs span blocks
-    import splidar.detection._7a_align_depths as stage
-
-    rng = np.random.default_rng(11)
-    S, T = 300, 90
+def _random_far_inputs(rng, S, L, T):
+    """The far rule's inputs at random: ``L`` Gaussian IRFs and their peaks, up to 4
+    alternatives per surface (half missing), 4 sources per alternative (2 unless
+    isolated), the candidates (some alternative), photons and depths."""
     x = np.arange(15.0)
     irf = np.stack([np.exp(-0.5 * ((x - 6 - 0.3 * l) / (1.0 + 0.4 * l)) ** 2) for l in range(L)])
     irf /= irf.sum(axis=1, keepdims=True)
@@ -220,6 +216,18 @@ def test_far_scores_equal_the_former_loop_bit_for_bit(L, monkeypatch):
     cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
     photons = rng.gamma(1.0, 3.0, (S, L))
     depth = rng.uniform(0, T - 1, S)
+    return irf, peak, alt, src, isolated, cand, photons, depth
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_far_scores_equal_the_former_loop_bit_for_bit(L, monkeypatch):
+    # random candidates, alternatives (some missing), 2 or 4 sources, both kinds, counts
+    # and backgrounds; the block split forced small so that pairs span blocks
+    import splidar.detection._7a_align_depths as stage
+
+    rng = np.random.default_rng(11)
+    S, T = 300, 90
+    irf, peak, alt, src, isolated, cand, photons, depth = _random_far_inputs(rng, S, L, T)
     ys = rng.poisson(0.4, (cand.size, L, T)).astype(np.uint16)
     bs = np.maximum(rng.gamma(0.5, 0.1, (cand.size, L, T)), 1e-6)
     want = _far_scores_loop(cand, alt, src, isolated, photons, depth, irf, peak, ys, bs)
@@ -241,18 +249,7 @@ def test_memo_far_scores_give_the_scores_computed_anew():
     R, C, L, T = 20, 15, 2, 90
     S = R * C
     rows, cols = np.divmod(np.arange(S), C)
-    x = np.arange(15.0)
-    irf = np.stack([np.exp(-0.5 * ((x - 6 - 0.3 * l) / (1.0 + 0.4 * l)) ** 2) for l in range(L)])
-    irf /= irf.sum(axis=1, keepdims=True)
-    peak = np.argmax(irf, axis=1)
-    alt = rng.uniform(-5, T + 5, (S, 4))
-    alt[rng.random((S, 4)) < 0.5] = np.nan
-    src = rng.integers(0, S, (S, 4, 4))
-    isolated = rng.random(S) < 0.4
-    src[~isolated, :, 2:] = -1
-    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
-    photons = rng.gamma(1.0, 3.0, (S, L))
-    depth = rng.uniform(0, T - 1, S)
+    irf, peak, alt, src, isolated, cand, photons, depth = _random_far_inputs(rng, S, L, T)
     counts = rng.poisson(0.4, (R, C, L, T)).astype(np.uint16)
     bg = Background(
         spatial=rng.gamma(0.5, 0.1, (R, C, L)).astype(np.float32),
