@@ -708,6 +708,37 @@ def test_box_sums_cached_column_sums_give_the_same_bits():
         np.testing.assert_allclose(warm, ref, rtol=1e-12, atol=0)
 
 
+def test_fill_columns_equals_centre_out_float64_sums_in_order():
+    # float noise over 6 decades (inexact float64 sums): the register-kept running sum
+    # gives, at every scale, the bits of the centre row plus rows -d, +d added one at a
+    # time in that order (the order the cached boxes of extract_surfaces rely on)
+    from splidar.detection._kernels import _fill_columns
+
+    rng = np.random.default_rng(37)
+    n_rows, n_cols, L, T, span = 13, 4, 3, 50, 21
+    c = rng.random((n_rows, n_cols, L, T)) * 10.0 ** rng.uniform(-6, 0, (n_rows, n_cols, L, T))
+    c = c.astype(np.float32)
+    for scales in ([1, 3, 7, 11], [3, 5], [1], [5, 7]):
+        scales = np.array(scales, np.int64)
+        Q, hmax = scales.size, int(scales[-1]) // 2
+        rr = np.array([6] + [6 + s * d for d in range(1, hmax + 1) for s in (-1, 1)], np.int64)
+        colbuf = np.full((Q, n_cols, L, span), np.nan)
+        a, b, ts = 17, 35, 15
+        _fill_columns(colbuf, c, scales, rr, 2, a, b, ts)
+        for q in range(Q):
+            for l in range(L):
+                for t in range(a, b):
+                    v = float(c[rr[0], 2, l, t])
+                    for d in range(1, int(scales[q]) // 2 + 1):
+                        v = v + float(c[rr[2 * d - 1], 2, l, t])
+                        v = v + float(c[rr[2 * d], 2, l, t])
+                    assert colbuf[q, 2, l, t - ts] == v
+        # nothing written outside [a, b) of column 2
+        assert np.isnan(colbuf[:, 2, :, : a - ts]).all()
+        assert np.isnan(colbuf[:, 2, :, b - ts :]).all()
+        assert np.isnan(colbuf[:, [0, 1, 3]]).all()
+
+
 def _segments_reference(mask, d, s, e, min_sep, rho):
     """find_segments without the fine split, in plain Python (runs of the mask, peaks of
     ``d`` strongest first, cuts at the first minimum between kept peaks, sums in order)."""
