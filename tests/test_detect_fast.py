@@ -708,6 +708,33 @@ def test_box_sums_cached_column_sums_give_the_same_bits():
         np.testing.assert_allclose(warm, ref, rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("scales", [(1, 3, 7, 11), (3, 5), (1,), (5, 7, 15), (1, 9)])
+def test_row_pass_equals_one_row_pair_at_a_time(scales):
+    # float noise over 6 decades (inexact float32 sums): two row pairs per pass and the
+    # copy of the scale below fused give the bits of adding one pair after the other
+    from splidar.detection._fast import _refl, _row_pass
+
+    rng = np.random.default_rng(25)
+    scales = np.array(scales, np.int64)
+    R, C, T = 9, 6, 40
+    c = rng.random((R, C, T)) * 10.0 ** rng.uniform(-6, 0, (R, C, T))
+    cf = c.astype(np.float32).reshape(-1)
+    sr, sc = C * T, T
+    Q, tn, t0, ja, jb = scales.size, 24, 10, 1, 5
+    for i in (0, 2, 4, 8):  # rows reflected at both image edges
+        V = np.full((Q, C, 32), np.nan, np.float32)
+        _row_pass(cf, 0, R, sr, sc, i, ja, jb, t0, tn, scales, V)
+        for q in range(Q):
+            for j in range(ja, jb):
+                v = cf[i * sr + j * sc + t0 : i * sr + j * sc + t0 + tn].copy()
+                for d in range(1, int(scales[q]) // 2 + 1):
+                    a = _refl(i - d, R) * sr + j * sc + t0
+                    b = _refl(i + d, R) * sr + j * sc + t0
+                    v = v + (cf[a : a + tn] + cf[b : b + tn])
+                np.testing.assert_array_equal(V[q, j, :tn].view(np.uint32), v.view(np.uint32))
+        assert np.isnan(V[:, [0, 5]]).all() and np.isnan(V[:, :, tn:]).all()
+
+
 def test_fill_columns_equals_centre_out_float64_sums_in_order():
     # float noise over 6 decades (inexact float64 sums): the register-kept running sum
     # gives, at every scale, the bits of the centre row plus rows -d, +d added one at a
