@@ -461,7 +461,7 @@ def calibrate_null(
     with ThreadPoolExecutor(1) if n_jobs > 1 else contextlib.nullcontext() as ex:
         fit = ex.submit(fit_gamma_quantiles, s_real) if ex is not None else None
         thr_emp_global = float(np.quantile(s_sim, 1.0 - pfa))
-        xs, ys = threshold_table(s_sim, lev_sim, pfa)
+        xs, ys = threshold_table(s_sim, lev_sim, pfa, workers=n_jobs)
         a_fit, sc_fit = fit.result() if fit is not None else fit_gamma_quantiles(s_real)
     thr_gamma = float(stats.gamma.isf(pfa, a_fit, scale=sc_fit))
     if null == "gamma":
