@@ -1080,3 +1080,31 @@ def test_equal_count_groups_nan_levels_as_the_boolean_passes():
             gid[np.flatnonzero(v == bi)[:m]] -= 1
     for i, got in enumerate(_equal_count_groups(v, 6)):
         np.testing.assert_array_equal(got, np.flatnonzero(gid == i))
+
+
+def test_median_ties_equals_numpy_median_on_tied_counts():
+    from splidar.detection._3_null import _median_ties
+
+    rng = np.random.default_rng(6)
+    for n in (1, 2, 3, 10, 151, 1500):
+        for a in (
+            rng.random(n).astype(np.float32),
+            rng.integers(0, 3, n).astype(np.float32),  # ties everywhere
+            np.zeros(n, np.float32),
+        ):
+            assert _median_ties(a.copy(), n) == np.median(a)
+
+
+def test_peak_bins_equal_numpys_argmax_of_the_background_free_sum():
+    from splidar.detection._3_null import _peak_bins
+
+    rng = np.random.default_rng(8)
+    for L, T in ((1, 40), (3, 164), (4, 301)):
+        c = (rng.poisson(0.4, (300, L, T)) * rng.random((300, L, T))).astype(np.float32)
+        c[:100] = np.round(c[:100])  # tied sums: the first of the largest
+        dv = (rng.standard_normal((L, T)) * 0.2).astype(np.float32)
+        lvl = np.median(c, axis=-1) - np.median(dv, axis=-1)[None]
+        want = np.argmax((c - np.maximum(lvl[:, :, None] + dv[None], 0.0)).sum(axis=1), axis=1)
+        got = np.empty(300, np.int64)
+        _peak_bins(c, dv, np.median(dv, axis=-1).astype(np.float32), got)
+        np.testing.assert_array_equal(got, want)
