@@ -1108,3 +1108,15 @@ def test_peak_bins_equal_numpys_argmax_of_the_background_free_sum():
         got = np.empty(300, np.int64)
         _peak_bins(c, dv, np.median(dv, axis=-1).astype(np.float32), got)
         np.testing.assert_array_equal(got, want)
+
+
+def test_first_read_reads_a_memory_map(tmp_path):
+    from splidar.detection._background import first_read
+
+    rng = np.random.default_rng(9)
+    y = rng.poisson(1.0, (60, 60, 1, 30)).astype(np.uint16)
+    np.save(tmp_path / "y.npy", y)
+    mm = np.load(tmp_path / "y.npy", mmap_mode="r")
+    got, want = first_read(mm, 11, 2, n_samples=100), first_read(y, 11, 1, n_samples=100)
+    np.testing.assert_array_equal(got.totals, want.totals)
+    np.testing.assert_array_equal(got.means, want.means)

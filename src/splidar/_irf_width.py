@@ -371,7 +371,7 @@ def _sampled_voxels(counts, rows: np.ndarray) -> tuple | None:
     of ``pair_lag_fwhm``'s stable sort by pixel and bin: the arrays of ``np.nonzero`` of
     ``counts[rows].reshape(-1, T)`` in another order, the integer totals per pixel and
     the sorted pairs the same. None for other arrays."""
-    y = counts
+    y = np.asarray(counts) if isinstance(counts, np.ndarray) else counts  # memory maps too
     ok = isinstance(y, np.ndarray) and y.ndim == 4 and y.flags.c_contiguous
     if not ok or y.dtype.kind not in "ui":
         return None

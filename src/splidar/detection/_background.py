@@ -216,6 +216,7 @@ def first_read(counts, k: int, workers: int = 1, n_samples: int = 2000) -> First
     overlap (large images: ``sample_grid`` steps its rows by ``kr``)."""
     if not isinstance(counts, np.ndarray) or counts.ndim != 4 or not counts.flags.c_contiguous:
         return None
+    counts = np.asarray(counts)  # a memory map's array (numba takes plain arrays)
     if counts.dtype.kind not in "ui" or counts.dtype.itemsize > 4:
         return None
     R, C, L, T = counts.shape
