@@ -975,3 +975,148 @@ def test_raster_sorted_is_true_exactly_when_lexsort_keeps_the_order():
             order = np.lexsort((start, col, row))
             ref = not np.any(order[1:] < order[:-1])
             assert _4_map._raster_sorted(row, col, start) == ref
+
+
+# pre37: stages 1-3's set-up in fewer passes, the same values
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+@pytest.mark.parametrize("dtype", [np.uint16, np.uint32, np.int32])
+def test_first_read_equals_pixel_totals_and_the_grid_window_means(workers, dtype):
+    from splidar.detection._background import first_read, grid_window_means, sample_grid
+    from splidar.detection._fast import pixel_totals
+
+    rng = np.random.default_rng(7)
+    y = rng.poisson(rng.random((53, 47, 2, 40)) * 3).astype(dtype)
+    y[5, 6] += 60000  # a bright pixel: integer sums
+    got = first_read(y, 11, workers, n_samples=200)
+    kr, kc, rs, cs = sample_grid(y.shape, 11, 200)
+    assert got is not None and np.diff(rs).min() >= kr and rs[-1] + kr < y.shape[0]
+    np.testing.assert_array_equal(got.totals, pixel_totals(y))
+    np.testing.assert_array_equal(got.means, grid_window_means(y, rs, kr, cs, kc))
+    # the grid asked for: the means kept; another: read from the counts
+    assert got.windows(y, rs, kr, cs, kc) is got.means
+    np.testing.assert_array_equal(
+        got.windows(y, rs[:2], kr, cs, kc), grid_window_means(y, rs[:2], kr, cs, kc)
+    )
+
+
+def test_first_read_none_for_overlapping_windows_floats_and_views():
+    from splidar.detection._background import first_read
+
+    rng = np.random.default_rng(1)
+    y = rng.poisson(1.0, (20, 20, 1, 30)).astype(np.uint16)
+    assert first_read(y, 11) is None  # small image: windows at every row (overlapping)
+    big = rng.poisson(1.0, (60, 60, 1, 30)).astype(np.uint16)
+    assert first_read(big.astype(np.float32), 11, n_samples=100) is None
+    assert first_read(big.astype(np.int64), 11, n_samples=100) is None
+    assert first_read(big[:, ::2], 11, n_samples=100) is None
+    assert first_read(big, 11, n_samples=100) is not None
+
+
+def test_summed_area_equals_numpy_running_sums_on_any_threads():
+    from splidar.detection._2_saliency import _summed_area
+
+    rng = np.random.default_rng(2)
+    x = (rng.standard_normal((9, 7, 3, 50)) * 5).astype(np.float32)
+    x[0, 0, 0, :3] = -0.0
+    want = np.zeros((10, 8, 3, 50))
+    np.cumsum(x, axis=0, dtype=np.float64, out=want[1:, 1:])
+    np.cumsum(want[1:, 1:], axis=1, out=want[1:, 1:])
+    for workers in (1, 2, 5):
+        got = _summed_area(x, workers)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_coherent_scales_same_on_any_number_of_threads():
+    import dataclasses
+
+    from splidar.detection._2_saliency import coherent_scales
+
+    rng = np.random.default_rng(3)
+    g = gaussian_irf(2.0)
+    lam = np.full((40, 40, 1, 120), 0.05)
+    h = g.size // 2
+    for j in range(40):
+        lam[:, j, 0, 50 + j // 4 - h : 50 + j // 4 + h + 1] += 4 * g
+    counts = rng.poisson(lam).astype(np.uint16)
+    irf, bg, filters = _setup(counts, g)
+    one = coherent_scales(counts, filters)
+    two = coherent_scales(counts, dataclasses.replace(filters, workers=3))
+    for f in ("kept", "rho", "z", "energy", "shared"):
+        np.testing.assert_array_equal(getattr(one, f), getattr(two, f))
+
+
+def test_threshold_table_same_on_any_number_of_threads():
+    from splidar.detection._null import threshold_table
+
+    rng = np.random.default_rng(4)
+    lev = (rng.random(400)[:, None] + np.linspace(0, 0.2, 900)[None]).astype(np.float32).ravel()
+    s = rng.gamma(2.0, 1.0, lev.size).astype(np.float32)
+    one = threshold_table(s, lev, 1e-3)
+    for workers in (2, 5):
+        got = threshold_table(s, lev, 1e-3, workers=workers)
+        np.testing.assert_array_equal(got[0], one[0])
+        np.testing.assert_array_equal(got[1], one[1])
+    assert one[0].size == 3
+
+
+def test_equal_count_groups_nan_levels_as_the_boolean_passes():
+    from splidar.detection._null import _equal_count_groups
+
+    rng = np.random.default_rng(5)
+    v = rng.random(5000)
+    v[::97] = np.nan
+    sizes = np.full(6, 5000 // 6)
+    sizes[: 5000 % 6] += 1
+    kth = np.cumsum(sizes)[:-1]  # each group's first sorted position
+    b = np.partition(v, kth)[kth]
+    gid = np.zeros(v.size, np.uint8)
+    for bi in b:
+        gid += v >= bi
+    for bi, m in zip(b, kth - np.array([np.count_nonzero(v < bi) for bi in b]), strict=True):
+        if m > 0:
+            gid[np.flatnonzero(v == bi)[:m]] -= 1
+    for i, got in enumerate(_equal_count_groups(v, 6)):
+        np.testing.assert_array_equal(got, np.flatnonzero(gid == i))
+
+
+def test_median_ties_equals_numpy_median_on_tied_counts():
+    from splidar.detection._3_null import _median_ties
+
+    rng = np.random.default_rng(6)
+    for n in (1, 2, 3, 10, 151, 1500):
+        for a in (
+            rng.random(n).astype(np.float32),
+            rng.integers(0, 3, n).astype(np.float32),  # ties everywhere
+            np.zeros(n, np.float32),
+        ):
+            assert _median_ties(a.copy(), n) == np.median(a)
+
+
+def test_peak_bins_equal_numpys_argmax_of_the_background_free_sum():
+    from splidar.detection._3_null import _peak_bins
+
+    rng = np.random.default_rng(8)
+    for L, T in ((1, 40), (3, 164), (4, 301)):
+        c = (rng.poisson(0.4, (300, L, T)) * rng.random((300, L, T))).astype(np.float32)
+        c[:100] = np.round(c[:100])  # tied sums: the first of the largest
+        dv = (rng.standard_normal((L, T)) * 0.2).astype(np.float32)
+        lvl = np.median(c, axis=-1) - np.median(dv, axis=-1)[None]
+        want = np.argmax((c - np.maximum(lvl[:, :, None] + dv[None], 0.0)).sum(axis=1), axis=1)
+        got = np.empty(300, np.int64)
+        _peak_bins(c, dv, np.median(dv, axis=-1).astype(np.float32), got)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_first_read_reads_a_memory_map(tmp_path):
+    from splidar.detection._background import first_read
+
+    rng = np.random.default_rng(9)
+    y = rng.poisson(1.0, (60, 60, 1, 30)).astype(np.uint16)
+    np.save(tmp_path / "y.npy", y)
+    mm = np.load(tmp_path / "y.npy", mmap_mode="r")
+    got, want = first_read(mm, 11, 2, n_samples=100), first_read(y, 11, 1, n_samples=100)
+    np.testing.assert_array_equal(got.totals, want.totals)
+    np.testing.assert_array_equal(got.means, want.means)

@@ -383,3 +383,46 @@ def test_load_irf_estimate_heavy_background_retries_without_the_tilt(tmp_path, c
         cube = load(tmp_path / "scan.npy")
     assert "untilted (heavy background)" in caplog.text
     assert 6.0 < float(irf_fwhm(cube.irf[0])) < 15.0
+
+
+# pre37: the check's read and pair histogram in numba, the same values
+
+
+def _pairs_numpy(key, w, lag):
+    hi = np.searchsorted(key, key + lag, side="right")
+    cnt = hi - np.arange(key.size) - 1
+    i = np.repeat(np.arange(key.size), cnt)
+    j = i + 1 + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    h = np.bincount(key[j] - key[i], weights=w[i] * w[j], minlength=lag + 1)[: lag + 1]
+    return cnt, h.astype(np.float64)
+
+
+def test_pair_histogram_equals_bincount_of_the_listed_pairs():
+    from splidar._irf_width import _pair_histogram, _partners
+
+    rng = np.random.default_rng(0)
+    key = np.sort(rng.integers(0, 3000, 4000)).astype(np.int64)
+    w = rng.random(key.size) * 3
+    for lag in (0, 1, 7, 40):
+        cnt, h = _pairs_numpy(key, w, lag)
+        np.testing.assert_array_equal(_partners(key, lag), cnt)
+        np.testing.assert_array_equal(_pair_histogram(key, w, cnt, lag), h)
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.int32, np.uint8])
+def test_data_pair_width_in_place_read_equals_the_copied_rows(dtype):
+    from splidar._irf_width import _data_pair_width, _sampled_voxels
+
+    counts = _scene(gaussian_irf(4.0), ppp=8.0, shape=(24, 20), T=200).astype(dtype)
+    counts = counts.reshape(24, 20, 1, 200).repeat(2, axis=2)  # two wavelengths
+    rows = np.array([0, 3, 4, 23])
+    pix, b, w = _sampled_voxels(counts, rows)
+    flat = counts[rows].reshape(-1, 200)
+    ri, bb = np.nonzero(flat)
+    key, key0 = pix * 401 + b, (ri // 2) * 401 + bb
+    o, o0 = np.argsort(key, kind="stable"), np.argsort(key0, kind="stable")
+    np.testing.assert_array_equal(key[o], key0[o0])
+    np.testing.assert_array_equal(w[o], flat[ri, bb][o0])
+    got = _data_pair_width(counts, 200)
+    assert got is not None
+    assert got == _data_pair_width(np.asfortranarray(counts), 200)  # NumPy's nonzero

@@ -22,6 +22,7 @@ import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
 
 from ._validation import SplidarError, check_int
 from .irf import irf_fwhm
@@ -85,8 +86,7 @@ def pair_lag_fwhm(
     searched = False
     while True:
         # partners j > i with key_j - key_i <= lag share the pixel (pixel stride 2T + 1)
-        hi = np.searchsorted(key, key + lag, side="right")
-        cnt = hi - np.arange(key.size) - 1
+        cnt = _partners(key, lag)
         total = int(cnt.sum())
         if total > budget:
             k = math.ceil(total / budget)
@@ -102,10 +102,7 @@ def pair_lag_fwhm(
                 continue
             key, w = key[keep], w[keep]
             continue
-        i = np.repeat(np.arange(key.size), cnt)
-        j = i + 1 + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-        h = np.bincount(key[j] - key[i], weights=w[i] * w[j], minlength=lag + 1)[: lag + 1]
-        h = h.astype(np.float64)  # bincount of an empty input is int64 even with weights
+        h = _pair_histogram(key, w, cnt, lag)
         # two-sided autocorrelation: ordered pairs, so lag 0 counts each pair twice;
         # pairs inside one voxel, plus those across voxels sharing a bin (wavelengths)
         h[0] = float(np.sum(w * (w - 1))) + 2 * h[0]
@@ -300,6 +297,91 @@ _IRF_WIDTH_FACTOR = 2.0
 #: voxels the width check reads at most: evenly spaced whole rows of pixels (a few
 #: rows of a large cube; the pair-lag width is a per-pixel statistic)
 _CHECK_VOXELS = 1 << 24
+
+
+@njit(cache=True, nogil=True)
+def _partners(key, lag):  # pragma: no cover - numba
+    """Per voxel ``i`` of the sorted ``key``, how many ``j > i`` have ``key_j - key_i <=
+    lag``: ``searchsorted(key, key + lag, side="right") - i - 1``, by one merge."""
+    n = key.size
+    cnt = np.empty(n, np.int64)
+    hi = 0
+    for i in range(n):
+        lim = key[i] + lag
+        if hi < i + 1:
+            hi = i + 1
+        while hi < n and key[hi] <= lim:
+            hi += 1
+        cnt[i] = hi - i - 1
+    return cnt
+
+
+@njit(cache=True, nogil=True)
+def _pair_histogram(key, w, cnt, lag):  # pragma: no cover - numba
+    """``h[d] = sum w_i w_j`` over the pairs ``j > i`` of :func:`_partners` at ``key_j -
+    key_i = d``, float64: ``np.bincount`` of the pairs listed ``i`` by ``i``, ``j`` by
+    ``j``, the same additions in the same order (the same values) without the pair
+    arrays."""
+    h = np.zeros(lag + 1, np.float64)
+    for i in range(key.size):
+        wi = w[i]
+        for j in range(i + 1, i + 1 + cnt[i]):
+            h[key[j] - key[i]] += wi * w[j]
+    return h
+
+
+@njit(cache=True, nogil=True)
+def _nonzero_rows(y, rows, pix, b, w):  # pragma: no cover - numba
+    """The nonzero voxels of the rows ``rows`` of ``y`` (R, C, L, T): pixel (among the
+    rows' pixels), bin and count, pixel by pixel, bin by bin, wavelength by wavelength
+    (the order of a stable sort by pixel and bin); ``pix``, ``b``, ``w`` hold one spare
+    entry (written branch-free)."""
+    _, C, L, T = y.shape
+    k = 0
+    for ri in range(rows.size):
+        r = rows[ri]
+        for c in range(C):
+            p = ri * C + c
+            for t in range(T):
+                for l in range(L):
+                    v = y[r, c, l, t]
+                    pix[k] = p
+                    b[k] = t
+                    w[k] = v
+                    k += v != 0
+
+
+@njit(cache=True, nogil=True)
+def _count_nonzero_rows(y, rows):  # pragma: no cover - numba
+    _, C, L, T = y.shape
+    n = 0
+    for ri in range(rows.size):
+        src = y[rows[ri]]
+        for c in range(C):
+            for l in range(L):
+                for t in range(T):
+                    n += src[c, l, t] != 0
+    return n
+
+
+def _sampled_voxels(counts, rows: np.ndarray) -> tuple | None:
+    """``(pix, b, w)``: the nonzero voxels of the rows ``rows`` of an in-memory cube of
+    integer counts (rows, cols, L, T) (pixel index among the rows' pixels, bin, count),
+    read in place (no copy of the rows) by two numba passes (count, fill), in the order
+    of ``pair_lag_fwhm``'s stable sort by pixel and bin: the arrays of ``np.nonzero`` of
+    ``counts[rows].reshape(-1, T)`` in another order, the integer totals per pixel and
+    the sorted pairs the same. None for other arrays."""
+    y = np.asarray(counts) if isinstance(counts, np.ndarray) else counts  # memory maps too
+    ok = isinstance(y, np.ndarray) and y.ndim == 4 and y.flags.c_contiguous
+    if not ok or y.dtype.kind not in "ui":
+        return None
+    rows = np.ascontiguousarray(rows, np.int64)
+    n = int(_count_nonzero_rows(y, rows))
+    pix, b, w = np.empty(n + 1, np.int64), np.empty(n + 1, np.int64), np.empty(n + 1, y.dtype)
+    _nonzero_rows(y, rows, pix, b, w)
+    return pix[:n], b[:n], w[:n]
+
+
 #: the width check decides only where the data's width is known to better than the
 #: factor it tests: its 3-sigma bracket's half-length below this fraction of the width
 #: (the bracket within 0.5-1.5 x the width; irf24's "determined" is 1, which let an
@@ -386,11 +468,16 @@ def _data_pair_width(counts, n_bins: int, sparse=None):
             mid = (n_rows - rows.size) // 2  # lazy data: one band of rows (few chunks)
             sub = np.asarray(counts[mid : mid + rows.size].compute())
         else:
-            sub = np.asarray(counts[rows] if rows.size < n_rows else counts)
-        flat = sub.reshape(-1, n_bins)
-        rowi, b = np.nonzero(flat)
-        w = flat[rowi, b]
-        pix = rowi // n_l
+            sub = None
+        got = _sampled_voxels(counts, rows) if sub is None else None
+        if got is not None:  # an in-memory cube: read in place, the same arrays
+            pix, b, w = got
+        else:
+            sub = np.asarray(counts[rows] if rows.size < n_rows else counts) if sub is None else sub
+            flat = sub.reshape(-1, n_bins)
+            rowi, b = np.nonzero(flat)
+            w = flat[rowi, b]
+            pix = rowi // n_l
     # hot (stuck) pixels: counts in every bin, pairs growing as their square, would
     # swamp the others' peak with their floor's noise; a pixel's width does not depend
     # on its brightness, so those above _HOT x the median pixel are left out

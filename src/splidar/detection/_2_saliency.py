@@ -13,10 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ._background import CLIP
 from ._fast import saliency_wavelength
 from ._filters import Correlator, fisher_sums
+from ._threads import on_parts
 
 __all__ = [
     "COHERENCE_VOXELS",
@@ -249,7 +251,7 @@ def coherent_scales(counts, ctx: SaliencyFilters) -> Coherence:
         var = np.einsum("ijlt,lt->ij", yin, var_w, dtype=np.float64)  # Poisson variance
         e_p.append((_dot(x, x) - var).ravel())
         ring = np.zeros((Q, x.shape[0] * x.shape[1]))
-        table = _summed_area(c)
+        table = _summed_area(c, ctx.workers)
         for q, k in enumerate(scales):
             if k > 1:  # the k x k sums about the tile's pixels, less the own pixel
                 box = _box_sums(table, int(k) // 2, h, h + r1 - r0, j0, j0 + c1 - c0)
@@ -427,13 +429,44 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ijlt,ijlt->ij", a, b, dtype=np.float64)
 
 
-def _summed_area(x: np.ndarray) -> np.ndarray:
+def _summed_area(x: np.ndarray, workers: int = 1) -> np.ndarray:
     """Summed-area table of ``x`` (rows, cols, L, T) over rows and columns, float64, with
-    a leading row and column of zeros: ``(rows + 1, cols + 1, L, T)``."""
-    out = np.zeros((x.shape[0] + 1, x.shape[1] + 1) + x.shape[2:], np.float64)
-    np.cumsum(x, axis=0, dtype=np.float64, out=out[1:, 1:])
-    np.cumsum(out[1:, 1:], axis=1, out=out[1:, 1:])
+    a leading row and column of zeros: ``(rows + 1, cols + 1, L, T)``.
+
+    The running sums of ``np.cumsum`` over rows (float64), then over columns, each
+    value's additions in the same order (bit for bit), in one numba pass over ``x``
+    (:func:`_summed_area_kernel`), its ``L x T`` series split between ``workers``
+    threads (each series is its own)."""
+    R, C = x.shape[:2]
+    out = np.zeros((R + 1, C + 1) + x.shape[2:], np.float64)
+    if x.size == 0:
+        return out
+    xf = np.ascontiguousarray(x, np.float32).reshape(R, C, -1)
+    of = out.reshape(R + 1, C + 1, -1)
+    on_parts(lambda p0, p1: _summed_area_kernel(xf, of, p0, p1), xf.shape[2], workers)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _summed_area_kernel(x, out, p0, p1):
+    """``out[1:, 1:, p0:p1]``: ``cumsum(cumsum(x, axis=0, dtype=float64), axis=1)`` of
+    ``x`` (R, C, P) float32, sequential sums as NumPy's (the first element taken as it
+    is, then each added to the running sum)."""
+    R, C, _ = x.shape
+    col = np.empty((C, p1 - p0), np.float64)  # the running sums over rows
+    for i in range(R):
+        for j in range(C):
+            if i == 0:
+                for p in range(p0, p1):
+                    col[j, p - p0] = np.float64(x[0, j, p])
+            else:
+                for p in range(p0, p1):
+                    col[j, p - p0] += np.float64(x[i, j, p])
+        for p in range(p0, p1):
+            out[i + 1, 1, p] = col[0, p - p0]
+        for j in range(1, C):
+            for p in range(p0, p1):
+                out[i + 1, j + 1, p] = out[i + 1, j, p] + col[j, p - p0]
 
 
 def _box_sums(table: np.ndarray, r: int, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:

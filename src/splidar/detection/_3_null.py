@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 import numpy as np
+from numba import njit
 from scipy import stats
 
 from ._2_saliency import SaliencyFilters, block_saliency
@@ -138,7 +139,10 @@ def _null_samples(
         sr0, sr1 = max(0, r0 - h), min(R, r1 + h)
         sc0, sc1 = max(0, c0 - h), min(C, c1 + h)
         yw = np.asarray(counts[dr0:dr1, dc0:dc1])
-        _, sal_w, _, sp_w, _ = block_saliency(yw, wctx, keep=slice(sr0 - dr0, sr1 - dr0))
+        # the data's saliency and levels only: no sum_l bhat (the same values)
+        _, sal_w, _, sp_w, _ = block_saliency(
+            yw, wctx, keep=slice(sr0 - dr0, sr1 - dr0), with_level=False
+        )
         sp = sp_w[:, sc0 - dc0 : sc1 - dc0].copy()
         real = sal_w[r0 - sr0 : r1 - sr0, c0 - dc0 : c1 - dc0].ravel().copy()
         return sp, real
@@ -317,9 +321,9 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
         c[:, l] = correlate1d(y[:, l], g[l].astype(np.float32), axis=-1, mode="constant",
                               origin=int(pk[l]) - n // 2)  # fmt: skip
     dv = np.asarray(dev, np.float32)
-    lvl = np.median(c, axis=-1) - np.median(dv, axis=-1)[None]
-    f = (c - np.maximum(lvl[:, :, None] + dv[None], 0.0)).sum(axis=1)
-    t0 = np.argmax(f, axis=1)
+    # each pixel's peak: argmax over t of sum_l (c - max(median_t c - median_t dv + dv, 0))
+    t0 = np.empty(c.shape[0], np.int64)
+    _peak_bins(c, dv, np.median(dv, axis=-1).astype(np.float32), t0)
     ok = (t0 + lo_u >= 0) & (t0 + hi_u < T)
     idx = np.flatnonzero(ok)
     u = np.arange(lo_u, hi_u + 1)
@@ -349,6 +353,78 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
     if bright.sum() < 20:
         return np.zeros(0)
     return _pooled_tail(ya[bright], b[bright], f[bright].sum(dtype=np.float64) / gmin, win, i0, m)
+
+
+@njit(cache=True, nogil=True)
+def _median_ties(a, n):  # pragma: no cover - numba
+    """``np.median`` of ``a[:n]`` (float32, no NaN): the middle order statistic, or the
+    float32 mean of the two middle ones; ``a`` permuted. Hoare's selection (the scans
+    stop at values equal to the pivot), linear on the many ties of sparse counts."""
+    half = n >> 1
+    k = half if n & 1 else half - 1
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) >> 1]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    if n & 1:
+        return a[k]
+    nxt = a[k + 1]  # the next order statistic: the smallest above position k
+    for t in range(k + 2, n):
+        if a[t] < nxt:
+            nxt = a[t]
+    return (a[k] + nxt) / np.float32(2)
+
+
+@njit(cache=True, nogil=True)
+def _peak_bins(c, dv, dv_med, t0):  # pragma: no cover - numba
+    """``t0[p] = argmax_t f[p, t]``, ``f = (c - max(lvl[:, :, None] + dv, 0)).sum(axis=1)``
+    with ``lvl = median_t c - dv_med`` (float32, NumPy's median: the mean of the two
+    middle order statistics), the float32 operations of NumPy's expression in its order
+    (the wavelengths added one after the other), in one pass per pixel without the
+    ``(P, L, T)`` temporaries: the same bins."""
+    P, L, T = c.shape
+    scratch = np.empty(T, np.float32)
+    f = np.empty(T, np.float32)
+    for p in range(P):
+        for l in range(L):
+            for t in range(T):
+                scratch[t] = c[p, l, t]
+            lvl = _median_ties(scratch, T) - dv_med[l]
+            row, d = c[p, l], dv[l]
+            zero = np.float32(0.0)
+            if l == 0:  # np.maximum(bh, 0.0): bh unless below 0 (NaN, -0.0 kept)
+                for t in range(T):
+                    bh = lvl + d[t]
+                    f[t] = row[t] - (zero if bh < zero else bh)
+            else:
+                for t in range(T):
+                    bh = lvl + d[t]
+                    f[t] += row[t] - (zero if bh < zero else bh)
+        best = 0  # np.argmax: the first of the largest, the first NaN if any
+        if f[0] == f[0]:
+            for t in range(1, T):
+                v = f[t]
+                if v != v:
+                    best = t
+                    break
+                if v > f[best]:
+                    best = t
+        t0[p] = best
 
 
 def _windows(a, win, i0, m):
@@ -461,7 +537,7 @@ def calibrate_null(
     with ThreadPoolExecutor(1) if n_jobs > 1 else contextlib.nullcontext() as ex:
         fit = ex.submit(fit_gamma_quantiles, s_real) if ex is not None else None
         thr_emp_global = float(np.quantile(s_sim, 1.0 - pfa))
-        xs, ys = threshold_table(s_sim, lev_sim, pfa)
+        xs, ys = threshold_table(s_sim, lev_sim, pfa, workers=n_jobs)
         a_fit, sc_fit = fit.result() if fit is not None else fit_gamma_quantiles(s_real)
     thr_gamma = float(stats.gamma.isf(pfa, a_fit, scale=sc_fit))
     if null == "gamma":

@@ -9,18 +9,28 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy import ndimage, signal, special
 
 from ._fast import low_median as _low_median_kernel
-from ._fast import window_means
+from ._fast import pixel_totals, window_means
 from ._filters import Correlator
 from ._threads import on_parts
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["low_quantile_bias", "robust_level", "sample_grid", "temporal_shape"]
+__all__ = [
+    "FirstRead",
+    "first_read",
+    "grid_window_means",
+    "low_quantile_bias",
+    "robust_level",
+    "sample_grid",
+    "temporal_shape",
+]
 
 #: Fraction of pixels whose median gives the temporal shape (``eq:background_1``).
 LOW_FRACTION = 0.10
@@ -72,15 +82,7 @@ def temporal_shape(
     R, C, L, T = counts.shape
     kr, kc, row_starts, col_starts = sample_grid(counts.shape, k, n_samples)
     if windows is None:
-        sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
-
-        def rows(i0, i1):
-            for i in range(i0, i1):
-                # exact window sums in one numba pass over the rows (_fast.window_means)
-                a = row_starts[i]
-                sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
-
-        on_parts(rows, row_starts.size, workers)
+        sampled = grid_window_means(counts, row_starts, kr, col_starts, kc, workers)
     else:
         sampled = windows(counts, row_starts, kr, col_starts, kc)
     coarse = corr(sampled, workers=workers).reshape(-1, L, T)
@@ -116,6 +118,127 @@ def temporal_shape(
         else:
             prof = np.stack([one(l) for l in range(L)])
     return prof.astype(np.float32)
+
+
+def grid_window_means(counts, row_starts, kr: int, col_starts, kc: int, workers: int = 1):
+    """The grid's window means ``(row_starts.size, col_starts.size, L, T)`` float32 of an
+    in-memory cube: exact window sums in one numba pass over each window's rows
+    (:func:`~splidar.detection._fast.window_means`), the rows of windows on ``workers``
+    threads."""
+    R, C, L, T = counts.shape
+    sampled = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
+
+    def rows(i0, i1):
+        for i in range(i0, i1):
+            a = row_starts[i]
+            sampled[i] = window_means(np.asarray(counts[a : a + kr]), col_starts, kc)
+
+    on_parts(rows, row_starts.size, workers)
+    return sampled
+
+
+@dataclass(frozen=True)
+class FirstRead:
+    """The stuck-pixel check's totals and stage 1's window means of an in-memory cube,
+    from one read of its counts (:func:`first_read`).
+
+    Attributes
+    ----------
+    totals : ndarray (rows, cols) float64
+        Counts summed over wavelengths and bins (``pixel_totals``, the same values).
+    grid : tuple
+        ``(kr, kc, row_starts, col_starts)`` of :func:`sample_grid`.
+    means : ndarray (row_starts.size, col_starts.size, L, T) float32
+        The windows' means (``window_means``, the same values).
+    workers : int
+        Threads for a grid other than ``grid`` (:meth:`windows` then reads the counts).
+    """
+
+    totals: np.ndarray
+    grid: tuple
+    means: np.ndarray
+    workers: int = 1
+
+    def windows(self, counts, row_starts, kr, col_starts, kc) -> np.ndarray:
+        """The window means :func:`temporal_shape` asks for: :attr:`means` on this grid,
+        else read from ``counts`` (:func:`grid_window_means`)."""
+        kr0, kc0, rs0, cs0 = self.grid
+        same = (kr, kc) == (kr0, kc0) and np.array_equal(row_starts, rs0)
+        if same and np.array_equal(col_starts, cs0):
+            return self.means
+        return grid_window_means(counts, row_starts, kr, col_starts, kc, self.workers)
+
+
+@njit(cache=True, nogil=True)
+def _band_sums(rows, col_starts, kc, out, totals):
+    """Window means of ``kr`` rows ``rows`` (kr, C, L, T) integer counts into ``out``
+    (n, L, T) float32, and the rows' pixel totals into ``totals`` (kr, C) float64: exact
+    integer sums (int64), so each mean is the float32 rounding of the float64 quotient of
+    the exact sum, as :func:`~splidar.detection._fast.window_means` gives it, and each
+    total the float64 of the exact sum, as ``pixel_totals``."""
+    kr, C, L, T = rows.shape
+    norm = np.float64(kr * kc)
+    rs = np.empty(T, np.int64)
+    cs = np.empty((C + 1, T), np.int64)
+    tot = np.zeros((kr, C), np.int64)
+    for l in range(L):
+        for t in range(T):
+            cs[0, t] = 0
+        for j in range(C):
+            for t in range(T):
+                rs[t] = 0
+            for a in range(kr):
+                src = rows[a, j, l]
+                s = np.int64(0)
+                for t in range(T):
+                    v = np.int64(src[t])
+                    rs[t] += v
+                    s += v
+                tot[a, j] += s
+            for t in range(T):
+                cs[j + 1, t] = cs[j, t] + rs[t]
+        for u in range(col_starts.size):
+            b0 = col_starts[u]
+            for t in range(T):
+                out[u, l, t] = np.float64(cs[b0 + kc, t] - cs[b0, t]) / norm
+    for a in range(kr):
+        for j in range(C):
+            totals[a, j] = np.float64(tot[a, j])
+
+
+def first_read(counts, k: int, workers: int = 1, n_samples: int = 2000) -> FirstRead | None:
+    """The pixel totals of the stuck-pixel check and stage 1's window means (the grid of
+    :func:`sample_grid` with box ``k``) from one read of an in-memory cube, its bands of
+    rows on ``workers`` threads: each count is read once where the two reads read it
+    twice (``pixel_totals``, then :func:`grid_window_means`). The same values, bit for
+    bit (exact integer sums). None (read as before) unless ``counts`` is a C-contiguous
+    NumPy array of integers of at most 32 bits and the grid's bands of rows do not
+    overlap (large images: ``sample_grid`` steps its rows by ``kr``)."""
+    if not isinstance(counts, np.ndarray) or counts.ndim != 4 or not counts.flags.c_contiguous:
+        return None
+    counts = np.asarray(counts)  # a memory map's array (numba takes plain arrays)
+    if counts.dtype.kind not in "ui" or counts.dtype.itemsize > 4:
+        return None
+    R, C, L, T = counts.shape
+    kr, kc, row_starts, col_starts = grid = sample_grid(counts.shape, k, n_samples)
+    if row_starts.size > 1 and np.diff(row_starts).min() < kr:
+        return None
+    totals = np.empty((R, C), np.float64)
+    means = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
+    cols = np.ascontiguousarray(col_starts, np.int64)
+
+    def bands(i0, i1):
+        for i in range(i0, i1):
+            a = int(row_starts[i])
+            _band_sums(counts[a : a + kr], cols, int(kc), means[i], totals[a : a + kr])
+
+    on_parts(bands, row_starts.size, workers)
+    covered = np.zeros(R, bool)
+    for a in row_starts:
+        covered[a : a + kr] = True
+    for r in np.flatnonzero(~covered):  # rows outside every band: their totals alone
+        totals[r] = pixel_totals(counts[r : r + 1])[0]
+    return FirstRead(totals, grid, means, int(workers))
 
 
 def sample_grid(shape, k: int, n_samples: int = 2000) -> tuple:

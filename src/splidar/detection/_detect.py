@@ -47,6 +47,7 @@ from ._5e_enclosed import restore_enclosed_holes
 from ._5f_stray_clusters import remove_stray_clusters
 from ._6_select import select_surfaces
 from ._7_depths import RULES, place_depths
+from ._background import first_read
 from ._filters import Correlator, irf_fwhm, irf_halfwidth
 from ._hot_pixels import HOT_RATIO, hot_pixels
 from ._regions import merge_by_region
@@ -319,7 +320,9 @@ def _coherent_scales(counts, filters, o: dict) -> bool:
     scales and weights updated to the largest set a region keeps (the others, in
     ``o["scale_regions"]``, run after this one: :func:`_by_region`). True when a scale
     was dropped."""
-    coh = coherent_scales(counts, filters)
+    # on the detection's threads (the saliency kernel's rows, the tables' series: the
+    # same values on any number)
+    coh = coherent_scales(counts, dataclasses.replace(filters, workers=o["n_jobs"]))
     reg = region_scales(coh, counts.shape[:2])
     # recorded in Detection.options: why the boxes were kept or dropped
     o["scale_coherence"] = tuple(None if np.isnan(r) else round(float(r), 4) for r in coh.rho)
@@ -385,10 +388,16 @@ def _stuck_pixels_first(cube: Cube, o: dict):
     A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
     pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
     unless pixels were masked; any other Dask cube is reduced to its totals, then read
-    again for the windows (``_tiled.tiled_window_means``)."""
+    again for the windows (``_tiled.tiled_window_means``). An in-memory cube of integer
+    counts: the totals and the windows from one read of its counts on ``n_jobs`` threads
+    (``_background.first_read``, timed with stage 1; the same values)."""
     check_cube_irf(cube)  # a Cube built from arrays: its IRF's width (warns only, once)
     t0 = time.perf_counter()
-    first = first_pass(cube.counts, int(o["scales"].max())) if is_dask(cube.counts) else None
+    box = int(o["scales"].max())
+    if is_dask(cube.counts):
+        first = first_pass(cube.counts, box)
+    else:
+        first = first_read(cube.counts, box, o["n_jobs"])
     cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
     if first is None:  # stage 1's time alone, as before (the check reads on its own)
         t0 = time.perf_counter()

@@ -12,7 +12,10 @@ Two fits are kept:
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
+from numba import njit
 from scipy import optimize, stats
 
 __all__ = ["fit_gamma_quantiles", "threshold_table"]
@@ -50,13 +53,22 @@ def fit_gamma_quantiles(s: np.ndarray, *, p_lo: float = 0.5, p_hi: float = 0.9):
 
 
 def threshold_table(
-    s: np.ndarray, level: np.ndarray, pfa: float, *, min_exceed: int = 100, max_groups: int = 12
+    s: np.ndarray,
+    level: np.ndarray,
+    pfa: float,
+    *,
+    min_exceed: int = 100,
+    max_groups: int = 12,
+    workers: int = 1,
 ):
     """Empirical ``1 - pfa`` quantile of null saliency ``s`` as a function of ``level``.
 
     Voxels are grouped by background level (equal-count groups, each with about
     ``min_exceed`` or more expected exceedances); each group gives its quantile at its
     median level.
+
+    The groups' median levels and quantiles are taken on ``workers`` threads (NumPy's
+    selections release the GIL; each group's values are its own: the same table).
 
     Returns
     -------
@@ -70,12 +82,19 @@ def threshold_table(
     lo, hi = np.quantile(v, [0.01, 0.99])
     if g == 1 or hi - lo <= 0.02 * max(abs(hi), 1e-12):
         return np.array([np.median(v)]), np.array([np.quantile(s, 1.0 - pfa)])
-    xs, ys = [], []
-    for idx in _equal_count_groups(v, g):
-        xs.append(np.median(v[idx]))
-        ys.append(np.quantile(s[idx], 1.0 - pfa))
-    xs = np.asarray(xs)
-    ys = np.asarray(ys)
+    groups = _equal_count_groups(v, g)
+
+    def one(idx):
+        return np.median(v[idx]), np.quantile(s[idx], 1.0 - pfa)
+
+    n_thr = max(1, min(int(workers), g))
+    if n_thr > 1:
+        with ThreadPoolExecutor(n_thr) as ex:
+            pairs = list(ex.map(one, groups))
+    else:
+        pairs = [one(idx) for idx in groups]
+    xs = np.asarray([p[0] for p in pairs])
+    ys = np.asarray([p[1] for p in pairs])
     # equal levels (many voxels at one level) would make interpolation ill-defined
     keep = np.concatenate([[True], np.diff(xs) > 1e-12 * max(abs(xs[-1]), 1.0)])
     if not keep.all():
@@ -102,12 +121,33 @@ def _equal_count_groups(v: np.ndarray, g: int) -> list[np.ndarray]:
     if kth.size == 0 or np.any(np.diff(b) <= 0):
         # one value spans several groups: the plain way
         return np.array_split(np.argsort(v, kind="stable"), g)
-    gid = np.zeros(n, np.uint8)
-    for bi in b:
-        gid += v >= bi
+    gid = np.empty(n, np.uint8)
+    below = np.zeros(g, np.int64)
+    _group_ids(v, b, gid, below)  # one pass: gid = #(b <= v), counts of gid
     # ties with a boundary value sorting before it (index order) go to the group below
-    n_before = kth - np.array([np.count_nonzero(v < bi) for bi in b])
+    n_before = kth - np.cumsum(below)[:-1]  # #(v < b_i) = #(gid <= i)
     for bi, m in zip(b, n_before, strict=True):
         if m > 0:
             gid[np.flatnonzero(v == bi)[:m]] -= 1
-    return [np.flatnonzero(gid == i) for i in range(g)]
+    # the groups' indices in index order, group by group (a stable sort of gid)
+    order = np.argsort(gid, kind="stable")
+    return np.split(order, np.cumsum(np.bincount(gid, minlength=g))[:-1])
+
+
+@njit(cache=True, nogil=True)
+def _group_ids(v, b, gid, count):  # pragma: no cover - numba
+    """``gid[k] = #(b <= v[k])`` (``b`` increasing) and ``count[i] = #(gid == i)`` among
+    the values that are not NaN."""
+    m = b.size
+    for k in range(v.size):
+        x = v[k]
+        lo, hi = 0, m  # the first b above x
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if b[mid] <= x:
+                lo = mid + 1
+            else:
+                hi = mid
+        gid[k] = lo
+        if x == x:  # NaN: group 0, and below no boundary (as ``v < b`` counts)
+            count[lo] += 1
