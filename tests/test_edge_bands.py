@@ -542,7 +542,7 @@ def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
     rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
     dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
     dep += rng.uniform(-3, 3, dep.shape)
-    memo: dict = {}
+    memo = eb.LikelihoodMemo()
     first = eb._likelihoods(counts, _background(), rows, cols, dep, IRF, memo=memo)
     want = eb._likelihoods(counts, _background(), rows, cols, dep, IRF)
     np.testing.assert_array_equal(first, want)
@@ -553,3 +553,29 @@ def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
     want = eb._likelihoods(counts, _background(), rows, cols, dep2, IRF)
     np.testing.assert_array_equal(got, want)
     assert len(memo) == n + dep2[::3].shape[0] and (got[::3, 1] != first[::3, 1]).any()
+
+
+def test_likelihood_memo_finds_what_the_former_dict_found():
+    # keys met before (0.0 and -0.0 one key, as for the dict's floats), new ones, repeats
+    # within one call, NaN depths (never found), pixels whose index alone would collide
+    from splidar.detection._7b_edge_bands import LikelihoodMemo
+
+    rng = np.random.default_rng(2)
+    memo, ref = LikelihoodMemo(), {}
+    for _ in range(4):
+        n = 300
+        r, c = rng.integers(0, 5, n), rng.integers(0, 2**20, n)
+        d = rng.choice([0.0, -0.0, 1.5, 2.25, np.nan, 7.0], n)
+        q = LikelihoodMemo.key(r, c, d)
+        hit, pos = memo.find(q)
+        keys = list(zip(r.tolist(), c.tolist(), d.tolist(), strict=True))
+        np.testing.assert_array_equal(hit, [k in ref for k in keys])
+        np.testing.assert_array_equal(memo.values[pos[hit]], [ref[k] for k in keys if k in ref])
+        new = np.flatnonzero(~hit)
+        v = rng.normal(size=new.size)
+        v_of = {}  # one value per key (the values are functions of their key)
+        for i, m in enumerate(new):
+            v[i] = v_of.setdefault(keys[m], v[i])
+        memo.add(q[new], v)
+        ref.update((keys[m], v[i]) for i, m in enumerate(new))
+        assert len(memo) == sum(1 for k in ref if not np.isnan(k[2]))

@@ -397,7 +397,7 @@ def _window_counts(counts, rows, cols, lo, out):  # pragma: no cover - numba
 
 
 def _likelihoods(
-    counts, background, rows, cols, dep, irf, n_jobs: int = 1, memo: dict | None = None
+    counts, background, rows, cols, dep, irf, n_jobs: int = 1, memo: LikelihoodMemo | None = None
 ) -> np.ndarray:
     """:func:`profile_llr` of the pixels ``(rows, cols)`` at their depths ``dep`` (n, k):
     (n, k), in blocks of pixels on ``n_jobs`` threads (each block's result is its own,
@@ -405,7 +405,7 @@ def _likelihoods(
     alone, and so is a Zarr cube whose nonzero counts detect keeps
     (``_slopes.sparse_of``); others (Dask) a pixel's whole series at once.
 
-    ``memo``: a dict ``{(row, col, depth): llr}`` kept by the caller over calls on the
+    ``memo``: a :class:`LikelihoodMemo` kept by the caller over calls on the
     same cube, background and IRF (stage 7's rounds): a (pixel, depth) met before is
     read from it, the others computed and added. Each value is a function of its pixel
     and depth alone, so the result is the same to the bit
@@ -459,25 +459,66 @@ def _likelihoods(
     return out
 
 
+class LikelihoodMemo:
+    """:func:`_likelihoods`' values kept over calls (stage 7's rounds), per (pixel,
+    depth): sorted keys ``row * 2**31 + col + 1j * depth`` (complex128: NumPy orders
+    them by pixel, then depth, and ``==`` compares both as the former dict's float keys
+    did: 0.0 and -0.0 the same key, a NaN depth never found) beside their values.
+    Looked up and extended by arrays (no Python loop per key)."""
+
+    __slots__ = ("keys", "values")
+
+    def __init__(self):
+        self.keys = np.empty(0, np.complex128)
+        self.values = np.empty(0, np.float64)
+
+    def __len__(self) -> int:
+        return int(self.keys.size)
+
+    @staticmethod
+    def key(rows, cols, depth) -> np.ndarray:
+        """The keys (n,) complex128 of pixels ``(rows, cols)`` at ``depth`` (n,)."""
+        pix = np.asarray(rows, np.int64) * 2**31 + np.asarray(cols, np.int64)
+        return pix.astype(np.float64) + 1j * np.asarray(depth, np.float64)
+
+    def find(self, q) -> tuple:
+        """``(hit, pos)`` (n,): whether key ``q[i]`` is kept, and where."""
+        pos = np.searchsorted(self.keys, q)
+        pos = np.minimum(pos, max(self.keys.size - 1, 0))
+        hit = self.keys[pos] == q if self.keys.size else np.zeros(q.size, bool)
+        return hit, pos
+
+    def add(self, q, v) -> None:
+        """Keep the values ``v`` of the new keys ``q`` (a key met twice: its first; a
+        NaN depth's key is not kept: it would never be found)."""
+        ok = ~np.isnan(q)
+        keys = np.concatenate([self.keys, q[ok]])
+        values = np.concatenate([self.values, np.asarray(v, np.float64)[ok]])
+        order = np.argsort(keys, kind="stable")
+        keys, values = keys[order], values[order]
+        first = np.ones(keys.size, bool)
+        first[1:] = keys[1:] != keys[:-1]
+        self.keys, self.values = keys[first], values[first]
+
+
 def _memo_likelihoods(counts, background, rows, cols, dep, irf, n_jobs, memo) -> np.ndarray:
-    """:func:`_likelihoods` with its ``memo``: the (pixel, depth) pairs not in it computed
-    (one depth per row) and added, then every value read from it."""
+    """:func:`_likelihoods` with its ``memo`` (:class:`LikelihoodMemo`): the (pixel,
+    depth) pairs not in it computed (one depth per row) and added, then every value
+    read from it (a NaN depth: computed, as it is never found)."""
     dep = np.asarray(dep, np.float64)
-    keys = list(
-        zip(
-            np.repeat(rows, dep.shape[1]).tolist(),
-            np.repeat(cols, dep.shape[1]).tolist(),
-            dep.ravel().tolist(),
-            strict=True,
-        )
-    )
-    new = [m for m, key in enumerate(keys) if key not in memo]
-    if new:
-        m = np.array(new, np.int64)
-        k = m // dep.shape[1]
-        got = _likelihoods(counts, background, rows[k], cols[k], dep.ravel()[m, None], irf, n_jobs)
-        memo.update(zip([keys[i] for i in new], got[:, 0].tolist(), strict=True))
-    return np.array([memo.get(key, np.nan) for key in keys]).reshape(dep.shape)
+    k = dep.shape[1]
+    q = LikelihoodMemo.key(np.repeat(rows, k), np.repeat(cols, k), dep.ravel())
+    hit, _ = memo.find(q)
+    new = np.flatnonzero(~hit)
+    got = np.empty(0)
+    if new.size:
+        p, d = new // k, dep.ravel()[new, None]
+        got = _likelihoods(counts, background, rows[p], cols[p], d, irf, n_jobs)[:, 0]
+        memo.add(q[new], got)
+    hit, pos = memo.find(q)
+    out = np.where(hit, memo.values[pos], np.nan)
+    out[new] = got  # NaN keys are never found: their values as computed
+    return out.reshape(dep.shape)
 
 
 def group_llr(y, g, b, group, n_iter: int = 30) -> np.ndarray:
@@ -637,7 +678,7 @@ def band_depths(
     irf,
     half: int,
     n_jobs: int = 1,
-    memo: dict | None = None,
+    memo: LikelihoodMemo | None = None,
 ):
     """The depths of ``surfaces`` after the bands' labelling (see the module), the
     indices of the surfaces moved and the Potts weight ``beta``.
@@ -656,7 +697,7 @@ def band_depths(
         The largest box's half-width (pixels): the band's reach.
     n_jobs : int
         Threads for the planes and the likelihoods (never changes the result).
-    memo : dict, optional
+    memo : LikelihoodMemo, optional
         The own counts' likelihoods met before on this cube (:func:`_likelihoods`; stage
         7's rounds share one): never changes the result.
 
@@ -747,7 +788,7 @@ def _inside(lab: np.ndarray) -> np.ndarray:
 
 def near_depths(
     surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1,
-    memo: dict | None = None,
+    memo: LikelihoodMemo | None = None,
 ):  # fmt: skip
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
