@@ -175,7 +175,7 @@ def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cove
     written, so disjoint row ranges run on threads side by side."""
     R, C = lab.shape
     reach = 2 * half
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     seen = np.empty((2 * half + 1) ** 2, np.int64)
     for r in range(r0, r1):
         for c in range(C):
@@ -200,7 +200,7 @@ def _own_plane_kernel(lab, depth, reach, gate, out, r0, r1):  # pragma: no cover
     members. Only rows ``r0:r1`` of ``out`` are written, so disjoint row ranges run on
     threads side by side (the result does not depend on the split)."""
     R, C = lab.shape
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     for r in range(r0, r1):
         for c in range(C):
             out[r, c] = np.nan
@@ -225,7 +225,8 @@ def _most_members(lab, r, c, half, own, seen):  # pragma: no cover - numba
                 m += 1
     if m == 0:
         return -1
-    s = np.sort(seen[:m])
+    s = seen[:m]
+    s.sort()  # in place: no array made per pixel
     best, n_best, n = s[0], 1, 1
     for i in range(1, m):
         n = n + 1 if s[i] == s[i - 1] else 1
@@ -259,54 +260,76 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
     ones (taken only then: a plane's value does not need it); NaN with fewer than
     ``min_m`` members.
 
-    Each fit solves the 3 x 3 normal equations from sums gathered in one scan of the
-    window (no design matrix, no gathered copy): the offsets' sums are integers, exact
-    in float64; the second fit's members are those within ``gate`` of the first plane.
-    ``buf`` (at least the window's size) holds the members' depths for the median."""
+    Each fit solves the 3 x 3 normal equations from sums (no design matrix): the
+    offsets' sums are integers, exact in float64. The first fit's one scan of the
+    window keeps its members' depths and offsets in ``buf`` (3, at least the window's
+    size), in the scan's order; the second fit sums those within ``gate`` of the first
+    plane in that order (the terms a second scan would add, in its order), and when
+    the gate drops none its sums are the first's, so its plane is the first one."""
     R, C = lab.shape
-    value = np.nan
-    c0 = c1 = c2 = 0.0
     r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
     c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
-    for it in range(2):
-        n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
-        for rr in range(r_lo, r_hi):
-            for cc in range(c_lo, c_hi):
-                if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
-                    continue
-                u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
-                if it == 1 and abs(c0 + c1 * u + c2 * v - z) > gate:
-                    continue
-                n += 1.0
-                sr += u
-                sc += v
-                srr += u * u
-                src += u * v
-                scc += v * v
-                sd += z
-                srd += u * z
-                scd += v * z
-        if it == 0 and n < min_m:
-            return np.nan
-        if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
-            if it == 1:
-                return value
-            m = 0
-            for rr in range(r_lo, r_hi):
-                for cc in range(c_lo, c_hi):
-                    if lab[rr, cc] == x and not (skip_self and rr == r and cc == c):
-                        buf[m] = depth[rr, cc]
-                        m += 1
-            return np.median(buf[:m])
-        # cofactors of M = [[n, sr, sc], [sr, srr, src], [sc, src, scc]] (symmetric)
-        k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
-        k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
-        det = n * k00 + sr * k01 + sc * k02
-        c0 = (k00 * sd + k01 * srd + k02 * scd) / det
-        c1 = (k01 * sd + k11 * srd + k12 * scd) / det
-        c2 = (k02 * sd + k12 * srd + k22 * scd) / det
-        value = c0
-    return value
+    m = 0
+    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    for rr in range(r_lo, r_hi):
+        for cc in range(c_lo, c_hi):
+            if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
+                continue
+            u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
+            buf[0, m], buf[1, m], buf[2, m] = z, u, v
+            m += 1
+            n += 1.0
+            sr += u
+            sc += v
+            srr += u * u
+            src += u * v
+            scc += v * v
+            sd += z
+            srd += u * z
+            scd += v * z
+    if n < min_m:
+        return np.nan
+    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+        return np.median(buf[0, :m])
+    c0, c1, c2 = _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)
+    dropped = False
+    for i in range(m):
+        if abs(c0 + c1 * buf[1, i] + c2 * buf[2, i] - buf[0, i]) > gate:
+            dropped = True
+            break
+    if not dropped:
+        return c0
+    value = c0
+    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    for i in range(m):
+        z, u, v = buf[0, i], buf[1, i], buf[2, i]
+        if abs(c0 + c1 * u + c2 * v - z) > gate:
+            continue
+        n += 1.0
+        sr += u
+        sc += v
+        srr += u * u
+        src += u * v
+        scc += v * v
+        sd += z
+        srd += u * z
+        scd += v * z
+    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+        return value
+    return _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)[0]
+
+
+@njit(cache=True, nogil=True)
+def _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd):  # pragma: no cover - numba
+    """The plane ``(c0, c1, c2)`` of the normal equations ``[[n, sr, sc], [sr, srr, src],
+    [sc, src, scc]] c = [sd, srd, scd]`` by cofactors (the matrix is symmetric)."""
+    k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
+    k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
+    det = n * k00 + sr * k01 + sc * k02
+    c0 = (k00 * sd + k01 * srd + k02 * scd) / det
+    c1 = (k01 * sd + k11 * srd + k12 * scd) / det
+    c2 = (k02 * sd + k12 * srd + k22 * scd) / det
+    return c0, c1, c2
 
 
 @njit(cache=True, nogil=True)
@@ -856,7 +879,7 @@ def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragm
     region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_window_plane` over
     its members within ``reach``, Chebyshev); NaN elsewhere."""
     R, C = big.shape
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     for r in range(R):
         for c in range(C):
             region[r, c] = -1
