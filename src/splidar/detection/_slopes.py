@@ -446,12 +446,11 @@ def surface_fields(
                 cj = _reflect(cols[s] + dj, C)
                 for l in range(L):
                     _filtered_window(y[ri - y0, cj, l], irf[l], off - irf_peak[l], cvw, nz_t, nz_v)
-                    for w in range(W):
-                        cv = cvw[w]
-                        for q in range(Q):
-                            hq = scales[q] // 2
-                            if abs(di) <= hq and abs(dj) <= hq:
-                                acc[q, l, w] += cv
+                    for q in range(Q):  # the boxes holding the pixel, in the pixels' order
+                        hq = scales[q] // 2
+                        if abs(di) <= hq and abs(dj) <= hq:
+                            for w in range(W):
+                                acc[q, l, w] += cvw[w]
         for l in range(L):
             cnt = 0.0
             bsum = 0.0
