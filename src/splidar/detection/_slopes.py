@@ -581,9 +581,7 @@ def recover_slopes(
     >>> bool(len(new["row"]) >= 20), bool(np.all(np.abs(err) <= 3))
     (True, True)
     """
-    R, C = spatial.shape[:2]
-    L, T = dev.shape
-    Q = scales.size
+    (R, C), L, Q = spatial.shape[:2], dev.shape[0], scales.size
     irf = np.asarray(irf, np.float64)
     h_max = int(scales.max()) // 2
     pool_idx = np.flatnonzero(scales > 1)
@@ -625,9 +623,8 @@ def recover_slopes(
             break
         planes[..., 3] *= valid
         n_tested += hr.size
-        n_arr, b_arr = _pooled(
-            counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi, n_jobs
-        )  # fmt: skip
+        pools = (counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi)
+        n_arr, b_arr = _pooled(*pools, n_jobs)
         added = _accept(
             n_arr, b_arr, valid, repl, planes, hr, hc, D, tried, new, pool_k, pool_idx,
             deltas, excl, mass, surface_pfa,
