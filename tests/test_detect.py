@@ -1225,3 +1225,28 @@ def test_align_depths_stays_within_half_a_bin_of_the_chosen_bin():
         if n:
             # the prediction is 15: the bins searched are 13.5..16.5 (14..17)
             assert 13.5 <= new[4] <= 17.5
+
+
+def test_pooled_same_on_any_number_of_threads():
+    # the sheared pools of 900 holes, one thread or three: each hole's sums are its own
+    from splidar.detection._slopes import _pooled
+
+    rng = np.random.default_rng(11)
+    R, C, L, T, K = 40, 36, 2, 120, 2
+    y = rng.poisson(0.3, (R, C, L, T)).astype(np.uint16)
+    D = rng.uniform(10, 110, (R, C, K + 1))
+    D[rng.random(D.shape) < 0.4] = np.nan
+    sp = rng.uniform(0.0, 0.2, (R, C, L)).astype(np.float32)
+    dev = rng.normal(0.0, 0.05, (L, T)).astype(np.float32)
+    H = 900
+    hr, hc = rng.integers(0, R, H), rng.integers(0, C, H)
+    planes = np.zeros((H, K, 5))
+    planes[..., 0] = rng.uniform(5, 115, (H, K))
+    planes[..., 1:3] = rng.normal(0, 3, (H, K, 2))
+    planes[..., 3] = rng.random((H, K)) < 0.8
+    args = (y, D, 4.5, sp, dev, hr, hc, planes, np.array([3, 7, 11]), np.arange(-3.0, 4.0), -2, 3)
+    n1, b1 = _pooled(*args, n_jobs=1)
+    n3, b3 = _pooled(*args, n_jobs=3)
+    assert n1.any() and b1.any()
+    np.testing.assert_array_equal(n1, n3)
+    np.testing.assert_array_equal(b1.view(np.int64), b3.view(np.int64))

@@ -439,7 +439,7 @@ def test_window_plane_equals_two_step_least_squares():
     rows, cols = np.mgrid[0:30, 0:30]
     depth = 40.0 + 0.4 * rows - 0.7 * cols + rng.normal(0, 0.5, lab.shape)
     depth[rng.random(lab.shape) < 0.15] += 12.0  # outliers the gate drops
-    buf = np.empty(21 * 21)
+    buf = np.empty((3, 21 * 21))
     for r, c in [(0, 0), (5, 17), (15, 15), (29, 3), (12, 29)]:
         for x, skip in [(0, True), (1, False), (2, True)]:
             got = _window_plane(lab, depth, r, c, 10, x, skip, 4.5, 0, buf)
@@ -456,7 +456,7 @@ def test_window_plane_median_when_collinear_and_nan_below_min_members():
     depth = np.zeros((9, 9))
     for i, d in zip(range(1, 8), (3.0, 9.0, 4.0, 8.0, 5.0, 7.0, 6.0), strict=True):
         lab[i, i], depth[i, i] = 0, d  # members on the diagonal: no plane
-    buf = np.empty(81)
+    buf = np.empty((3, 81))
     assert _window_plane(lab, depth, 4, 4, 4, 0, False, 4.5, 0, buf) == 6.0
     assert np.isnan(_window_plane(lab, depth, 4, 4, 4, 0, False, 4.5, 8, buf))
     assert np.isnan(_window_plane(lab, depth, 4, 4, 4, 1, False, 4.5, 0, buf))  # none
@@ -542,7 +542,7 @@ def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
     rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
     dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
     dep += rng.uniform(-3, 3, dep.shape)
-    memo: dict = {}
+    memo = eb.LikelihoodMemo()
     first = eb._likelihoods(counts, _background(), rows, cols, dep, IRF, memo=memo)
     want = eb._likelihoods(counts, _background(), rows, cols, dep, IRF)
     np.testing.assert_array_equal(first, want)
@@ -553,3 +553,105 @@ def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
     want = eb._likelihoods(counts, _background(), rows, cols, dep2, IRF)
     np.testing.assert_array_equal(got, want)
     assert len(memo) == n + dep2[::3].shape[0] and (got[::3, 1] != first[::3, 1]).any()
+
+
+def test_likelihood_memo_finds_what_the_former_dict_found():
+    # keys met before (0.0 and -0.0 one key, as for the dict's floats), new ones, repeats
+    # within one call, NaN depths (never found), pixels whose index alone would collide
+    from splidar.detection._7b_edge_bands import LikelihoodMemo
+
+    rng = np.random.default_rng(2)
+    memo, ref = LikelihoodMemo(), {}
+    for _ in range(4):
+        n = 300
+        r, c = rng.integers(0, 5, n), rng.integers(0, 2**20, n)
+        d = rng.choice([0.0, -0.0, 1.5, 2.25, np.nan, 7.0], n)
+        q = LikelihoodMemo.key(r, c, d)
+        hit, pos = memo.find(q)
+        keys = list(zip(r.tolist(), c.tolist(), d.tolist(), strict=True))
+        np.testing.assert_array_equal(hit, [k in ref for k in keys])
+        np.testing.assert_array_equal(memo.values[pos[hit]], [ref[k] for k in keys if k in ref])
+        new = np.flatnonzero(~hit)
+        v = rng.normal(size=new.size)
+        v_of = {}  # one value per key (the values are functions of their key)
+        for i, m in enumerate(new):
+            v[i] = v_of.setdefault(keys[m], v[i])
+        memo.add(q[new], v)
+        ref.update((keys[m], v[i]) for i, m in enumerate(new))
+        assert len(memo) == sum(1 for k in ref if not np.isnan(k[2]))
+
+
+def _two_scans_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m):
+    """The former :func:`_window_plane` (two scans of the window), in Python: the
+    reference, term by term."""
+    R, C = lab.shape
+    value, c0, c1, c2 = np.nan, 0.0, 0.0, 0.0
+    r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
+    c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
+    for it in range(2):
+        n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+        for rr in range(r_lo, r_hi):
+            for cc in range(c_lo, c_hi):
+                if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
+                    continue
+                u, v, z = float(rr - r), float(cc - c), float(depth[rr, cc])
+                if it == 1 and abs(c0 + c1 * u + c2 * v - z) > gate:
+                    continue
+                n += 1.0
+                sr += u
+                sc += v
+                srr += u * u
+                src += u * v
+                scc += v * v
+                sd += z
+                srd += u * z
+                scd += v * z
+        if it == 0 and n < min_m:
+            return np.nan
+        det3 = n * (srr * scc - src * src) + sr * (sc * src - sr * scc) + sc * (sr * src - srr * sc)
+        if n < 3.0 or abs(det3) < 1e-9 * max(n, 1.0) ** 3:
+            if it == 1:
+                return value
+            near = lab[r_lo:r_hi, c_lo:c_hi] == x
+            if skip_self:
+                near[r - r_lo, c - c_lo] = False
+            return float(np.median(depth[r_lo:r_hi, c_lo:c_hi][near])) if near.any() else np.nan
+        k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
+        k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
+        det = n * k00 + sr * k01 + sc * k02
+        c0 = (k00 * sd + k01 * srd + k02 * scd) / det
+        c1 = (k01 * sd + k11 * srd + k12 * scd) / det
+        c2 = (k02 * sd + k12 * srd + k22 * scd) / det
+        value = c0
+    return value
+
+
+def test_window_plane_one_scan_equals_the_two_scans_bit_for_bit():
+    # the members kept from the first scan give the second fit's sums in the same order
+    # (or, with none dropped, the first plane): the former kernel's values to the bit
+    from splidar.detection._7b_edge_bands import _window_plane
+
+    rng = np.random.default_rng(12)
+    n_drop = n_same = 0
+    for trial in range(6):
+        lab = rng.integers(-1, 3, size=(25, 25))
+        if trial % 2:
+            lab[:] = 0  # whole windows of one region
+        rows, cols = np.mgrid[0:25, 0:25]
+        depth = 40.0 + 0.4 * rows - 0.7 * cols + rng.normal(0, 0.5, lab.shape)
+        depth[rng.random(lab.shape) < (0.1 if trial < 4 else 0.0)] += 12.0
+        buf = np.empty((3, 21 * 21))
+        for r, c in rng.integers(0, 25, (25, 2)):
+            for x, skip, min_m in [(0, True, 3), (1, False, 0), (2, True, 0)]:
+                got = _window_plane(lab, depth, r, c, 10, x, skip, 4.5, min_m, buf)
+                want = _two_scans_plane(lab, depth, r, c, 10, x, skip, 4.5, min_m)
+                assert (np.isnan(got) and np.isnan(want)) or got == want
+                near = (lab == x) & (np.abs(rows - r) <= 10) & (np.abs(cols - c) <= 10)
+                near[r, c] &= not skip
+                if near.sum() >= max(min_m, 3):  # the first plane's residuals
+                    A = np.stack([np.ones(near.sum()), rows[near] - r, cols[near] - c], 1)
+                    coef = np.linalg.lstsq(A, depth[near], rcond=None)[0]
+                    off = np.abs(A @ coef - depth[near]) > 4.5
+                    n_drop += bool(off.any())
+                    n_same += not off.any()
+    assert n_drop > 20 and n_same > 20

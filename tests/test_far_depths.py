@@ -269,3 +269,40 @@ def test_memo_far_scores_give_the_scores_computed_anew():
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
     assert cand.size < len(memo) < 2 * cand.size
+
+
+def test_far_keys_are_equal_exactly_when_the_former_tuple_keys_are():
+    # the memo's keys made at once: a candidate's key in two calls is the same exactly
+    # when its former per-candidate tuple key (pixel, depth, alternatives, sources, the
+    # sources' photons, isolation) was; between the calls some inputs change
+    import splidar.detection._7a_align_depths as stage
+
+    def former(cand, alt, src, isolated, photons, depth, rows, cols):
+        out = []
+        for i, r, c in zip(cand.tolist(), rows.tolist(), cols.tolist(), strict=True):
+            j = src[i][src[i] >= 0]
+            out.append((r, c, depth[i], alt[i].tobytes(), src[i].tobytes(),
+                        photons[j].tobytes(), isolated[i]))  # fmt: skip
+        return out
+
+    rng = np.random.default_rng(21)
+    S, L, T = 300, 2, 90
+    _, _, alt, src, isolated, cand, photons, depth = _random_far_inputs(rng, S, L, T)
+    rows, cols = np.divmod(np.arange(S), 15)
+    depth[cand[:6]] = [0.0, -0.0, 0.0, -0.0, 5.0, 5.0]
+    a = (cand, alt, src, isolated, photons, depth, rows[cand], cols[cand])
+    k1, f1 = stage._far_keys(*a), former(*a)
+    alt, src, isolated, photons, depth = (x.copy() for x in (alt, src, isolated, photons, depth))
+    photons[rng.choice(S, 30, replace=False)] *= 1.5
+    depth[rng.choice(S, 20, replace=False)] += 1.0
+    depth[cand[:6]] = [-0.0, 0.0, 0.0, -0.0, 5.0, 6.0]
+    alt[rng.choice(S, 20, replace=False), 1] += 2.0
+    isolated[rng.choice(S, 20, replace=False)] ^= True
+    src[rng.choice(S, 20, replace=False), 0, 0] = -1
+    a = (cand, alt, src, isolated, photons, depth, rows[cand], cols[cand])
+    k2, f2 = stage._far_keys(*a), former(*a)
+    same_new = [x == y for x, y in zip(k1, k2, strict=True)]
+    same_old = [x == y for x, y in zip(f1, f2, strict=True)]
+    assert same_new == same_old
+    assert 0 < sum(same_old) < len(same_old)
+    assert len(set(k1)) == len(set(f1)) and stage._far_keys(cand[:0], *a[1:]) == []

@@ -193,3 +193,37 @@ def test_remove_spill_over_line_test_removes_mostly_false_candidates(net_cube):
     iso_with = remove_isolated(with_lines.table, fwhm=kw["fwhm"], pfa=0.01, n_bins=120)
     sup = np.asarray(with_lines.table.columns["line_support"])
     assert not np.any(sup & with_lines.table.keep & ~iso_with.table.keep)
+
+
+def test_line_any_decides_as_the_largest_fraction_does():
+    # _line_any stops at the first fraction whose line reaches the level and takes the
+    # caller's whole sum as fraction 1: the decision of max over every fraction >= level
+    from splidar.detection import _spill_lines as sl
+    from splidar.detection._quality import _by_pixel
+
+    rng = np.random.default_rng(4)
+    R, C, h = 9, 11, 3
+    near = rng.choice([0.0, 0.5, 1.5, 4.0], C)
+    y = _counts(rng, R, near)
+    row, col = (a.ravel() for a in np.mgrid[0:R, 0:C])
+    keep = rng.random(row.size) < 0.6
+    row, col = row[keep], col[keep]
+    depth = NEAR + rng.normal(0.0, 1.0, row.size)
+    order, starts = _by_pixel(row, col, (R, C))
+    sp = np.full((R, C, 1), B, np.float32)
+    dev = np.zeros((1, T))
+    a = (depth, order, starts, R, C, y, 0, sp, dev, G, PEAK.astype(float), 3.0, h)
+    n_true = 0
+    for r, c, ur, uc in zip(rng.integers(0, R, 60), rng.integers(0, C, 60),
+                            *rng.choice([[0, 1], [1, 0]], 60).T, strict=True):  # fmt: skip
+        s = np.array([rng.choice([0.3, 1.0, 3.0])])
+        lines = [sl._line(r, c, ur, uc, 1, NEAR, s * 0.5**k, a) for k in range(sl._N_FRACTIONS)]
+        for level in (-3.0, 0.0, 3.0):
+            want = max(lines) >= level
+            assert sl._line_any(r, c, ur, uc, 1, NEAR, s, a, level) == want
+            first = sl._line(r, c, ur, uc, 1, NEAR, s, a, -level)
+            if first < -level:  # the whole sum: the kernel passes it on
+                assert first == lines[0]
+                assert sl._line_any(r, c, ur, uc, 1, NEAR, s, a, level, first) == want
+            n_true += want
+    assert 0 < n_true < 180

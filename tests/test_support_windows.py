@@ -179,3 +179,43 @@ def test_detect_stage_7_writes_moved_histograms_in_place_with_the_same_result(mo
         if isinstance(x, np.ndarray):
             np.testing.assert_array_equal(getattr(b.surfaces, name), x, err_msg=name)
     assert _7_depths.place_depths is place
+
+
+def _own_rows_numpy(ob, idx):
+    """The former NumPy expression of ``OwnBackground``'s rows (own36), the reference."""
+    t = ob.offset[idx, None] + np.arange(ob.width)
+    sp = ob.spatial[ob.row[idx], ob.col[idx]]
+    T = ob.dev.shape[1]
+    b = sp[:, :, None] + ob.dev[:, np.minimum(t, T - 1)].transpose(1, 0, 2)
+    b = np.where(b < 0, b.dtype.type(0), b).astype(np.float32, copy=False)
+    inside = (t >= np.maximum(ob.start, ob.offset)[idx, None]) & (t < ob.stop[idx, None])
+    b[~np.broadcast_to(inside[:, None, :], b.shape)] = 0.0
+    return b
+
+
+@pytest.mark.parametrize("dev_dtype", [np.float32, np.float64])
+def test_own_rows_equal_the_former_numpy_rows_bit_for_bit(dev_dtype):
+    """``_windows._own_rows`` (numba) gives ``OwnBackground``'s rows as the former NumPy
+    expression did, to the bit: float32 or float64 ``dev``, sums below 0 clipped, NaN
+    kept, -0.0 inside, windows past ``T`` and starting before 0, empty supports."""
+    from splidar.detection._windows import OwnBackground, _own_rows
+
+    rng = np.random.default_rng(3)
+    R, C, L, T, W, n = 6, 7, 3, 50, 23, 400
+    sp = rng.normal(0.3, 0.4, (R, C, L)).astype(np.float32)
+    sp[0, 0, 0] = -0.0
+    dev = rng.normal(0.0, 0.3, (L, T)).astype(dev_dtype)
+    dev[1, 5] = np.nan
+    dev[0, :3] = 0.0
+    off = rng.integers(-8, T - 5, n)
+    start = off + rng.integers(-3, W, n)
+    stop = start + rng.integers(0, W, n)
+    ob = OwnBackground(sp, dev, rng.integers(0, R, n), rng.integers(0, C, n), off,
+                       np.maximum(start, 0), stop, width=W)  # fmt: skip
+    idx = rng.permutation(n)[: n - 7]
+    ref = _own_rows_numpy(ob, idx)
+    got = np.empty_like(ref)
+    _own_rows(ob.spatial, ob.dev, ob.row, ob.col, ob.offset, ob.start, ob.stop, idx, got)
+    assert ref.any() and np.isnan(ref).any()
+    np.testing.assert_array_equal(got.view(np.uint32), ref.view(np.uint32))
+    np.testing.assert_array_equal(ob[idx].view(np.uint32), ref.view(np.uint32))

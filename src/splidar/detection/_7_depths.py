@@ -42,7 +42,7 @@ from types import MappingProxyType
 import numpy as np
 
 from ._7a_align_depths import aligned_depths
-from ._7b_edge_bands import band_depths
+from ._7b_edge_bands import LikelihoodMemo, band_depths
 from ._depth_fields import _support_fields, _window_fields, follow_supports
 from ._result import STAGES, Surfaces
 
@@ -157,7 +157,7 @@ def place_depths(
     beta, rounds = float("nan"), 0
     half = int(np.max(scales)) // 2
     # what the rules computed in earlier rounds, read back where the inputs are the same
-    ll_memo: dict = {}  # the bands' own-count likelihoods, per (pixel, depth)
+    ll_memo = LikelihoodMemo()  # the bands' own-count likelihoods, per (pixel, depth)
     far_memo: dict = {}  # the far rule's scores, per candidate's inputs
     while rounds < ROUNDS:
         rounds += 1

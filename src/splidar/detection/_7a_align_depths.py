@@ -362,12 +362,7 @@ def _memo_far_scores(
     its pixel's counts and background, its depth, its alternatives and their sources'
     ``photons`` and its isolation alone (each candidate's pairs are its own; the blocks
     never change a value), so the result is the same to the bit."""
-    keys = []
-    for i, r, c in zip(cand.tolist(), rows.tolist(), cols.tolist(), strict=True):
-        j = src[i][src[i] >= 0]
-        keys.append(
-            (r, c, depth[i], alt[i].tobytes(), src[i].tobytes(), photons[j].tobytes(), isolated[i])
-        )
+    keys = _far_keys(cand, alt, src, isolated, photons, depth, rows, cols)
     new = np.array([m for m, key in enumerate(keys) if key not in memo], np.int64)
     step = part_size(counts)  # the new candidates' pixels (n, L, T), a part at a time
     for a in range(0, new.size, step):
@@ -379,6 +374,30 @@ def _memo_far_scores(
         del ys, bs
     best, to = np.array([memo[key] for key in keys], np.float64).reshape(-1, 2).T
     return best.copy(), to.copy()
+
+
+def _far_keys(cand, alt, src, isolated, photons, depth, rows, cols) -> list:
+    """The memo's key of each candidate ``cand[m]``: the bytes of its pixel, its depth
+    (``+ 0.0``: -0.0 and 0.0 one key, as for float keys), its alternatives, their
+    sources' indices, the sources' ``photons`` (zero where a source is -1: the indices
+    tell those apart) and its isolation, side by side: equal keys are equal inputs to
+    its score. Made for all the candidates at once (no Python loop per candidate)."""
+    n = cand.size
+    if n == 0:
+        return []
+    sc = src[cand]  # (n, 4, 4)
+    ph = np.asarray(photons, np.float64)[np.maximum(sc, 0)]  # (n, 4, 4, L)
+    ph[sc < 0] = 0.0
+    parts = (
+        np.stack([np.asarray(rows, np.int64), np.asarray(cols, np.int64)], axis=1),
+        np.asarray(depth, np.float64)[cand] + 0.0,
+        np.asarray(alt, np.float64)[cand],
+        sc.astype(np.int64),
+        ph,
+        np.asarray(isolated[cand], np.int64),
+    )
+    raw = np.concatenate([np.ascontiguousarray(a).view(np.uint8).reshape(n, -1) for a in parts], 1)
+    return raw.view(np.dtype((np.void, raw.shape[1]))).ravel().tolist()
 
 
 #: Elements of the (pairs, 2, L, T) float64 arrays of :func:`_far_scores`, per block.

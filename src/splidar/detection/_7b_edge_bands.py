@@ -175,7 +175,7 @@ def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cove
     written, so disjoint row ranges run on threads side by side."""
     R, C = lab.shape
     reach = 2 * half
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     seen = np.empty((2 * half + 1) ** 2, np.int64)
     for r in range(r0, r1):
         for c in range(C):
@@ -200,7 +200,7 @@ def _own_plane_kernel(lab, depth, reach, gate, out, r0, r1):  # pragma: no cover
     members. Only rows ``r0:r1`` of ``out`` are written, so disjoint row ranges run on
     threads side by side (the result does not depend on the split)."""
     R, C = lab.shape
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     for r in range(r0, r1):
         for c in range(C):
             out[r, c] = np.nan
@@ -225,7 +225,8 @@ def _most_members(lab, r, c, half, own, seen):  # pragma: no cover - numba
                 m += 1
     if m == 0:
         return -1
-    s = np.sort(seen[:m])
+    s = seen[:m]
+    s.sort()  # in place: no array made per pixel
     best, n_best, n = s[0], 1, 1
     for i in range(1, m):
         n = n + 1 if s[i] == s[i - 1] else 1
@@ -259,54 +260,76 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
     ones (taken only then: a plane's value does not need it); NaN with fewer than
     ``min_m`` members.
 
-    Each fit solves the 3 x 3 normal equations from sums gathered in one scan of the
-    window (no design matrix, no gathered copy): the offsets' sums are integers, exact
-    in float64; the second fit's members are those within ``gate`` of the first plane.
-    ``buf`` (at least the window's size) holds the members' depths for the median."""
+    Each fit solves the 3 x 3 normal equations from sums (no design matrix): the
+    offsets' sums are integers, exact in float64. The first fit's one scan of the
+    window keeps its members' depths and offsets in ``buf`` (3, at least the window's
+    size), in the scan's order; the second fit sums those within ``gate`` of the first
+    plane in that order (the terms a second scan would add, in its order), and when
+    the gate drops none its sums are the first's, so its plane is the first one."""
     R, C = lab.shape
-    value = np.nan
-    c0 = c1 = c2 = 0.0
     r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
     c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
-    for it in range(2):
-        n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
-        for rr in range(r_lo, r_hi):
-            for cc in range(c_lo, c_hi):
-                if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
-                    continue
-                u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
-                if it == 1 and abs(c0 + c1 * u + c2 * v - z) > gate:
-                    continue
-                n += 1.0
-                sr += u
-                sc += v
-                srr += u * u
-                src += u * v
-                scc += v * v
-                sd += z
-                srd += u * z
-                scd += v * z
-        if it == 0 and n < min_m:
-            return np.nan
-        if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
-            if it == 1:
-                return value
-            m = 0
-            for rr in range(r_lo, r_hi):
-                for cc in range(c_lo, c_hi):
-                    if lab[rr, cc] == x and not (skip_self and rr == r and cc == c):
-                        buf[m] = depth[rr, cc]
-                        m += 1
-            return np.median(buf[:m])
-        # cofactors of M = [[n, sr, sc], [sr, srr, src], [sc, src, scc]] (symmetric)
-        k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
-        k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
-        det = n * k00 + sr * k01 + sc * k02
-        c0 = (k00 * sd + k01 * srd + k02 * scd) / det
-        c1 = (k01 * sd + k11 * srd + k12 * scd) / det
-        c2 = (k02 * sd + k12 * srd + k22 * scd) / det
-        value = c0
-    return value
+    m = 0
+    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    for rr in range(r_lo, r_hi):
+        for cc in range(c_lo, c_hi):
+            if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
+                continue
+            u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
+            buf[0, m], buf[1, m], buf[2, m] = z, u, v
+            m += 1
+            n += 1.0
+            sr += u
+            sc += v
+            srr += u * u
+            src += u * v
+            scc += v * v
+            sd += z
+            srd += u * z
+            scd += v * z
+    if n < min_m:
+        return np.nan
+    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+        return np.median(buf[0, :m])
+    c0, c1, c2 = _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)
+    dropped = False
+    for i in range(m):
+        if abs(c0 + c1 * buf[1, i] + c2 * buf[2, i] - buf[0, i]) > gate:
+            dropped = True
+            break
+    if not dropped:
+        return c0
+    value = c0
+    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    for i in range(m):
+        z, u, v = buf[0, i], buf[1, i], buf[2, i]
+        if abs(c0 + c1 * u + c2 * v - z) > gate:
+            continue
+        n += 1.0
+        sr += u
+        sc += v
+        srr += u * u
+        src += u * v
+        scc += v * v
+        sd += z
+        srd += u * z
+        scd += v * z
+    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+        return value
+    return _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)[0]
+
+
+@njit(cache=True, nogil=True)
+def _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd):  # pragma: no cover - numba
+    """The plane ``(c0, c1, c2)`` of the normal equations ``[[n, sr, sc], [sr, srr, src],
+    [sc, src, scc]] c = [sd, srd, scd]`` by cofactors (the matrix is symmetric)."""
+    k00, k01, k02 = srr * scc - src * src, sc * src - sr * scc, sr * src - srr * sc
+    k11, k12, k22 = n * scc - sc * sc, sr * sc - n * src, n * srr - sr * sr
+    det = n * k00 + sr * k01 + sc * k02
+    c0 = (k00 * sd + k01 * srd + k02 * scd) / det
+    c1 = (k01 * sd + k11 * srd + k12 * scd) / det
+    c2 = (k02 * sd + k12 * srd + k22 * scd) / det
+    return c0, c1, c2
 
 
 @njit(cache=True, nogil=True)
@@ -397,7 +420,7 @@ def _window_counts(counts, rows, cols, lo, out):  # pragma: no cover - numba
 
 
 def _likelihoods(
-    counts, background, rows, cols, dep, irf, n_jobs: int = 1, memo: dict | None = None
+    counts, background, rows, cols, dep, irf, n_jobs: int = 1, memo: LikelihoodMemo | None = None
 ) -> np.ndarray:
     """:func:`profile_llr` of the pixels ``(rows, cols)`` at their depths ``dep`` (n, k):
     (n, k), in blocks of pixels on ``n_jobs`` threads (each block's result is its own,
@@ -405,7 +428,7 @@ def _likelihoods(
     alone, and so is a Zarr cube whose nonzero counts detect keeps
     (``_slopes.sparse_of``); others (Dask) a pixel's whole series at once.
 
-    ``memo``: a dict ``{(row, col, depth): llr}`` kept by the caller over calls on the
+    ``memo``: a :class:`LikelihoodMemo` kept by the caller over calls on the
     same cube, background and IRF (stage 7's rounds): a (pixel, depth) met before is
     read from it, the others computed and added. Each value is a function of its pixel
     and depth alone, so the result is the same to the bit
@@ -459,25 +482,66 @@ def _likelihoods(
     return out
 
 
+class LikelihoodMemo:
+    """:func:`_likelihoods`' values kept over calls (stage 7's rounds), per (pixel,
+    depth): sorted keys ``row * 2**31 + col + 1j * depth`` (complex128: NumPy orders
+    them by pixel, then depth, and ``==`` compares both as the former dict's float keys
+    did: 0.0 and -0.0 the same key, a NaN depth never found) beside their values.
+    Looked up and extended by arrays (no Python loop per key)."""
+
+    __slots__ = ("keys", "values")
+
+    def __init__(self):
+        self.keys = np.empty(0, np.complex128)
+        self.values = np.empty(0, np.float64)
+
+    def __len__(self) -> int:
+        return int(self.keys.size)
+
+    @staticmethod
+    def key(rows, cols, depth) -> np.ndarray:
+        """The keys (n,) complex128 of pixels ``(rows, cols)`` at ``depth`` (n,)."""
+        pix = np.asarray(rows, np.int64) * 2**31 + np.asarray(cols, np.int64)
+        return pix.astype(np.float64) + 1j * np.asarray(depth, np.float64)
+
+    def find(self, q) -> tuple:
+        """``(hit, pos)`` (n,): whether key ``q[i]`` is kept, and where."""
+        pos = np.searchsorted(self.keys, q)
+        pos = np.minimum(pos, max(self.keys.size - 1, 0))
+        hit = self.keys[pos] == q if self.keys.size else np.zeros(q.size, bool)
+        return hit, pos
+
+    def add(self, q, v) -> None:
+        """Keep the values ``v`` of the new keys ``q`` (a key met twice: its first; a
+        NaN depth's key is not kept: it would never be found)."""
+        ok = ~np.isnan(q)
+        keys = np.concatenate([self.keys, q[ok]])
+        values = np.concatenate([self.values, np.asarray(v, np.float64)[ok]])
+        order = np.argsort(keys, kind="stable")
+        keys, values = keys[order], values[order]
+        first = np.ones(keys.size, bool)
+        first[1:] = keys[1:] != keys[:-1]
+        self.keys, self.values = keys[first], values[first]
+
+
 def _memo_likelihoods(counts, background, rows, cols, dep, irf, n_jobs, memo) -> np.ndarray:
-    """:func:`_likelihoods` with its ``memo``: the (pixel, depth) pairs not in it computed
-    (one depth per row) and added, then every value read from it."""
+    """:func:`_likelihoods` with its ``memo`` (:class:`LikelihoodMemo`): the (pixel,
+    depth) pairs not in it computed (one depth per row) and added, then every value
+    read from it (a NaN depth: computed, as it is never found)."""
     dep = np.asarray(dep, np.float64)
-    keys = list(
-        zip(
-            np.repeat(rows, dep.shape[1]).tolist(),
-            np.repeat(cols, dep.shape[1]).tolist(),
-            dep.ravel().tolist(),
-            strict=True,
-        )
-    )
-    new = [m for m, key in enumerate(keys) if key not in memo]
-    if new:
-        m = np.array(new, np.int64)
-        k = m // dep.shape[1]
-        got = _likelihoods(counts, background, rows[k], cols[k], dep.ravel()[m, None], irf, n_jobs)
-        memo.update(zip([keys[i] for i in new], got[:, 0].tolist(), strict=True))
-    return np.array([memo.get(key, np.nan) for key in keys]).reshape(dep.shape)
+    k = dep.shape[1]
+    q = LikelihoodMemo.key(np.repeat(rows, k), np.repeat(cols, k), dep.ravel())
+    hit, _ = memo.find(q)
+    new = np.flatnonzero(~hit)
+    got = np.empty(0)
+    if new.size:
+        p, d = new // k, dep.ravel()[new, None]
+        got = _likelihoods(counts, background, rows[p], cols[p], d, irf, n_jobs)[:, 0]
+        memo.add(q[new], got)
+    hit, pos = memo.find(q)
+    out = np.where(hit, memo.values[pos], np.nan)
+    out[new] = got  # NaN keys are never found: their values as computed
+    return out.reshape(dep.shape)
 
 
 def group_llr(y, g, b, group, n_iter: int = 30) -> np.ndarray:
@@ -637,7 +701,7 @@ def band_depths(
     irf,
     half: int,
     n_jobs: int = 1,
-    memo: dict | None = None,
+    memo: LikelihoodMemo | None = None,
 ):
     """The depths of ``surfaces`` after the bands' labelling (see the module), the
     indices of the surfaces moved and the Potts weight ``beta``.
@@ -656,7 +720,7 @@ def band_depths(
         The largest box's half-width (pixels): the band's reach.
     n_jobs : int
         Threads for the planes and the likelihoods (never changes the result).
-    memo : dict, optional
+    memo : LikelihoodMemo, optional
         The own counts' likelihoods met before on this cube (:func:`_likelihoods`; stage
         7's rounds share one): never changes the result.
 
@@ -747,7 +811,7 @@ def _inside(lab: np.ndarray) -> np.ndarray:
 
 def near_depths(
     surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, n_jobs: int = 1,
-    memo: dict | None = None,
+    memo: LikelihoodMemo | None = None,
 ):  # fmt: skip
     """The "near" wrong depths: single-surface pixels more than :data:`NEAR_FWHM` FWHM
     off their own region's local plane, moved onto it where the own counts with the
@@ -815,7 +879,7 @@ def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragm
     region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_window_plane` over
     its members within ``reach``, Chebyshev); NaN elsewhere."""
     R, C = big.shape
-    buf = np.empty((2 * reach + 1) ** 2)
+    buf = np.empty((3, (2 * reach + 1) ** 2))
     for r in range(R):
         for c in range(C):
             region[r, c] = -1

@@ -446,12 +446,11 @@ def surface_fields(
                 cj = _reflect(cols[s] + dj, C)
                 for l in range(L):
                     _filtered_window(y[ri - y0, cj, l], irf[l], off - irf_peak[l], cvw, nz_t, nz_v)
-                    for w in range(W):
-                        cv = cvw[w]
-                        for q in range(Q):
-                            hq = scales[q] // 2
-                            if abs(di) <= hq and abs(dj) <= hq:
-                                acc[q, l, w] += cv
+                    for q in range(Q):  # the boxes holding the pixel, in the pixels' order
+                        hq = scales[q] // 2
+                        if abs(di) <= hq and abs(dj) <= hq:
+                            for w in range(W):
+                                acc[q, l, w] += cvw[w]
         for l in range(L):
             cnt = 0.0
             bsum = 0.0
@@ -582,9 +581,7 @@ def recover_slopes(
     >>> bool(len(new["row"]) >= 20), bool(np.all(np.abs(err) <= 3))
     (True, True)
     """
-    R, C = spatial.shape[:2]
-    L, T = dev.shape
-    Q = scales.size
+    (R, C), L, Q = spatial.shape[:2], dev.shape[0], scales.size
     irf = np.asarray(irf, np.float64)
     h_max = int(scales.max()) // 2
     pool_idx = np.flatnonzero(scales > 1)
@@ -626,7 +623,8 @@ def recover_slopes(
             break
         planes[..., 3] *= valid
         n_tested += hr.size
-        n_arr, b_arr = _pooled(counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi)
+        pools = (counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi)
+        n_arr, b_arr = _pooled(*pools, n_jobs)
         added = _accept(
             n_arr, b_arr, valid, repl, planes, hr, hc, D, tried, new, pool_k, pool_idx,
             deltas, excl, mass, surface_pfa,
@@ -685,18 +683,24 @@ def _weak_pixels(surf: dict, R: int, C: int, presence_llr: float) -> np.ndarray:
     return weak
 
 
-def _pooled(counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi):
+def _pooled(counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi, n_jobs=1):
     """Pooled counts and background along every plane, box and shift (read by bands of
-    rows): two arrays ``(H, K, n_boxes, n_shifts, L)``."""
+    rows): two arrays ``(H, K, n_boxes, n_shifts, L)``. The holes of a band are split
+    between ``n_jobs`` threads (each hole's sums are its own: the same values)."""
     h_max = int(pool_k.max()) // 2
     shape = (hr.size, planes.shape[1], pool_k.size, deltas.size, dev.shape[0])
     n_arr, b_arr = np.zeros(shape), np.zeros(shape)
     for sel, y, y0 in _row_bands(counts, hr, h_max):
         n_b, b_b = np.zeros((sel.size,) + shape[1:]), np.zeros((sel.size,) + shape[1:])
-        pooled_counts(
-            y, y0, D, excl, sp, dev, hr[sel], hc[sel], planes[sel], pool_k, deltas, lo, hi,
-            n_b, b_b,
-        )  # fmt: skip
+        r_s, c_s, pl_s = hr[sel], hc[sel], planes[sel]
+
+        def part(a, b, y=y, y0=y0, r_s=r_s, c_s=c_s, pl_s=pl_s, n_b=n_b, b_b=b_b):
+            pooled_counts(
+                y, y0, D, excl, sp, dev, r_s[a:b], c_s[a:b], pl_s[a:b], pool_k, deltas, lo,
+                hi, n_b[a:b], b_b[a:b],
+            )  # fmt: skip
+
+        _split(sel.size, n_jobs, part)
         n_arr[sel], b_arr[sel] = n_b, b_b
     return n_arr, b_arr
 

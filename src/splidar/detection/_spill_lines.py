@@ -328,15 +328,20 @@ def _line(r0, c0, ur, uc, skip, d, s, a, floor=np.inf):
 
 
 @njit(cache=True, nogil=True)
-def _line_any(r0, c0, ur, uc, skip, d, s, a):
-    """:func:`_line`'s largest value for a return of any brightness up to ``s``: over the
-    fractions 1, 1/2, ..., of it (:data:`_N_FRACTIONS`)."""
-    best = -np.inf
+def _line_any(r0, c0, ur, uc, skip, d, s, a, level, whole=np.nan):
+    """Whether :func:`_line`'s largest value for a return of any brightness up to ``s``,
+    over the fractions 1, 1/2, ..., of it (:data:`_N_FRACTIONS`), reaches ``level``.
+    Stops at the first fraction that does (the largest value is then ``>= level``
+    whatever the others give). ``whole``: the line's value at fraction 1 when the
+    caller has it (a :func:`_line` call at ``s`` that returned below its floor: the
+    whole sum, to the bit), else NaN (computed)."""
     f = 1.0
-    for _ in range(_N_FRACTIONS):
-        best = max(best, _line(r0, c0, ur, uc, skip, d, s * f, a))
+    for k in range(_N_FRACTIONS):
+        v = whole if k == 0 and not np.isnan(whole) else _line(r0, c0, ur, uc, skip, d, s * f, a)
+        if v >= level:
+            return True
         f *= 0.5
-    return best
+    return False
 
 
 @njit(cache=True, nogil=True)
@@ -395,15 +400,17 @@ def _lines_kernel(
                 continue
             # 3. so does the line along (dr, dc) through i, j's pixel (k = 1) left out,
             # and it shows no fainter return
-            if _line(r, c, dr, dc, 1, d, s, a, -level) >= -level:
+            across = _line(r, c, dr, dc, 1, d, s, a, -level)
+            if across >= -level:
                 continue
-            if _line_any(r, c, dr, dc, 1, d, s, a) >= level:
+            # (below its floor, ``across`` is the whole sum: fraction 1 of the next test)
+            if _line_any(r, c, dr, dc, 1, d, s, a, level, across):
                 continue
             if _line(rj, cj, ur, uc, h + 1, d, s, a) < level:
                 continue  # 1. j's line does not show the return
             rf = r - dr
             cf = c - dc
-            if 0 <= rf < R and 0 <= cf < C and _line_any(rf, cf, ur, uc, h + 1, d, s, a) >= level:
+            if 0 <= rf < R and 0 <= cf < C and _line_any(rf, cf, ur, uc, h + 1, d, s, a, level):
                 continue  # 4. enclosed by a surface on both sides
             out[i] = True
             for rr in range(max(r - 1, 0), min(r + 2, R)):

@@ -261,11 +261,32 @@ class OwnBackground(_RowIndexing):
         return out
 
     def _part(self, idx) -> np.ndarray:
-        t = self.offset[idx, None] + np.arange(self.width)  # (m, W) bins
-        sp = self.spatial[self.row[idx], self.col[idx]]  # (m, L)
-        T = self.dev.shape[1]  # bins past T (a window wider than T) are outside
-        b = sp[:, :, None] + self.dev[:, np.minimum(t, T - 1)].transpose(1, 0, 2)
-        b = np.where(b < 0, b.dtype.type(0), b).astype(np.float32, copy=False)
-        inside = (t >= np.maximum(self.start, self.offset)[idx, None]) & (t < self.stop[idx, None])
-        b[~np.broadcast_to(inside[:, None, :], b.shape)] = 0.0
-        return b
+        out = np.empty((idx.size, self.dev.shape[0], self.width), np.float32)
+        _own_rows(self.spatial, self.dev, self.row, self.col, self.offset, self.start,
+                  self.stop, np.ascontiguousarray(idx, np.int64), out)  # fmt: skip
+        return out
+
+
+@njit(cache=True, nogil=True)
+def _own_rows(spatial, dev, row, col, offset, start, stop, idx, out):
+    """``out[i]`` (L, W) = :class:`OwnBackground`'s row ``idx[i]``: ``max(spatial[r, c, l]
+    + dev[l, min(t, T - 1)], 0)`` in the operands' common type, then float32, at the
+    window's bins ``t = offset + w`` inside ``[max(start, offset), stop)``, 0 elsewhere
+    (the former NumPy expression's values, element by element)."""
+    L, W, T = out.shape[1], out.shape[2], dev.shape[1]
+    for i in range(idx.size):
+        j = idx[i]
+        r, c, off = row[j], col[j], offset[j]
+        lo, hi = max(start[j], off), stop[j]
+        for l in range(L):
+            s = spatial[r, c, l]
+            for w in range(W):
+                t = off + w
+                if t >= lo and t < hi:
+                    b = s + dev[l, min(t, T - 1)]
+                    if b < 0:
+                        out[i, l, w] = 0
+                    else:
+                        out[i, l, w] = b
+                else:
+                    out[i, l, w] = 0
