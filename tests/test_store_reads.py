@@ -250,6 +250,49 @@ def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
     assert x.name not in _slopes._KEPT
 
 
+@pytest.mark.parametrize("budget", [None, 0])
+def test_row_bands_kept_cube_writes_the_items_pixels_only(tmp_path, monkeypatch, budget):
+    """``_row_bands(..., cols=)`` on a Zarr cube kept sparse: each band holds the
+    array's counts at every pixel within ``halo`` of an item (rows and columns) and
+    0 at the others, also when its buffer held another band's counts before (three
+    passes, items drawn anew, bands of the same buffers); past the byte budget
+    (``budget=0``) whole chunks are copied (the values only more complete). Without
+    ``cols`` and in memory, every pixel holds its counts."""
+    from splidar.detection import _slopes
+
+    if budget is not None:
+        monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
+    rng = np.random.default_rng(9)
+    R, C, h = 45, 23, 2
+    a = (rng.random((R, C, 1, 30)) < 0.2) * rng.integers(1, 200, (R, C, 1, 30))
+    a = a.astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, C, 1, 30), dtype=a.dtype
+    )
+    z[:] = a
+    x = da.from_zarr(tmp_path / "c.zarr")
+    with _slopes.kept_counts(x):
+        for n in (60, 3, 25):
+            rows, cols = rng.integers(0, R, n), rng.integers(0, C, n)
+            seen = []
+            for sel, band, y0 in _row_bands(x, rows, h, band=6, cols=cols):
+                near = np.zeros((R + 2 * h, C + 2 * h), bool)  # the band's items' pixels
+                for r, c in zip(rows[sel], cols[sel], strict=True):
+                    near[r : r + 2 * h + 1, c : c + 2 * h + 1] = True
+                want = a[y0 : y0 + band.shape[0]]
+                m = near[h:-h, h:-h][y0 : y0 + band.shape[0]]
+                np.testing.assert_array_equal(band[m], want[m])
+                if budget is None:  # the pixels no item reads: 0
+                    assert not band[~m].any() and want[~m].any()
+                seen.extend(sel)
+            assert sorted(seen) == list(range(n))
+        full = [(b.copy(), y0) for _, b, y0 in _row_bands(x, rows, h, band=6)]
+        for band, y0 in full:
+            np.testing.assert_array_equal(band, a[y0 : y0 + band.shape[0]])
+    for _, band, y0 in _row_bands(a, rows, h, cols=cols):
+        assert band is a and y0 == 0
+
+
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float64])
 def test_nonzero_equals_flatnonzero(dtype):
     from splidar.detection._slopes import _nonzero

@@ -170,7 +170,7 @@ def _window_fields(
     # the window the presence test reads: the new one, or the surface's own (kept)
     win = np.asarray(s.offset, np.int64)[idx].copy()
     s_pool = np.zeros((n, L))
-    for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2):
+    for sel, y, y0 in _row_bands(counts, rows, int(scales[-1]) // 2, cols=cols):
 
         def fields(a, b, sel=sel, y=y, y0=y0):
             ss = sel[a:b]

@@ -690,7 +690,7 @@ def _pooled(counts, D, excl, sp, dev, hr, hc, planes, pool_k, deltas, lo, hi, n_
     h_max = int(pool_k.max()) // 2
     shape = (hr.size, planes.shape[1], pool_k.size, deltas.size, dev.shape[0])
     n_arr, b_arr = np.zeros(shape), np.zeros(shape)
-    for sel, y, y0 in _row_bands(counts, hr, h_max):
+    for sel, y, y0 in _row_bands(counts, hr, h_max, cols=hc):
         n_b, b_b = np.zeros((sel.size,) + shape[1:]), np.zeros((sel.size,) + shape[1:])
         r_s, c_s, pl_s = hr[sel], hc[sel], planes[sel]
 
@@ -851,7 +851,7 @@ def _recovered(counts, surf, new, sp, dev, irf, scales, width, qloc, presence_ll
     )
     keys = ("offset", "histograms", "signal", "counts", "background", "presence_llr")
     keys = keys + ("presence_z",)
-    for sel, y, y0 in _row_bands(counts, rows, h_max):
+    for sel, y, y0 in _row_bands(counts, rows, h_max, cols=cols):
         part = {k: np.empty((sel.size,) + v.shape[1:], v.dtype) for k, v in o.items()}
         r_s, c_s, d_s = rows[sel], cols[sel], depth[sel]
         sp_s = np.ascontiguousarray(s_pool[sel])
@@ -918,7 +918,7 @@ def _split(n: int, n_jobs: int, fn) -> None:
 BAND_BYTES = 32_000_000
 
 
-def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
+def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64, cols=None):
     """``(selection, y, y0)`` for the items at image ``rows``: the raw counts of the rows
     they need (``y`` holds image rows from ``y0``, ``halo`` rows beyond the items').
 
@@ -929,6 +929,13 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     :func:`splidar.load` is read by whole stored chunks, each decoded once per call
     (:class:`_ChunkRows`), into kept buffers: a band ``y`` is valid in the caller's loop
     body only (the callers use it there and keep nothing of it).
+
+    ``cols`` (the items' columns, optional): the caller reads only the pixels within
+    ``halo`` of an item (Chebyshev distance, rows and columns). A cube kept sparse
+    (:func:`kept_counts`) then writes only those pixels' counts into the band; the
+    others read 0 (in memory, and unkept lazy cubes, every pixel holds its counts).
+    The slope pass's later rounds and the depth alignment test a few hundred items per
+    band: scattering the whole band was most of their reads' cost.
     """
     R = counts.shape[0]
     rows = np.asarray(rows, np.int64)
@@ -947,11 +954,17 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
     from concurrent.futures import ThreadPoolExecutor
 
     chunked = _ChunkRows.of(counts)
+    masked = cols is not None and chunked is not None and chunked.sparse is not None
+    cols = None if cols is None else np.asarray(cols, np.int64)
 
     def read(i):
         if chunked is not None:
+            sel, y0, y1 = todo[i]
+            need = None
+            if masked:  # the pixels the items read
+                need = _near_items(rows[sel] - y0, cols[sel], (y1 - y0, counts.shape[1]), halo)
             try:
-                return chunked(todo[i][1], todo[i][2])
+                return chunked(y0, y1, need)
             except OSError as exc:  # a path the workers see and this process does not
                 logger.debug("rows read through the scheduler: %s", exc)
         return np.ascontiguousarray(_read_rows(counts, todo[i][1], todo[i][2]))
@@ -963,6 +976,17 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64):
             ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
             yield sel, y, y0
             del y
+
+
+def _near_items(r: np.ndarray, c: np.ndarray, shape: tuple, halo: int) -> np.ndarray:
+    """``(shape)`` bool: the pixels within ``halo`` (Chebyshev) of the items ``(r, c)``."""
+    from scipy.ndimage import maximum_filter
+
+    m = np.zeros(shape, np.uint8)
+    m[r, c] = 1
+    if halo > 0:
+        m = maximum_filter(m, size=2 * int(halo) + 1, mode="constant")
+    return m.astype(bool)
 
 
 #: Bytes of a Zarr cube's counts the calling process may keep, sparse, while the
@@ -1008,14 +1032,16 @@ def kept_counts(counts):
 
 class _Sparse:
     """A Zarr array's chunks of rows, each decoded once and kept as the flat indices
-    (in the chunk) and values of its nonzero entries, within :data:`SPARSE_BYTES`."""
+    (in the chunk) and values of its nonzero entries, with where each pixel's entries
+    start (``ptr``), within :data:`SPARSE_BYTES`."""
 
     def __init__(self, z):
         self.z, self.step = z, int(z.chunks[0])
         self.row = tuple(int(v) for v in z.shape[1:])
         self.per = int(np.prod(self.row))  # entries per image row
+        self.pix = int(np.prod(self.row[1:]))  # entries per pixel
         self.dtype = np.dtype(z.dtype)
-        self.chunks: dict = {}  # chunk index -> (flat indices, values), or None: decode
+        self.chunks: dict = {}  # chunk index -> (indices, values, ptr), or None: decode
         self.bytes = 0
         self.lock = threading.Lock()
         self.buf = None  # one decoded chunk
@@ -1027,7 +1053,8 @@ class _Sparse:
         return zarr_rows_into(self.z, lo, hi, self.buf[: hi - lo])
 
     def _chunk(self, k: int):
-        """``(indices, values)`` of chunk ``k``, or the decoded chunk (over budget)."""
+        """``(indices, values, ptr)`` of chunk ``k`` (pixel ``p``'s entries are
+        ``ptr[p]:ptr[p + 1]``), or the decoded chunk (over budget)."""
         if k in self.chunks and self.chunks[k] is not None:
             return self.chunks[k]
         a = self._decode(k)
@@ -1035,34 +1062,49 @@ class _Sparse:
             self.chunks[k] = None
             return a
         idx, val = _nonzero(a.reshape(-1))
-        self.bytes += idx.nbytes + val.nbytes
-        self.chunks[k] = (idx, val)
+        n_pix = a.shape[0] * self.row[0]
+        ptr = np.searchsorted(idx, np.arange(n_pix + 1, dtype=np.int64) * self.pix)
+        ptr = ptr.astype(idx.dtype)
+        self.bytes += idx.nbytes + val.nbytes + ptr.nbytes
+        self.chunks[k] = (idx, val, ptr)
         return self.chunks[k]
 
-    def rows_into(self, out: np.ndarray, y0: int, y1: int, zero: bool):
+    def rows_into(self, out: np.ndarray, y0: int, y1: int, zero: bool, need=None):
         """Rows ``[y0, y1)`` written into ``out`` (shape ``(y1 - y0,) + row``; ``zero``:
-        it holds zeros already). Returns the flat positions in ``out`` of the nonzero
-        entries written, or None when a chunk was copied whole (over the budget)."""
-        where = []
+        it holds zeros already); ``need`` (``(y1 - y0, cols)`` bool, optional): only
+        these pixels' entries are written (the others left as they are, zero with
+        ``zero``). Returns what :meth:`clear` needs to zero the entries written, or
+        None when a chunk was copied whole (over the budget)."""
+        parts, flat = [], out.reshape(-1)
+        C = self.row[0]
         with self.lock:
             for k in range(y0 // self.step, (y1 - 1) // self.step + 1):
                 lo = k * self.step
                 a, b = max(y0, lo), min(y1, lo + self.step)
-                dst = out[a - y0 : b - y0].reshape(-1)
                 got = self._chunk(k)
                 if isinstance(got, np.ndarray):
-                    dst[:] = got[a - lo : b - lo].reshape(-1)
-                    where = None
+                    out[a - y0 : b - y0] = got[a - lo : b - lo]
+                    parts = None
                     continue
-                idx, val = got
-                i0, i1 = np.searchsorted(idx, [(a - lo) * self.per, (b - lo) * self.per])
                 if not zero:
-                    dst[:] = 0
-                at = idx[i0:i1].astype(np.int64) - (a - lo) * self.per
-                dst[at] = val[i0:i1]
-                if where is not None:
-                    where.append(at + (a - y0) * self.per)
-        return None if where is None else np.concatenate(where or [np.zeros(0, np.int64)])
+                    out[a - y0 : b - y0] = 0
+                if need is None:
+                    cps = np.arange((a - lo) * C, (b - lo) * C, dtype=np.int64)
+                else:  # the needed pixels, numbered in the chunk
+                    cps = np.flatnonzero(need[a - y0 : b - y0]) + (a - lo) * C
+                shift = (lo - y0) * self.per  # a chunk entry's position in ``out``
+                idx, val, ptr = got
+                _scatter_pixels(idx, val, ptr, cps, shift, flat, False)
+                if parts is not None:
+                    parts.append((k, cps, shift))
+        return parts
+
+    def clear(self, out: np.ndarray, parts) -> None:
+        """Zero the entries :meth:`rows_into` wrote into ``out`` (its ``parts``)."""
+        flat = out.reshape(-1)
+        for k, cps, shift in parts:
+            idx, val, ptr = self.chunks[k]
+            _scatter_pixels(idx, val, ptr, cps, shift, flat, True)
 
     def pixels(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The entries ``[rows[i], cols[i]]``, ``(n,) + row[1:]``."""
@@ -1091,10 +1133,19 @@ class _Sparse:
                     t = np.repeat(lo[sel], n_mid)[:, None] + np.arange(width)
                     out[dst] = np.take_along_axis(y, t, axis=1)
                     continue
-            idx, val = got  # kept as they are once made: read without the lock
+            idx, val = got[0], got[1]  # kept as they are once made: read without the lock
             first = ((rows[sel] - k * self.step) * self.row[0] + cols[sel]) * (n_mid * n_t)
             _gather(idx, val, (first[:, None] + heads[sel]).reshape(-1), width, dst, out)
         return out.reshape((rows.size,) + mid + (width,))
+
+
+@njit(cache=True, nogil=True)
+def _scatter_pixels(idx, val, ptr, cps, shift, out, clear):  # pragma: no cover - numba
+    """``out[idx[e] + shift] = val[e]`` (0 with ``clear``) for the entries ``e`` of the
+    pixels ``cps`` (``ptr[p]:ptr[p + 1]``)."""
+    for p in cps:
+        for e in range(ptr[p], ptr[p + 1]):
+            out[idx[e] + shift] = 0 if clear else val[e]
 
 
 @njit(cache=True, nogil=True)
@@ -1203,19 +1254,21 @@ class _ChunkRows:
             self.kept[k] = a
         return a
 
-    def __call__(self, y0: int, y1: int) -> np.ndarray:
-        """The rows ``[y0, y1)`` (valid until the third call after this one)."""
+    def __call__(self, y0: int, y1: int, need=None) -> np.ndarray:
+        """The rows ``[y0, y1)`` (valid until the third call after this one); ``need``
+        (sparse only, see :meth:`_Sparse.rows_into`): the pixels whose counts are
+        written, the others 0."""
         n, t = (y1 - y0) * int(np.prod(self.row)), self.turn
         self.turn = (t + 1) % len(self.bands)
         if self.sparse is not None:  # buffers of zeros, where only the nonzeros move
             if self.bands[t].size < n:
-                self.bands[t], self.dirty[t] = np.zeros(n, self.dtype), np.zeros(0, np.int64)
+                self.bands[t], self.dirty[t] = np.zeros(n, self.dtype), []
             buf, zero = self.bands[t], self.dirty[t] is not None
             if zero:
-                buf[self.dirty[t]] = 0
+                self.sparse.clear(buf, self.dirty[t])
             out = buf[:n].reshape((y1 - y0,) + self.row)
             self.dirty[t] = None  # until written
-            self.dirty[t] = self.sparse.rows_into(out, y0, y1, zero)
+            self.dirty[t] = self.sparse.rows_into(out, y0, y1, zero, need)
             return out
         if self.bands[t].size < n:
             self.bands[t] = np.empty(n, self.dtype)

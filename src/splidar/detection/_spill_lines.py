@@ -196,7 +196,7 @@ def reject_spill_lines(
     sp = np.asarray(spatial, np.float32)
     dv = np.ascontiguousarray(dev, np.float64)
     h = int(half)
-    for sel, y, y0 in _row_bands(counts, row[test], h + 1):
+    for sel, y, y0 in _row_bands(counts, row[test], h + 1, cols=col[test]):
         part = test[sel]
 
         def run(a, b, part=part, y=y, y0=y0):
