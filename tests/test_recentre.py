@@ -114,3 +114,48 @@ def test_small_median_equals_np_median_with_ties_and_even_counts():
             vals = np.empty(16)
             vals[:n] = rng.choice([rng.normal(50, 3, n), np.round(rng.normal(50, 2, n))])
             assert _small_median(vals, srt, n) == np.median(vals[:n])
+
+
+def _grid_table(rng, R=14, C=14):
+    """A random table on an R x C image: 1-2 candidates a pixel near one plane at 50,
+    some far off it, about half kept; own counts Poisson around the plane."""
+    n_per = rng.integers(1, 3, R * C)
+    pix = np.repeat(np.arange(R * C), n_per)
+    n = pix.size
+    depth = np.where(rng.random(n) < 0.8, 50.0 + rng.normal(0, 0.7, n), rng.uniform(45, 56, n))
+    counts = rng.poisson(0.15, (n, 1, W)).astype(np.int32)
+    counts[:, 0, 6] += rng.poisson(0.8, n).astype(np.int32)  # bin 50
+    bkg = np.zeros((n, 1, W), np.float32)
+    bkg[:, :, 1:] = 0.1
+    cols = dict(
+        row=pix // C, col=pix % C, depth_bin=depth, start=np.full(n, OFFSET + 1),
+        stop=np.full(n, OFFSET + W), offset=np.full(n, OFFSET),
+        signal=rng.uniform(1.0, 4.0, (n, 1, 1)), scale_index=np.zeros(n, np.int64),
+        own_counts=counts, own_background=bkg,
+    )  # fmt: skip
+    z = np.zeros(n, np.int64)
+    return CandidateTable(cols, rng.random(n) < 0.55, np.zeros(n, np.int8), z, z, (R, C))
+
+
+def test_agreed_items_repeats_give_the_full_tables_outcome():
+    # restore_agreed repeated on the items of the pixels a round changed (and their
+    # 4-neighbours) restores, round by round, what the repeat over the whole table does
+    from splidar.detection._5_recentre import agreed_items
+
+    irf = gaussian_irf(3.0).reshape(1, -1)
+    kw = dict(irf=irf, peak=irf.argmax(axis=1), fwhm=irf_fwhm(irf), llr_level=3.0, max_kept=2)
+    rounds = []
+    for seed in range(12):
+        t = _grid_table(np.random.default_rng(seed))
+        keep_full, keep_items, items, k = t.keep.copy(), t.keep.copy(), None, 0
+        while True:
+            full = restore_agreed(t, keep_full, **kw)
+            part = restore_agreed(t, keep_items, items=items, **kw)
+            np.testing.assert_array_equal(part, full)
+            if not full.any():
+                break
+            keep_full, keep_items, k = keep_full | full, keep_items | part, k + 1
+            items = agreed_items(t, part)
+            assert items.size < t.keep.size  # a part of the table
+        rounds.append(k)
+    assert max(rounds) >= 2  # the repeats were exercised

@@ -92,10 +92,12 @@ def _agree_kernel(
     near,
     alt,
     s_alt,
+    items,
 ):
-    """For each candidate: the mean depth ``alt`` of the 4-neighbours' kept candidates
-    inside its support that agree (within ``fwhm`` of their median, one per neighbour)
-    and their mean signal ``s_alt`` (L,). NaN when fewer than ``min_agree`` agree, when
+    """For each candidate ``items[t]`` (the others' entries left as they are): the mean
+    depth ``alt`` of the 4-neighbours' kept candidates inside its support that agree
+    (within ``fwhm`` of their median, one per neighbour) and their mean signal ``s_alt``
+    (L,). NaN when fewer than ``min_agree`` agree, when
     ``alt`` lies within ``fwhm`` of another kept candidate of the pixel, and by ``near``:
     0, when it lies within ``fwhm`` of the own depth (the far moves); 2, when it does not,
     or the candidate is kept (the rejected candidates already at the agreed depth)."""
@@ -104,7 +106,8 @@ def _agree_kernel(
     who = np.empty(16, np.int64)
     srt = np.empty(16, np.float64)
     best = np.empty(4, np.int64)
-    for i in range(row.size):
+    for t in range(items.size):
+        i = items[t]
         alt[i] = np.nan
         r = row[i]
         c = col[i]
@@ -164,8 +167,9 @@ def _agree_kernel(
             s_alt[i, l] = s / cnt
 
 
-def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int):
-    """The neighbours' agreed depth and signal of each candidate (:func:`_agree_kernel`)."""
+def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int, items=None):
+    """The neighbours' agreed depth and signal of each candidate (:func:`_agree_kernel`),
+    or of the candidates ``items`` (sorted indices) only (the others' ``alt``: NaN)."""
     cols = table.columns
     R, C = table.image_shape
     row = np.asarray(cols["row"], np.int64)
@@ -173,8 +177,9 @@ def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int):
     d = np.asarray(cols["depth_bin"], np.float64)
     sel = np.asarray(cols["signal"])[np.arange(d.size), np.asarray(cols["scale_index"], np.int64)]
     order, starts = _by_pixel(row, col, (R, C))
-    alt = np.empty(d.size, np.float64)
+    alt = np.full(d.size, np.nan)
     s_alt = np.zeros((d.size, sel.shape[1]), np.float64)
+    items = np.arange(d.size) if items is None else np.asarray(items, np.int64)
     if near == 2:  # the restoration: neighbours holding that surface alone
         pix = row * C + col
         n_kept = np.bincount(pix[keep], minlength=R * C)
@@ -184,7 +189,7 @@ def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int):
     _agree_kernel(
         row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
         keep, solo, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
-        float(fwhm), int(MIN_AGREE), int(near), alt, s_alt,
+        float(fwhm), int(MIN_AGREE), int(near), alt, s_alt, items,
     )  # fmt: skip
     return alt, s_alt
 
@@ -343,6 +348,7 @@ def restore_agreed(
     fwhm: float,
     llr_level: float,
     max_kept: int,
+    items=None,
 ) -> np.ndarray:
     """Rejected candidates of pixels with no kept surface, at the depth :data:`MIN_AGREE`
     of their 4-neighbours agree on (within the FWHM, inside the candidate's run; each
@@ -355,12 +361,17 @@ def restore_agreed(
     Not beside a kept surface, and not from neighbours holding two: on the net (strands
     in front of an object) the strands' spread into the open pixels agrees with itself
     (``benchmarks/README.md``, "depth22, session 15").
+
+    ``items`` (sorted candidate indices, whole pixels): only those are tested (the others
+    False); a candidate's outcome depends on ``keep`` in its pixel and its 4-neighbours
+    only, so a repeat after a round need only test those pixels' candidates
+    (:func:`agreed_items`).
     """
     out = np.zeros(keep.size, bool)
     if not keep.size or "own_counts" not in table.columns:
         return out
     d = np.asarray(table.columns["depth_bin"], np.float64)
-    alt, s_alt = _agreed(table, np.asarray(keep, bool), fwhm, near=2)
+    alt, s_alt = _agreed(table, np.asarray(keep, bool), fwhm, near=2, items=items)
     ii = np.flatnonzero(np.isfinite(alt))
     if ii.size:
         l_a = _own_llrs(table, ii, d[ii], s_alt[ii], irf, peak)
@@ -368,3 +379,18 @@ def restore_agreed(
         ok = _restore(table, keep, ii, l_a, llr_level, np.inf, max_kept, ~keep[ii])
         out[ii[ok]] = True
     return out
+
+
+def agreed_items(table: CandidateTable, changed: np.ndarray) -> np.ndarray:
+    """The candidates (sorted indices) in the pixels of the candidates ``changed`` (n,)
+    bool and in those pixels' 4-neighbours: the ones whose :func:`restore_agreed`
+    outcome a change of ``keep`` at ``changed`` can alter (its ``items`` for the next
+    round)."""
+    R, C = table.image_shape
+    row = np.asarray(table.columns["row"], np.int64)
+    col = np.asarray(table.columns["col"], np.int64)
+    near = np.zeros((R + 2, C + 2), bool)
+    r, c = row[changed] + 1, col[changed] + 1
+    for dr, dc in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)):
+        near[r + dr, c + dc] = True
+    return np.flatnonzero(near[row + 1, col + 1])

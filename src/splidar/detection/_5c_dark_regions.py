@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from ._5_recentre import restore_agreed
+from ._5_recentre import agreed_items, restore_agreed
 from ._quality import rescue_dark
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
@@ -71,12 +71,14 @@ def restore_dark_regions(
         pfa=pfa,
         llr_level=llr_level,
     )
-    keep = table.keep | res
+    keep, items = table.keep | res, None
     while agreed:  # repeated while it restores (a restored pixel is a neighbour too)
         more = restore_agreed(
-            table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level, max_kept=max_kept
-        )
+            table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level,
+            max_kept=max_kept, items=items,
+        )  # fmt: skip
         if not more.any():
             break
         keep = keep | more
+        items = agreed_items(table, more)  # only those pixels' outcomes can change
     return with_keep("dark_regions", table, keep, t0)
