@@ -1063,10 +1063,11 @@ def _correlate_direct_kernel(x, g, peak, left, out):
     reflection (scipy.ndimage ``mode="reflect"``, the sources precomputed), then the
     float32 taps ``g`` are summed in float32 by :func:`_tap_sweeps` (twice the vector
     lanes of float64: -28 % on this pass; the values move by at most one float32 step
-    against float64 sums, benchmarks/README.md "branch speed23"). The loops index views
-    from 0, so they vectorise (the former kernel's ``xp[left + u]`` did not: 1.6 -> 0.95
-    ns a sample, benchmarks/README.md "cor37"). Each pixel's series is filtered on its
-    own, so the result does not depend on blocks, threads or tiles.
+    against float64 sums, benchmarks/README.md "branch speed23"). The row is written
+    through a view indexed from 0 (the former ``xp[left + u]`` and the sweeps through an
+    accumulator: 1.6 -> 0.95 ns a sample, benchmarks/README.md "cor37"). Each pixel's
+    series is filtered on its own, so the result does not depend on blocks, threads or
+    tiles.
     """
     M, L, T = x.shape
     n = g.shape[1]
