@@ -454,6 +454,64 @@ def test_correlator_direct_matches_reference_and_fft(dtype):
         np.testing.assert_allclose(c(y), ref, rtol=0, atol=2e-6 * np.abs(ref).max())
 
 
+def _one_group_per_sweep(x, g, peak):
+    """The former ``_correlate_direct_kernel`` in NumPy float32: a zeroed accumulator,
+    one four-tap group ``(g0 a + g1 b) + (g2 c + g3 e)`` added per sweep, then the last
+    ``n % 4`` taps one at a time; rows mirrored like scipy.ndimage ``mode="reflect"``."""
+    M, L, T = x.shape
+    n = g.shape[1]
+    out = np.empty((M, L, T), np.float32)
+    for l in range(L):
+        idx = np.arange(T)[:, None] - peak[l] + np.arange(n)[None, :]
+        m = np.mod(idx, 2 * T)
+        idx = np.where(m >= T, 2 * T - 1 - m, m)
+        xp = x[:, l, :].astype(np.float32)[:, idx]  # (M, T, n)
+        acc = np.zeros((M, T), np.float32)
+        j = 0
+        while j + 4 <= n:
+            q = [g[l, j + i] * xp[:, :, j + i] for i in range(4)]
+            acc = acc + ((q[0] + q[1]) + (q[2] + q[3]))
+            j += 4
+        for i in range(j, n):
+            acc = acc + g[l, i] * xp[:, :, i]
+        out[:, l] = acc
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float64])
+def test_tap_sweeps_equal_one_group_per_sweep_bit_for_bit(dtype):
+    # two groups per sweep and the remainder fused into the last group's sweep: the
+    # same float32 additions in the same order per output bin as the former kernel, for
+    # every IRF length 1..60 (odd and even, every remainder), peaks anywhere (mirrored
+    # margins past either end, several reflections when T is shorter than the IRF)
+    from splidar.detection._fast import _correlate_direct_kernel, _mirror_index, _tap_sweeps
+
+    rng = np.random.default_rng(11)
+    assert _mirror_index(2, 3, 4).tolist() == [1, 0, 2, 1, 0, 0]
+    for n in range(1, 61):
+        for T in (3, 17, 150):
+            L = 2
+            if dtype == np.uint16:
+                x = rng.poisson(rng.choice([0.1, 4.0, 300.0]), (3, L, T)).astype(dtype)
+            else:
+                x = rng.standard_normal((3, L, T)) * 10.0 ** rng.uniform(-3, 3)
+            g = rng.gamma(2.0, 1.0, (L, n))
+            g = (g / g.sum(axis=1, keepdims=True)).astype(np.float32)
+            g[0, rng.integers(n)] *= -1  # a negative tap: cancellations in the sums
+            peak = rng.integers(0, n, L).astype(np.int64)
+            out = np.full(x.shape, np.nan, np.float32)
+            _correlate_direct_kernel(x, g, peak, int(peak.max()), out)
+            ref = _one_group_per_sweep(x, g, peak)
+            np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))
+    # one row through the sweeps alone, the output written over stale values
+    xp = rng.standard_normal(40).astype(np.float32)
+    gl = rng.standard_normal(13).astype(np.float32)
+    o = np.full(20, 7.0, np.float32)
+    _tap_sweeps(o, xp, 3, gl, 13)
+    ref = _one_group_per_sweep(xp[None, None, 3:], gl[None, :], np.array([0]))[0, 0, :20]
+    np.testing.assert_array_equal(o.view(np.uint32), ref.view(np.uint32))
+
+
 def test_correlator_long_irf_uses_fft():
     from splidar.detection._filters import DIRECT_MAX_TAPS
 

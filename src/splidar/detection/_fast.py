@@ -978,55 +978,113 @@ def window_means(rows: np.ndarray, col_starts: np.ndarray, kc: int) -> np.ndarra
 
 
 @njit(cache=True, nogil=True)
+def _mirror_index(left, T, right):
+    """Sources in ``[0, T)`` of the ``left`` mirrored samples before a row and the
+    ``right`` ones after it (scipy.ndimage ``mode="reflect"``), once per call."""
+    idx = np.empty(left + right, np.int64)
+    for u in range(left):
+        idx[u] = _refl(u - left, T)
+    for u in range(right):
+        idx[left + u] = _refl(T + u, T)
+    return idx
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tap_sweeps(o, xp, base, gl, n):
+    """``o[t] = sum_j gl[j] xp[base + t + j]`` in float32, summed as
+    ``((0 + G_0) + G_1) + ... + r_0 + r_1 ...`` with ``G_k`` the four-tap group
+    ``(g0 a + g1 b) + (g2 c + g3 e)`` and ``r_i`` the last ``n % 4`` taps one at a time
+    (the order of the former one-group-per-sweep kernel: the same bits). Two groups
+    per sweep over ``o``, the remainder fused into the last group's sweep; every loop
+    runs over ``t`` with the taps in registers (vectorised)."""
+    T = o.shape[0]
+    z = np.float32(0.0)
+    if n < 8:
+        for t in range(T):
+            o[t] = z
+    j = 0
+    while n - j >= 8:
+        a = xp[base + j :]
+        g0, g1, g2, g3 = gl[j], gl[j + 1], gl[j + 2], gl[j + 3]
+        h0, h1, h2, h3 = gl[j + 4], gl[j + 5], gl[j + 6], gl[j + 7]
+        if j == 0:
+            for t in range(T):
+                s = z + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+                o[t] = s + ((h0 * a[t + 4] + h1 * a[t + 5]) + (h2 * a[t + 6] + h3 * a[t + 7]))
+        else:
+            for t in range(T):
+                s = o[t] + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+                o[t] = s + ((h0 * a[t + 4] + h1 * a[t + 5]) + (h2 * a[t + 6] + h3 * a[t + 7]))
+        j += 8
+    a = xp[base + j :]
+    r = n - j
+    if r >= 4:
+        g0, g1, g2, g3 = gl[j], gl[j + 1], gl[j + 2], gl[j + 3]
+        if r == 4:
+            for t in range(T):
+                o[t] = o[t] + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+        elif r == 5:
+            h0 = gl[j + 4]
+            for t in range(T):
+                s = o[t] + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+                o[t] = s + h0 * a[t + 4]
+        elif r == 6:
+            h0, h1 = gl[j + 4], gl[j + 5]
+            for t in range(T):
+                s = o[t] + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+                o[t] = (s + h0 * a[t + 4]) + h1 * a[t + 5]
+        else:
+            h0, h1, h2 = gl[j + 4], gl[j + 5], gl[j + 6]
+            for t in range(T):
+                s = o[t] + ((g0 * a[t] + g1 * a[t + 1]) + (g2 * a[t + 2] + g3 * a[t + 3]))
+                o[t] = ((s + h0 * a[t + 4]) + h1 * a[t + 5]) + h2 * a[t + 6]
+    elif r >= 1:
+        g0 = gl[j]
+        if r == 1:
+            for t in range(T):
+                o[t] = o[t] + g0 * a[t]
+        elif r == 2:
+            g1 = gl[j + 1]
+            for t in range(T):
+                o[t] = (o[t] + g0 * a[t]) + g1 * a[t + 1]
+        else:
+            g1, g2 = gl[j + 1], gl[j + 2]
+            for t in range(T):
+                o[t] = ((o[t] + g0 * a[t]) + g1 * a[t + 1]) + g2 * a[t + 2]
+
+
+@njit(cache=True, nogil=True)
 def _correlate_direct_kernel(x, g, peak, left, out):
     """``out[m, l, t] = sum_j g[l, j] x[m, l, t - peak[l] + j]``, mirrored edges.
 
     ``x`` (M, L, T) of any numeric dtype, ``out`` (M, L, T) float32; each row is
-    extended by ``left`` samples on the left (and what the IRF needs on the right) by
-    half-sample symmetric reflection (scipy.ndimage ``mode="reflect"``) into a float32
-    buffer, then the float32 taps ``g`` are summed in float32 four taps at a time,
-    vectorised over t (twice the vector lanes of float64: -28 % on this pass; the
-    values move by at most one float32 step against float64 sums, benchmarks/README.md
-    "branch speed23"). Each pixel's series is filtered on its own, so the result does
-    not depend on blocks, threads or tiles.
+    converted into one float32 buffer reused across rows and extended by ``left``
+    samples on the left (and what the IRF needs on the right) by half-sample symmetric
+    reflection (scipy.ndimage ``mode="reflect"``, the sources precomputed), then the
+    float32 taps ``g`` are summed in float32 by :func:`_tap_sweeps` (twice the vector
+    lanes of float64: -28 % on this pass; the values move by at most one float32 step
+    against float64 sums, benchmarks/README.md "branch speed23"). The row is written
+    through a view indexed from 0 (the former ``xp[left + u]`` and the sweeps through an
+    accumulator: 1.6 -> 0.95 ns a sample, benchmarks/README.md "cor37"). Each pixel's
+    series is filtered on its own, so the result does not depend on blocks, threads or
+    tiles.
     """
     M, L, T = x.shape
     n = g.shape[1]
     right = n  # at most n - 1 - min(peak) samples are read past the end
     xp = np.empty(left + T + right, np.float32)
-    acc = np.empty(T, np.float32)
+    idx = _mirror_index(left, T, right)
+    mid = xp[left : left + T]
     for m in range(M):
         for l in range(L):
             row = x[m, l]
             for u in range(T):
-                xp[left + u] = np.float32(row[u])
+                mid[u] = np.float32(row[u])
             for u in range(left):
-                xp[u] = np.float32(row[_refl(u - left, T)])
-            for u in range(left + T, left + T + right):
-                xp[u] = np.float32(row[_refl(u - left, T)])
-            for t in range(T):
-                acc[t] = np.float32(0.0)
-            base = left - peak[l]
-            # four taps per sweep over t: a quarter of the loads and stores of acc
-            j = 0
-            while j + 4 <= n:
-                g0, g1, g2, g3 = g[l, j], g[l, j + 1], g[l, j + 2], g[l, j + 3]
-                a = xp[base + j : base + j + T]
-                b = xp[base + j + 1 : base + j + 1 + T]
-                c = xp[base + j + 2 : base + j + 2 + T]
-                e = xp[base + j + 3 : base + j + 3 + T]
-                for t in range(T):
-                    acc[t] += (g0 * a[t] + g1 * b[t]) + (g2 * c[t] + g3 * e[t])
-                j += 4
-            while j < n:
-                gj = g[l, j]
-                a = xp[base + j : base + j + T]
-                for t in range(T):
-                    acc[t] += gj * a[t]
-                j += 1
-            o = out[m, l]
-            for t in range(T):
-                o[t] = acc[t]
+                xp[u] = mid[idx[u]]
+            for u in range(right):
+                xp[left + T + u] = mid[idx[left + u]]
+            _tap_sweeps(out[m, l], xp, left - peak[l], g[l], n)
 
 
 def correlate_direct(
