@@ -270,7 +270,7 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
     r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
     c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
     m = 0
-    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    s = _NO_MOMENTS
     for rr in range(r_lo, r_hi):
         for cc in range(c_lo, c_hi):
             if lab[rr, cc] != x or (skip_self and rr == r and cc == c):
@@ -278,20 +278,12 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
             u, v, z = float(rr - r), float(cc - c), depth[rr, cc]
             buf[0, m], buf[1, m], buf[2, m] = z, u, v
             m += 1
-            n += 1.0
-            sr += u
-            sc += v
-            srr += u * u
-            src += u * v
-            scc += v * v
-            sd += z
-            srd += u * z
-            scd += v * z
-    if n < min_m:
+            s = _add_moments(s, u, v, z)
+    if s[0] < min_m:
         return np.nan
-    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
+    if _degenerate(s):
         return np.median(buf[0, :m])
-    c0, c1, c2 = _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)
+    c0, c1, c2 = _solve_sym3(*s)
     dropped = False
     for i in range(m):
         if abs(c0 + c1 * buf[1, i] + c2 * buf[2, i] - buf[0, i]) > gate:
@@ -299,24 +291,39 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
             break
     if not dropped:
         return c0
-    value = c0
-    n = sr = sc = srr = src = scc = sd = srd = scd = 0.0
+    s = _NO_MOMENTS
     for i in range(m):
         z, u, v = buf[0, i], buf[1, i], buf[2, i]
         if abs(c0 + c1 * u + c2 * v - z) > gate:
             continue
-        n += 1.0
-        sr += u
-        sc += v
-        srr += u * u
-        src += u * v
-        scc += v * v
-        sd += z
-        srd += u * z
-        scd += v * z
-    if n < 3.0 or abs(_det_sym3(n, sr, sc, srr, src, scc)) < 1e-9 * max(n, 1.0) ** 3:
-        return value
-    return _solve_sym3(n, sr, sc, srr, src, scc, sd, srd, scd)[0]
+        s = _add_moments(s, u, v, z)
+    if _degenerate(s):
+        return c0
+    return _solve_sym3(*s)[0]
+
+
+# the plane fit's sums (n, sr, sc, srr, src, scc, sd, srd, scd) before any member
+_NO_MOMENTS = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_moments(s, u, v, z):  # pragma: no cover - numba
+    """The plane fit's 9 sums ``s`` = ``(n, sr, sc, srr, src, scc, sd, srd, scd)``
+    with the member at offsets ``(u, v)`` and depth ``z`` added (each sum's terms in
+    the members' order, as :func:`_window_plane`'s scans add them)."""
+    return (
+        s[0] + 1.0, s[1] + u, s[2] + v, s[3] + u * u, s[4] + u * v, s[5] + v * v,
+        s[6] + z, s[7] + u * z, s[8] + v * z,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _degenerate(s) -> bool:  # pragma: no cover - numba
+    """Fewer than 3 members, or members on one line: no plane through the sums ``s``."""
+    return (
+        s[0] < 3.0
+        or abs(_det_sym3(s[0], s[1], s[2], s[3], s[4], s[5])) < 1e-9 * max(s[0], 1.0) ** 3
+    )
 
 
 @njit(cache=True, nogil=True)
