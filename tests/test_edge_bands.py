@@ -327,14 +327,21 @@ class _Lazy:
         return self.a[key]
 
 
-def test_likelihoods_window_read_equals_whole_series_on_any_threads(monkeypatch):
-    from splidar.detection import _7b_edge_bands as eb
-
-    rng = np.random.default_rng(5)
+def _every_pixel_two_depths(rng):
+    """Counts of the dim-layer scene and every pixel with its two depths, each moved by
+    up to 3 bins (``rng``'s draws in the order the tests made them)."""
     counts = rng.poisson(_lam(2.0)).astype(np.uint16)
     rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
     dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
     dep += rng.uniform(-3, 3, dep.shape)
+    return counts, rows, cols, dep
+
+
+def test_likelihoods_window_read_equals_whole_series_on_any_threads(monkeypatch):
+    from splidar.detection import _7b_edge_bands as eb
+
+    rng = np.random.default_rng(5)
+    counts, rows, cols, dep = _every_pixel_two_depths(rng)
     dep[:3] = [[-5.0, T + 5.0]] * 3  # clipped at the window's ends
     ref = eb._likelihoods(_Lazy(counts), _background(), rows, cols, dep, IRF)
     monkeypatch.setattr(eb, "_BLOCK", 37)  # several blocks
@@ -538,10 +545,7 @@ def test_likelihoods_memo_gives_the_values_computed_anew(monkeypatch):
     from splidar.detection import _7b_edge_bands as eb
 
     rng = np.random.default_rng(8)
-    counts = rng.poisson(_lam(2.0)).astype(np.uint16)
-    rows, cols = (a.ravel() for a in np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]])
-    dep = np.stack([np.full(rows.size, D_BRIGHT), np.full(rows.size, D_DIM)], axis=1)
-    dep += rng.uniform(-3, 3, dep.shape)
+    counts, rows, cols, dep = _every_pixel_two_depths(rng)
     memo = eb.LikelihoodMemo()
     first = eb._likelihoods(counts, _background(), rows, cols, dep, IRF, memo=memo)
     want = eb._likelihoods(counts, _background(), rows, cols, dep, IRF)
