@@ -40,8 +40,9 @@ surfaces removed per scene (a removed unmatched surface changes no match).
 With ``--layer`` (lay38, session 26) the line rules are gated by stage 7d's layered
 regions (``_7d_layer_evidence.layer_evidence``: a pixel's depths continuing as pairs,
 counted in a window and tested against the null's ``surface_pfa``; whole image and 15
-pixels): a candidate is tested only where no layer is shown. Printed per cube: F_true
-and false surfaces (``evaluate``, tau 3 bins) before and after each gated rule.
+pixels): a candidate is tested only where no layer is shown (``line_open`` with the whole
+image is the module's ``spread_lines``, checked equal on every cube). Printed per cube:
+F_true and false surfaces (``evaluate``, tau 3 bins) before and after each gated rule.
 
 With ``--grid`` the cubes are instead ``bench_detection.py``'s 64 cells (64 x 64,
 single surface and two layers, PPP 1-50, SBR 0.1-10, both backgrounds; its ``--seed``'s
@@ -71,7 +72,7 @@ from bench_false_surfaces import LAYER, false_causes, false_kinds, net_scene, sh
 from splidar.detection import STAGES, detect
 from splidar.detection._7b_edge_bands import _windows, group_llr, profile_llr
 from splidar.detection._7c_spread_groups import GATE_FWHM, _slots, spread_groups
-from splidar.detection._7d_layer_evidence import layer_evidence
+from splidar.detection._7d_layer_evidence import layer_evidence, spread_lines
 from splidar.detection._filters import irf_fwhm
 from splidar.metrics import PointSet, evaluate
 from splidar.scenes import single_surface_scene, two_layer_scene
@@ -319,6 +320,11 @@ def layer_gated(d, a, surface_pfa: float = 0.01) -> dict:
             keep = np.ones(len(pts), bool)
             keep[a["cand"][rm]] = False
             out[(rule, radius)] = score(keep)
+            if rule == "line_open" and radius is None:  # the module's rule: the same
+                sl = spread_lines(s.row, s.col, s.depth_bin, s.image_shape, d["counts"],
+                                  d["background"], fwhm=gate / GATE_FWHM, irf=d["irf"],
+                                  half=d["half"], surface_pfa=surface_pfa)  # fmt: skip
+                assert np.array_equal(sl.remove, np.sort(a["cand"][rm]))
     return out
 
 

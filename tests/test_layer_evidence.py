@@ -6,7 +6,15 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from splidar.detection._7d_layer_evidence import LAYER_GATE, depth_slots, layer_evidence
+from splidar import gaussian_irf
+from splidar.detection._7d_layer_evidence import (
+    LAYER_GATE,
+    depth_slots,
+    layer_evidence,
+    line_llr,
+    spread_lines,
+)
+from splidar.detection._result import Background
 
 SHAPE = (40, 48)
 D_NEAR, D_FAR, D_SHEET = 30.0, 62.0, 12.0
@@ -112,3 +120,95 @@ def test_depth_slots_pads_and_counts():
 def test_layer_gate_is_off():
     # measured, not adopted (benchmarks/README.md, "lay38, session 26")
     assert LAYER_GATE is False
+
+
+# --- the rule it gates: spread_lines (spr36's line_open outside the layered windows) ---
+
+IRF = gaussian_irf(3.0)[None, :]  # (1, 13), FWHM 3 bins
+T = 100
+SMALL = (20, 24)
+BG = 0.02  # background counts per bin
+SPREAD_COL = 12  # the first column of the dim region, holding the bright depth too
+
+
+def _pulse(d: float, photons: float) -> np.ndarray:
+    t = np.arange(T)
+    g = np.exp(-0.5 * ((t - d) / (3.0 / 2.3548)) ** 2)
+    return photons * g / g.sum()
+
+
+def _counts(sheet_cols=(), seed: int = 0) -> np.ndarray:
+    """Bright region (columns < SPREAD_COL, depth 30, 12 photons) beside a dim one
+    (depth 62, 3 photons); ``sheet_cols``: a sheet at depth 12 (6 photons) in front,
+    hiding the dim object entirely (no return of it in their counts)."""
+    lam = np.full(SMALL + (1, T), BG)
+    for c in range(SMALL[1]):
+        if c in sheet_cols:
+            lam[:, c, 0] += _pulse(D_SHEET, 6.0)
+        else:
+            lam[:, c, 0] += _pulse(D_NEAR, 12.0) if c < SPREAD_COL else _pulse(D_FAR, 3.0)
+    return np.random.default_rng(seed).poisson(lam).astype(np.uint16)
+
+
+def _small_surfaces(further):
+    """Each pixel its region's depth; ``further``: (column, depth) held by every row."""
+    R, C = SMALL
+    row, col = (a.ravel() for a in np.mgrid[0:R, 0:C])
+    depth = np.where(col < SPREAD_COL, D_NEAR, D_FAR).astype(np.float64)
+    for c, d in further:
+        row = np.concatenate([row, np.arange(R)])
+        col = np.concatenate([col, np.full(R, c)])
+        depth = np.concatenate([depth, np.full(R, d)])
+    return row, col, depth
+
+
+def _spread_lines(further, counts):
+    row, col, depth = _small_surfaces(further)
+    bg = Background(
+        spatial=np.full(SMALL + (1,), BG, np.float32), temporal=np.full((1, T), BG, np.float32)
+    )
+    out = spread_lines(
+        row, col, depth, SMALL, counts, bg, fwhm=3.0, irf=IRF, half=HALF, surface_pfa=PFA
+    )
+    return out, (row, col, depth), bg
+
+
+def test_spread_lines_removes_a_spread_strip_in_a_single_surface_scene():
+    out, (row, col, depth), _ = _spread_lines([(SPREAD_COL, D_NEAR)], _counts())
+    assert not out.layers.layered.any()
+    strip = np.flatnonzero((col == SPREAD_COL) & (depth == D_NEAR))
+    np.testing.assert_array_equal(out.remove, np.sort(strip))
+    # the strip pixels' own (dim) surfaces stay: their line holds the return
+    assert out.level > 0
+
+
+def test_spread_lines_keeps_a_hidden_layer():
+    # a sheet over columns 12-17 hides the dim object (no return of it in the counts):
+    # the object's surfaces there fail every line, but the scene shows a second layer
+    sheet = range(SPREAD_COL, SPREAD_COL + 6)
+    further = [(c, D_SHEET) for c in sheet]
+    out, (row, col, depth), bg = _spread_lines(further, _counts(sheet_cols=sheet))
+    assert out.layers.layered.all()
+    assert out.remove.size == 0 and not out.tested.any()
+    hidden = np.flatnonzero(np.isin(col, list(sheet)) & (depth == D_FAR))
+    D, n = depth_slots(row, col, depth, SMALL)
+    lines = line_llr(D, n, row[hidden], col[hidden], depth[hidden], _counts(sheet_cols=sheet),
+                     bg, IRF, gate=4.5, half=HALF)  # fmt: skip
+    assert (lines.max(axis=1) < out.level).mean() > 0.5
+
+
+def test_line_llr_open_pool_leaves_out_the_source_region():
+    # a spread strip's line across the edge: open, the bright region's single-surface
+    # pixels are left out and only the strip's own (empty) counts remain; pooled over
+    # every pixel the line reaches the bright return
+    row, col, depth = _small_surfaces([(SPREAD_COL, D_NEAR)])
+    bg = Background(
+        spatial=np.full(SMALL + (1,), BG, np.float32), temporal=np.full((1, T), BG, np.float32)
+    )
+    D, n = depth_slots(row, col, depth, SMALL)
+    i = np.flatnonzero((row == 10) & (col == SPREAD_COL) & (depth == D_NEAR))
+    args = (D, n, row[i], col[i], depth[i], _counts(), bg, IRF)
+    closed = line_llr(*args, gate=4.5, half=HALF, open_pool=False)[0]
+    opened = line_llr(*args, gate=4.5, half=HALF)[0]
+    assert closed[0] > 20.0  # left-right: the bright region
+    assert opened[0] < 3.0 and opened[1] < 3.0  # the strip alone

@@ -27,15 +27,25 @@ the detection's geometry alone:
   window is *layered* when ``P(N >= n) < surface_pfa``: the level comes from the null,
   not from a tuned constant.
 
+**The rule it gates** (:func:`spread_lines`, spr36's ``line_open``): outside the layered
+windows, a candidate (a surface of a pixel holding two or more) that stage 7c would test
+(its depth continues on fewer than 2 of the 4 axes through its pixel) is removed when no
+line of ``2 h + 1`` pixels through it along the 4 axes holds its depth in the own counts:
+each pixel of a line at the surface nearest the line's running course within the gate
+(its own, else its 8-neighbours'), the pixels holding one surface only at the course left
+out (a spread's source region), one intensity shared by the line and profiled out
+(stage 7b's ``group_llr``), against 7c's prior level ``log((1 - q) / q)``; a pixel never
+loses every surface.
+
 Why off (benchmarks/README.md, "lay38, session 26"; ``benchmarks/bench_spread_sources.py
 --layer``): gating spr36's line rules (``line_open``, ``line_all``) by the layered
 regions keeps every true surface of the sheet and net families (0 of 18 cubes lose one,
 whole-image window) and takes issue #15's single-surface cells from 90.3 / 116.7 false
 surfaces to about 48.0 / 62.7 (1 true surface lost in 6 cubes), but on
 ``bench_detection.py``'s 64 cells the single-surface scene itself loses 47 true surfaces
-in 11 cells at PPP 1-4 (no layer to gate on: the line test, not the gate) and the
-two-layer scene at PPP 1 15 in 2 cells (too few second surfaces detected to show the
-layer): "nothing worse on any benchmark" does not hold. Kept with its tests so that a
+in 11 cells, 10 of them at PPP 1-4 (no layer to gate on: the line test, not the gate),
+and the two-layer scene at PPP 1 15 in 2 cells (too few second surfaces detected to show
+the layer): "nothing worse on any benchmark" does not hold. Kept with its tests so that a
 rule for a pixel's further surfaces can consult it.
 """
 
@@ -47,7 +57,10 @@ import numpy as np
 from numba import njit
 from scipy import ndimage, stats
 
-__all__ = ["LAYER_GATE", "LayerEvidence", "layer_evidence"]
+from ._7b_edge_bands import _windows, group_llr
+from ._7c_spread_groups import AXES, GATE_FWHM, REACH, continued_axes
+
+__all__ = ["LAYER_GATE", "LayerEvidence", "SpreadLines", "layer_evidence", "spread_lines"]
 
 #: Off: measured, not adopted (see the module). ``detect`` does not run the stage.
 LAYER_GATE = False
@@ -159,3 +172,141 @@ def layer_evidence(
     expected = float(surface_pfa) * area
     layered = stats.poisson.sf(count - 1, expected) < float(surface_pfa)
     return LayerEvidence(ev, count, expected, layered)
+
+
+@dataclass(frozen=True)
+class SpreadLines:
+    """Stage 7d's decision: the surfaces to remove (indices, ascending), 7c's prior level
+    (nats), the candidates (indices), whether each was tested (7c's axes, outside the
+    layered windows), each one's best line log-ratio (nats; NaN where not tested) and
+    the layer model."""
+
+    remove: np.ndarray
+    level: float
+    candidates: np.ndarray
+    tested: np.ndarray
+    line_llr: np.ndarray
+    layers: LayerEvidence
+
+
+_AXES4 = np.array([[0, 1], [1, 0], [1, 1], [1, -1]], np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _nearest(D, n, r, c, course, gate):
+    """The depth of pixel ``(r, c)`` nearest ``course`` within ``gate`` (NaN: none)."""
+    best, out = gate, np.nan
+    for k in range(min(n[r, c], D.shape[2])):
+        e = abs(D[r, c, k] - course)
+        if e <= best and (np.isnan(out) or e < abs(out - course)):
+            best, out = e, D[r, c, k]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _line_pools(D, n, rows, cols, depth, gate, h, open_pool):
+    """Rows, columns, depths and line (``4 * candidate + axis``) of the pixels pooled on
+    the 4 axes through each candidate (see the module; ``open_pool``: the pixels holding
+    one surface only at the course left out)."""
+    R, C, _ = D.shape
+    m = rows.size * 4 * (2 * h + 1)
+    orow, ocol = np.empty(m, np.int64), np.empty(m, np.int64)
+    odep, ogrp = np.empty(m, np.float64), np.empty(m, np.int64)
+    j = 0
+    for i in range(rows.size):
+        for a in range(4):
+            dr, dc = _AXES4[a, 0], _AXES4[a, 1]
+            orow[j], ocol[j], odep[j], ogrp[j] = rows[i], cols[i], depth[i], 4 * i + a
+            j += 1
+            for sgn in (1, -1):
+                course = depth[i]
+                for k in range(1, h + 1):
+                    r, c = rows[i] + sgn * k * dr, cols[i] + sgn * k * dc
+                    if r < 0 or r >= R or c < 0 or c >= C:
+                        break
+                    own = _nearest(D, n, r, c, course, gate)
+                    if not np.isnan(own):
+                        course = own
+                        if open_pool and n[r, c] == 1:
+                            continue
+                    else:
+                        best = np.nan
+                        for rr in range(max(r - 1, 0), min(r + 2, R)):
+                            for cc in range(max(c - 1, 0), min(c + 2, C)):
+                                x = _nearest(D, n, rr, cc, course, gate)
+                                if not np.isnan(x) and (
+                                    np.isnan(best) or abs(x - course) < abs(best - course)
+                                ):
+                                    best = x
+                        if not np.isnan(best):
+                            course = best
+                    orow[j], ocol[j], odep[j], ogrp[j] = r, c, course, 4 * i + a
+                    j += 1
+    return orow[:j], ocol[:j], odep[:j], ogrp[:j]
+
+
+def line_llr(D, n, rows, cols, depth, counts, background, irf, *, gate, half, open_pool=True):
+    """(m, 4) the profiled log-ratios (nats) of the 4 lines through each of ``m``
+    surfaces at ``(rows, cols, depth)`` (see the module); ``D, n``: :func:`depth_slots`."""
+    if rows.size == 0:
+        return np.zeros((0, 4))
+    r, c, d, g = _line_pools(D, n, np.asarray(rows, np.int64), np.asarray(cols, np.int64),
+                             np.asarray(depth, np.float64), float(gate), int(half),
+                             bool(open_pool))  # fmt: skip
+    y, gg, b = _windows(counts, background, r, c, d, irf)
+    return group_llr(y, gg, b, g).reshape(rows.size, 4)
+
+
+def spread_lines(
+    row, col, depth, image_shape, counts, background, *, fwhm: float, irf, half: int,
+    surface_pfa: float,
+) -> SpreadLines:  # fmt: skip
+    """Stage 7d's decision on the surfaces at ``(row, col, depth)`` (see the module).
+
+    Parameters
+    ----------
+    row, col : ndarray (S,) int
+    depth : ndarray (S,) float
+        Bins (after stage 7).
+    image_shape : (int, int)
+    counts : ndarray (rows, cols, L, T)
+        The cube's raw counts.
+    background : Background
+    fwhm : float
+        The IRF's FWHM (bins).
+    irf : ndarray (L, n_irf)
+    half : int
+        The largest box's half-width (pixels).
+    surface_pfa : float
+        The null's false surfaces per background-only pixel (:func:`layer_evidence`).
+
+    Returns
+    -------
+    SpreadLines
+    """
+    row, col = np.asarray(row, np.int64), np.asarray(col, np.int64)
+    depth = np.asarray(depth, np.float64)
+    R, C = image_shape
+    gate = GATE_FWHM * float(fwhm)
+    pix = row * C + col
+    n_at = np.bincount(pix, minlength=R * C)
+    cand = np.flatnonzero(n_at[pix] >= 2)
+    q = float((n_at >= 2).sum()) / max(int((n_at >= 1).sum()), 1)
+    level = float(np.log((1.0 - q) / q)) if 0.0 < q < 1.0 else 0.0
+    layers = layer_evidence(row, col, depth, image_shape, gate=gate, half=half,
+                            surface_pfa=surface_pfa)  # fmt: skip
+    tested = ~layers.layered[row[cand], col[cand]]
+    if tested.any():
+        tested &= continued_axes(row, col, depth, cand, image_shape, gate, REACH) < AXES
+    llr = np.full(cand.size, np.nan)
+    t = cand[tested]
+    D, n = depth_slots(row, col, depth, image_shape)
+    irf = np.atleast_2d(np.asarray(irf, np.float64))
+    lines = line_llr(D, n, row[t], col[t], depth[t], counts, background, irf, gate=gate,
+                     half=half)  # fmt: skip
+    if t.size:
+        llr[tested] = lines.max(axis=1)
+    fail = tested & (np.nan_to_num(llr, nan=np.inf) < level)
+    passes = np.bincount(pix[cand], weights=~fail, minlength=R * C)
+    remove = cand[fail & (passes[pix[cand]] >= 1)]
+    return SpreadLines(np.sort(remove), level, cand, tested, llr, layers)
