@@ -37,6 +37,13 @@ or more):
 Figures are screening counts summed over the seeds: true surfaces removed / false
 surfaces removed per scene (a removed unmatched surface changes no match).
 
+With ``--layer`` (lay38, session 26) the line rules are gated by stage 7d's layered
+regions (``_7d_layer_evidence.layer_evidence``: a pixel's depths continuing as pairs,
+counted in a window and tested against the null's ``surface_pfa``; whole image and 15
+pixels): a candidate is tested only where no layer is shown (``line_open`` with the whole
+image is the module's ``spread_lines``, checked equal on every cube). Printed per cube:
+F_true and false surfaces (``evaluate``, tau 3 bins) before and after each gated rule.
+
 With ``--grid`` the cubes are instead ``bench_detection.py``'s 64 cells (64 x 64,
 single surface and two layers, PPP 1-50, SBR 0.1-10, both backgrounds; its ``--seed``'s
 random keys; ``detect(cube, pfa=1e-3, max_surfaces=2, rng=0)``, its options), and the
@@ -47,6 +54,7 @@ Usage::
 
     python benchmarks/bench_spread_sources.py --seeds 0 1 2 --cache DIR
     python benchmarks/bench_spread_sources.py --grid --seeds 0 --cache DIR
+    python benchmarks/bench_spread_sources.py --layer [--grid] --seeds 0 1 2 --cache DIR
 
 Nothing is downloaded; everything is simulated. Measured, not adopted (benchmarks/
 README.md, "spr36, session 24").
@@ -64,8 +72,9 @@ from bench_false_surfaces import LAYER, false_causes, false_kinds, net_scene, sh
 from splidar.detection import STAGES, detect
 from splidar.detection._7b_edge_bands import _windows, group_llr, profile_llr
 from splidar.detection._7c_spread_groups import GATE_FWHM, _slots, spread_groups
+from splidar.detection._7d_layer_evidence import layer_evidence, spread_lines
 from splidar.detection._filters import irf_fwhm
-from splidar.metrics import PointSet
+from splidar.metrics import PointSet, evaluate
 from splidar.scenes import single_surface_scene, two_layer_scene
 
 SHAPE, N_BINS = (96, 80), 200
@@ -282,12 +291,77 @@ def grid_main(args) -> int:
     return 0
 
 
+#: stage 7d's windows measured (pixels; None: the whole image) and the gated rules
+LAYER_RADII = (None, 15)
+LAYER_RULES = ("line_open", "line_all", "open_or_all")
+
+
+def layer_gated(d, a, surface_pfa: float = 0.01) -> dict:
+    """Per rule and window: (F_true, false surfaces) after removing the candidates the
+    rule fails outside stage 7d's layered regions, and the layered fraction."""
+    s, truth = d["surfaces"], d["truth"]
+    gate = GATE_FWHM * irf_fwhm(np.atleast_2d(np.asarray(d["irf"], np.float64)))
+    pts = PointSet(row=s.row, col=s.col, depth_bin=s.depth_bin, image_shape=s.image_shape)
+
+    def score(keep):
+        m = evaluate(pts.subset(keep), truth, tau=3.0)
+        return float(m.f_true), int(m.f_false)
+
+    out = {"before": score(np.ones(len(pts), bool))}
+    fails = {"line_open": a["line_open"] < a["level"], "line_all": a["line_all"] < a["level"]}
+    fails["open_or_all"] = fails["line_open"] | fails["line_all"]
+    for radius in LAYER_RADII:
+        le = layer_evidence(s.row, s.col, s.depth_bin, s.image_shape, gate=gate,
+                            half=d["half"], surface_pfa=surface_pfa, radius=radius)  # fmt: skip
+        free = ~le.layered.ravel()[a["pix"]]
+        out[("layered", radius)] = float(le.layered.mean())
+        for rule in LAYER_RULES:
+            rm = removed(a, a["tested"] & fails[rule] & free)
+            keep = np.ones(len(pts), bool)
+            keep[a["cand"][rm]] = False
+            out[(rule, radius)] = score(keep)
+            if rule == "line_open" and radius is None:  # the module's rule: the same
+                sl = spread_lines(s.row, s.col, s.depth_bin, s.image_shape, d["counts"],
+                                  d["background"], fwhm=gate / GATE_FWHM, irf=d["irf"],
+                                  half=d["half"], surface_pfa=surface_pfa)  # fmt: skip
+                assert np.array_equal(sl.remove, np.sort(a["cand"][rm]))
+    return out
+
+
+def layer_main(args) -> int:
+    """The line rules gated by stage 7d's layered regions (``--layer``)."""
+    it = grid_cubes(args.seeds[0]) if args.grid else cubes(args.seeds)
+    tot = {}
+    for name, seed, key, cell in it:
+        d = detected(name, seed, key, cell, args.cache, grid=args.grid)
+        r = layer_gated(d, analyse(d))
+        f0, n0 = r["before"]
+        txt = []
+        for radius in LAYER_RADII:
+            for rule in LAYER_RULES:
+                f1, n1 = r[(rule, radius)]
+                t = tot.setdefault((name, cell, rule, radius), [0, 0, 0])
+                t[0], t[1], t[2] = t[0] + (f1 < f0), t[1] + (n1 - n0), t[2] + (f1 - f0)
+                txt.append(f"{rule}@{radius}: {f1:.4f} / {n1}")
+        lay = " ".join(f"{r[('layered', x)]:.2f}" for x in LAYER_RADII)
+        print(f"{name:9s} {cell[0]:9s} {cell[1]:3g} {cell[2]:5g} seed {seed}: before "
+              f"{f0:.4f} / {n0}; layered {lay}; " + "; ".join(txt), flush=True)  # fmt: skip
+    print("per cell, rule @ window: cubes with F_true lower, summed change of false, of F_true")
+    for (name, cell, rule, radius), (n, df, dt) in tot.items():
+        print(f"  {name:9s} {cell[0]:9s} {cell[1]:3g} {cell[2]:5g} {rule}@{radius}: {n} lower, "
+              f"false {df:+d}, F_true {dt:+.4f}")  # fmt: skip
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--cache", help="a directory keeping each cube's detection")
     ap.add_argument("--grid", action="store_true", help="bench_detection.py's 64 cells")
+    ap.add_argument("--layer", action="store_true", help="the rules gated by stage 7d")
     args = ap.parse_args(argv)
+    if args.layer:
+        return layer_main(args)
     if args.grid:
         return grid_main(args)
     rows = {}
