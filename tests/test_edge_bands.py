@@ -659,3 +659,47 @@ def test_window_plane_one_scan_equals_the_two_scans_bit_for_bit():
                     n_drop += bool(off.any())
                     n_same += not off.any()
     assert n_drop > 20 and n_same > 20
+
+
+def _scipy_region_labels(depth, gate):
+    """The former :func:`region_labels`: scipy's connected components over every pixel."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    R, C = depth.shape
+    idx = np.arange(R * C).reshape(R, C)
+    ok = np.isfinite(depth)
+    a, b = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        c0, c1 = max(0, -dc), C - max(0, dc)
+        p = (slice(0, R - dr), slice(c0, c1))
+        q = (slice(dr, R), slice(c0 + dc, c1 + dc))
+        with np.errstate(invalid="ignore"):
+            e = ok[p] & ok[q] & (np.abs(depth[p] - depth[q]) <= gate)
+        a.append(idx[p][e])
+        b.append(idx[q][e])
+    a, b = np.concatenate(a), np.concatenate(b)
+    g = sparse.coo_matrix((np.ones(a.size), (a, b)), shape=(R * C, R * C))
+    _, lab = csgraph.connected_components(g.tocsr(), directed=False)
+    return np.where(ok, lab.reshape(R, C), -1).astype(np.int64)
+
+
+def test_region_kernel_numbers_the_components_as_scipy_did():
+    # the union-find's labels equal scipy's connected components' to the number: the
+    # order of each component's first pixel, NaN and inf pixels' numbers skipped
+    from splidar.detection._7b_edge_bands import _region_kernel, region_labels
+
+    rng = np.random.default_rng(21)
+    for trial in range(200):
+        R, C = (int(v) for v in rng.integers(1, 30, 2))
+        depth = rng.normal(0, 3, (R, C)).cumsum(axis=trial % 2)
+        depth[rng.random((R, C)) < rng.random() * 0.6] = np.nan
+        if trial % 9 == 0:
+            depth[rng.random((R, C)) < 0.3] = np.inf
+        if trial % 13 == 0:
+            depth[:] = np.nan
+        gate = float(rng.choice([0.0, 1.0, 4.5, 100.0]))
+        got = np.empty((R, C), np.int64)
+        _region_kernel(depth, gate, got)
+        assert np.array_equal(got, _scipy_region_labels(depth, gate))
+        assert np.array_equal(region_labels(depth, gate), got)
