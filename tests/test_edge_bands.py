@@ -7,6 +7,7 @@ from dataclasses import fields, replace
 
 import numpy as np
 import pytest
+from numba import njit
 
 from splidar import gaussian_irf
 from splidar.detection import STAGES
@@ -703,3 +704,57 @@ def test_region_kernel_numbers_the_components_as_scipy_did():
         _region_kernel(depth, gate, got)
         assert np.array_equal(got, _scipy_region_labels(depth, gate))
         assert np.array_equal(region_labels(depth, gate), got)
+
+
+@njit
+def _every_step_kernel(y, g, b, n_iter, out):
+    """The former ``_profile_llr_kernel``: all ``n_iter`` Newton steps (compiled by numba
+    as the library's, so its arithmetic is the same)."""
+    n, L, W = y.shape
+    ya, ga, ba = np.empty(L * W), np.empty(L * W), np.empty(L * W)
+    for i in range(n):
+        G = slope = yg = 0.0
+        m = 0
+        for l in range(L):
+            for t in range(W):
+                G += g[i, l, t]
+                if y[i, l, t] > 0:
+                    slope += y[i, l, t] * g[i, l, t] / b[i, l, t]
+                    yg += y[i, l, t] * g[i, l, t]
+                    ya[m], ga[m], ba[m] = y[i, l, t], g[i, l, t], b[i, l, t]
+                    m += 1
+        if not slope > G:
+            out[i] = 0.0
+            continue
+        s = max(yg / max(G, 1e-12), 1e-3)
+        for _ in range(n_iter):
+            d1, d2 = -G, 0.0
+            for k in range(m):
+                q = ya[k] * ga[k] / (ba[k] + s * ga[k])
+                d1 += q
+                d2 -= q * ga[k] / (ba[k] + s * ga[k])
+            if d2 < 0:
+                s = max(s - d1 / d2, 0.0)
+        llr = -s * G
+        for k in range(m):
+            llr += ya[k] * np.log1p(s * ga[k] / ba[k])
+        out[i] = max(llr, 0.0)
+
+
+def test_profile_llr_stops_at_the_fixed_point_with_every_steps_value():
+    # the Newton steps stop once one leaves s as it was: the values of all 30 steps to
+    # the bit (strong, weak and absent returns, zero background, counts in one bin)
+    rng = np.random.default_rng(22)
+    n, L, W = 300, 2, 15
+    g = np.abs(rng.normal(0, 1, (n, L, W))) * (rng.random((n, L, W)) < 0.7)
+    g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
+    b = rng.choice([1e-6, 0.01, 0.3, 2.0], (n, 1, 1)) * rng.uniform(0.5, 1.5, (n, L, W))
+    y = rng.poisson(rng.choice([0.0, 0.05, 0.5, 5.0, 50.0], (n, 1, 1)) * g + b).astype(float)
+    y[::7] = 0.0
+    y[3::11, :, 1:] = 0.0
+    for n_iter in (0, 1, 3, 30):
+        got = profile_llr(y, g, b, n_iter=n_iter)
+        want = np.empty(n)
+        _every_step_kernel(y, g, b, n_iter, want)
+        assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
+    assert (got > 0).sum() > 100

@@ -420,7 +420,10 @@ def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
 def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
     """:func:`profile_llr`, one pixel at a time. The bins without counts add nothing to
     the sums over ``y``: each pixel's bins with counts are gathered first (in the same
-    order) and the Newton steps run over them alone, the same sums term by term."""
+    order) and the Newton steps run over them alone, the same sums term by term. A step
+    is a function of ``s`` alone, so once one leaves ``s`` as it was (a nonzero fixed
+    point, or no step taken) every later one would too: the steps stop there, with the
+    same ``s`` to the bit as all ``n_iter`` of them."""
     n, L, W = y.shape
     ya = np.empty(L * W)
     ga = np.empty(L * W)
@@ -449,8 +452,12 @@ def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
                 q = ya[k] * ga[k] / (ba[k] + s * ga[k])
                 d1 += q
                 d2 -= q * ga[k] / (ba[k] + s * ga[k])
-            if d2 < 0:
-                s = max(s - d1 / d2, 0.0)
+            if not d2 < 0:
+                break  # s stays: every later step the same
+            step = max(s - d1 / d2, 0.0)
+            if step == s and s != 0.0:
+                break  # a fixed point (the same bits): every later step the same
+            s = step
         llr = -s * G
         for k in range(m):
             llr += ya[k] * np.log1p(s * ga[k] / ba[k])
