@@ -758,3 +758,27 @@ def test_profile_llr_stops_at_the_fixed_point_with_every_steps_value():
         _every_step_kernel(y, g, b, n_iter, want)
         assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
     assert (got > 0).sum() > 100
+
+
+def test_most_members_counts_in_one_pass_as_sorting_did():
+    # the label other than the own with most pixels in the window, ties to the lower
+    # label: the same answer as counting the sorted labels (many labels, ties, none)
+    from splidar.detection._7b_edge_bands import _most_members
+
+    rng = np.random.default_rng(23)
+    n_tie = n_none = 0
+    for trial in range(60):
+        lab = rng.integers(-1, int(rng.integers(1, 9)), size=(17, 19))
+        if trial % 5 == 0:
+            lab[:] = 0
+        half = int(rng.integers(1, 6))
+        seen = np.empty((2, (2 * half + 1) ** 2), np.int64)
+        for r, c in rng.integers(0, 17, (12, 2)):
+            own = int(lab[r, c])
+            w = lab[max(r - half, 0) : r + half + 1, max(c - half, 0) : c + half + 1]
+            x, n = np.unique(w[(w >= 0) & (w != own)], return_counts=True)
+            want = int(x[np.argmax(n)]) if x.size else -1  # argmax: the first (lowest)
+            n_tie += int(x.size > 0 and (n == n.max()).sum() > 1)
+            n_none += int(x.size == 0)
+            assert _most_members(lab, r, c, half, own, seen) == want
+    assert n_tie > 10 and n_none > 10

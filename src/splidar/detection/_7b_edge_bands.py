@@ -217,7 +217,7 @@ def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cove
     R, C = lab.shape
     reach = 2 * half
     buf = np.empty((3, (2 * reach + 1) ** 2))
-    seen = np.empty((2 * half + 1) ** 2, np.int64)
+    seen = np.empty((2, (2 * half + 1) ** 2), np.int64)
     for r in range(r0, r1):
         for c in range(C):
             other[r, c] = -1
@@ -253,27 +253,35 @@ def _own_plane_kernel(lab, depth, reach, gate, out, r0, r1):  # pragma: no cover
 @njit(cache=True, nogil=True)
 def _most_members(lab, r, c, half, own, seen):  # pragma: no cover - numba
     """The label other than ``own`` (and >= 0) with most pixels within ``half`` of
-    ``(r, c)`` (Chebyshev), ties to the lower label; -1 if none. The window's other
-    labels are gathered in ``seen`` and sorted, then counted run by run: one pass over
-    the window instead of one per label met (the same answer)."""
+    ``(r, c)`` (Chebyshev), ties to the lower label; -1 if none. One pass over the
+    window counts each label met in ``seen`` (2, at least the window's size: the labels
+    in the order met, their counts), looked up from the last label met, then the
+    labels seen are compared (the same answer as sorting them)."""
     R, C = lab.shape
-    m = 0
+    nd = 0
+    last, at = -1, -1
     for rr in range(max(r - half, 0), min(r + half + 1, R)):
         for cc in range(max(c - half, 0), min(c + half + 1, C)):
             x = lab[rr, cc]
-            if x >= 0 and x != own:
-                seen[m] = x
-                m += 1
-    if m == 0:
-        return -1
-    s = seen[:m]
-    s.sort()  # in place: no array made per pixel
-    best, n_best, n = s[0], 1, 1
-    for i in range(1, m):
-        n = n + 1 if s[i] == s[i - 1] else 1
-        # ascending labels: a later label takes over only with strictly more members
-        if n > n_best:
-            best, n_best = s[i], n
+            if x < 0 or x == own:
+                continue
+            if x != last:  # a run of another label: find its entry (or add one)
+                at = -1
+                for j in range(nd):
+                    if seen[0, j] == x:
+                        at = j
+                        break
+                if at < 0:
+                    at = nd
+                    seen[0, nd], seen[1, nd] = x, 0
+                    nd += 1
+                last = x
+            seen[1, at] += 1
+    best, n_best = -1, 0
+    for j in range(nd):
+        x, n = seen[0, j], seen[1, j]
+        if n > n_best or (n == n_best and x < best):
+            best, n_best = x, n
     return best
 
 
