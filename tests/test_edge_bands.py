@@ -7,6 +7,7 @@ from dataclasses import fields, replace
 
 import numpy as np
 import pytest
+from numba import njit
 
 from splidar import gaussian_irf
 from splidar.detection import STAGES
@@ -659,3 +660,125 @@ def test_window_plane_one_scan_equals_the_two_scans_bit_for_bit():
                     n_drop += bool(off.any())
                     n_same += not off.any()
     assert n_drop > 20 and n_same > 20
+
+
+def _scipy_region_labels(depth, gate):
+    """The former :func:`region_labels`: scipy's connected components over every pixel."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    R, C = depth.shape
+    idx = np.arange(R * C).reshape(R, C)
+    ok = np.isfinite(depth)
+    a, b = [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        c0, c1 = max(0, -dc), C - max(0, dc)
+        p = (slice(0, R - dr), slice(c0, c1))
+        q = (slice(dr, R), slice(c0 + dc, c1 + dc))
+        with np.errstate(invalid="ignore"):
+            e = ok[p] & ok[q] & (np.abs(depth[p] - depth[q]) <= gate)
+        a.append(idx[p][e])
+        b.append(idx[q][e])
+    a, b = np.concatenate(a), np.concatenate(b)
+    g = sparse.coo_matrix((np.ones(a.size), (a, b)), shape=(R * C, R * C))
+    _, lab = csgraph.connected_components(g.tocsr(), directed=False)
+    return np.where(ok, lab.reshape(R, C), -1).astype(np.int64)
+
+
+def test_region_kernel_numbers_the_components_as_scipy_did():
+    # the union-find's labels equal scipy's connected components' to the number: the
+    # order of each component's first pixel, NaN and inf pixels' numbers skipped
+    from splidar.detection._7b_edge_bands import _region_kernel, region_labels
+
+    rng = np.random.default_rng(21)
+    for trial in range(200):
+        R, C = (int(v) for v in rng.integers(1, 30, 2))
+        depth = rng.normal(0, 3, (R, C)).cumsum(axis=trial % 2)
+        depth[rng.random((R, C)) < rng.random() * 0.6] = np.nan
+        if trial % 9 == 0:
+            depth[rng.random((R, C)) < 0.3] = np.inf
+        if trial % 13 == 0:
+            depth[:] = np.nan
+        gate = float(rng.choice([0.0, 1.0, 4.5, 100.0]))
+        got = np.empty((R, C), np.int64)
+        _region_kernel(depth, gate, got)
+        assert np.array_equal(got, _scipy_region_labels(depth, gate))
+        assert np.array_equal(region_labels(depth, gate), got)
+
+
+@njit
+def _every_step_kernel(y, g, b, n_iter, out):
+    """The former ``_profile_llr_kernel``: all ``n_iter`` Newton steps (compiled by numba
+    as the library's, so its arithmetic is the same)."""
+    n, L, W = y.shape
+    ya, ga, ba = np.empty(L * W), np.empty(L * W), np.empty(L * W)
+    for i in range(n):
+        G = slope = yg = 0.0
+        m = 0
+        for l in range(L):
+            for t in range(W):
+                G += g[i, l, t]
+                if y[i, l, t] > 0:
+                    slope += y[i, l, t] * g[i, l, t] / b[i, l, t]
+                    yg += y[i, l, t] * g[i, l, t]
+                    ya[m], ga[m], ba[m] = y[i, l, t], g[i, l, t], b[i, l, t]
+                    m += 1
+        if not slope > G:
+            out[i] = 0.0
+            continue
+        s = max(yg / max(G, 1e-12), 1e-3)
+        for _ in range(n_iter):
+            d1, d2 = -G, 0.0
+            for k in range(m):
+                q = ya[k] * ga[k] / (ba[k] + s * ga[k])
+                d1 += q
+                d2 -= q * ga[k] / (ba[k] + s * ga[k])
+            if d2 < 0:
+                s = max(s - d1 / d2, 0.0)
+        llr = -s * G
+        for k in range(m):
+            llr += ya[k] * np.log1p(s * ga[k] / ba[k])
+        out[i] = max(llr, 0.0)
+
+
+def test_profile_llr_stops_at_the_fixed_point_with_every_steps_value():
+    # the Newton steps stop once one leaves s as it was: the values of all 30 steps to
+    # the bit (strong, weak and absent returns, zero background, counts in one bin)
+    rng = np.random.default_rng(22)
+    n, L, W = 300, 2, 15
+    g = np.abs(rng.normal(0, 1, (n, L, W))) * (rng.random((n, L, W)) < 0.7)
+    g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
+    b = rng.choice([1e-6, 0.01, 0.3, 2.0], (n, 1, 1)) * rng.uniform(0.5, 1.5, (n, L, W))
+    y = rng.poisson(rng.choice([0.0, 0.05, 0.5, 5.0, 50.0], (n, 1, 1)) * g + b).astype(float)
+    y[::7] = 0.0
+    y[3::11, :, 1:] = 0.0
+    for n_iter in (0, 1, 3, 30):
+        got = profile_llr(y, g, b, n_iter=n_iter)
+        want = np.empty(n)
+        _every_step_kernel(y, g, b, n_iter, want)
+        assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
+    assert (got > 0).sum() > 100
+
+
+def test_most_members_counts_in_one_pass_as_sorting_did():
+    # the label other than the own with most pixels in the window, ties to the lower
+    # label: the same answer as counting the sorted labels (many labels, ties, none)
+    from splidar.detection._7b_edge_bands import _most_members
+
+    rng = np.random.default_rng(23)
+    n_tie = n_none = 0
+    for trial in range(60):
+        lab = rng.integers(-1, int(rng.integers(1, 9)), size=(17, 19))
+        if trial % 5 == 0:
+            lab[:] = 0
+        half = int(rng.integers(1, 6))
+        seen = np.empty((2, (2 * half + 1) ** 2), np.int64)
+        for r, c in rng.integers(0, 17, (12, 2)):
+            own = int(lab[r, c])
+            w = lab[max(r - half, 0) : r + half + 1, max(c - half, 0) : c + half + 1]
+            x, n = np.unique(w[(w >= 0) & (w != own)], return_counts=True)
+            want = int(x[np.argmax(n)]) if x.size else -1  # argmax: the first (lowest)
+            n_tie += int(x.size > 0 and (n == n.max()).sum() > 1)
+            n_none += int(x.size == 0)
+            assert _most_members(lab, r, c, half, own, seen) == want
+    assert n_tie > 10 and n_none > 10

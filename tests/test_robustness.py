@@ -111,3 +111,69 @@ def test_fit_planes_draws_depend_on_the_hole_not_on_the_others():
     part = np.zeros((hr.size - 1, 2, 5))
     fit_planes(D, hr[1:], hc[1:], 5, 3.0, 2, 6, 8, 11, part)
     np.testing.assert_array_equal(full[1:], part)
+
+
+def test_triple_plane_equals_the_former_matrix_solve_bit_for_bit():
+    # the trials' plane through three points from scalars: _solve3_into's values to
+    # the bit (and singular where it is: repeated or collinear points)
+    from splidar.detection._slopes import _solve3_into, _triple_plane
+
+    rng = np.random.default_rng(31)
+    pr = rng.integers(-5, 6, 400).astype(float)
+    pc = rng.integers(-5, 6, 400).astype(float)
+    pd = rng.normal(50, 10, 400)
+    A, v, x = np.empty((3, 3)), np.empty(3), np.empty(3)
+    n_singular = 0
+    for _ in range(3000):
+        i = rng.integers(0, 400, 3)
+        if rng.random() < 0.1:
+            pr[i[2]], pc[i[2]] = 2 * pr[i[1]] - pr[i[0]], 2 * pc[i[1]] - pc[i[0]]  # a line
+        A[:, 0], A[:, 1], A[:, 2], v[:] = 1.0, pr[i], pc[i], pd[i]
+        ok = _solve3_into(A, v, x)
+        got = _triple_plane(pr, pc, pd, *i)
+        assert got[0] == ok
+        n_singular += not ok
+        if ok:
+            assert np.array_equal(np.array(got[1:]).view(np.uint64), x.view(np.uint64))
+    assert n_singular > 50
+
+
+def test_fit_planes_enclosed_as_the_inliers_directions_say():
+    # a plane's ``enclosed``: in each of 8 directions an inlier lies beyond the hole
+    # (or the image ends), recomputed here from the planes written
+    from splidar.detection._slopes import _DIR_C, _DIR_R, fit_planes
+
+    rng = np.random.default_rng(32)
+    R = C = 24
+    D = np.full((R, C, 2), np.nan)
+    rows = np.arange(R)[:, None]
+    D[..., 0] = 40 + 0.8 * rows + rng.normal(0, 1.0, (R, C))
+    D[rng.random((R, C)) < 0.4, 0] = np.nan  # ragged patches
+    D[8:17, 11:, 0] = np.nan  # holes beside a patch's edge: not enclosed
+    D[..., 1] = np.where(rng.random((R, C)) < 0.4, 60 - 0.5 * rows + 0 * D[..., 0], np.nan)
+    hr, hc = (a.astype(np.int64).ravel() for a in np.mgrid[0:R:3, 0:C:3])
+    out = np.zeros((hr.size, 2, 5))
+    fit_planes(D, hr, hc, 5, 3.0, 2, 6, 64, 7, out)
+    n_open = n_closed = 0
+    for h in range(hr.size):
+        r0, c0 = max(hr[h] - 5, 0), max(hc[h] - 5, 0)
+        dr, dc, k = np.nonzero(np.isfinite(D[r0 : hr[h] + 6, c0 : hc[h] + 6]))
+        pr, pc = (dr + r0 - hr[h]).astype(float), (dc + c0 - hc[h]).astype(float)
+        pd = D[dr + r0, dc + c0, k]
+        used = np.zeros(pd.size, bool)
+        for p in range(2):
+            a, b, c, n_in, enclosed = out[h, p]
+            if n_in == 0:
+                break
+            inl = ~used & (np.abs(a + b * pr + c * pc - pd) <= 3.0)
+            assert inl.sum() == n_in
+            used |= inl
+            want = all(
+                (_DIR_R[u] * pr[inl] + _DIR_C[u] * pc[inl] > 0).any()
+                or not (0 <= hr[h] + _DIR_R[u] < R and 0 <= hc[h] + _DIR_C[u] < C)
+                for u in range(8)
+            )
+            assert enclosed == float(want)
+            n_open += not want
+            n_closed += want
+    assert n_open > 5 and n_closed > 5

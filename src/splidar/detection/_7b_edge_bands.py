@@ -131,22 +131,63 @@ _BLOCK = 4096
 
 def region_labels(depth: np.ndarray, gate: float) -> np.ndarray:
     """8-connected components of the finite entries of ``depth`` (R, C) whose neighbours'
-    depths differ by at most ``gate`` bins: (R, C) int64 labels, -1 where NaN."""
+    depths differ by at most ``gate`` bins: (R, C) int64 labels, -1 where NaN.
+
+    The labels are those of ``scipy.sparse.csgraph.connected_components`` over every
+    pixel of the image (a NaN pixel its own component): numbered in the order of each
+    component's first pixel (row-major), NaN pixels' numbers skipped
+    (:func:`_region_kernel`, a union-find; ``tests/test_edge_bands.py``)."""
+    depth = np.ascontiguousarray(depth, np.float64)
+    out = np.empty(depth.shape, np.int64)
+    _region_kernel(depth, float(gate), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _region_kernel(depth, gate, out):  # pragma: no cover - numba
+    """:func:`region_labels` into ``out``: each pixel joined to its right, lower-left,
+    lower and lower-right neighbours within ``gate`` (both finite), every component's
+    root its first pixel (the smaller root wins a union), then the roots numbered in
+    row-major order with every NaN pixel taking a number of its own."""
     R, C = depth.shape
-    idx = np.arange(R * C).reshape(R, C)
-    ok = np.isfinite(depth)
-    a, b = [], []
-    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
-        c0, c1 = max(0, -dc), C - max(0, dc)
-        p = (slice(0, R - dr), slice(c0, c1))
-        q = (slice(dr, R), slice(c0 + dc, c1 + dc))
-        e = ok[p] & ok[q] & (np.abs(depth[p] - depth[q]) <= gate)
-        a.append(idx[p][e])
-        b.append(idx[q][e])
-    a, b = np.concatenate(a), np.concatenate(b)
-    g = sparse.coo_matrix((np.ones(a.size), (a, b)), shape=(R * C, R * C))
-    _, lab = csgraph.connected_components(g.tocsr(), directed=False)
-    return np.where(ok, lab.reshape(R, C), -1).astype(np.int64)
+    root = np.arange(R * C)
+    for r in range(R):
+        for c in range(C):
+            z = depth[r, c]
+            if not np.isfinite(z):
+                continue
+            for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+                rr, cc = r + dr, c + dc
+                if rr >= R or cc < 0 or cc >= C:
+                    continue
+                y = depth[rr, cc]
+                if np.isfinite(y) and abs(z - y) <= gate:
+                    a, b = _find(root, r * C + c), _find(root, rr * C + cc)
+                    if a < b:
+                        root[b] = a
+                    elif b < a:
+                        root[a] = b
+    num = np.empty(R * C, np.int64)
+    n = 0
+    for i in range(R * C):
+        a = _find(root, i)
+        if a == i:
+            num[i] = n
+            n += 1
+        else:
+            num[i] = num[a]  # the root comes first: numbered already
+    for r in range(R):
+        for c in range(C):
+            out[r, c] = num[r * C + c] if np.isfinite(depth[r, c]) else -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _find(root, i):  # pragma: no cover - numba
+    """The root of ``i`` in the union-find ``root``, the path halved on the way."""
+    while root[i] != i:
+        root[i] = root[root[i]]
+        i = root[i]
+    return i
 
 
 def potts_weight(labels: np.ndarray) -> float:
@@ -176,7 +217,7 @@ def _band_kernel(lab, depth, half, gate, other, dep, r0, r1):  # pragma: no cove
     R, C = lab.shape
     reach = 2 * half
     buf = np.empty((3, (2 * reach + 1) ** 2))
-    seen = np.empty((2 * half + 1) ** 2, np.int64)
+    seen = np.empty((2, (2 * half + 1) ** 2), np.int64)
     for r in range(r0, r1):
         for c in range(C):
             other[r, c] = -1
@@ -212,27 +253,35 @@ def _own_plane_kernel(lab, depth, reach, gate, out, r0, r1):  # pragma: no cover
 @njit(cache=True, nogil=True)
 def _most_members(lab, r, c, half, own, seen):  # pragma: no cover - numba
     """The label other than ``own`` (and >= 0) with most pixels within ``half`` of
-    ``(r, c)`` (Chebyshev), ties to the lower label; -1 if none. The window's other
-    labels are gathered in ``seen`` and sorted, then counted run by run: one pass over
-    the window instead of one per label met (the same answer)."""
+    ``(r, c)`` (Chebyshev), ties to the lower label; -1 if none. One pass over the
+    window counts each label met in ``seen`` (2, at least the window's size: the labels
+    in the order met, their counts), looked up from the last label met, then the
+    labels seen are compared (the same answer as sorting them)."""
     R, C = lab.shape
-    m = 0
+    nd = 0
+    last, at = -1, -1
     for rr in range(max(r - half, 0), min(r + half + 1, R)):
         for cc in range(max(c - half, 0), min(c + half + 1, C)):
             x = lab[rr, cc]
-            if x >= 0 and x != own:
-                seen[m] = x
-                m += 1
-    if m == 0:
-        return -1
-    s = seen[:m]
-    s.sort()  # in place: no array made per pixel
-    best, n_best, n = s[0], 1, 1
-    for i in range(1, m):
-        n = n + 1 if s[i] == s[i - 1] else 1
-        # ascending labels: a later label takes over only with strictly more members
-        if n > n_best:
-            best, n_best = s[i], n
+            if x < 0 or x == own:
+                continue
+            if x != last:  # a run of another label: find its entry (or add one)
+                at = -1
+                for j in range(nd):
+                    if seen[0, j] == x:
+                        at = j
+                        break
+                if at < 0:
+                    at = nd
+                    seen[0, nd], seen[1, nd] = x, 0
+                    nd += 1
+                last = x
+            seen[1, at] += 1
+    best, n_best = -1, 0
+    for j in range(nd):
+        x, n = seen[0, j], seen[1, j]
+        if n > n_best or (n == n_best and x < best):
+            best, n_best = x, n
     return best
 
 
@@ -265,7 +314,9 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
     window keeps its members' depths and offsets in ``buf`` (3, at least the window's
     size), in the scan's order; the second fit sums those within ``gate`` of the first
     plane in that order (the terms a second scan would add, in its order), and when
-    the gate drops none its sums are the first's, so its plane is the first one."""
+    the gate drops none its sums are the first's, so its plane is the first one. The
+    members off the first plane are counted without a branch (vectorised: 0.31 -> 0.27
+    s of :func:`_own_plane_kernel` on the large cube's 256 rows, bd38)."""
     R, C = lab.shape
     r_lo, r_hi = max(r - reach, 0), min(r + reach + 1, R)
     c_lo, c_hi = max(c - reach, 0), min(c + reach + 1, C)
@@ -284,12 +335,10 @@ def _window_plane(lab, depth, r, c, reach, x, skip_self, gate, min_m, buf):  # p
     if _degenerate(s):
         return np.median(buf[0, :m])
     c0, c1, c2 = _solve_sym3(*s)
-    dropped = False
-    for i in range(m):
-        if abs(c0 + c1 * buf[1, i] + c2 * buf[2, i] - buf[0, i]) > gate:
-            dropped = True
-            break
-    if not dropped:
+    n_off = 0
+    for i in range(m):  # branch-free, so it vectorises (the same test per member)
+        n_off += abs(c0 + c1 * buf[1, i] + c2 * buf[2, i] - buf[0, i]) > gate
+    if n_off == 0:
         return c0
     s = _NO_MOMENTS
     for i in range(m):
@@ -379,7 +428,10 @@ def profile_llr(y, g, b, n_iter: int = 30) -> np.ndarray:
 def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
     """:func:`profile_llr`, one pixel at a time. The bins without counts add nothing to
     the sums over ``y``: each pixel's bins with counts are gathered first (in the same
-    order) and the Newton steps run over them alone, the same sums term by term."""
+    order) and the Newton steps run over them alone, the same sums term by term. A step
+    is a function of ``s`` alone, so once one leaves ``s`` as it was (a nonzero fixed
+    point, or no step taken) every later one would too: the steps stop there, with the
+    same ``s`` to the bit as all ``n_iter`` of them."""
     n, L, W = y.shape
     ya = np.empty(L * W)
     ga = np.empty(L * W)
@@ -408,8 +460,12 @@ def _profile_llr_kernel(y, g, b, n_iter, out):  # pragma: no cover - numba
                 q = ya[k] * ga[k] / (ba[k] + s * ga[k])
                 d1 += q
                 d2 -= q * ga[k] / (ba[k] + s * ga[k])
-            if d2 < 0:
-                s = max(s - d1 / d2, 0.0)
+            if not d2 < 0:
+                break  # s stays: every later step the same
+            step = max(s - d1 / d2, 0.0)
+            if step == s and s != 0.0:
+                break  # a fixed point (the same bits): every later step the same
+            s = step
         llr = -s * G
         for k in range(m):
             llr += ya[k] * np.log1p(s * ga[k] / ba[k])
