@@ -684,6 +684,7 @@ def _random_state(rng, S=300, L=3, K=4):
     return dict(
         g=g,
         S=S,
+        det=dict(row=s.row, col=s.col, slot=s.slot, depth=s.depth_bin),
         y=gen.poisson(4.0, (S, L)).astype(float),
         b=gen.uniform(0.5, 2.0, (S, L)),
         eta=gen.uniform(0.6, 1.0, (S, L)),
@@ -720,6 +721,72 @@ def test_kernels_fused_round_matches_elementary():
     for a, b in ((z2, z), (r, ref["r"]), (beta, ref["beta"]), (h, ref["h"]), (w, ref["w"])):
         np.testing.assert_allclose(a, b, rtol=1e-13)
     np.testing.assert_allclose(iw, 1 / w, rtol=1e-15)
+
+
+def _elementary_rounds(st, g, n_inner, n_hw):
+    """One sweep's E-step and rounds by the elementary kernels (the former ``run`` loop)."""
+    S, L = st["y"].shape
+    z, q, old, zs, er = (
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty(S),
+        np.empty(S),
+    )
+    iw = 1.0 / st["w"]
+    kern.estep_store(st["y"], st["b"], st["eta"], st["r"], st["h"], z, q, old)
+    for i in range(n_inner):
+        kern.local_round(
+            st["y"], st["b"], st["eta"], st["h"], st["u"], st["alpha"], st["ups"], st["eps"],
+            i > 0, st["r"], st["beta"], z, q, zs, er,
+        )  # fmt: skip
+        for _ in range(n_hw):
+            kern.update_h_iw(zs, er, iw, g.indptr, g.indices, 4.0, st["h"])
+            kern.update_w_iw(st["h"], g.indptr, g.indices, st["w"], iw)
+    return kern._rms_change(st["h"], st["r"], old), z, q, iw
+
+
+@pytest.mark.parametrize("n_inner, n_hw", [(4, 2), (3, 1), (2, 0)])
+def test_inner_rounds_are_the_elementary_passes_bit_for_bit(n_inner, n_hw):
+    # the neighbour table's fixed 4-term sums and the fused passes (w + next local round,
+    # w + change) give the elementary kernels' numbers exactly, also past 4 neighbours
+    st = _random_state(3)
+    g = build_graph(*(st["det"][k] for k in ("row", "col", "slot", "depth")), (15, 10), 2)
+    assert np.diff(g.indptr).max() > 4
+    S, L = st["y"].shape
+    ref = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
+    ch_ref, z_ref, q_ref, iw_ref = _elementary_rounds(ref, g, n_inner, n_hw)
+    a = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
+    hx, iw = np.append(a["h"], 0.0), np.append(1.0 / a["w"], 0.0)
+    z, q, old, zs, er = (
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty(S),
+        np.empty(S),
+    )
+    kern.estep_local(
+        a["y"], a["b"], a["eta"], hx, a["u"], a["alpha"], a["ups"], a["eps"], a["r"],
+        a["beta"], z, q, old, zs, er,
+    )  # fmt: skip
+    ch = kern._inner_rounds(
+        a["y"], a["b"], a["eta"], hx, a["u"], a["alpha"], a["ups"], a["eps"], a["r"],
+        a["beta"], z, q, zs, er, a["w"], iw, old, kern.neighbour_table(g.indptr, g.indices),
+        g.indptr, g.indices, 4.0, n_inner, n_hw,
+    )  # fmt: skip
+    assert ch == ch_ref
+    for got, want in ((hx[:S], ref["h"]), (a["w"], ref["w"]), (iw[:S], iw_ref), (a["r"], ref["r"])):
+        assert got.tobytes() == want.tobytes()
+    for got, want in ((a["beta"], ref["beta"]), (z, z_ref), (q, q_ref)):
+        assert got.tobytes() == want.tobytes()
+
+
+def test_neighbour_table_pads_with_the_extra_index():
+    indptr = np.array([0, 2, 7, 7])
+    indices = np.array([1, 2, 0, 0, 0, 0, 0])
+    nb = kern.neighbour_table(indptr, indices)
+    assert nb.dtype == np.int32
+    assert nb.tolist() == [[1, 2, 3, 3], [0, 0, 0, 0], [3, 3, 3, 3]]
 
 
 def test_kernels_lazy_labels_match_full_update():
