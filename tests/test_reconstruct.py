@@ -922,3 +922,47 @@ def test_reconstruct_warns_when_depth_leaves_support(caplog):
         reconstruct(replace(det, surfaces=replace(s, depth_bin=far)))
     msgs = [r.getMessage() for r in caplog.records if "support" in r.getMessage()]
     assert msgs and msgs[0].startswith(f"1 of {len(s)} surfaces")
+
+
+def test_surface_keys_grouped_pass_is_the_sort():
+    # surfaces listed pixel by pixel take their ranks in one pass (pixel_ranks); in any
+    # other order a sort: the same keys, ties by slot then index, NaN depths last
+    from splidar.reconstruction._graph import surface_keys
+
+    r = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2])
+    c = np.array([0, 0, 0, 0, 3, 3, 3, 1, 1])
+    d = np.array([5.0, np.nan, 5.0, -0.0, 2.0, 0.0, np.nan, np.nan, np.nan])
+    sl = np.array([2, 0, 1, 0, 1, 0, 0, 1, 0])
+    rank, grouped = kern.pixel_ranks(r, c, d, sl)
+    assert grouped
+    assert rank.tolist() == [2, 3, 1, 0, 1, 0, 2, 1, 0]
+    assert not kern.pixel_ranks(r[::-1].copy(), c[::-1].copy(), d[::-1].copy(), sl[::-1].copy())[1]
+    perm = np.random.default_rng(0).permutation(r.size)
+    k, kp = surface_keys(r, c, d, sl), surface_keys(r[perm], c[perm], d[perm], sl[perm])
+    assert np.array_equal(k[perm], kp)
+    det, _ = synthetic_detection(shape=(12, 10), layers=2, n_wavelengths=1, rng=5)
+    s = det.surfaces
+    p = np.random.default_rng(1).permutation(len(s))
+    k = surface_keys(s.row, s.col, s.depth_bin, s.slot)
+    assert np.array_equal(k[p], surface_keys(s.row[p], s.col[p], s.depth_bin[p], s.slot[p]))
+
+
+def test_with_bridges_is_build_graph_with_bridges():
+    from splidar.reconstruction._graph import with_bridges
+
+    det, _ = synthetic_detection(shape=(14, 12), layers=2, n_wavelengths=1, rng=6)
+    s = det.surfaces
+    keep = np.random.default_rng(6).random(len(s)) < 0.6  # missed detections
+    col = np.array([0, 1, 2, 3, 5, 6, 7])  # a strand with one missed pixel: a bridge
+    cases = [
+        (s.row[keep], s.col[keep], s.slot[keep], s.depth_bin[keep], s.image_shape, 2),
+        (np.zeros(7, np.int64), col, np.zeros(7, np.int64), np.full(7, 10.0), (3, 8), 1),
+    ]
+    for args in cases:
+        for kw in (dict(links="depth", gate=5.0), dict(links="all")):
+            want = build_graph(*args, bridge=True, **kw)
+            got = with_bridges(build_graph(*args, **kw), *args)
+            for f in ("indptr", "indices", "parity", "key"):
+                assert np.array_equal(getattr(got, f), getattr(want, f)), f
+            assert (got.links, got.gate) == (want.links, want.gate)
+    assert want.indices.size > build_graph(*args).indices.size

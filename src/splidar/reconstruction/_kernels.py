@@ -95,6 +95,48 @@ def graph_csr(row, col, slot, depth, rows, cols, n_slots, gate):
     return indptr, indices
 
 
+@njit(cache=True, inline="always")
+def _before(b, a, depth, tie):
+    """Surface ``b`` sorts before ``a`` by (depth, tie, index), NaN depths last (the order
+    of ``np.lexsort``, which is stable)."""
+    db = depth[b]
+    da = depth[a]
+    if db != da and not (math.isnan(db) and math.isnan(da)):
+        if math.isnan(da):
+            return True
+        if math.isnan(db):
+            return False
+        return db < da
+    if tie[b] != tie[a]:
+        return tie[b] < tie[a]
+    return b < a
+
+
+@njit(cache=True)
+def pixel_ranks(row, col, depth, tie):
+    """Rank of each surface by (depth, tie, index) among the surfaces of its pixel, in
+    one pass when the surfaces come grouped by pixel in (row, col) order (as detections
+    list them): ``(rank (S,) int64, True)``; ``(_, False)`` when they do not (the
+    caller sorts instead)."""
+    S = row.shape[0]
+    rank = np.empty(S, np.int64)
+    i = 0
+    while i < S:
+        if i > 0 and (row[i] < row[i - 1] or (row[i] == row[i - 1] and col[i] < col[i - 1])):
+            return rank, False
+        j = i + 1
+        while j < S and row[j] == row[i] and col[j] == col[i]:
+            j += 1
+        for a in range(i, j):
+            n = 0
+            for b in range(i, j):
+                if b != a and _before(b, a, depth, tie):
+                    n += 1
+            rank[a] = n
+        i = j
+    return rank, True
+
+
 @njit(cache=True)
 def bridge_csr(row, col, slot, depth, rows, cols, n_slots, gate, indptr, indices):
     """The CSR links of ``graph_csr`` plus a link between surfaces two pixels apart along a
