@@ -966,3 +966,18 @@ def test_with_bridges_is_build_graph_with_bridges():
                 assert np.array_equal(getattr(got, f), getattr(want, f)), f
             assert (got.links, got.gate) == (want.links, want.gate)
     assert want.indices.size > build_graph(*args).indices.size
+
+
+def test_neighbour_mean_is_the_bincount_mean():
+    det, _ = synthetic_detection(shape=(20, 16), layers=2, n_wavelengths=1, rng=1)
+    s = det.surfaces
+    keep = np.random.default_rng(2).random(len(s)) < 0.5  # some surfaces without links
+    g = build_graph(s.row[keep], s.col[keep], s.slot[keep], s.depth_bin[keep], (20, 16), 2)
+    S = int(keep.sum())
+    h = np.random.default_rng(0).uniform(0.1, 5.0, S)
+    deg = np.diff(g.indptr)
+    assert deg.max() > 4 and (deg == 0).any()
+    want = np.bincount(np.repeat(np.arange(S), deg), h[g.indices], minlength=S) / np.maximum(deg, 1)
+    out = np.empty(S)
+    kern.neighbour_mean(h, g.indptr, g.indices, out)
+    assert out.tobytes() == want.tobytes()

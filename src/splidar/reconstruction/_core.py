@@ -910,10 +910,9 @@ def _phase_one(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol) -> No
 
 def _neighbour_shading(graph, h) -> np.ndarray:
     """Mean ``h`` of each surface's linked neighbours (0 without links)."""
-    S = h.shape[0]
-    deg = np.diff(graph.indptr)
-    src = np.repeat(np.arange(S), deg)
-    return np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1)
+    out = np.empty(h.shape[0])
+    kern.neighbour_mean(np.ascontiguousarray(h, np.float64), graph.indptr, graph.indices, out)
+    return out
 
 
 def _phase_two(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol, eb=None):

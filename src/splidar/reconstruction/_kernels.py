@@ -726,6 +726,17 @@ def w_rms(h, nb, indptr, indices, w, iw, r, old):
 
 
 @njit(cache=True, parallel=_PARALLEL)
+def neighbour_mean(h, indptr, indices, out):
+    """Mean ``h`` of each surface's neighbours, in CSR order from 0.0 (0 without links):
+    the numbers of ``np.bincount`` over the links divided by ``max(deg, 1)``."""
+    for s in prange(out.shape[0]):
+        t = 0.0
+        for j in range(indptr[s], indptr[s + 1]):
+            t += h[indices[j]]
+        out[s] = t / max(indptr[s + 1] - indptr[s], 1)
+
+
+@njit(cache=True, parallel=_PARALLEL)
 def _log_of(x, out):
     for s in prange(x.shape[0]):
         out[s] = math.log(x[s])
