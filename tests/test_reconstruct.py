@@ -684,6 +684,7 @@ def _random_state(rng, S=300, L=3, K=4):
     return dict(
         g=g,
         S=S,
+        det=dict(row=s.row, col=s.col, slot=s.slot, depth=s.depth_bin),
         y=gen.poisson(4.0, (S, L)).astype(float),
         b=gen.uniform(0.5, 2.0, (S, L)),
         eta=gen.uniform(0.6, 1.0, (S, L)),
@@ -720,6 +721,72 @@ def test_kernels_fused_round_matches_elementary():
     for a, b in ((z2, z), (r, ref["r"]), (beta, ref["beta"]), (h, ref["h"]), (w, ref["w"])):
         np.testing.assert_allclose(a, b, rtol=1e-13)
     np.testing.assert_allclose(iw, 1 / w, rtol=1e-15)
+
+
+def _elementary_rounds(st, g, n_inner, n_hw):
+    """One sweep's E-step and rounds by the elementary kernels (the former ``run`` loop)."""
+    S, L = st["y"].shape
+    z, q, old, zs, er = (
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty(S),
+        np.empty(S),
+    )
+    iw = 1.0 / st["w"]
+    kern.estep_store(st["y"], st["b"], st["eta"], st["r"], st["h"], z, q, old)
+    for i in range(n_inner):
+        kern.local_round(
+            st["y"], st["b"], st["eta"], st["h"], st["u"], st["alpha"], st["ups"], st["eps"],
+            i > 0, st["r"], st["beta"], z, q, zs, er,
+        )  # fmt: skip
+        for _ in range(n_hw):
+            kern.update_h_iw(zs, er, iw, g.indptr, g.indices, 4.0, st["h"])
+            kern.update_w_iw(st["h"], g.indptr, g.indices, st["w"], iw)
+    return kern._rms_change(st["h"], st["r"], old), z, q, iw
+
+
+@pytest.mark.parametrize("n_inner, n_hw", [(4, 2), (3, 1), (2, 0)])
+def test_inner_rounds_are_the_elementary_passes_bit_for_bit(n_inner, n_hw):
+    # the neighbour table's fixed 4-term sums and the fused passes (w + next local round,
+    # w + change) give the elementary kernels' numbers exactly, also past 4 neighbours
+    st = _random_state(3)
+    g = build_graph(*(st["det"][k] for k in ("row", "col", "slot", "depth")), (15, 10), 2)
+    assert np.diff(g.indptr).max() > 4
+    S, L = st["y"].shape
+    ref = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
+    ch_ref, z_ref, q_ref, iw_ref = _elementary_rounds(ref, g, n_inner, n_hw)
+    a = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
+    hx, iw = np.append(a["h"], 0.0), np.append(1.0 / a["w"], 0.0)
+    z, q, old, zs, er = (
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty((S, L)),
+        np.empty(S),
+        np.empty(S),
+    )
+    kern.estep_local(
+        a["y"], a["b"], a["eta"], hx, a["u"], a["alpha"], a["ups"], a["eps"], a["r"],
+        a["beta"], z, q, old, zs, er,
+    )  # fmt: skip
+    ch = kern._inner_rounds(
+        a["y"], a["b"], a["eta"], hx, a["u"], a["alpha"], a["ups"], a["eps"], a["r"],
+        a["beta"], z, q, zs, er, a["w"], iw, old, kern.neighbour_table(g.indptr, g.indices),
+        g.indptr, g.indices, 4.0, n_inner, n_hw,
+    )  # fmt: skip
+    assert ch == ch_ref
+    for got, want in ((hx[:S], ref["h"]), (a["w"], ref["w"]), (iw[:S], iw_ref), (a["r"], ref["r"])):
+        assert got.tobytes() == want.tobytes()
+    for got, want in ((a["beta"], ref["beta"]), (z, z_ref), (q, q_ref)):
+        assert got.tobytes() == want.tobytes()
+
+
+def test_neighbour_table_pads_with_the_extra_index():
+    indptr = np.array([0, 2, 7, 7])
+    indices = np.array([1, 2, 0, 0, 0, 0, 0])
+    nb = kern.neighbour_table(indptr, indices)
+    assert nb.dtype == np.int32
+    assert nb.tolist() == [[1, 2, 3, 3], [0, 0, 0, 0], [3, 3, 3, 3]]
 
 
 def test_kernels_lazy_labels_match_full_update():
@@ -855,3 +922,62 @@ def test_reconstruct_warns_when_depth_leaves_support(caplog):
         reconstruct(replace(det, surfaces=replace(s, depth_bin=far)))
     msgs = [r.getMessage() for r in caplog.records if "support" in r.getMessage()]
     assert msgs and msgs[0].startswith(f"1 of {len(s)} surfaces")
+
+
+def test_surface_keys_grouped_pass_is_the_sort():
+    # surfaces listed pixel by pixel take their ranks in one pass (pixel_ranks); in any
+    # other order a sort: the same keys, ties by slot then index, NaN depths last
+    from splidar.reconstruction._graph import surface_keys
+
+    r = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2])
+    c = np.array([0, 0, 0, 0, 3, 3, 3, 1, 1])
+    d = np.array([5.0, np.nan, 5.0, -0.0, 2.0, 0.0, np.nan, np.nan, np.nan])
+    sl = np.array([2, 0, 1, 0, 1, 0, 0, 1, 0])
+    rank, grouped = kern.pixel_ranks(r, c, d, sl)
+    assert grouped
+    assert rank.tolist() == [2, 3, 1, 0, 1, 0, 2, 1, 0]
+    assert not kern.pixel_ranks(r[::-1].copy(), c[::-1].copy(), d[::-1].copy(), sl[::-1].copy())[1]
+    perm = np.random.default_rng(0).permutation(r.size)
+    k, kp = surface_keys(r, c, d, sl), surface_keys(r[perm], c[perm], d[perm], sl[perm])
+    assert np.array_equal(k[perm], kp)
+    det, _ = synthetic_detection(shape=(12, 10), layers=2, n_wavelengths=1, rng=5)
+    s = det.surfaces
+    p = np.random.default_rng(1).permutation(len(s))
+    k = surface_keys(s.row, s.col, s.depth_bin, s.slot)
+    assert np.array_equal(k[p], surface_keys(s.row[p], s.col[p], s.depth_bin[p], s.slot[p]))
+
+
+def test_with_bridges_is_build_graph_with_bridges():
+    from splidar.reconstruction._graph import with_bridges
+
+    det, _ = synthetic_detection(shape=(14, 12), layers=2, n_wavelengths=1, rng=6)
+    s = det.surfaces
+    keep = np.random.default_rng(6).random(len(s)) < 0.6  # missed detections
+    col = np.array([0, 1, 2, 3, 5, 6, 7])  # a strand with one missed pixel: a bridge
+    cases = [
+        (s.row[keep], s.col[keep], s.slot[keep], s.depth_bin[keep], s.image_shape, 2),
+        (np.zeros(7, np.int64), col, np.zeros(7, np.int64), np.full(7, 10.0), (3, 8), 1),
+    ]
+    for args in cases:
+        for kw in (dict(links="depth", gate=5.0), dict(links="all")):
+            want = build_graph(*args, bridge=True, **kw)
+            got = with_bridges(build_graph(*args, **kw), *args)
+            for f in ("indptr", "indices", "parity", "key"):
+                assert np.array_equal(getattr(got, f), getattr(want, f)), f
+            assert (got.links, got.gate) == (want.links, want.gate)
+    assert want.indices.size > build_graph(*args).indices.size
+
+
+def test_neighbour_mean_is_the_bincount_mean():
+    det, _ = synthetic_detection(shape=(20, 16), layers=2, n_wavelengths=1, rng=1)
+    s = det.surfaces
+    keep = np.random.default_rng(2).random(len(s)) < 0.5  # some surfaces without links
+    g = build_graph(s.row[keep], s.col[keep], s.slot[keep], s.depth_bin[keep], (20, 16), 2)
+    S = int(keep.sum())
+    h = np.random.default_rng(0).uniform(0.1, 5.0, S)
+    deg = np.diff(g.indptr)
+    assert deg.max() > 4 and (deg == 0).any()
+    want = np.bincount(np.repeat(np.arange(S), deg), h[g.indices], minlength=S) / np.maximum(deg, 1)
+    out = np.empty(S)
+    kern.neighbour_mean(h, g.indptr, g.indices, out)
+    assert out.tobytes() == want.tobytes()

@@ -270,7 +270,7 @@ from ..library import as_library
 from ..points import PointSet
 from . import _kernels as kern
 from ._classify import GAMMA, classify_surfaces
-from ._graph import build_graph, irf_fwhm
+from ._graph import build_graph, irf_fwhm, with_bridges
 from ._result import ConvergenceHistory, Reconstruction
 
 __all__ = [
@@ -910,10 +910,9 @@ def _phase_one(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol) -> No
 
 def _neighbour_shading(graph, h) -> np.ndarray:
     """Mean ``h`` of each surface's linked neighbours (0 without links)."""
-    S = h.shape[0]
-    deg = np.diff(graph.indptr)
-    src = np.repeat(np.arange(S), deg)
-    return np.bincount(src, h[graph.indices], minlength=S) / np.maximum(deg, 1)
+    out = np.empty(h.shape[0])
+    kern.neighbour_mean(np.ascontiguousarray(h, np.float64), graph.indptr, graph.indices, out)
+    return out
 
 
 def _phase_two(su: _Setup, graph, u, st, prior, rho, gamma, max_iter, tol, eb=None):
@@ -1073,18 +1072,17 @@ def _hyperparameters(su, opt, prior, pi, bias2, graph) -> dict:
 
 
 @_one_at_a_time
-def _labels(su: _Setup, surf, gamma, rng):
+def _labels(su: _Setup, surf, gamma, rng, graph):
     """(labels, marginals, class proportions, strength used) of the surfaces
-    (``classify_surfaces`` on the label field's graph, which bridges one-pixel gaps in
-    the detections; the strength is the chains' mean of the estimated one, ``None`` for
-    one class)."""
+    (``classify_surfaces`` on the label field's graph: the sweeps' ``graph`` with the
+    links that bridge one-pixel gaps in the detections; the strength is the chains' mean
+    of the estimated one, ``None`` for one class)."""
     S, K = len(surf), su.sig.shape[0]
     if K == 1:
         return np.zeros(S, np.int64), np.ones((S, 1)), np.ones(1), None
-    cgraph = build_graph(
-        surf.row, surf.col, surf.slot, surf.depth_bin, surf.image_shape, int(surf.n_slots),
-        links=su.links, gate=su.gate, bridge=True,
-    )  # fmt: skip
+    cgraph = with_bridges(
+        graph, surf.row, surf.col, surf.slot, surf.depth_bin, surf.image_shape, int(surf.n_slots)
+    )
     cls = classify_surfaces(
         su.y, su.b, su.eta, su.sig, cgraph, gamma=gamma, seed=int(rng.integers(2**31))
     )
@@ -1211,7 +1209,7 @@ def reconstruct(
     )  # fmt: skip
     t_graph = time.perf_counter()
     S = len(surf)
-    u, marg, pi, label_gamma = _labels(su, surf, opt["gamma"], rng)
+    u, marg, pi, label_gamma = _labels(su, surf, opt["gamma"], rng, graph)
     conf = marg.max(axis=1) if S else np.ones(0)
     t_cls = time.perf_counter()
     state, prior, history = _sweeps(

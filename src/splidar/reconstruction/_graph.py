@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._kernels import bridge_csr, graph_csr
+from ._kernels import bridge_csr, graph_csr, pixel_ranks
 
 __all__ = ["SurfaceGraph", "build_graph", "irf_fwhm", "surface_keys"]
 
@@ -101,13 +101,20 @@ def surface_keys(row: np.ndarray, col: np.ndarray, depth: np.ndarray, slot=None)
     if S == 0:
         return np.zeros(0, np.uint64)
     tie = np.zeros(S, np.int64) if slot is None else np.asarray(slot, np.int64)
-    order = np.lexsort((tie, np.asarray(depth, np.float64), col, row))
-    r, c = row[order], col[order]
-    first = np.ones(S, bool)
-    first[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
-    start = np.maximum.accumulate(np.where(first, np.arange(S), 0))
-    rank = np.empty(S, np.int64)
-    rank[order] = np.arange(S) - start
+    depth = np.asarray(depth, np.float64)
+    # surfaces listed pixel by pixel (a detection's order): ranks in one pass, else a sort
+    rank, grouped = pixel_ranks(
+        np.ascontiguousarray(row), np.ascontiguousarray(col), np.ascontiguousarray(depth),
+        np.ascontiguousarray(tie),
+    )  # fmt: skip
+    if not grouped:
+        order = np.lexsort((tie, depth, col, row))
+        r, c = row[order], col[order]
+        first = np.ones(S, bool)
+        first[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+        start = np.maximum.accumulate(np.where(first, np.arange(S), 0))
+        rank = np.empty(S, np.int64)
+        rank[order] = np.arange(S) - start
     x = _mix64(row.astype(np.uint64))
     x = _mix64(x ^ col.astype(np.uint64))
     return _mix64(x ^ rank.astype(np.uint64))
@@ -159,6 +166,7 @@ def build_graph(
     links: str = "depth",
     gate: float = np.inf,
     bridge: bool = False,
+    key: np.ndarray | None = None,
 ) -> SurfaceGraph:
     """Link every surface to the surfaces of its 4 neighbour pixels (numba, one pass).
 
@@ -173,13 +181,17 @@ def build_graph(
     round) and where the middle pixel holds a surface at their depth nothing is added
     (bridging every gap measured -0.004 at PPP 1: docs/classification.md). The colours
     (``parity``) are then ``(row + col) % 4``, so that no two linked surfaces share one.
+
+    ``key``: the surfaces' keys when already computed (:func:`surface_keys` of these
+    surfaces, or of the image's rows for a strip's), else computed here.
     """
     S = int(row.size)
     rows, cols = image_shape
-    parity = ((row + col) % (4 if bridge else 2)).astype(np.int64)
-    key = surface_keys(row, col, depth, slot)
+    parity = ((row + col) % 2).astype(np.int64)
+    key = surface_keys(row, col, depth, slot) if key is None else key
     if S == 0:
-        return SurfaceGraph(np.zeros(1, np.int64), np.zeros(0, np.int64), parity, links, gate, key)
+        graph = SurfaceGraph(np.zeros(1, np.int64), np.zeros(0, np.int64), parity, links, gate, key)
+        return with_bridges(graph, row, col, slot, depth, image_shape, n_slots) if bridge else graph
     n_slots = max(int(n_slots), int(slot.max()) + 1)
     g = np.inf if links == "all" else float(gate)
     indptr, indices = graph_csr(
@@ -187,10 +199,23 @@ def build_graph(
         np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
         int(rows), int(cols), n_slots, g,
     )  # fmt: skip
-    if bridge:
-        indptr, indices = bridge_csr(
-            np.ascontiguousarray(row, np.int64), np.ascontiguousarray(col, np.int64),
-            np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
-            int(rows), int(cols), n_slots, g, indptr, indices,
-        )  # fmt: skip
-    return SurfaceGraph(indptr, indices, parity, links, float(gate), key)
+    graph = SurfaceGraph(indptr, indices, parity, links, float(gate), key)
+    return with_bridges(graph, row, col, slot, depth, image_shape, n_slots) if bridge else graph
+
+
+def with_bridges(graph, row, col, slot, depth, image_shape, n_slots) -> SurfaceGraph:
+    """``graph`` (:func:`build_graph` of these surfaces, without bridges) with the links
+    of ``build_graph(bridge=True)`` added and its colours ``(row + col) % 4``: the label
+    field's graph from the sweeps' one, without building the links or the keys again."""
+    parity = ((row + col) % 4).astype(np.int64)
+    S = int(row.size)
+    if S == 0:
+        return SurfaceGraph(graph.indptr, graph.indices, parity, graph.links, graph.gate, graph.key)
+    n_slots = max(int(n_slots), int(slot.max()) + 1)
+    g = np.inf if graph.links == "all" else float(graph.gate)
+    indptr, indices = bridge_csr(
+        np.ascontiguousarray(row, np.int64), np.ascontiguousarray(col, np.int64),
+        np.ascontiguousarray(slot, np.int64), np.ascontiguousarray(depth, np.float64),
+        int(image_shape[0]), int(image_shape[1]), n_slots, g, graph.indptr, graph.indices,
+    )  # fmt: skip
+    return SurfaceGraph(indptr, indices, parity, graph.links, graph.gate, graph.key)

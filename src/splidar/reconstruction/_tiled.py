@@ -171,21 +171,21 @@ def _strip_setup(st: _Strip, shared):
     return dataclasses.replace(shared["setup"], y=st.y, b=st.b, eta=st.eta, intensity_raw=st.y)
 
 
-def _strip_graph(st: _Strip, su, shared, bridge: bool = False):
+def _strip_graph(st: _Strip, su, shared, bridge: bool = False, key=None):
     """The strip's surface graph (colours and surface keys of the whole image;
-    ``bridge``: the label field's graph, see :func:`~splidar.reconstruction.build_graph`)."""
+    ``bridge``: the label field's graph, see :func:`~splidar.reconstruction.build_graph`;
+    ``key``: the strip's surface keys when already computed)."""
     e0 = int(st.row.min()) if st.row.size else 0
     n_rows = int(st.row.max()) - e0 + 1 if st.row.size else 1
+    # the keys of the image's rows: a surface draws the random numbers it draws in memory
+    key = surface_keys(st.row, st.col, st.depth, st.slot) if key is None else key
     graph = build_graph(
         st.row - e0, st.col, st.slot, st.depth, (n_rows, shared["n_cols"]), shared["n_slots"],
-        links=su.links, gate=su.gate, bridge=bridge,
+        links=su.links, gate=su.gate, bridge=bridge, key=key,
     )  # fmt: skip
     n_colours = 4 if bridge else 2
     parity = ((st.row + st.col) % n_colours).astype(np.int64)
-    # the keys of the image's rows: a surface draws the random numbers it draws in memory
-    return dataclasses.replace(
-        graph, parity=parity, key=surface_keys(st.row, st.col, st.depth, st.slot)
-    )
+    return dataclasses.replace(graph, parity=parity)
 
 
 def _phase_one_state(su, graph, u, shared):
@@ -221,7 +221,8 @@ def _labels_tile(st: _Strip, shared):
         sub = _Strip(st.r0, st.r1, *(getattr(st, f)[near] for f in _Strip.FIELDS))
         sub_su = _strip_setup(sub, shared)
         cls = classify_surfaces(
-            sub.y, sub.b, sub.eta, su.sig, _strip_graph(sub, sub_su, shared, bridge=True),
+            sub.y, sub.b, sub.eta, su.sig,
+            _strip_graph(sub, sub_su, shared, bridge=True, key=graph.key[near]),
             gamma=shared["gamma"], seed=shared["base"],
             proportions=shared["pi"], loglik=sub.ll,
         )  # fmt: skip
