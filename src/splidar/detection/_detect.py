@@ -289,10 +289,11 @@ def _split() -> tuple:
 def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, store):
     """The clean-up passes (5), the selection (6) and the depths placed (7): ``(done,
     surfaces, placed, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
-    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``).
+    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``), ahead
+    on ``n_jobs`` threads from the start (while the recentring runs).
     ``hists``: ``[list of the map's per-block histograms]``, which stage 6 empties block by
     block as it gathers the surfaces' rows (``select_surfaces(release=True)``)."""
-    with kept_counts(cube.counts):
+    with kept_counts(cube.counts, threads=o["n_jobs"]):
         done = _clean_up(cube, o, mp, held, hists[0], bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, hists, done, t0, store, bg)
 
