@@ -503,3 +503,33 @@ def test_write_rows_writes_each_chunk_once(tmp_path, monkeypatch):
     assert sorted(written) == sorted(set(written)) and len(written) == 3
     _table.write_rows(z, idx[:0], values[:0])  # nothing to write: no error
     assert len(written) == 3
+
+
+def test_select_and_align_removes_candidate_histograms_while_stage_7_runs(tmp_path, monkeypatch):
+    """With ``store=``, the tiles' candidate histograms are removed on a thread while
+    stage 7 runs (the removal sees stage 7 start), and are gone when ``detect`` returns;
+    the surfaces are the ones without a store."""
+    import threading
+
+    from splidar.detection import _detect, detect
+    from splidar.scenes import single_surface_scene
+
+    cube = single_surface_scene((24, 24), n_bins=120).simulate(ppp=4, sbr=0.5, rng=1).cube
+    placing, saw = threading.Event(), []
+    real_remove, real_place = _detect.remove_tree, _detect.place_depths
+
+    def remove(path):
+        saw.append(placing.wait(5.0))
+        real_remove(path)
+
+    def place(*a, **k):
+        placing.set()
+        return real_place(*a, **k)
+
+    monkeypatch.setattr(_detect, "remove_tree", remove)
+    monkeypatch.setattr(_detect, "place_depths", place)
+    got = detect(cube, rng=0, store=tmp_path / "det.zarr")
+    assert saw == [True] and not (tmp_path / "det.zarr" / "candidate_histograms").exists()
+    want = detect(cube, rng=0)
+    np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
+    np.testing.assert_array_equal(got.surfaces.row, want.surfaces.row)
