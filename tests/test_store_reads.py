@@ -318,7 +318,8 @@ def test_kept_counts_threads_decode_every_chunk_ahead(tmp_path, monkeypatch, bud
     (each into its own buffer), in row order, within the byte budget; the bands and
     pixels read then are the array's (from the chunks decoded ahead: the Zarr array
     is not read again within the budget; past it, ``budget=0`` or a budget of a few
-    chunks, the rest decoded at the read as before); the threads end with the context."""
+    chunks, the rest decoded at the read as before); the threads end with the context.
+    Chunks larger than ``AHEAD_BYTES``: nothing decoded ahead."""
     from splidar.detection import _slopes
     from splidar.detection._depth_fields import _pixels
 
@@ -352,6 +353,11 @@ def test_kept_counts_threads_decode_every_chunk_ahead(tmp_path, monkeypatch, bud
         if budget is None:
             assert reads == [] and not sp.ahead  # all taken from the chunks decoded ahead
     assert x.name not in _slopes._KEPT and sp.pool is None and not sp.bufs
+    monkeypatch.setattr(_slopes, "AHEAD_BYTES", 8 * 9 * 2 * 30 - 1)  # under one chunk
+    with _slopes.kept_counts(x, threads=2):
+        sp = _slopes._KEPT[x.name]
+        assert sp.pool is None and not sp.ahead  # nothing ahead: read as before
+        np.testing.assert_array_equal(_pixels(x, rows, cols), a[rows, cols])
 
 
 @pytest.mark.parametrize("budget", [None, 0])

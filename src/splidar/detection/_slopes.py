@@ -997,6 +997,11 @@ def _near_items(r: np.ndarray, c: np.ndarray, shape: tuple, halo: int) -> np.nda
 #: 3.1 G voxels). Chunks past it are decoded again at each read.
 SPARSE_BYTES = 256 * 2**20
 
+#: Bytes of the decoded chunks the threads of :meth:`_Sparse.start` hold at once (one
+#: each): the ``--large`` cube's chunks of 32 rows (33 MB) get two threads; a cube in
+#: chunks of over this size is decoded at its first read instead.
+AHEAD_BYTES = 128 * 2**20
+
 #: Sparse counts of the Zarr cubes whose clean-up runs (:func:`kept_counts`), by the
 #: Dask array's name.
 _KEPT: dict = {}
@@ -1077,12 +1082,18 @@ class _Sparse:
 
     def start(self, threads: int) -> None:
         """Decode every chunk ahead, in row order, on ``threads`` threads (each into
-        its own buffer), until :data:`SPARSE_BYTES` would be passed; :meth:`_chunk`
-        takes a chunk's entries from there (waiting for it when under way)."""
+        its own buffer; no more threads than decoded chunks fit :data:`AHEAD_BYTES`,
+        none when one does not), until :data:`SPARSE_BYTES` would be passed;
+        :meth:`_chunk` takes a chunk's entries from there (waiting for it when under
+        way)."""
         from concurrent.futures import ThreadPoolExecutor
 
+        chunk = self.step * int(np.prod(self.row)) * self.dtype.itemsize
+        threads = min(int(threads), AHEAD_BYTES // max(chunk, 1))
+        if threads < 1:  # chunks too large to hold one more per thread: read as before
+            return
         n = -(-int(self.z.shape[0]) // self.step)
-        self.pool = ThreadPoolExecutor(int(threads), thread_name_prefix="splidar-sparse")
+        self.pool = ThreadPoolExecutor(threads, thread_name_prefix="splidar-sparse")
         self.ahead = {k: self.pool.submit(self._ahead, k) for k in range(n)}
 
     def _ahead(self, k: int):
