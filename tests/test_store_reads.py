@@ -171,6 +171,68 @@ def test_gather_stored_histograms_equals_in_memory(tmp_path):
     np.testing.assert_array_equal(_gather(table, idx, tuple(stored)), want)
 
 
+def test_gather_writes_a_part_while_reading_the_next(monkeypatch):
+    """An ``out`` not in memory (a store's array) is written part by part on a thread
+    while the next part is read: each part's write (but the last) sees the next part's
+    read start; the values are the selection's."""
+    import threading
+
+    from splidar.detection import _6_select
+
+    monkeypatch.setattr(_6_select, "GATHER_CHUNK", 4)
+    data = np.random.default_rng(3).normal(size=(12, 2, 1, 5)).astype(np.float32)
+    started = {a: threading.Event() for a in (0, 4, 8)}
+
+    class Stored:  # a block's stored array (read by slices of rows)
+        shape, dtype = data.shape, data.dtype
+
+        def __getitem__(self, key):
+            started[key.start].set()
+            return data[key]
+
+    class Out:
+        def __init__(self):
+            self.a, self.saw_next = np.zeros(data.shape, np.float32), []
+
+        def __setitem__(self, key, value):
+            if key.stop < 12:  # the next part's read starts while this one is written
+                self.saw_next.append(started[key.stop].wait(2.0))
+            self.a[key] = value
+
+    table = CandidateTable(
+        columns={"row": np.arange(12)}, keep=np.ones(12, bool), origin=np.zeros(12, np.int8),
+        hist_block=np.zeros(12, np.int64), hist_row=np.arange(12), image_shape=(12, 1),
+    )  # fmt: skip
+    out = Out()
+    assert _6_select._gather(table, np.arange(12), [Stored()], out) is out
+    assert out.saw_next == [True, True]
+    np.testing.assert_array_equal(out.a, data)
+
+
+def test_stored_rows_reads_raw_chunk_files_as_zarr(tmp_path, monkeypatch):
+    """``_stored_rows``: a raw Zarr array in chunks of whole rows (the tiles' candidate
+    histograms) is read from its chunk files (Zarr not asked), a chunk never written as
+    the fill value; a compressed one through Zarr; the same values as ``z[lo:hi]``."""
+    from splidar.detection._6_select import _stored_rows
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(23, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    raw = g.create_array("raw", shape=d.shape, chunks=(4, 2, 1, 5), dtype="f4", compressors=None)
+    raw[:16] = d[:16]  # rows 16-23: chunks never written (the fill value, 0)
+    packed = store_histograms(g, "packed", d.shape, data=d)
+    want = np.concatenate([d[:16], np.zeros((7, 2, 1, 5), np.float32)])
+    ranges = [(0, 23), (3, 9), (4, 8), (7, 8), (15, 21), (20, 23)]
+    zarr_reads = {lo: np.asarray(packed[lo:hi]) for lo, hi in ranges}
+    real = type(raw).__getitem__
+    asked = []
+    monkeypatch.setattr(type(raw), "__getitem__", lambda z, k: asked.append(z.path) or real(z, k))
+    for lo, hi in ranges:
+        np.testing.assert_array_equal(_stored_rows(raw, lo, hi), want[lo:hi])
+        np.testing.assert_array_equal(_stored_rows(packed, lo, hi), zarr_reads[lo])
+    assert "raw" not in asked and "packed" in asked
+
+
 @pytest.mark.parametrize("compressed", [True, False])
 def test_store_histograms_writes_every_chunk_without_comparing(tmp_path, compressed):
     # a chunk of zeros is stored too (Zarr does not compare each chunk with the fill
@@ -248,6 +310,54 @@ def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
         rows, cols = rng.integers(0, 45, 50), rng.integers(0, 9, 50)
         np.testing.assert_array_equal(_pixels(x, rows, cols), a[rows, cols])
     assert x.name not in _slopes._KEPT
+
+
+@pytest.mark.parametrize("budget", [None, 0, 900])
+def test_kept_counts_threads_decode_every_chunk_ahead(tmp_path, monkeypatch, budget):
+    """``kept_counts(threads=2)``: every chunk of rows is decoded ahead on two threads
+    (each into its own buffer), in row order, within the byte budget; the bands and
+    pixels read then are the array's (from the chunks decoded ahead: the Zarr array
+    is not read again within the budget; past it, ``budget=0`` or a budget of a few
+    chunks, the rest decoded at the read as before); the threads end with the context.
+    Chunks larger than ``AHEAD_BYTES``: nothing decoded ahead."""
+    from splidar.detection import _slopes
+    from splidar.detection._depth_fields import _pixels
+
+    if budget is not None:
+        monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
+    rng = np.random.default_rng(11)
+    a = (rng.random((61, 9, 2, 30)) < 0.05) * rng.integers(1, 200, (61, 9, 2, 30))
+    a = a.astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
+    )
+    z[:] = a
+    x = da.from_zarr(tmp_path / "c.zarr")
+    with _slopes.kept_counts(x, threads=2):
+        sp = _slopes._KEPT[x.name]
+        assert sorted(sp.ahead) == list(range(8))  # every chunk, in row order
+        done = [sp.ahead[k].result() for k in range(8)]
+        if budget is None:  # every chunk decoded ahead, on the two threads' buffers
+            assert all(d is not None for d in done) and 1 <= len(sp.bufs) <= 2
+            reads = []
+            monkeypatch.setattr(sp, "_decode", lambda k, buf=None: reads.append(k))
+        else:
+            assert done[-1] is None  # past the budget: not decoded ahead
+        for _ in range(2):
+            items = np.sort(rng.integers(0, 61, 40))
+            got = [(sel, b.copy(), y0) for sel, b, y0 in _row_bands(x, items, 3, band=6)]
+            for _sel, band, y0 in got:
+                np.testing.assert_array_equal(band, a[y0 : y0 + band.shape[0]])
+        rows, cols = rng.integers(0, 61, 50), rng.integers(0, 9, 50)
+        np.testing.assert_array_equal(_pixels(x, rows, cols), a[rows, cols])
+        if budget is None:
+            assert reads == [] and not sp.ahead  # all taken from the chunks decoded ahead
+    assert x.name not in _slopes._KEPT and sp.pool is None and not sp.bufs
+    monkeypatch.setattr(_slopes, "AHEAD_BYTES", 8 * 9 * 2 * 30 - 1)  # under one chunk
+    with _slopes.kept_counts(x, threads=2):
+        sp = _slopes._KEPT[x.name]
+        assert sp.pool is None and not sp.ahead  # nothing ahead: read as before
+        np.testing.assert_array_equal(_pixels(x, rows, cols), a[rows, cols])
 
 
 @pytest.mark.parametrize("budget", [None, 0])
@@ -399,3 +509,33 @@ def test_write_rows_writes_each_chunk_once(tmp_path, monkeypatch):
     assert sorted(written) == sorted(set(written)) and len(written) == 3
     _table.write_rows(z, idx[:0], values[:0])  # nothing to write: no error
     assert len(written) == 3
+
+
+def test_select_and_align_removes_candidate_histograms_while_stage_7_runs(tmp_path, monkeypatch):
+    """With ``store=``, the tiles' candidate histograms are removed on a thread while
+    stage 7 runs (the removal sees stage 7 start), and are gone when ``detect`` returns;
+    the surfaces are the ones without a store."""
+    import threading
+
+    from splidar.detection import _detect, detect
+    from splidar.scenes import single_surface_scene
+
+    cube = single_surface_scene((24, 24), n_bins=120).simulate(ppp=4, sbr=0.5, rng=1).cube
+    placing, saw = threading.Event(), []
+    real_remove, real_place = _detect.remove_tree, _detect.place_depths
+
+    def remove(path):
+        saw.append(placing.wait(5.0))
+        real_remove(path)
+
+    def place(*a, **k):
+        placing.set()
+        return real_place(*a, **k)
+
+    monkeypatch.setattr(_detect, "remove_tree", remove)
+    monkeypatch.setattr(_detect, "place_depths", place)
+    got = detect(cube, rng=0, store=tmp_path / "det.zarr")
+    assert saw == [True] and not (tmp_path / "det.zarr" / "candidate_histograms").exists()
+    want = detect(cube, rng=0)
+    np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
+    np.testing.assert_array_equal(got.surfaces.row, want.surfaces.row)

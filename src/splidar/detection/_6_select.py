@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._arrays import _raw_chunks
 from .._memory import give_back
 from ._kernels import select_sorted
 from ._result import Surfaces
@@ -71,6 +72,9 @@ def _gather(
     or Zarr), into ``out`` (an array-like of shape ``(idx.size, Q, L, W)``, e.g. a Zarr
     array: filled :data:`GATHER_CHUNK` surfaces at a time) or a new array. Zarr arrays
     are read on :data:`GATHER_THREADS` threads, a block's array each (the same values).
+    An ``out`` not in memory is written part by part on one of these threads while the
+    next part is read (a store's compressed writes took about half of the selection's
+    time on a Zarr cube; ``benchmarks/README.md``, "dist38").
 
     ``release`` (``histograms`` a list): each block's entry is set to None once the
     part holding its last selected row is gathered, so that the blocks' arrays are
@@ -80,48 +84,33 @@ def _gather(
     last = _last_part(table.hist_block[idx], len(histograms)) if release else None
     if out is None:
         out = np.empty(shape, np.float32)
+    # in memory each part is written where it goes (no copy of it)
+    direct = isinstance(out, np.ndarray) and out.flags.c_contiguous
     stored = any(not isinstance(h, (np.ndarray, SupportWindows)) for h in histograms)
     pool = None
-    if stored and idx.size:
+    if (stored or not direct) and idx.size:
         from concurrent.futures import ThreadPoolExecutor
 
         pool = ThreadPoolExecutor(GATHER_THREADS)
     row_bytes = 4 * max(int(np.prod(shape[1:], dtype=np.int64)), 1)
     chunk = int(min(GATHER_CHUNK, max(1, GATHER_BYTES // row_bytes)))
+    # ``out`` not in memory (a store's array): part k is written on the pool while part
+    # k + 1 is read, the parts' buffers used in turn (a buffer is refilled once its
+    # write is done)
+    spare, writing = [], None
     try:
         for a in range(0, idx.size, chunk):
             part = idx[a : a + chunk]
-            # in memory the part is written where it goes (no copy of it)
-            direct = isinstance(out, np.ndarray) and out.flags.c_contiguous
-            hist = out[a : a + part.size] if direct else np.empty((part.size,) + shape[1:], "f4")
-            hb, hr = table.hist_block[part], table.hist_row[part]
-
-            def read(b, hist=hist, hb=hb, hr=hr):
-                sel = np.flatnonzero(hb == b)
-                src = table.extra_histograms if b == -1 else histograms[b]
-                rows = hr[sel]
-                if isinstance(src, SupportWindows) and rows.size:
-                    if sel.size == hist.shape[0]:  # the whole part from one block
-                        src.rows(rows, hist)
-                    else:
-                        hist[sel] = src.rows(rows)
-                    return
-                if isinstance(src, np.ndarray) or rows.size == 0:
-                    hist[sel] = src[rows]
-                    return
-                # a stored array: the rows' range read as one slice (most of a block's
-                # candidates are selected: Zarr's integer indexing took 2.5x the CPU)
-                lo, hi = int(rows.min()), int(rows.max()) + 1
-                hist[sel] = np.asarray(src[lo:hi])[rows - lo]
-
-            blocks = np.unique(hb)
-            if pool is None:
-                for b in blocks:
-                    read(b)
-            else:  # every block's rows land in their own rows of ``hist``
-                list(pool.map(read, blocks))
+            if direct:
+                hist = out[a : a + part.size]
+            else:
+                hist = spare.pop() if spare else np.empty((chunk,) + shape[1:], "f4")
+                hist = hist[: part.size]
+            _read_part(table, histograms, hist, part, pool)
             if not direct:
-                out[a : a + part.size] = hist
+                if writing is not None:
+                    spare.append(writing.result())
+                writing = pool.submit(_write_part, out, a, hist)
             del hist
             if last is not None:
                 done_ = np.flatnonzero(last < a + part.size)
@@ -130,9 +119,75 @@ def _gather(
                     histograms[b] = None  # no later part reads it
                 if gone:
                     give_back()
+        if writing is not None:
+            writing.result()
     finally:
-        if pool is not None:
+        if pool is not None:  # (an error: the write under way ends first)
             pool.shutdown()
+    return out
+
+
+def _write_part(out, a: int, hist: np.ndarray) -> np.ndarray:
+    """``out[a : a + len(hist)] = hist``; returns ``hist``'s buffer for the next part."""
+    out[a : a + hist.shape[0]] = hist
+    return hist.base if hist.base is not None else hist
+
+
+def _read_part(table: CandidateTable, histograms, hist: np.ndarray, part: np.ndarray, pool):
+    """The candidates ``part``'s histograms into ``hist``, each block's rows read on
+    ``pool`` (when given) into their own rows of ``hist``."""
+    hb, hr = table.hist_block[part], table.hist_row[part]
+
+    def read(b):
+        sel = np.flatnonzero(hb == b)
+        src = table.extra_histograms if b == -1 else histograms[b]
+        rows = hr[sel]
+        if isinstance(src, SupportWindows) and rows.size:
+            if sel.size == hist.shape[0]:  # the whole part from one block
+                src.rows(rows, hist)
+            else:
+                hist[sel] = src.rows(rows)
+            return
+        if isinstance(src, np.ndarray) or rows.size == 0:
+            hist[sel] = src[rows]
+            return
+        # a stored array: the rows' range read as one slice (most of a block's
+        # candidates are selected: Zarr's integer indexing took 2.5x the CPU)
+        lo, hi = int(rows.min()), int(rows.max()) + 1
+        hist[sel] = _stored_rows(src, lo, hi)[rows - lo]
+
+    blocks = np.unique(hb)
+    if pool is None:
+        for b in blocks:
+            read(b)
+    else:  # every block's rows land in their own rows of ``hist``
+        list(pool.map(read, blocks))
+
+
+def _stored_rows(z, lo: int, hi: int) -> np.ndarray:
+    """Rows ``[lo, hi)`` of the stored array ``z``; a Zarr array stored raw in a local
+    folder in chunks of whole rows (the tiles' candidate histograms,
+    ``store_histograms(compressed=False)``) is read from its chunk files directly: its
+    reads then do not wait on Zarr's one event loop, where the surfaces' compressed
+    writes run (:func:`_gather` overlaps the two). The same values as ``z[lo:hi]``."""
+    raw = _raw_chunks(z) if hi > lo else None
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return np.asarray(z[lo:hi])
+    folder, chunk, dtype, md = raw
+    step, tail = chunk[0], (0,) * (len(shape) - 1)
+    out = np.empty((hi - lo,) + shape[1:], np.dtype(z.dtype))
+    for k in range(lo // step, (hi - 1) // step + 1):
+        a, b = max(lo, k * step), min(hi, (k + 1) * step)
+        path = folder / md.encode_chunk_key((k,) + tail)
+        try:
+            got = np.fromfile(path, dtype)
+        except FileNotFoundError:  # never written: the fill value
+            out[a - lo : b - lo] = np.asarray(md.fill_value, out.dtype)
+            continue
+        if got.size != int(np.prod(chunk)):  # not one whole chunk's bytes: Zarr reads it
+            return np.asarray(z[lo:hi])
+        out[a - lo : b - lo] = got.reshape(chunk)[a - k * step : b - k * step]
     return out
 
 

@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 from types import MappingProxyType
@@ -289,10 +290,11 @@ def _split() -> tuple:
 def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, store):
     """The clean-up passes (5), the selection (6) and the depths placed (7): ``(done,
     surfaces, placed, t_sel, n_kept)``. A Zarr cube's counts are read from its chunks'
-    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``).
+    nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``), ahead
+    on ``n_jobs`` threads from the start (while the recentring runs).
     ``hists``: ``[list of the map's per-block histograms]``, which stage 6 empties block by
     block as it gathers the surfaces' rows (``select_surfaces(release=True)``)."""
-    with kept_counts(cube.counts):
+    with kept_counts(cube.counts, threads=o["n_jobs"]):
         done = _clean_up(cube, o, mp, held, hists[0], bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, hists, done, t0, store, bg)
 
@@ -476,7 +478,8 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     None when stage 7 did not run).
 
     With a ``store``, the surfaces' histograms are written there part by part and stay
-    there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed.
+    there (:class:`StoredHistograms`); the candidates' ones the tiles wrote are removed
+    (on a thread, while stage 7 runs; done when this returns).
     The last pass's table and the candidates' histograms (``hists``, emptied) are
     released before stage 7 (``done[-1]`` keeps its counts only); stage 7 writes
     its moved surfaces' histograms into the selection's array (no other use of it)."""
@@ -488,20 +491,30 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     )  # fmt: skip
     n_kept = int(done[-1].table.keep.sum())
     done[-1] = dataclasses.replace(done[-1], table=None)
+    remover = None
     if store is not None:
         surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
-        remove_tree(Path(os.fspath(store)) / "candidate_histograms")
+        # removed on a thread while stage 7 runs (many files: it waits on the disk)
+        remover = threading.Thread(
+            target=remove_tree, args=(Path(os.fspath(store)) / "candidate_histograms",),
+            name="splidar-remove",
+        )  # fmt: skip
+        remover.start()
     t_sel, placed = time.perf_counter() - t0 - sum(p.seconds for p in done), None
     give_back()  # the table's pages and the map's histograms, released
     rules = tuple(r for r in RULES if r in o["passes"])
-    if rules and o["checks"] and len(surfaces):
-        background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
-        placed = place_depths(
-            surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"], irf=o["irf"],
-            scales=o["scales"], saliency=mp.saliency, threshold=mp.threshold, rules=rules,
-            n_jobs=o["n_jobs"], overwrite=True,
-        )  # fmt: skip
-        surfaces = placed.surfaces
+    try:
+        if rules and o["checks"] and len(surfaces):
+            background = Background(spatial=mp.spatial, temporal=bg.temporal.astype(np.float32))
+            placed = place_depths(
+                surfaces, counts=cube.counts, background=background, fwhm=o["fwhm"],
+                irf=o["irf"], scales=o["scales"], saliency=mp.saliency,
+                threshold=mp.threshold, rules=rules, n_jobs=o["n_jobs"], overwrite=True,
+            )  # fmt: skip
+            surfaces = placed.surfaces
+    finally:
+        if remover is not None:
+            remover.join()
     o["depth_rounds"] = 0 if placed is None else placed.rounds
     return surfaces, placed, t_sel, n_kept
 

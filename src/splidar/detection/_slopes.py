@@ -1002,6 +1002,11 @@ def _near_items(r: np.ndarray, c: np.ndarray, shape: tuple, halo: int) -> np.nda
 #: 3.1 G voxels). Chunks past it are decoded again at each read.
 SPARSE_BYTES = 256 * 2**20
 
+#: Bytes of the decoded chunks the threads of :meth:`_Sparse.start` hold at once (one
+#: each): the ``--large`` cube's chunks of 32 rows (33 MB) get two threads; a cube in
+#: chunks of over this size is decoded at its first read instead.
+AHEAD_BYTES = 128 * 2**20
+
 #: Sparse counts of the Zarr cubes whose clean-up runs (:func:`kept_counts`), by the
 #: Dask array's name.
 _KEPT: dict = {}
@@ -1009,13 +1014,19 @@ _KEPT_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def kept_counts(counts):
+def kept_counts(counts, threads: int = 0):
     """While the context runs, the Zarr array a Dask cube reads as it is (``splidar.load``
     of a Zarr cube) is read by :func:`_row_bands` and :func:`pixels_of` from the
     nonzero counts of its chunks of rows, each chunk decoded once (:class:`_Sparse`),
     instead of decoding the chunks again at every pass (the slope pass reads the
     cube up to five times, the spill-over lines and the alignment once each). Any
-    other array: nothing changes. The values read are the same."""
+    other array: nothing changes. The values read are the same.
+
+    ``threads`` (> 0): the chunks are decoded ahead, in row order, on that many threads
+    from the context's start (:meth:`_Sparse.start`), while the passes before the first
+    read (the recentring) run; the first reader (the spill-over lines) then finds them
+    decoded instead of decoding them one after the other on its one read-ahead thread.
+    """
     z = None
     if not isinstance(counts, np.ndarray) and hasattr(counts, "dask"):
         try:
@@ -1027,12 +1038,16 @@ def kept_counts(counts):
         mine = z is not None and name not in _KEPT
         if mine:
             _KEPT[name] = _Sparse(z)
+            if threads > 0:
+                _KEPT[name].start(int(threads))
     try:
         yield
     finally:
         if mine:
             with _KEPT_LOCK:
-                _KEPT.pop(name, None)
+                sp = _KEPT.pop(name, None)
+            if sp is not None:
+                sp.stop()
 
 
 class _Sparse:
@@ -1050,29 +1065,86 @@ class _Sparse:
         self.bytes = 0
         self.lock = threading.Lock()
         self.buf = None  # one decoded chunk
+        self.ahead: dict = {}  # chunk index -> Future of its entries (:meth:`start`)
+        self.pool = None
+        self.ahead_bytes = 0  # bytes the threads decoded ahead (approximately)
+        self.bufs: dict = {}  # a decoding thread's chunk buffer, by thread
 
-    def _decode(self, k: int) -> np.ndarray:
+    def _decode(self, k: int, buf=None) -> np.ndarray:
         lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
-        if self.buf is None:
-            self.buf = np.empty((self.step,) + self.row, self.dtype)
-        return zarr_rows_into(self.z, lo, hi, self.buf[: hi - lo])
+        if buf is None:
+            if self.buf is None:
+                self.buf = np.empty((self.step,) + self.row, self.dtype)
+            buf = self.buf
+        return zarr_rows_into(self.z, lo, hi, buf[: hi - lo])
+
+    def _entries(self, a: np.ndarray) -> tuple:
+        """``(indices, values, ptr)`` of the decoded chunk ``a``."""
+        idx, val = _nonzero(a.reshape(-1))
+        n_pix = a.shape[0] * self.row[0]
+        ptr = np.searchsorted(idx, np.arange(n_pix + 1, dtype=np.int64) * self.pix)
+        return idx, val, ptr.astype(idx.dtype)
+
+    def start(self, threads: int) -> None:
+        """Decode every chunk ahead, in row order, on ``threads`` threads (each into
+        its own buffer; no more threads than decoded chunks fit :data:`AHEAD_BYTES`,
+        none when one does not), until :data:`SPARSE_BYTES` would be passed;
+        :meth:`_chunk` takes a chunk's entries from there (waiting for it when under
+        way)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        chunk = self.step * int(np.prod(self.row)) * self.dtype.itemsize
+        threads = min(int(threads), AHEAD_BYTES // max(chunk, 1))
+        if threads < 1:  # chunks too large to hold one more per thread: read as before
+            return
+        n = -(-int(self.z.shape[0]) // self.step)
+        self.pool = ThreadPoolExecutor(threads, thread_name_prefix="splidar-sparse")
+        self.ahead = {k: self.pool.submit(self._ahead, k) for k in range(n)}
+
+    def _ahead(self, k: int):
+        """Chunk ``k``'s entries, decoded on a thread of :meth:`start` (None past the
+        budget, or once stopped)."""
+        if self.pool is None or self.ahead_bytes > SPARSE_BYTES:
+            return None
+        key = threading.get_ident()
+        buf = self.bufs.get(key)
+        if buf is None:
+            buf = self.bufs[key] = np.empty((self.step,) + self.row, self.dtype)
+        got = self._entries(self._decode(k, buf))
+        self.ahead_bytes += sum(v.nbytes for v in got)
+        return got
+
+    def stop(self) -> None:
+        """End the decoding ahead (chunks not started are dropped) and its buffers."""
+        pool, self.pool = self.pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        self.ahead, self.bufs = {}, {}
 
     def _chunk(self, k: int):
         """``(indices, values, ptr)`` of chunk ``k`` (pixel ``p``'s entries are
         ``ptr[p]:ptr[p + 1]``), or the decoded chunk (over budget)."""
         if k in self.chunks and self.chunks[k] is not None:
             return self.chunks[k]
+        fut = self.ahead.pop(k, None)
+        got = None
+        if fut is not None and not fut.cancelled():
+            try:
+                got = fut.result()
+            except Exception:  # read it here (the error, if any, raised from there)
+                got = None
+        if got is not None and k not in self.chunks and self.bytes <= SPARSE_BYTES:
+            self.bytes += sum(v.nbytes for v in got)
+            self.chunks[k] = got
+            return got
         a = self._decode(k)
         if k in self.chunks or self.bytes > SPARSE_BYTES:
             self.chunks[k] = None
             return a
-        idx, val = _nonzero(a.reshape(-1))
-        n_pix = a.shape[0] * self.row[0]
-        ptr = np.searchsorted(idx, np.arange(n_pix + 1, dtype=np.int64) * self.pix)
-        ptr = ptr.astype(idx.dtype)
-        self.bytes += idx.nbytes + val.nbytes + ptr.nbytes
-        self.chunks[k] = (idx, val, ptr)
-        return self.chunks[k]
+        got = self._entries(a)
+        self.bytes += sum(v.nbytes for v in got)
+        self.chunks[k] = got
+        return got
 
     def rows_into(self, out: np.ndarray, y0: int, y1: int, zero: bool, need=None):
         """Rows ``[y0, y1)`` written into ``out`` (shape ``(y1 - y0,) + row``; ``zero``:
