@@ -259,3 +259,34 @@ def test_detect_auto_scales_by_region_same_on_every_path(tmp_path):
         "mask", "saliency", "surface_histograms",
     ]  # fmt: skip
     assert len(splidar.reconstruct(runs[1]).points) > 0
+
+
+def _window_sums_numpy(m, r):
+    """The former NumPy summed-area table of ``_window_sums`` (the reference)."""
+    R, C = m.shape
+    t = np.zeros((R + 1, C + 1))
+    t[1:, 1:] = m.cumsum(axis=0).cumsum(axis=1)
+    i0, i1 = np.clip(np.arange(R) - r, 0, R), np.clip(np.arange(R) + r + 1, 0, R)
+    j0, j1 = np.clip(np.arange(C) - r, 0, C), np.clip(np.arange(C) + r + 1, 0, C)
+    return t[i1][:, j1] - t[i0][:, j1] - t[i1][:, j0] + t[i0][:, j0]
+
+
+def test_window_sums_equals_the_numpy_summed_area_table_bit_for_bit():
+    from splidar.detection._2_saliency import _window_sums
+
+    rng = np.random.default_rng(3)
+    # values over 9 decades (inexact float64 sums: order matters), zeros, windows wider
+    # than the image, a single pixel
+    for shape, r in [((7, 5), 5), ((40, 33), 2), ((1, 1), 0), ((64, 48), 5), ((3, 90), 1)]:
+        m = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 6, size=shape)
+        m[rng.random(shape) < 0.3] = 0.0
+        got = _window_sums(m, r)
+        assert got.dtype == np.float64 and got.shape == shape
+        assert np.array_equal(got, _window_sums_numpy(m, r))
+    # the definition: the window's sum cut at the border (exact for small integers)
+    m = rng.integers(0, 5, size=(9, 11)).astype(float)
+    box = [
+        [m[max(i - 2, 0) : i + 3, max(j - 2, 0) : j + 3].sum() for j in range(11)] for i in range(9)
+    ]
+    want = np.array(box)
+    assert np.array_equal(_window_sums(m, 2), want)

@@ -380,13 +380,37 @@ def _root(v: np.ndarray) -> np.ndarray:
 
 def _window_sums(m: np.ndarray, r: int) -> np.ndarray:
     """Sums of ``m`` (rows, cols) over the ``(2 r + 1)^2`` window about each pixel, cut at
-    the border (a summed-area table)."""
+    the border (a summed-area table: float64 prefix sums down the rows, then along them,
+    and each window's four corners combined as ``((t11 - t01) - t10) + t00``; one numba
+    pass, no gathered copies of the table: :func:`_window_sums_kernel`)."""
+    m = np.ascontiguousarray(m, dtype=np.float64)
+    out = np.empty(m.shape, np.float64)
+    _window_sums_kernel(m, int(r), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _window_sums_kernel(m, r, out):  # pragma: no cover - numba
+    """:func:`_window_sums` into ``out``: the table's cumulative sums in NumPy's order
+    (``cumsum(axis=0)`` then ``cumsum(axis=1)``), so every value is the former
+    NumPy expression's to the bit."""
     R, C = m.shape
     t = np.zeros((R + 1, C + 1))
-    t[1:, 1:] = m.cumsum(axis=0).cumsum(axis=1)
-    i0, i1 = np.clip(np.arange(R) - r, 0, R), np.clip(np.arange(R) + r + 1, 0, R)
-    j0, j1 = np.clip(np.arange(C) - r, 0, C), np.clip(np.arange(C) + r + 1, 0, C)
-    return t[i1][:, j1] - t[i0][:, j1] - t[i1][:, j0] + t[i0][:, j0]
+    for j in range(C):  # down the rows (cumsum axis 0)
+        acc = 0.0
+        for i in range(R):
+            acc += m[i, j]
+            t[i + 1, j + 1] = acc
+    for i in range(1, R + 1):  # then along each row (cumsum axis 1)
+        acc = 0.0
+        for j in range(1, C + 1):
+            acc += t[i, j]
+            t[i, j] = acc
+    for i in range(R):
+        i0, i1 = max(i - r, 0), min(i + r + 1, R)
+        for j in range(C):
+            j0, j1 = max(j - r, 0), min(j + r + 1, C)
+            out[i, j] = ((t[i1, j1] - t[i0, j1]) - t[i1, j0]) + t[i0, j0]
 
 
 def _coherence_tiles(R: int, C: int, per_pixel: int, h: int) -> list:
