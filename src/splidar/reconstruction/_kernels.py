@@ -586,17 +586,22 @@ def local_round(y, b, eta, h, u, alpha, ups, eps, do_estep, r, beta, z, q, zs, e
         _local_one(s, y, b, eta, h, u, alpha, ups, eps, do_estep, r, beta, z, q, zs, er)
 
 
+@njit(cache=True, inline="always")
+def _estep_store_one(s, y, b, eta, r, h, z, q, old):
+    """Surface ``s`` of :func:`estep_store` (shared with :func:`estep_local`)."""
+    for l in range(y.shape[1]):
+        sig = eta[s, l] * h[s] * r[s, l]
+        old[s, l] = h[s] * r[s, l]
+        tot = sig + b[s, l]
+        q[s, l] = sig / tot if tot > 0.0 else 1.0
+        z[s, l] = y[s, l] * q[s, l]
+
+
 @njit(cache=True, parallel=_PARALLEL)
 def estep_store(y, b, eta, r, h, z, q, old):
     """:func:`estep`, and ``old = h r`` (the intensity before the sweep)."""
-    S, L = y.shape
-    for s in prange(S):
-        for l in range(L):
-            sig = eta[s, l] * h[s] * r[s, l]
-            old[s, l] = h[s] * r[s, l]
-            tot = sig + b[s, l]
-            q[s, l] = sig / tot if tot > 0.0 else 1.0
-            z[s, l] = y[s, l] * q[s, l]
+    for s in prange(y.shape[0]):
+        _estep_store_one(s, y, b, eta, r, h, z, q, old)
 
 
 @njit(cache=True, parallel=_PARALLEL)
@@ -686,14 +691,8 @@ def estep_local(y, b, eta, h, u, alpha, ups, eps, r, beta, z, q, old, zs, er):
     Both touch only the surface's own entries, so doing them surface by surface gives
     the same numbers as the two passes in turn (``old = h r`` before the update).
     """
-    S, L = r.shape
-    for s in prange(S):
-        for l in range(L):
-            sig = eta[s, l] * h[s] * r[s, l]
-            old[s, l] = h[s] * r[s, l]
-            tot = sig + b[s, l]
-            q[s, l] = sig / tot if tot > 0.0 else 1.0
-            z[s, l] = y[s, l] * q[s, l]
+    for s in prange(r.shape[0]):
+        _estep_store_one(s, y, b, eta, r, h, z, q, old)
         _local_one(s, y, b, eta, h, u, alpha, ups, eps, False, r, beta, z, q, zs, er)
 
 
