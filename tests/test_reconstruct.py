@@ -723,16 +723,15 @@ def test_kernels_fused_round_matches_elementary():
     np.testing.assert_allclose(iw, 1 / w, rtol=1e-15)
 
 
+def _sweep_buffers(S, L):
+    """A sweep's scratch: ``z, q, old`` (S, L) and ``zs, er`` (S,)."""
+    return (np.empty((S, L)), np.empty((S, L)), np.empty((S, L)), np.empty(S), np.empty(S))
+
+
 def _elementary_rounds(st, g, n_inner, n_hw):
     """One sweep's E-step and rounds by the elementary kernels (the former ``run`` loop)."""
     S, L = st["y"].shape
-    z, q, old, zs, er = (
-        np.empty((S, L)),
-        np.empty((S, L)),
-        np.empty((S, L)),
-        np.empty(S),
-        np.empty(S),
-    )
+    z, q, old, zs, er = _sweep_buffers(S, L)
     iw = 1.0 / st["w"]
     kern.estep_store(st["y"], st["b"], st["eta"], st["r"], st["h"], z, q, old)
     for i in range(n_inner):
@@ -758,13 +757,7 @@ def test_inner_rounds_are_the_elementary_passes_bit_for_bit(n_inner, n_hw):
     ch_ref, z_ref, q_ref, iw_ref = _elementary_rounds(ref, g, n_inner, n_hw)
     a = {k: np.array(v, copy=True) for k, v in st.items() if isinstance(v, np.ndarray)}
     hx, iw = np.append(a["h"], 0.0), np.append(1.0 / a["w"], 0.0)
-    z, q, old, zs, er = (
-        np.empty((S, L)),
-        np.empty((S, L)),
-        np.empty((S, L)),
-        np.empty(S),
-        np.empty(S),
-    )
+    z, q, old, zs, er = _sweep_buffers(S, L)
     kern.estep_local(
         a["y"], a["b"], a["eta"], hx, a["u"], a["alpha"], a["ups"], a["eps"], a["r"],
         a["beta"], z, q, old, zs, er,
