@@ -182,7 +182,7 @@ def build_graph(
     (bridging every gap measured -0.004 at PPP 1: docs/classification.md). The colours
     (``parity``) are then ``(row + col) % 4``, so that no two linked surfaces share one.
 
-    ``key``: the surfaces' keys when already computed (:func:`surface_keys` of these
+    ``key``: the surfaces' keys when already computed (``surface_keys`` of these
     surfaces, or of the image's rows for a strip's), else computed here.
     """
     S = int(row.size)
