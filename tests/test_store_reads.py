@@ -280,6 +280,18 @@ def test_pixels_zarr_equals_vindex(tmp_path):
     np.testing.assert_array_equal(_pixels_by_chunk(z, x.chunks[0], rows, cols), a[rows, cols])
 
 
+def _sparse_zarr(tmp_path, rng, rows):
+    """A sparse uint8 cube ``(rows, 9, 2, 30)`` (5 % nonzero) written to Zarr in chunks
+    of 8 rows: ``(array, its Dask array from the Zarr file)``."""
+    shape = (rows, 9, 2, 30)
+    a = ((rng.random(shape) < 0.05) * rng.integers(1, 200, shape)).astype(np.uint8)
+    z = zarr.open_array(
+        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
+    )
+    z[:] = a
+    return a, da.from_zarr(tmp_path / "c.zarr")
+
+
 @pytest.mark.parametrize("budget", [None, 0])
 def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
     """In ``kept_counts`` (detect's stages 5-7 on a Zarr cube) the bands and pixels come
@@ -292,13 +304,7 @@ def test_kept_counts_reads_equal_the_zarr_array(tmp_path, monkeypatch, budget):
     if budget is not None:
         monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
     rng = np.random.default_rng(5)
-    a = (rng.random((45, 9, 2, 30)) < 0.05) * rng.integers(1, 200, (45, 9, 2, 30))
-    a = a.astype(np.uint8)
-    z = zarr.open_array(
-        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
-    )
-    z[:] = a
-    x = da.from_zarr(tmp_path / "c.zarr")
+    a, x = _sparse_zarr(tmp_path, rng, 45)
     with _slopes.kept_counts(x):
         assert x.name in _slopes._KEPT
         for _ in range(2):  # the second pass from the kept chunks
@@ -326,13 +332,7 @@ def test_kept_counts_threads_decode_every_chunk_ahead(tmp_path, monkeypatch, bud
     if budget is not None:
         monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
     rng = np.random.default_rng(11)
-    a = (rng.random((61, 9, 2, 30)) < 0.05) * rng.integers(1, 200, (61, 9, 2, 30))
-    a = a.astype(np.uint8)
-    z = zarr.open_array(
-        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, 9, 2, 30), dtype=a.dtype
-    )
-    z[:] = a
-    x = da.from_zarr(tmp_path / "c.zarr")
+    a, x = _sparse_zarr(tmp_path, rng, 61)
     with _slopes.kept_counts(x, threads=2):
         sp = _slopes._KEPT[x.name]
         assert sorted(sp.ahead) == list(range(8))  # every chunk, in row order
