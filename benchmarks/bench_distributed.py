@@ -20,7 +20,8 @@ kernels are loaded once per worker process), which is not timed.
 band, never whole in memory) detected with ``store=`` on LocalClusters of 1 and 2
 workers limited to ``--memory-limit`` each, against the in-memory run (``n_jobs`` 1 and
 2) on a slab of the same scene that fits (``--fit-rows`` rows; the median of
-``--memory-repeat`` runs, 3 by default, is the reference). The resident memory of
+``--memory-repeat`` runs, 4 by default, half before the clusters and half after, is the
+reference: the host's speed drifts between sittings). The resident memory of
 every worker process and of the calling process is sampled with psutil every 0.1 s from
 a thread of the calling process (by pid: the workers are not asked, so a busy worker is
 sampled too); a worker restarted by its nanny (over 95 % of its limit) shows as a new pid.
@@ -297,6 +298,34 @@ def large(args) -> int:
         # numba kernels loaded in this process (the in-memory runs' too)
         (splidar.process if args.process else splidar.detect)(tiny, rng=0)
         rows, dets = [], {}
+        fit, mstore = args.fit_rows, base / "det-memory.zarr"
+        arms = [
+            (f"memory-{n}" + ("-store" if st else ""), n, {"store": mstore} if st else {})
+            for n in sorted(set(args.workers))
+            for st in (False, True)
+        ]  # fmt: skip
+        runs = {name: ([], []) for name, _, _ in arms}
+
+        def memory_runs(k: int) -> None:
+            """``k`` in-memory runs of each arm on the slab (built here and dropped after:
+            not held during the cluster runs, whose calling-process peak is measured)."""
+            if k <= 0:
+                return
+            mem = splidar.Cube(scene_rows(0, fit, C, T), irf=lazy.irf)
+            for name, n, kw in arms:
+                for _ in range(k):
+                    shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
+                    with _Sampler({"caller": os.getpid()}) as s:
+                        # like for like: --process times splidar.process in memory too
+                        det, t = _timed(mem, args.process, n_jobs=n, **kw)
+                    runs[name][0].append(t)
+                    runs[name][1].append(s.cpu)
+                    print(f"{name}: {t:.1f} s ({s.cpu:.1f} s CPU), stages " + _stages(det),
+                          flush=True)  # fmt: skip
+                    del det
+            shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
+
+        memory_runs((args.memory_repeat + 1) // 2)
         for n in args.workers:
             store = base / f"det-{n}.zarr"
             shutil.rmtree(store, ignore_errors=True)
@@ -313,29 +342,17 @@ def large(args) -> int:
             name = f"cluster-{n}" + ("-process" if args.process else "")
             rows.append((name, n, t, n_vox, peaks, caller, restarted, cpu))
             shutil.rmtree(store, ignore_errors=True)
-        fit = args.fit_rows
-        mem = splidar.Cube(scene_rows(0, fit, C, T), irf=lazy.irf)
-        for n in sorted(set(args.workers)):
-            for kw in ({}, {"store": base / "det-memory.zarr"}):
-                name = f"memory-{n}" + ("-store" if kw else "")
-                walls, cpus_ = [], []
-                for _ in range(args.memory_repeat):
-                    shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
-                    with _Sampler({"caller": os.getpid()}) as s:
-                        # like for like: --process times splidar.process in memory too
-                        det, t = _timed(mem, args.process, n_jobs=n, **kw)
-                    walls.append(t)
-                    cpus_.append(s.cpu)
-                    print(f"{name}: {t:.1f} s ({s.cpu:.1f} s CPU), stages " + _stages(det),
-                          flush=True)  # fmt: skip
-                    del det
-                # the reference: the median of the repeats (one 8-10 s run moves by
-                # +-13 % on a quiet machine; the cluster run, 15x longer, by +-2 %)
-                t, cpu = float(np.median(walls)), float(np.median(cpus_))
-                if len(walls) > 1:
-                    print(f"{name}: median of {len(walls)}: {t:.1f} s ({cpu:.1f} s CPU)")
-                rows.append((name, n, t, mem.counts.size, None, None, 0, cpu))
-            shutil.rmtree(base / "det-memory.zarr", ignore_errors=True)
+        memory_runs(args.memory_repeat // 2)
+        for name, n, _ in arms:
+            walls, cpus_ = runs[name]
+            # the reference: the median of the repeats, half of them run before the
+            # clusters and half after (one 8-10 s run moves by +-13 % on a quiet machine
+            # and the host's speed drifts between sittings; the cluster run, 15x longer,
+            # moves +-2 % within one)
+            t, cpu = float(np.median(walls)), float(np.median(cpus_))
+            if len(walls) > 1:
+                print(f"{name}: median of {len(walls)}: {t:.1f} s ({cpu:.1f} s CPU)")
+            rows.append((name, n, t, fit * C * T, None, None, 0, cpu))
     finally:
         if args.data is None:
             shutil.rmtree(base, ignore_errors=True)
@@ -552,8 +569,9 @@ def main(argv=None) -> int:
     p.add_argument("--large", action="store_true", help="the issue's figures at scale")
     p.add_argument("--fit-rows", type=int, default=256, help="--large: in-memory slab rows")
     p.add_argument(
-        "--memory-repeat", type=int, default=3,
-        help="--large: in-memory runs per arm, the median the reference (default 3)",
+        "--memory-repeat", type=int, default=4,
+        help="--large: in-memory runs per arm, half before the clusters and half after; "
+        "their median the reference (default 4)",
     )  # fmt: skip
     p.add_argument("--data", default=None, help="--large: folder for the cube (kept)")
     p.add_argument(
