@@ -539,3 +539,29 @@ def test_select_and_align_removes_candidate_histograms_while_stage_7_runs(tmp_pa
     want = detect(cube, rng=0)
     np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
     np.testing.assert_array_equal(got.surfaces.row, want.surfaces.row)
+
+
+def test_remove_logged_warns_when_the_scratch_cannot_be_removed(tmp_path, monkeypatch, caplog):
+    """A failing removal of the candidates' scratch histograms (on the remover thread)
+    is a logged warning naming the folder, not an exception escaping the thread; the
+    detection is the one without a store."""
+    import logging
+    import threading
+
+    from splidar.detection import _detect, detect
+    from splidar.scenes import single_surface_scene
+
+    cube = single_surface_scene((16, 16), n_bins=120).simulate(ppp=4, sbr=0.5, rng=1).cube
+
+    def refuse(path):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    hooked = []
+    monkeypatch.setattr(_detect, "remove_tree", refuse)
+    monkeypatch.setattr(threading, "excepthook", lambda args: hooked.append(args))
+    with caplog.at_level(logging.WARNING, logger="splidar.detection._detect"):
+        got = detect(cube, rng=0, store=tmp_path / "det.zarr")
+    assert not hooked
+    assert any("candidate_histograms" in r.getMessage() for r in caplog.records)
+    want = detect(cube, rng=0)
+    np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)

@@ -496,7 +496,7 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
         surfaces = dataclasses.replace(surfaces, histograms=StoredHistograms(surfaces.histograms))
         # removed on a thread while stage 7 runs (many files: it waits on the disk)
         remover = threading.Thread(
-            target=remove_tree, args=(Path(os.fspath(store)) / "candidate_histograms",),
+            target=_remove_logged, args=(Path(os.fspath(store)) / "candidate_histograms",),
             name="splidar-remove",
         )  # fmt: skip
         remover.start()
@@ -517,6 +517,21 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
             remover.join()
     o["depth_rounds"] = 0 if placed is None else placed.rounds
     return surfaces, placed, t_sel, n_kept
+
+
+def _remove_logged(path) -> None:
+    """:func:`remove_tree` on the remover thread: a failure (a file system refusing to
+    delete) leaves scratch files behind but not a wrong result, so it is logged as a
+    warning naming the folder, instead of a traceback printed by the thread's hook."""
+    try:
+        remove_tree(path)
+    except OSError as err:
+        logger.warning(
+            "detect: could not remove the candidates' scratch histograms %s (%s): "
+            "delete the folder by hand; the detection is complete",
+            path,
+            err,
+        )
 
 
 def _stored_histograms(store, shape):
