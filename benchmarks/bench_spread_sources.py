@@ -55,6 +55,19 @@ Usage::
     python benchmarks/bench_spread_sources.py --seeds 0 1 2 --cache DIR
     python benchmarks/bench_spread_sources.py --grid --seeds 0 --cache DIR
     python benchmarks/bench_spread_sources.py --layer [--grid] --seeds 0 1 2 --cache DIR
+    python benchmarks/bench_spread_sources.py --kinds [--grid] --seeds 0 1 2 --cache DIR
+    python benchmarks/bench_spread_sources.py --null-tail
+
+With ``--kinds`` (dec39, session 27) the single-surface cells' false surfaces left after
+stage 7d's gated ``line_open`` (``spread_lines``) are put in ``bench_false_surfaces.py``'s
+kinds and placed by the estimated background's temporal shape at their depth (below 0.8,
+0.8-1.25, above 1.25 times its mean: the decaying background's low and high parts),
+with 7c's axes decision for the candidates (tested or spared); and one rule is measured
+on every cube (``every``, with ``--grid`` on ``bench_detection.py``'s cells): outside the
+layered windows, the candidates 7c's axes spare are line-tested too, and removed when
+their lines fail while the pixel's other surface's pass. With ``--null-tail`` the line
+test's tail on background-only lines (11 pixels, the scene's IRF) at several background
+levels: whether ``log((1 - q) / q)`` means the same false-pass rate at every level.
 
 Nothing is downloaded; everything is simulated. Measured, not adopted (benchmarks/
 README.md, "spr36, session 24").
@@ -72,7 +85,14 @@ from bench_false_surfaces import LAYER, false_causes, false_kinds, net_scene, sh
 from splidar.detection import STAGES, detect
 from splidar.detection._7b_edge_bands import _windows, group_llr, profile_llr
 from splidar.detection._7c_spread_groups import GATE_FWHM, _slots, spread_groups
-from splidar.detection._7d_layer_evidence import layer_evidence, spread_lines
+from splidar.detection._7d_layer_evidence import (
+    depth_slots,
+    layer_evidence,
+    spread_lines,
+)
+from splidar.detection._7d_layer_evidence import (
+    line_llr as lines_7d,
+)
 from splidar.detection._filters import irf_fwhm
 from splidar.metrics import PointSet, evaluate
 from splidar.scenes import single_surface_scene, two_layer_scene
@@ -353,13 +373,136 @@ def layer_main(args) -> int:
     return 0
 
 
+#: the estimated background's temporal shape at a surface's depth, relative to its mean:
+#: the bands of the kinds table (low part, middle, high part of a decaying background)
+REL_BANDS = (0.8, 1.25)
+
+
+def every_lines(d, surface_pfa: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 7d's removal (``spread_lines``) and the ``every`` rule's (see the module)."""
+    s = d["surfaces"]
+    irf = np.atleast_2d(np.asarray(d["irf"], np.float64))
+    fwhm = irf_fwhm(irf)
+    sl = spread_lines(s.row, s.col, s.depth_bin, s.image_shape, d["counts"], d["background"],
+                      fwhm=fwhm, irf=irf, half=d["half"], surface_pfa=surface_pfa)  # fmt: skip
+    cand = sl.candidates
+    free = ~sl.layers.layered[s.row[cand], s.col[cand]]
+    llr = np.full(cand.size, np.nan)
+    t = cand[free]
+    D, n = depth_slots(s.row, s.col, s.depth_bin, s.image_shape)
+    if t.size:
+        llr[free] = lines_7d(D, n, s.row[t], s.col[t], s.depth_bin[t], d["counts"],
+                             d["background"], irf, gate=GATE_FWHM * fwhm,
+                             half=d["half"]).max(axis=1)  # fmt: skip
+    pix = s.row[cand] * s.image_shape[1] + s.col[cand]
+    ok = free & (np.nan_to_num(llr, nan=-np.inf) >= sl.level)
+    good = np.bincount(pix, weights=ok, minlength=int(np.prod(s.image_shape)))
+    fail = free & ~sl.tested & (np.nan_to_num(llr, nan=np.inf) < sl.level)
+    return sl.remove, np.union1d(sl.remove, cand[fail & (good[pix] >= 1)])
+
+
+def kept_kinds(d, remove) -> tuple[object, list]:
+    """``evaluate`` after removing ``remove``, and each false surface's (kind, relative
+    background at its depth, index in the detection)."""
+    s, truth = d["surfaces"], d["truth"]
+    keep = np.setdiff1d(np.arange(s.row.size), remove)
+    pts = PointSet(row=s.row[keep], col=s.col[keep], depth_bin=s.depth_bin[keep],
+                   image_shape=s.image_shape)  # fmt: skip
+    fwhm = irf_fwhm(np.atleast_2d(np.asarray(d["irf"], np.float64)))
+    false, cause = false_causes(pts, truth)
+    tm = np.asarray(d["background"].temporal, np.float64).sum(axis=0)
+    rel = tm / tm.mean()
+    out = []
+    for k, i in zip(false_kinds(pts, truth, false, cause, N_BINS, fwhm), false, strict=True):
+        t = int(np.clip(np.rint(pts.depth_bin[i]), 0, rel.size - 1))
+        out.append((k[0], float(rel[t]), int(keep[i])))
+    return evaluate(pts, truth, tau=3.0), out
+
+
+def kinds_main(args) -> int:
+    """The false surfaces left after stage 7d, by kind and background part; the
+    ``every`` rule on every cube (``--kinds``)."""
+    it = grid_cubes(args.seeds[0]) if args.grid else cubes(args.seeds)
+    acc, tot = {}, {}
+    for name, seed, key, cell in it:
+        d = detected(name, seed, key, cell, args.cache, grid=args.grid)
+        gated, every = every_lines(d)
+        res = [kept_kinds(d, rm) for rm in (np.zeros(0, np.int64), gated, every)]
+        nm = [(int(m.n_matched), int(m.f_false)) for m, _ in res]
+        t = tot.setdefault((name, cell), np.zeros(5, np.int64))
+        t += [1, nm[1][0] - nm[0][0], nm[1][1] - nm[0][1], nm[2][0] - nm[1][0], nm[2][1] - nm[1][1]]
+        txt = "  ".join(f"{m.f_true:.4f} / {m.f_false}" for m, _ in res)
+        print(f"{name:9s} {cell[0]:9s} {cell[1]:3g} {cell[2]:5g} seed {seed}: today, gated, "
+              f"every: {txt}", flush=True)  # fmt: skip
+        if name != "single" or args.grid:
+            continue
+        s = d["surfaces"]
+        C = s.image_shape[1]
+        n_at = np.bincount(s.row * C + s.col, minlength=int(np.prod(s.image_shape)))
+        sl = spread_lines(s.row, s.col, s.depth_bin, s.image_shape, d["counts"], d["background"],
+                          fwhm=irf_fwhm(np.atleast_2d(np.asarray(d["irf"], np.float64))),
+                          irf=d["irf"], half=d["half"], surface_pfa=0.01)  # fmt: skip
+        sl_tested = set(sl.candidates[sl.tested].tolist())
+        for kind, rel, i in res[1][1]:
+            a = acc.setdefault((cell[0], kind), np.zeros(6))
+            a[int(np.searchsorted(REL_BANDS, rel, side="right"))] += 1
+            if n_at[s.row[i] * C + s.col[i]] >= 2:
+                a[3 + (i not in sl_tested)] += 1
+            a[5] += 1
+    if acc:
+        n = len(args.seeds)
+        print(f"left after the gated line_open, per cube ({n} seeds): kind: all; by the "
+              f"background's part (< {REL_BANDS[0]}, middle, > {REL_BANDS[1]} x its mean); "
+              "candidates tested / spared by 7c's axes")  # fmt: skip
+        for (bg, kind), a in sorted(acc.items()):
+            a = a / n
+            print(f"  {bg:9s} {kind:17s} {a[5]:5.1f}: {a[0]:5.1f} {a[1]:5.1f} {a[2]:5.1f}; "
+                  f"{a[3]:5.1f} / {a[4]:5.1f}")  # fmt: skip
+    print("per cell (cubes): gated vs today true / false; every vs gated true / false")
+    for (name, cell), t in tot.items():
+        print(f"  {name:9s} {cell[0]:9s} {cell[1]:3g} {cell[2]:5g} ({t[0]}): {t[1]:+d} / "
+              f"{t[2]:+d}; {t[3]:+d} / {t[4]:+d}")  # fmt: skip
+    return 0
+
+
+def null_tail(irf, levels=(0.005, 0.01, 0.02, 0.05, 0.1, 0.25), n_lines=20000, n_px=11,
+              nats=(2.0, 4.5, 6.0), seed=0) -> dict:  # fmt: skip
+    """``P(line log-ratio > x)`` on background-only lines of ``n_px`` pixels at each
+    background level (counts per bin), the IRF's window about an interior depth."""
+    from splidar.detection._7b_edge_bands import _shifted_irf
+
+    irf = np.atleast_2d(np.asarray(irf, np.float64))
+    peak = np.argmax(irf, axis=1)
+    W = irf.shape[1] + 2
+    g1 = _shifted_irf(irf, peak, np.array([peak.max() + 1.0]), W)[0]
+    rng = np.random.default_rng(seed)
+    grp = np.repeat(np.arange(n_lines), n_px)
+    out = {}
+    for b in levels:
+        y = rng.poisson(b, size=(n_lines * n_px, *g1.shape)).astype(np.float64)
+        g = np.broadcast_to(g1, y.shape).copy()
+        llr = group_llr(y, g, np.full(y.shape, float(b)), grp)
+        out[b] = {x: float(np.mean(llr > x)) for x in nats}
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--cache", help="a directory keeping each cube's detection")
     ap.add_argument("--grid", action="store_true", help="bench_detection.py's 64 cells")
     ap.add_argument("--layer", action="store_true", help="the rules gated by stage 7d")
+    ap.add_argument("--kinds", action="store_true", help="what stage 7d leaves; `every`")
+    ap.add_argument("--null-tail", action="store_true", help="the line test's null tail")
     args = ap.parse_args(argv)
+    if args.null_tail:
+        irf = np.stack([g.sample() for g in single_surface_scene(SHAPE, n_bins=N_BINS).irf])
+        for b, p in null_tail(irf).items():
+            print(f"background {b:g} per bin: P(line log-ratio > x) "
+                  + ", ".join(f"x={x:g}: {v:.5f}" for x, v in p.items()))  # fmt: skip
+        return 0
+    if args.kinds:
+        return kinds_main(args)
     if args.layer:
         return layer_main(args)
     if args.grid:
