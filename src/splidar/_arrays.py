@@ -150,6 +150,53 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     return out
 
 
+def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
+    """``z[idx[i]] = values[i]`` written straight into the chunk files of a Zarr array
+    stored raw in a local folder (:func:`_raw_chunks`) in chunks of whole rows (a
+    detection's stored histograms, ``store_histograms(compressed=False)``); False, and
+    nothing written, for any other array or when a chunk file the rows fall in is
+    missing or not one whole chunk's bytes (write them with Zarr).
+
+    Zarr writes a row by reading, changing and writing its whole chunk (4,096
+    histograms); a raw chunk file is the chunk's bytes in C order, so each chunk holding
+    some of the rows is mapped and only the rows' bytes change. The values read back are
+    Zarr's write's (the same cast to ``z``'s dtype).
+
+    Parameters
+    ----------
+    z : zarr.Array
+    idx : int array (n,)
+        Distinct rows (first axis), in bounds.
+    values : array (n,) + z.shape[1:]
+
+    Returns
+    -------
+    bool
+        Whether the rows were written.
+    """
+    raw = _raw_chunks(z)
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return False
+    folder, chunk, dtype, md = raw
+    idx = np.asarray(idx, np.int64).reshape(-1)
+    key = idx // chunk[0]
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    groups = np.split(order, cuts) if idx.size else []
+    tail = (0,) * (len(shape) - 1)
+    paths = [folder / md.encode_chunk_key((int(key[g[0]]),) + tail) for g in groups]
+    size = int(np.prod(chunk)) * dtype.itemsize
+    if not all(p.is_file() and p.stat().st_size == size for p in paths):
+        return False  # checked before any write: all rows through Zarr
+    values = np.asarray(values)
+    for g, path in zip(groups, paths, strict=True):
+        m = np.memmap(path, dtype=dtype, mode="r+", shape=chunk)
+        m[idx[g] % chunk[0]] = values[g]  # (no msync: the page cache is the file's)
+        del m
+    return True
+
+
 def _mapped_values(path, dtype, chunk: tuple, within: tuple) -> np.ndarray:
     """The values at ``within`` (index arrays into the chunk) of a raw chunk file, mapped
     for random access: no read-ahead around each page touched (on a chunk not in the

@@ -520,11 +520,13 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
 
 
 def _stored_histograms(store, shape):
-    """A new Zarr array ``surface_histograms`` of ``shape`` in the detection's store."""
+    """A new Zarr array ``surface_histograms`` of ``shape`` in the detection's store,
+    stored raw (stage 7 writes its moved surfaces' rows in the chunk files,
+    :func:`~splidar.detection._table.write_rows`)."""
     import zarr
 
     g = zarr.open_group(os.fspath(store), mode="r+")
-    return store_histograms(g, "surface_histograms", shape)
+    return store_histograms(g, "surface_histograms", shape, compressed=False)
 
 
 def _map_pass(cube, filters, nul, o, store, tiled: bool):
