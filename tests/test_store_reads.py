@@ -644,3 +644,65 @@ def test_detect_store_writes_stage_7s_moves_in_the_raw_chunk_files(tmp_path, mon
     h = np.asarray(got.surfaces.histograms)
     assert h.tobytes() == want.surfaces.histograms.tobytes()
     np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
+
+
+def test_zarr_take_rows_equals_zarrs_read(tmp_path, monkeypatch):
+    """``zarr_take_rows``: rows of a raw array in chunks of whole rows read from its
+    chunk files (Zarr not asked; unsorted, repeated, in the edge chunk, in a chunk never
+    written: the fill value), the same values as Zarr's; a compressed array or a chunk
+    file that is not one chunk's bytes: None."""
+    from splidar._arrays import zarr_take_rows
+
+    rng = np.random.default_rng(14)
+    d = rng.normal(size=(23, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = g.create_array("h", shape=d.shape, chunks=(4, 2, 1, 5), dtype="f4", compressors=None)
+    z[4:] = d[4:]  # rows 0-3: never written (the fill value, 0)
+    rows = np.array([22, 5, 1, 5, 17, 0, 21, 9])
+    want = np.asarray(z.get_orthogonal_selection((rows,)))
+    assert np.array_equal(want[2:4], np.stack([np.zeros_like(d[0]), d[5]]))
+    monkeypatch.setattr(type(z), "__getitem__", _fails)
+    monkeypatch.setattr(type(z), "get_orthogonal_selection", _fails)
+    got = zarr_take_rows(z, rows)
+    assert got.dtype == np.float32 and got.tobytes() == want.tobytes()
+    assert zarr_take_rows(z, rows[:0]).shape == (0, 2, 1, 5)
+    monkeypatch.undo()
+    packed = g.create_array("p", shape=d.shape, chunks=(4, 2, 1, 5), dtype="f4")
+    assert zarr_take_rows(packed, rows) is None
+    path = tmp_path / "h.zarr" / "h" / "c" / "4" / "0" / "0" / "0"
+    path.write_bytes(path.read_bytes()[:-4])
+    assert zarr_take_rows(z, rows) is None
+
+
+def test_read_part_reads_rows_far_apart_at_those_rows(tmp_path, monkeypatch):
+    """``_gather`` (the recentring's moved candidates): a raw block's rows far apart are
+    read at those rows (``zarr_take_rows``), rows close together as the slice from the
+    first to the last (``_stored_rows``); the same histograms as from memory."""
+    from splidar.detection import _6_select
+
+    rng = np.random.default_rng(15)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    blocks = [rng.normal(size=(n, 2, 1, 5)).astype(np.float32) for n in (200, 40)]
+    stored = [
+        store_histograms(g, str(i), b.shape, data=b, compressed=False)
+        for i, b in enumerate(blocks)
+    ]  # fmt: skip
+    hb = np.array([0] * 200 + [1] * 40)
+    hr = np.concatenate([np.arange(200), np.arange(40)])
+    table = CandidateTable(
+        columns={"row": np.arange(hb.size)}, keep=np.ones(hb.size, bool),
+        origin=np.zeros(hb.size, np.int8), hist_block=hb, hist_row=hr,
+        image_shape=(hb.size, 1),
+    )  # fmt: skip
+    idx = np.array([3, 190, 77, 200, 230, 215, 239])  # block 0: 3 rows in 188; block 1: 4 in 40
+    took, sliced = [], []
+    real_take, real_rows = _6_select.zarr_take_rows, _6_select._stored_rows
+    monkeypatch.setattr(
+        _6_select, "zarr_take_rows", lambda z, r: took.append(z.path) or real_take(z, r)
+    )
+    monkeypatch.setattr(
+        _6_select, "_stored_rows", lambda z, a, b: sliced.append(z.path) or real_rows(z, a, b)
+    )
+    got = _gather(table, idx, tuple(stored))
+    assert got.tobytes() == _gather(table, idx, tuple(blocks)).tobytes()
+    assert took == ["0"] and sliced == ["1"]

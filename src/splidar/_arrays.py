@@ -150,6 +150,49 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     return out
 
 
+def zarr_take_rows(z, rows: np.ndarray) -> np.ndarray | None:
+    """``z[rows]`` (rows of the first axis) of a Zarr array stored raw in a local folder
+    (:func:`_raw_chunks`) in chunks of whole rows, read from the chunk files at those
+    rows only (each chunk holding some of them mapped, :func:`_mapped_values`); None for
+    any other array, or when a chunk file is not one whole chunk's bytes (read them
+    with Zarr). A chunk never written is the fill value. Same values as Zarr's read.
+
+    Zarr reads a whole chunk (4,096 histograms) for any row of it: a few rows of each
+    of many chunks (the candidates the recentring moved) cost every chunk's read.
+
+    Parameters
+    ----------
+    z : zarr.Array
+    rows : int array (n,)
+        Rows in bounds (non-negative), in any order, repeats allowed.
+
+    Returns
+    -------
+    ndarray (n,) + z.shape[1:] of ``z``'s dtype, or None
+    """
+    raw = _raw_chunks(z)
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return None
+    folder, chunk, dtype, md = raw
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    out = np.empty((rows.size,) + shape[1:], np.dtype(z.dtype))
+    key = rows // chunk[0]
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    tail = (0,) * (len(shape) - 1)
+    size = int(np.prod(chunk)) * dtype.itemsize
+    for sel in np.split(order, cuts) if rows.size else []:
+        path = folder / md.encode_chunk_key((int(key[sel[0]]),) + tail)
+        if not path.exists():
+            out[sel] = np.asarray(md.fill_value, out.dtype)
+            continue
+        if path.stat().st_size != size:
+            return None
+        out[sel] = _mapped_values(path, dtype, chunk, (rows[sel] % chunk[0],))
+    return out
+
+
 def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
     """``z[idx[i]] = values[i]`` written straight into the chunk files of a Zarr array
     stored raw in a local folder (:func:`_raw_chunks`) in chunks of whole rows (a
