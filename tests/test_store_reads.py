@@ -582,6 +582,13 @@ def test_zarr_write_rows_equals_zarrs_write_bit_for_bit(tmp_path, monkeypatch):
     np.testing.assert_array_equal(z[:20], d[:20])  # the chunks checked first: none written
     path.unlink()
     assert not zarr_write_rows(z, idx, values)
+    z = _rows_array(tmp_path, "nomap", d)  # a file system that cannot map for writing
+
+    def no_map(*a, **k):
+        raise OSError("no mmap")
+
+    monkeypatch.setattr(np, "memmap", no_map)
+    assert not zarr_write_rows(z, idx, values)
 
 
 def test_write_rows_raw_store_equals_compressed_store(tmp_path, monkeypatch):

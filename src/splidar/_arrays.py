@@ -215,7 +215,9 @@ def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
     Returns
     -------
     bool
-        Whether the rows were written.
+        Whether the rows were written (False also when a file cannot be mapped for
+        writing: then some rows may be written already, and Zarr's write of all of
+        them gives the same array).
     """
     raw = _raw_chunks(z)
     shape = tuple(int(v) for v in z.shape)
@@ -233,10 +235,13 @@ def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
     if not all(p.is_file() and p.stat().st_size == size for p in paths):
         return False  # checked before any write: all rows through Zarr
     values = np.asarray(values)
-    for g, path in zip(groups, paths, strict=True):
-        m = np.memmap(path, dtype=dtype, mode="r+", shape=chunk)
-        m[idx[g] % chunk[0]] = values[g]  # (no msync: the page cache is the file's)
-        del m
+    try:
+        for g, path in zip(groups, paths, strict=True):
+            m = np.memmap(path, dtype=dtype, mode="r+", shape=chunk)
+            m[idx[g] % chunk[0]] = values[g]  # (no msync: the page cache is the file's)
+            del m
+    except OSError:  # a file system that cannot map for writing: Zarr writes every row
+        return False
     return True
 
 
