@@ -565,3 +565,177 @@ def test_remove_logged_warns_when_the_scratch_cannot_be_removed(tmp_path, monkey
     assert any("candidate_histograms" in r.getMessage() for r in caplog.records)
     want = detect(cube, rng=0)
     np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
+
+
+def _rows_array(tmp_path, name, d, chunk=4, compressors=None):
+    g = zarr.open_group(str(tmp_path / f"{name}.zarr"), mode="w")
+    z = g.create_array(
+        "h", shape=d.shape, chunks=(chunk,) + d.shape[1:], dtype="f4", compressors=compressors
+    )
+    z[...] = d
+    return z
+
+
+def test_zarr_write_rows_equals_zarrs_write_bit_for_bit(tmp_path, monkeypatch):
+    """``zarr_write_rows``: a raw array in chunks of whole rows gets the rows written in
+    its chunk files (Zarr's setter not asked), the array then reading as after Zarr's own
+    write (an edge chunk, float64 values cast, -0.0 and NaN kept); a compressed array, a
+    chunk file missing or not one chunk's bytes: False and nothing written."""
+    from splidar._arrays import zarr_write_rows
+
+    rng = np.random.default_rng(11)
+    d = rng.normal(size=(23, 2, 1, 5)).astype(np.float32)  # chunks of 4: an edge chunk of 3
+    idx = np.array([22, 0, 5, 6, 13, 21])
+    values = rng.normal(size=(idx.size, 2, 1, 5))  # float64: cast as Zarr casts
+    values[1, 0, 0, :2] = (-0.0, np.nan)
+    want = _rows_array(tmp_path, "want", d)
+    want.set_orthogonal_selection((idx,), values)
+    z = _rows_array(tmp_path, "got", d)
+    monkeypatch.setattr(type(z), "set_orthogonal_selection", _fails)
+    monkeypatch.setattr(type(z), "__setitem__", _fails)
+    assert zarr_write_rows(z, idx, values)
+    a, b = np.asarray(z[...]), np.asarray(want[...])
+    assert a.tobytes() == b.tobytes()
+    assert zarr_write_rows(z, idx[:0], values[:0])  # nothing to write
+    monkeypatch.undo()
+    packed = _rows_array(tmp_path, "packed", d, compressors="auto")
+    assert not zarr_write_rows(packed, idx, values)
+    np.testing.assert_array_equal(packed[...], d)
+    z = _rows_array(tmp_path, "cut", d)
+    path = tmp_path / "cut.zarr" / "h" / "c" / "5" / "0" / "0" / "0"  # rows 20-23
+    path.write_bytes(path.read_bytes()[:-4])
+    assert not zarr_write_rows(z, idx, values)
+    np.testing.assert_array_equal(z[:20], d[:20])  # the chunks checked first: none written
+    path.unlink()
+    assert not zarr_write_rows(z, idx, values)
+    z = _rows_array(tmp_path, "nomap", d)  # a file system that cannot map for writing
+
+    def no_map(*a, **k):
+        raise OSError("no mmap")
+
+    monkeypatch.setattr(np, "memmap", no_map)
+    assert not zarr_write_rows(z, idx, values)
+
+
+def test_write_rows_raw_store_equals_compressed_store(tmp_path, monkeypatch):
+    """``write_rows`` into ``store_histograms(compressed=False)`` (a detection's surfaces)
+    writes in the chunk files, not through Zarr; the values read back are the ones the
+    lz4 array gets through Zarr (a repeated row keeps its last value)."""
+    from splidar.detection import _table
+
+    monkeypatch.setattr(_table, "HIST_CHUNK", 8)
+    rng = np.random.default_rng(12)
+    base = rng.random((40, 2, 1, 5)).astype(np.float32)
+    idx = np.array([33, 2, 5, 17, 2, 39, 6, 18])
+    values = rng.random((idx.size, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    packed = _table.store_histograms(g, "packed", base.shape, data=base)
+    raw = _table.store_histograms(g, "raw", base.shape, data=base, compressed=False)
+    _table.write_rows(packed, idx, values)
+    monkeypatch.setattr(type(raw), "set_orthogonal_selection", _fails)
+    _table.write_rows(raw, idx, values)
+    assert np.asarray(raw[...]).tobytes() == np.asarray(packed[...]).tobytes()
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_finest_sums_stored_equals_in_memory_bit_for_bit(tmp_path, monkeypatch, compressed):
+    """``_finest_sums`` of stored histograms (read by rows, several parts) equals the
+    in-memory array's, bit for bit (two wavelengths: the sum over them); a raw array is
+    read from its chunk files (Zarr not asked)."""
+    from splidar.detection import _7a_align_depths
+    from splidar.detection._result import StoredHistograms
+
+    rng = np.random.default_rng(13)
+    h = (rng.gamma(0.5, 3.0, (50, 3, 2, 7)) * (rng.random((50, 3, 2, 7)) < 0.7)).astype("f4")
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = store_histograms(g, "h", h.shape, data=h, compressed=compressed)
+    want = _7a_align_depths._finest_sums(h)
+    monkeypatch.setattr(_7a_align_depths, "FINEST_PART_BYTES", 4 * 4 * 42)  # 4 rows a part
+    if not compressed:
+        monkeypatch.setattr(type(z), "__getitem__", _fails)
+    got = _7a_align_depths._finest_sums(StoredHistograms(z))
+    assert got.dtype == np.float64 and got.tobytes() == want.tobytes()
+
+
+def test_detect_store_writes_stage_7s_moves_in_the_raw_chunk_files(tmp_path, monkeypatch):
+    """``detect(store=)``: the surfaces' histograms stored raw, stage 7's moved surfaces'
+    rows written in the chunk files (``zarr_write_rows`` wrote every call's rows: no write
+    through Zarr), the histograms read back equal the in-memory run's bit for bit."""
+    from zarr.codecs import BytesCodec
+
+    from splidar.detection import _table, detect
+    from splidar.scenes import single_surface_scene
+
+    cube = single_surface_scene((24, 24), n_bins=120).simulate(ppp=4, sbr=0.5, rng=1).cube
+    want = detect(cube, rng=0)
+    wrote, real = [], _table.zarr_write_rows
+    monkeypatch.setattr(_table, "zarr_write_rows", lambda *a: wrote.append(real(*a)) or wrote[-1])
+    got = detect(cube, rng=0, store=tmp_path / "det.zarr")
+    z = got.surfaces.histograms.array
+    assert [type(c) for c in z.metadata.codecs] == [BytesCodec]
+    assert wrote and all(wrote)
+    h = np.asarray(got.surfaces.histograms)
+    assert h.tobytes() == want.surfaces.histograms.tobytes()
+    np.testing.assert_array_equal(got.surfaces.depth_bin, want.surfaces.depth_bin)
+
+
+def test_zarr_take_rows_equals_zarrs_read(tmp_path, monkeypatch):
+    """``zarr_take_rows``: rows of a raw array in chunks of whole rows read from its
+    chunk files (Zarr not asked; unsorted, repeated, in the edge chunk, in a chunk never
+    written: the fill value), the same values as Zarr's; a compressed array or a chunk
+    file that is not one chunk's bytes: None."""
+    from splidar._arrays import zarr_take_rows
+
+    rng = np.random.default_rng(14)
+    d = rng.normal(size=(23, 2, 1, 5)).astype(np.float32)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = g.create_array("h", shape=d.shape, chunks=(4, 2, 1, 5), dtype="f4", compressors=None)
+    z[4:] = d[4:]  # rows 0-3: never written (the fill value, 0)
+    rows = np.array([22, 5, 1, 5, 17, 0, 21, 9])
+    want = np.asarray(z.get_orthogonal_selection((rows,)))
+    assert np.array_equal(want[2:4], np.stack([np.zeros_like(d[0]), d[5]]))
+    monkeypatch.setattr(type(z), "__getitem__", _fails)
+    monkeypatch.setattr(type(z), "get_orthogonal_selection", _fails)
+    got = zarr_take_rows(z, rows)
+    assert got.dtype == np.float32 and got.tobytes() == want.tobytes()
+    assert zarr_take_rows(z, rows[:0]).shape == (0, 2, 1, 5)
+    monkeypatch.undo()
+    packed = g.create_array("p", shape=d.shape, chunks=(4, 2, 1, 5), dtype="f4")
+    assert zarr_take_rows(packed, rows) is None
+    path = tmp_path / "h.zarr" / "h" / "c" / "4" / "0" / "0" / "0"
+    path.write_bytes(path.read_bytes()[:-4])
+    assert zarr_take_rows(z, rows) is None
+
+
+def test_read_part_reads_rows_far_apart_at_those_rows(tmp_path, monkeypatch):
+    """``_gather`` (the recentring's moved candidates): a raw block's rows far apart are
+    read at those rows (``zarr_take_rows``), rows close together as the slice from the
+    first to the last (``_stored_rows``); the same histograms as from memory."""
+    from splidar.detection import _6_select
+
+    rng = np.random.default_rng(15)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    blocks = [rng.normal(size=(n, 2, 1, 5)).astype(np.float32) for n in (200, 40)]
+    stored = [
+        store_histograms(g, str(i), b.shape, data=b, compressed=False)
+        for i, b in enumerate(blocks)
+    ]  # fmt: skip
+    hb = np.array([0] * 200 + [1] * 40)
+    hr = np.concatenate([np.arange(200), np.arange(40)])
+    table = CandidateTable(
+        columns={"row": np.arange(hb.size)}, keep=np.ones(hb.size, bool),
+        origin=np.zeros(hb.size, np.int8), hist_block=hb, hist_row=hr,
+        image_shape=(hb.size, 1),
+    )  # fmt: skip
+    idx = np.array([3, 190, 77, 200, 230, 215, 239])  # block 0: 3 rows in 188; block 1: 4 in 40
+    took, sliced = [], []
+    real_take, real_rows = _6_select.zarr_take_rows, _6_select._stored_rows
+    monkeypatch.setattr(
+        _6_select, "zarr_take_rows", lambda z, r: took.append(z.path) or real_take(z, r)
+    )
+    monkeypatch.setattr(
+        _6_select, "_stored_rows", lambda z, a, b: sliced.append(z.path) or real_rows(z, a, b)
+    )
+    got = _gather(table, idx, tuple(stored))
+    assert got.tobytes() == _gather(table, idx, tuple(blocks)).tobytes()
+    assert took == ["0"] and sliced == ["1"]

@@ -150,6 +150,101 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     return out
 
 
+def zarr_take_rows(z, rows: np.ndarray) -> np.ndarray | None:
+    """``z[rows]`` (rows of the first axis) of a Zarr array stored raw in a local folder
+    (:func:`_raw_chunks`) in chunks of whole rows, read from the chunk files at those
+    rows only (each chunk holding some of them mapped, :func:`_mapped_values`); None for
+    any other array, or when a chunk file is not one whole chunk's bytes (read them
+    with Zarr). A chunk never written is the fill value. Same values as Zarr's read.
+
+    Zarr reads a whole chunk (4,096 histograms) for any row of it: a few rows of each
+    of many chunks (the candidates the recentring moved) cost every chunk's read.
+
+    Parameters
+    ----------
+    z : zarr.Array
+    rows : int array (n,)
+        Rows in bounds (non-negative), in any order, repeats allowed.
+
+    Returns
+    -------
+    ndarray (n,) + z.shape[1:] of ``z``'s dtype, or None
+    """
+    raw = _raw_chunks(z)
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return None
+    folder, chunk, dtype, md = raw
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    out = np.empty((rows.size,) + shape[1:], np.dtype(z.dtype))
+    key = rows // chunk[0]
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    tail = (0,) * (len(shape) - 1)
+    size = int(np.prod(chunk)) * dtype.itemsize
+    for sel in np.split(order, cuts) if rows.size else []:
+        path = folder / md.encode_chunk_key((int(key[sel[0]]),) + tail)
+        if not path.exists():
+            out[sel] = np.asarray(md.fill_value, out.dtype)
+            continue
+        if path.stat().st_size != size:
+            return None
+        out[sel] = _mapped_values(path, dtype, chunk, (rows[sel] % chunk[0],))
+    return out
+
+
+def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
+    """``z[idx[i]] = values[i]`` written straight into the chunk files of a Zarr array
+    stored raw in a local folder (:func:`_raw_chunks`) in chunks of whole rows (a
+    detection's stored histograms, ``store_histograms(compressed=False)``); False, and
+    nothing written, for any other array or when a chunk file the rows fall in is
+    missing or not one whole chunk's bytes (write them with Zarr).
+
+    Zarr writes a row by reading, changing and writing its whole chunk (4,096
+    histograms); a raw chunk file is the chunk's bytes in C order, so each chunk holding
+    some of the rows is mapped and only the rows' bytes change. The values read back are
+    Zarr's write's (the same cast to ``z``'s dtype).
+
+    Parameters
+    ----------
+    z : zarr.Array
+    idx : int array (n,)
+        Distinct rows (first axis), in bounds.
+    values : array (n,) + z.shape[1:]
+
+    Returns
+    -------
+    bool
+        Whether the rows were written (False also when a file cannot be mapped for
+        writing: then some rows may be written already, and Zarr's write of all of
+        them gives the same array).
+    """
+    raw = _raw_chunks(z)
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return False
+    folder, chunk, dtype, md = raw
+    idx = np.asarray(idx, np.int64).reshape(-1)
+    key = idx // chunk[0]
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    groups = np.split(order, cuts) if idx.size else []
+    tail = (0,) * (len(shape) - 1)
+    paths = [folder / md.encode_chunk_key((int(key[g[0]]),) + tail) for g in groups]
+    size = int(np.prod(chunk)) * dtype.itemsize
+    if not all(p.is_file() and p.stat().st_size == size for p in paths):
+        return False  # checked before any write: all rows through Zarr
+    values = np.asarray(values)
+    try:
+        for g, path in zip(groups, paths, strict=True):
+            m = np.memmap(path, dtype=dtype, mode="r+", shape=chunk)
+            m[idx[g] % chunk[0]] = values[g]  # (no msync: the page cache is the file's)
+            del m
+    except OSError:  # a file system that cannot map for writing: Zarr writes every row
+        return False
+    return True
+
+
 def _mapped_values(path, dtype, chunk: tuple, within: tuple) -> np.ndarray:
     """The values at ``within`` (index arrays into the chunk) of a raw chunk file, mapped
     for random access: no read-ahead around each page touched (on a chunk not in the

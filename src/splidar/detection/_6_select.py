@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._arrays import _raw_chunks
+from .._arrays import _raw_chunks, zarr_take_rows
 from .._memory import give_back
 from ._kernels import select_sorted
 from ._result import Surfaces
@@ -59,6 +59,11 @@ def _select(surf: dict, keep: np.ndarray, k_max: int):
     idx = idx[np.lexsort((surf["depth_bin"][idx], col[idx], row[idx]))]
     return idx, _position_in_pixel(row[idx], col[idx])
 
+
+#: Rows of a stored array read one by one (:func:`_read_part`, a raw array's chunk
+#: files at those rows) rather than as the slice from the first to the last, when the
+#: slice is more than this many times longer.
+ROWS_APART = 16
 
 #: Threads that read the selected histograms from the blocks' Zarr arrays (in a store;
 #: :func:`_gather`): each read waits on its files more than it computes.
@@ -152,9 +157,12 @@ def _read_part(table: CandidateTable, histograms, hist: np.ndarray, part: np.nda
             hist[sel] = src[rows]
             return
         # a stored array: the rows' range read as one slice (most of a block's
-        # candidates are selected: Zarr's integer indexing took 2.5x the CPU)
+        # candidates are selected: Zarr's integer indexing took 2.5x the CPU); rows
+        # far apart (the recentring's moved candidates) from a raw array's chunk files
+        # at those rows only
         lo, hi = int(rows.min()), int(rows.max()) + 1
-        hist[sel] = _stored_rows(src, lo, hi)[rows - lo]
+        got = zarr_take_rows(src, rows) if rows.size * ROWS_APART < hi - lo else None
+        hist[sel] = _stored_rows(src, lo, hi)[rows - lo] if got is None else got
 
     blocks = np.unique(hb)
     if pool is None:

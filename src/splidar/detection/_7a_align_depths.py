@@ -19,6 +19,7 @@ from dataclasses import replace
 import numpy as np
 from numba import njit
 
+from ._6_select import _stored_rows
 from ._depth_fields import (
     _follow,
     _pixels,
@@ -28,7 +29,7 @@ from ._depth_fields import (
     part_size,
 )
 from ._quality import _shifted_irf, align_depths
-from ._result import Surfaces
+from ._result import StoredHistograms, Surfaces
 
 __all__ = ["aligned_depths", "move_far_depths"]
 
@@ -54,16 +55,29 @@ OWN_Z = 1.0
 FAR_DEPTHS = True
 
 
+#: Bytes of float32 histograms :func:`_finest_sums` reads at a time.
+FINEST_PART_BYTES = 2**24
+
+
 def _finest_sums(histograms) -> np.ndarray:
     """``histograms[:, 0].sum(axis=1)`` (the finest scale summed over wavelengths, (S, W))
     as float64, a part of the surfaces at a time: the same values (each row's sum is its
     own) without the float32 array beside the float64 one (0.1 float32 cubes on the face
-    file at its native bin)."""
+    file at its native bin). Stored histograms (:class:`StoredHistograms`) are read by
+    rows (:func:`~splidar.detection._6_select._stored_rows`: a raw array's chunk files
+    read directly), every scale of a part at a time."""
     S, W = int(histograms.shape[0]), int(histograms.shape[-1])
     out = np.empty((S, W), np.float64)
-    step = max(1, 2**24 // (4 * int(np.prod(histograms.shape[2:], dtype=np.int64))))
+    stored = isinstance(histograms, StoredHistograms)
+    row = histograms.shape[1 if stored else 2 :]
+    step = max(1, FINEST_PART_BYTES // (4 * int(np.prod(row, dtype=np.int64))))
     for a in range(0, S, step):
-        out[a : a + step] = np.asarray(histograms[a : a + step, 0]).sum(axis=1)
+        if stored:  # the finest scale as Zarr's ``[a:b, 0]`` gives it (C order)
+            b = min(S, a + step)
+            part = np.ascontiguousarray(_stored_rows(histograms.array, a, b)[:, 0])
+        else:
+            part = np.asarray(histograms[a : a + step, 0])
+        out[a : a + step] = part.sum(axis=1)
     return out
 
 

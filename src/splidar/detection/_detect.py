@@ -535,11 +535,13 @@ def _remove_logged(path) -> None:
 
 
 def _stored_histograms(store, shape):
-    """A new Zarr array ``surface_histograms`` of ``shape`` in the detection's store."""
+    """A new Zarr array ``surface_histograms`` of ``shape`` in the detection's store,
+    stored raw (stage 7 writes its moved surfaces' rows in the chunk files,
+    :func:`~splidar.detection._table.write_rows`)."""
     import zarr
 
     g = zarr.open_group(os.fspath(store), mode="r+")
-    return store_histograms(g, "surface_histograms", shape)
+    return store_histograms(g, "surface_histograms", shape, compressed=False)
 
 
 def _map_pass(cube, filters, nul, o, store, tiled: bool):

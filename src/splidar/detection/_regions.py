@@ -232,7 +232,7 @@ def _merge_histograms(hists: list, src: np.ndarray, idx: np.ndarray, Q: int):
 
     path = Path(os.fspath(first.array.store.root)) / first.array.path
     group = zarr.open_group(str(path.parent), mode="r+")
-    z = store_histograms(group, "merged_histograms", shape)
+    z = store_histograms(group, "merged_histograms", shape, compressed=False)  # as detect's
     for j0 in range(0, src.size, HIST_CHUNK):
         s, ix = src[j0 : j0 + HIST_CHUNK], idx[j0 : j0 + HIST_CHUNK]
         blk = np.zeros((s.size,) + shape[1:], np.float32)

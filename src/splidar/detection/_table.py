@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .._arrays import zarr_write_rows
 from ._kernels import rank_in_pixel_sorted
 from ._result import STAGES
 
@@ -233,7 +234,10 @@ def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: b
     The tiles' candidate histograms, read once by the selection and then removed, are
     written uncompressed: on the ``--large`` benchmark scene lz4 stored them in 82 % of
     their bytes (27 % of the values are 0), for 1.5-2x the CPU of a plain write and 2-4x
-    that of a plain read (``benchmarks/README.md``, "Branch dist24").
+    that of a plain read (``benchmarks/README.md``, "Branch dist24"). So are the
+    surfaces' (``detect(store=...)``): stage 7 rewrites its moved surfaces' rows in
+    place in the raw chunk files (:func:`write_rows`) instead of decoding and encoding
+    every chunk they fall in ("call39" in ``benchmarks/README.md``).
 
     Every chunk is written, even one of zeros (Zarr's ``write_empty_chunks``): Zarr would
     otherwise compare each chunk with the fill value before writing it, bit pattern by
@@ -257,7 +261,10 @@ def write_rows(z, idx, values) -> None:
     histograms, :func:`store_histograms`), as one orthogonal selection: each chunk
     holding some of the rows is read, changed and written once, not once per row
     (a row's write decodes and encodes its whole chunk: 4,096 histograms). Where an
-    index repeats, its last value is written, as in a loop of single writes."""
+    index repeats, its last value is written, as in a loop of single writes. An array
+    stored raw in a local folder (the surfaces' histograms, :func:`store_histograms`
+    with ``compressed=False``) gets the rows' bytes written in its chunk files
+    (:func:`splidar._arrays.zarr_write_rows`; the same values)."""
     idx = np.asarray(idx, np.int64).reshape(-1)
     if idx.size == 0:
         return
@@ -265,7 +272,8 @@ def write_rows(z, idx, values) -> None:
     # the last occurrence of each index, in ascending order
     _, first_rev = np.unique(idx[::-1], return_index=True)
     last = idx.size - 1 - first_rev
-    z.set_orthogonal_selection((idx[last],), values[last])
+    if not zarr_write_rows(z, idx[last], values[last]):
+        z.set_orthogonal_selection((idx[last],), values[last])
 
 
 #: Threads that remove a directory's entries (:func:`remove_tree`).
