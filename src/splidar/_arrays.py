@@ -158,9 +158,9 @@ def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
     The file Zarr writes for it (``bytes`` codec alone: the same bytes at the same key,
     ``metadata.encode_chunk_key``), written as Zarr's local store writes one (a temporary
     file in the chunk's folder, then renamed over the key: never half a chunk), without
-    Zarr's per-chunk pipeline around it: 0.55 against 0.28-0.33 s of CPU for a 256-row
-    slab's saliency in 16 x 90-pixel chunks (``benchmarks/README.md``, "halo39, session
-    27"). Zarr reads the values back unchanged (every chunk written, as with
+    Zarr's per-chunk pipeline around it: 0.27-0.33 against 0.37-0.58 s of CPU for a
+    256-row slab's saliency in 16 x 90-pixel chunks (``benchmarks/README.md``, "halo39,
+    session 27"). Zarr reads the values back unchanged (every chunk written, as with
     ``write_empty_chunks``).
     """
     import uuid
