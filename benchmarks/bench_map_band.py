@@ -13,7 +13,12 @@ counts, the store's writes) is measured without Dask's, in CPU seconds of one th
 
 The slab (the ``--large`` scene's first ``--rows`` rows, 32-row chunks) is written to
 ``--data`` once. Prints, per run: CPU of the map pass, of the whole ``detect``, the tile
-shape, and checks that the surfaces are the same in all modes.
+shape, and checks that the surfaces are the same in all modes. ``--kernels`` adds, per
+run, the task thread's CPU seconds per kernel of the map pass (matched filter, saliency,
+threshold pass, segments, extraction, store writes, halo moves and copies) and the CPU
+of the process's other threads (Zarr's pool and event loop) during the map pass, then a
+table of the runs' minima per mode with the ratios band / memory ("halo39, session 27"
+in ``benchmarks/README.md``).
 """
 
 from __future__ import annotations
@@ -21,7 +26,9 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
+import threading
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +37,54 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_distributed import scene_rows, write_scene  # noqa: E402
 
 import splidar  # noqa: E402
-from splidar.detection import _detect, _tiled  # noqa: E402
+from splidar.detection import _2_saliency, _4_map, _detect, _filters, _tiled  # noqa: E402
+
+#: Task-thread CPU seconds per kernel of the current map pass (``--kernels``).
+KERNELS: dict = defaultdict(float)
+
+
+def _timed(fn, label: str):
+    def timed(*a, **k):
+        t = time.thread_time()
+        try:
+            return fn(*a, **k)
+        finally:
+            KERNELS[label] += time.thread_time() - t
+
+    return timed
+
+
+def _time_kernels() -> None:
+    """Wrap the map pass's kernels (both passes, both modules that call ``_block``)."""
+    corr = _filters.Correlator.__call__
+    _filters.Correlator.__call__ = _timed(corr, "matched filter")
+    _2_saliency.saliency_wavelength = _timed(_2_saliency.saliency_wavelength, "saliency")
+    for name, label in (
+        ("threshold_pass", "threshold pass"),
+        ("find_segments", "segments"),
+        ("_extract", "extraction"),
+        ("_put", "store writes (task thread)"),
+        ("_move_rows", "halo rows moved"),
+    ):
+        setattr(_4_map, name, _timed(getattr(_4_map, name), label))
+    for name, label in (
+        ("_read_band", "band reads (task thread)"),
+        ("_copy_into", "halo copied in"),
+        ("_compact_result", "histograms stored"),
+    ):
+        setattr(_tiled, name, _timed(getattr(_tiled, name), label))
+    _4_map._block = _tiled._block = _timed(_4_map._block, "_block (all above inside)")
+
+
+def _thread_cpu() -> dict:
+    """CPU seconds so far of each of this process's threads, by native id."""
+    import psutil
+
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    return {
+        t.id: (t.user_time + t.system_time, names.get(t.id, "other"))
+        for t in psutil.Process().threads()
+    }
 
 
 class _OneProcess:
@@ -53,9 +107,17 @@ def _timed_map(records: list):
 
     def wrap(fn):
         def timed(*a, **k):
+            KERNELS.clear()
+            s0, th0 = _thread_cpu(), time.thread_time()
             c0, t0 = time.process_time(), time.perf_counter()
             out = fn(*a, **k)
             records.append((time.process_time() - c0, time.perf_counter() - t0))
+            KERNELS["task thread, whole map pass"] = time.thread_time() - th0
+            me = threading.get_native_id()
+            for tid, (v, name) in _thread_cpu().items():
+                if tid != me:  # Zarr's pool ("asyncio_N") and loop ("zarr_io"), others
+                    label = "thread " + name.rstrip("0123456789_")
+                    KERNELS[label] += v - s0.get(tid, (0.0, name))[0]
             return out
 
         return timed
@@ -71,7 +133,10 @@ def main() -> int:
     p.add_argument("--reps", type=int, default=2)
     p.add_argument("--memory-limit", type=float, default=1e9, help="bytes, the tiles' worker")
     p.add_argument("--modes", default="band,memory,memory-store")
+    p.add_argument("--kernels", action="store_true", help="CPU per kernel and thread")
     args = p.parse_args()
+    if args.kernels:
+        _time_kernels()
     base = Path(args.data)
     base.mkdir(parents=True, exist_ok=True)
     path = base / f"slab{args.rows}.zarr"
@@ -87,7 +152,7 @@ def main() -> int:
     _tiled._client = _OneProcess
     _tiled.compute_each = _sync_each
     _tiled.worker_memory_limit = lambda: int(args.memory_limit)
-    digests = {}
+    digests, kernels = {}, defaultdict(list)
     for rep in range(args.reps):
         for mode in args.modes.split(","):
             store = base / "det.zarr"
@@ -108,12 +173,31 @@ def main() -> int:
             print(
                 "   stages (wall s): " + ", ".join(f"{k} {v:.2f}" for k, v in det.timings.items())
             )
+            if args.kernels:
+                kernels[mode].append(dict(KERNELS, **{"map pass, process": m_cpu}))
             del det
             shutil.rmtree(store, ignore_errors=True)
+    if args.kernels:
+        _kernel_table(kernels)
     a, *others = digests.values()
     same = all(all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)) for b in others)
     print(f"same surfaces in every mode: {same}")
     return 0 if same else 1
+
+
+def _kernel_table(kernels: dict) -> None:
+    """Markdown table: each mode's smallest CPU seconds per kernel over the repeats."""
+    modes = list(kernels)
+    labels = sorted({k for runs in kernels.values() for r in runs for k in r if r[k] > 0.005})
+    best = {m: {k: min(r.get(k, 0.0) for r in kernels[m]) for k in labels} for m in modes}
+    ratios = [m for m in modes if m != "memory"] if "memory" in modes else []
+    print("| CPU s | " + " | ".join(modes) + "".join(f" | {m} / memory" for m in ratios) + " |")
+    print("|---" * (1 + len(modes) + len(ratios)) + "|")
+    for k in labels:
+        row = " | ".join(f"{best[m][k]:.2f}" for m in modes)
+        ref = best["memory"][k] if ratios else 0.0
+        row += "".join(f" | {best[m][k] / ref:.2f}" if ref > 0.005 else " | -" for m in ratios)
+        print(f"| {k} | {row} |")
 
 
 if __name__ == "__main__":

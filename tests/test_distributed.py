@@ -151,6 +151,39 @@ def test_put_writes_a_zarr_array_chunk_by_chunk_as_one_write(tmp_path):
     assert out.sum() == 9 * 10 * 5
 
 
+def test_put_writes_raw_whole_chunks_as_their_files(tmp_path, monkeypatch):
+    """``_put`` on an array stored raw (the saliency): each whole chunk is written as its
+    chunk file (Zarr not asked), the same bytes as Zarr writes; a partial chunk (off the
+    grid, at the edges) through Zarr; the values read back equal a plain write's."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._4_map import _put, writer
+
+    rng = np.random.default_rng(1)
+    g = zarr.open_group(str(tmp_path / "g"), mode="w")
+    spec = dict(shape=(23, 17, 5), chunks=(4, 6, 5), dtype="float32", compressors=None)
+    a, b = g.create_array("a", **spec), writer(g.create_array("b", **spec))
+    writes = ((0, 0, 8, 12), (5, 3, 9, 10), (19, 13, 4, 4), (8, 0, 4, 6), (12, 6, 8, 6))
+    values = [rng.random((r, c, 5), dtype=np.float32) for _, _, r, c in writes]
+    for (r0, c0, r, c), v in zip(writes, values, strict=True):
+        a[r0 : r0 + r, c0 : c0 + c] = v
+    real = type(b).__setitem__
+    asked = []
+    monkeypatch.setattr(type(b), "__setitem__", lambda z, k, v: asked.append(k) or real(z, k, v))
+    for (r0, c0, _, _), v in zip(writes, values, strict=True):
+        _put(b, r0, c0, v)
+    monkeypatch.undo()
+    np.testing.assert_array_equal(b[...], a[...])
+    # the chunks' (row, col) starts each write covers whole: 4 + 1 + 0 + 1 + 2 of 18 pieces
+    whole = {(0, 0), (0, 6), (4, 0), (4, 6), (8, 6), (8, 0), (12, 6), (16, 6)}
+    assert len(asked) == 18 - len(whole)
+    assert not any((k[0].stop - k[0].start, k[1].stop - k[1].start) == (4, 6) for k in asked)
+    for r0, c0 in whole:
+        key = f"c/{r0 // 4}/{c0 // 6}/0"
+        g = tmp_path / "g"
+        assert (g / "b" / key).read_bytes() == (g / "a" / key).read_bytes()
+    assert not list((tmp_path / "g" / "b").rglob("*.partial"))
+
+
 @pytest.fixture(scope="module")
 def local_client():
     distributed = pytest.importorskip("distributed")
@@ -224,6 +257,54 @@ def test_detect_on_local_cluster_zarr_cube_bands_match_in_memory(
         lambda dask_scheduler: list(dask_scheduler.task_prefixes)
     )}  # fmt: skip
     assert {"splidar-map-band", "splidar-first-pass"} <= names
+
+
+def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
+    """A band task (the band path, run here on Dask's synchronous scheduler as a
+    cluster's worker runs it) opens the store's arrays and its histograms' group once
+    for its 3 tiles, not once per tile; the Detection is the in-memory one."""
+    zarr = pytest.importorskip("zarr")
+    import dask
+
+    from splidar.detection import _tiled
+
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
+    z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(5, 20, 1, 100))
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band, 4 bands
+
+    class OneProcess:  # stands for a client: the band path is taken, tasks run here
+        def run(self, fn):
+            return fn()
+
+    def each(tasks, take):
+        for i, r in enumerate(dask.compute(*tasks, scheduler="synchronous")):
+            take(i, r)
+
+    monkeypatch.setattr(_tiled, "_client", OneProcess)
+    monkeypatch.setattr(_tiled, "compute_each", each)
+    opened, in_band = [], [False]
+    real_open, real_band = zarr.open_group, _tiled._map_band
+
+    def open_group(p, **k):
+        if in_band[0]:
+            opened.append(str(p))
+        return real_open(p, **k)
+
+    monkeypatch.setattr(zarr, "open_group", open_group)
+
+    def band(*a, **k):
+        in_band[0] = True
+        try:
+            return real_band(*a, **k)
+        finally:
+            in_band[0] = False
+
+    monkeypatch.setattr(_tiled, "_map_band", band)
+    a = splidar.detect(Cube(counts, irf=irf), rng=2)
+    b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=2, block_rows=6, store=tmp_path / "s")
+    _assert_same_detection(a, b)
+    store = str(tmp_path / "s")
+    assert sorted(opened) == sorted([store] * 4 + [store + "/candidate_histograms"] * 4)
 
 
 def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):

@@ -245,6 +245,37 @@ def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
     return True
 
 
+def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
+    """One whole chunk of a Zarr 3 array whose chunks are stored raw in a local folder
+    (``raw`` from :func:`_raw_chunks`), written as its chunk file: ``value`` (the chunk's
+    shape) at chunk grid position ``where``, its C-order bytes in the array's byte order.
+
+    The file Zarr writes for it (``bytes`` codec alone: the same bytes at the same key,
+    ``metadata.encode_chunk_key``), written as Zarr's local store writes one (a temporary
+    file in the chunk's folder, then renamed over the key: never half a chunk), without
+    Zarr's per-chunk pipeline around it: 0.27-0.33 against 0.37-0.58 s of CPU for a
+    256-row slab's saliency in 16 x 90-pixel chunks (``benchmarks/README.md``, "halo39,
+    session 27"). Zarr reads the values back unchanged (every chunk written, as with
+    ``write_empty_chunks``).
+    """
+    import uuid
+
+    folder, chunk, dtype, md = raw
+    if tuple(value.shape) != tuple(chunk):
+        raise ValueError(f"a chunk of shape {tuple(chunk)} expected, got {tuple(value.shape)}")
+    path = folder / md.encode_chunk_key(tuple(int(w) for w in where))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = np.ascontiguousarray(value, dtype=dtype)
+    tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(memoryview(data).cast("B"))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def _mapped_values(path, dtype, chunk: tuple, within: tuple) -> np.ndarray:
     """The values at ``within`` (index arrays into the chunk) of a raw chunk file, mapped
     for random access: no read-ahead around each page touched (on a chunk not in the

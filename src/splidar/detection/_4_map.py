@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .._arrays import _raw_chunks, write_raw_chunk
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration, split_rule
@@ -355,18 +356,26 @@ def _put(dst, r0: int, c0: int, value: np.ndarray) -> None:
     the memory more than the write itself: on the tiles of a stored map pass, about a
     sixth of a worker's time). The pieces are whole chunks wherever ``value`` covers
     them (rows and columns cut at the chunk grid), so the stored values are the same.
+    A whole chunk of an array stored raw in a local folder (the saliency) is written as
+    its chunk file (:func:`~splidar._arrays.write_raw_chunk`: the same bytes, without
+    Zarr's per-chunk pipeline); any other piece through Zarr.
     """
     r1, c1 = r0 + value.shape[0], c0 + value.shape[1]
     chunks = getattr(dst, "chunks", None) if type(dst).__module__.startswith("zarr") else None
     if chunks is None:
         dst[r0:r1, c0:c1] = value
         return
+    raw = _raw_chunks(dst)
     cr, cc = int(chunks[0]), int(chunks[1])
     for a in range(r0, r1, cr) if r0 % cr == 0 else [r0, *range(r0 - r0 % cr + cr, r1, cr)]:
         a1 = min(r1, a - a % cr + cr)
         for b in range(c0, c1, cc) if c0 % cc == 0 else [c0, *range(c0 - c0 % cc + cc, c1, cc)]:
             b1 = min(c1, b - b % cc + cc)
-            dst[a:a1, b:b1] = value[a - r0 : a1 - r0, b - c0 : b1 - c0]
+            piece = value[a - r0 : a1 - r0, b - c0 : b1 - c0]
+            if raw is not None and piece.shape == raw[1] and a % cr == 0 and b % cc == 0:
+                write_raw_chunk(raw, (a // cr, b // cc) + (0,) * (piece.ndim - 2), piece)
+            else:
+                dst[a:a1, b:b1] = piece
 
 
 def _block(

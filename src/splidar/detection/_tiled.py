@@ -400,7 +400,9 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     kept buffer). ``tile = (e0, r0, r1, ce0, c0, c1)``.
 
     ``most`` = ``(own pixels, pixels with halo)`` of the largest tile: the size of this
-    thread's reused work buffers. ``carry``: the box filters' running column sums at
+    thread's reused work buffers. ``store_path``: the store's folder, or the store
+    opened (:func:`_stores`, by a band task for its tiles); None: the own arrays are
+    returned. ``carry``: the box filters' running column sums at
     column ``c0 - 1`` (from the tile to the left; None at the image's first column).
     Returns ``(result, own arrays, carry at column c1 - 1)`` (None when ``last``).
     """
@@ -425,15 +427,14 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         out = {k: _Tile(v, r0, c0) for k, v in own.items()}
         out["threshold"] = None
     else:
-        import zarr
-
-        g = zarr.open_group(store_path, mode="r+")
+        stores = _stores(store_path)
         out = dict(
-            saliency=writer(g["saliency"]),
-            mask=writer(g["mask"]),
+            saliency=stores["saliency"],
+            mask=stores["mask"],
             threshold=None,
             spatial=_Tile(own["spatial"], r0, c0),
         )
+        store_path = stores
     # the running sums are read and rewritten in place: a copy of the neighbour's
     shape = (L, r, ctx.scales.size, T)
     carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
@@ -445,6 +446,24 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
         res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
     _compact_result(res, store_path, (r0, c0), opts["image_shape"], T)
     return res, own, None if last else carry
+
+
+def _stores(store_path) -> dict:
+    """The map pass's store at ``store_path`` opened for a tile's writes: its
+    ``saliency`` and ``mask`` arrays (:func:`~splidar.detection._4_map.writer`) and the
+    ``histograms`` group (``candidate_histograms``); ``store_path`` itself when it is
+    such a dict already (a band task opens the store once for its tiles: each opening
+    reads the group's and arrays' metadata through Zarr, 1.7 ms a tile)."""
+    if isinstance(store_path, dict):
+        return store_path
+    import zarr
+
+    g = zarr.open_group(str(store_path), mode="r+")
+    return dict(
+        saliency=writer(g["saliency"]),
+        mask=writer(g["mask"]),
+        histograms=zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+"),
+    )
 
 
 def _copy_into(buf: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -484,6 +503,8 @@ def _map_band(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: t
     this task (no carry or input keys). Returns ``[(result, own arrays)]`` per tile."""
     e0, e1, most_rows = band
     y = _read_band(z, e0, e1, most_rows)
+    # the store's arrays opened once for the band's tiles, not once per tile
+    store_path = None if store_path is None else _stores(store_path)
     carry, done = None, []
     for j, (t0, r0, r1, ce0, ce1, c0, c1) in enumerate(tiles):
         tile = (t0, r0, r1, ce0, c0, c1)
@@ -532,9 +553,7 @@ def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) ->
 
     res.surf = compact_columns(res.surf, image_shape, n_bins)
     if store_path is not None and res.histograms is not None:
-        import zarr
-
-        g = zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+")
+        g = _stores(store_path)["histograms"]
         # read once by the selection, then removed: uncompressed (store_histograms)
         res.histograms = store_histograms(
             g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=np.asarray(res.histograms),
