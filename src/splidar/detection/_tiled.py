@@ -158,10 +158,13 @@ def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int
     kept, a window's first at ``at``), ``(len(at), L, T)`` float64: integer sums, exact,
     so the windows' partial sums add up to the whole windows' sums whatever the bands;
     and the band's rows and columns of the sub-grid ``[::step, ::step]`` (the null's
-    :func:`~splidar.detection._3_null.data_tail`; None for ``step`` 0)."""
+    :func:`~splidar.detection._3_null.data_tail`; None for ``step`` 0). Nothing
+    returned refers to the thread's band buffer the rows are read into."""
     from ._fast import pixel_totals
 
-    y = np.asarray(z[a0:a1])
+    # into this thread's kept band buffer, one chunk of rows at a time (as the map pass
+    # reads): no fresh pages faulted in per task
+    y = _read_band(z, a0, a1, a1 - a0)
     totals = pixel_totals(y)
     sums = []
     for w0, w1 in groups:
