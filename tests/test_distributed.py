@@ -346,6 +346,85 @@ def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):
     _assert_same_detection(a, b)
 
 
+def test_first_pass_gathers_the_null_sub_grid_of_a_zarr_cube(tmp_path):
+    """With a step, the first pass also returns ``counts[::s, ::s]`` (the null's
+    ``data_tail`` sub-grid), whatever the bands (65 rows: not a multiple of any step);
+    the window means unchanged by it."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._tiled import first_pass
+
+    y = np.random.default_rng(6).poisson(2.0, (150, 40, 2, 30)).astype(np.uint8)
+    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape, chunks=(13, 40, 2, 30),
+                        dtype=y.dtype)  # fmt: skip
+    z[...] = y
+    lazy = da.from_zarr(z)
+    with dask.config.set(scheduler="threads"):
+        plain = first_pass(lazy, 5)
+        assert plain.sample is None
+        for s in (1, 3, 7, 64):
+            got = first_pass(lazy, 5, s)
+            assert got.sample.dtype == y.dtype
+            np.testing.assert_array_equal(got.sample, y[::s, ::s])
+            np.testing.assert_array_equal(got.totals, plain.totals)
+            np.testing.assert_array_equal(got._means, plain._means)
+
+
+def test_data_tail_sample_equals_reading_the_counts():
+    """``data_tail`` given its sub-grid already read gives what it reads itself."""
+    from splidar.detection import _3_null
+
+    g = gaussian_irf(3.0)
+    irf, h = g[None] / g.sum(), g.size // 2
+    lam = np.full((40, 36, 1, 120), 0.05)
+    for r in range(40):  # bright returns at depths 30-65
+        for c in range(36):
+            d = 30 + (r + c) % 36
+            lam[r, c, 0, d - h : d + h + 1] += 20 * g
+    counts = np.random.default_rng(4).poisson(lam).astype(np.uint8)
+    dev = np.zeros((1, 120), np.float32)
+    for m in (8_000_000, 40_000):  # every pixel; a step of 3
+        s = _3_null.tail_step(counts.shape, m)
+        a = _3_null.data_tail(counts, irf, dev, max_voxels=m)
+        b = _3_null.data_tail(None, irf, dev, max_voxels=m, sample=counts[::s, ::s].copy())
+        assert a.size > 0
+        np.testing.assert_array_equal(a, b)
+    assert _3_null.tail_step(counts.shape, 40_000) == 3
+
+
+def test_detect_zarr_cube_hands_the_null_its_sub_grid_from_the_first_pass(tmp_path, monkeypatch):
+    """A Zarr cube on Dask: the null's ``data_tail`` gets its sub-grid from the first
+    pass (the cube not read again), a stuck pixel set to 0 in it as in the cube; the
+    Detection the in-memory one."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection import _3_null, _detect
+
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
+    counts = counts.astype(np.uint16)
+    counts[9, 6, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint16)
+    z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=counts.shape,
+                        chunks=(7, 20, 1, 100), dtype=counts.dtype)  # fmt: skip
+    z[...] = counts
+    seen, tail = [], _3_null.data_tail
+
+    def spy(c, *a, sample=None, **k):
+        seen.append(None if sample is None else sample.copy())
+        return tail(c, *a, sample=sample, **k)
+
+    monkeypatch.setattr(_3_null, "data_tail", spy)
+    a = splidar.detect(Cube(counts, irf=irf), rng=3)
+    b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=3, block_rows=6)
+    assert seen[0] is None and seen[1] is not None  # in memory: read there
+    masked = counts.copy()
+    masked[9, 6] = 0
+    np.testing.assert_array_equal(seen[1], masked)  # a step of 1 on this small cube
+    assert b.options["hot_pixels"] == 1
+    _assert_same_detection(a, b)
+    # a step of 3: the stuck pixel (9, 6) falls on the sub-grid
+    monkeypatch.setattr(_detect, "tail_step", lambda shape: 3)
+    splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=3, block_rows=6)
+    np.testing.assert_array_equal(seen[2], masked[::3, ::3])
+
+
 def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_client):
     cube, lazy = _cubes(*_border_cube(border=16), (8, 24, 1, 100))
     a = splidar.detect(cube, rng=0)

@@ -27,7 +27,26 @@ from ._null import fit_gamma_quantiles, threshold_table
 from ._result import NullModel
 from ._threads import on_parts
 
-__all__ = ["NullCalibration", "calibrate_null", "data_tail", "evidence", "split_rule"]
+__all__ = [
+    "NullCalibration",
+    "TAIL_VOXELS",
+    "calibrate_null",
+    "data_tail",
+    "evidence",
+    "split_rule",
+    "tail_step",
+]
+
+#: Voxels :func:`data_tail` reads at most (a regular sub-grid of the pixels).
+TAIL_VOXELS = 8_000_000
+
+
+def tail_step(shape, max_voxels: int = TAIL_VOXELS) -> int:
+    """The step ``s`` of :func:`data_tail`'s sub-grid ``counts[::s, ::s]`` for a cube of
+    ``shape`` ``(rows, cols, L, T)``: the smallest with at most about ``max_voxels``."""
+    R, C, L, T = shape
+    return max(1, int(np.ceil(np.sqrt(R * C * L * T / max_voxels))))
+
 
 # the fine response of the null's patches comes precomputed (find_segments's ``fine``)
 _NO_C = np.empty((0, 0, 0, 0), np.float32)
@@ -270,7 +289,9 @@ def split_rule(
     return float(z), tail, float((g * g).sum(axis=1).min()), win, reach_bins, bool(pool)
 
 
-def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_000_000):
+def data_tail(
+    counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = TAIL_VOXELS, sample=None
+):
     """The fraction of one real return's photons in the half-peak window ``k`` bins
     from its peak, measured on the data (the fine split's ``tail``, :func:`split_rule`).
 
@@ -294,6 +315,10 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
         The background's temporal shape (stage 1).
     max_voxels : int
         Voxels read at most.
+    sample : ndarray (rows', cols', L, T), optional
+        ``counts[::s, ::s]`` with ``s = tail_step(counts.shape, max_voxels)``, already
+        read (a Zarr cube's first pass gathers it: ``_tiled.first_pass``); ``counts``
+        is then not read (it may be None). The same result.
 
     Returns
     -------
@@ -304,14 +329,16 @@ def data_tail(counts, irf: np.ndarray, dev: np.ndarray, *, max_voxels: int = 8_0
     from scipy.ndimage import correlate1d
 
     g = np.asarray(irf, np.float64)
-    R, C, L, T = counts.shape
+    if sample is None:
+        s = tail_step(counts.shape, max_voxels)
+        sample = counts[::s, ::s]
+    L, T = sample.shape[2:]
     n = g.shape[1]
     gmin, win = split_rule(g, 0.0)[2:4]
     fw = int((win[:, 1] - win[:, 0]).max()) + 1
     m = n + 4 * fw
     lo_u, hi_u = -m + int(win[:, 0].min()), m + int(win[:, 1].max())
-    s = max(1, int(np.ceil(np.sqrt(R * C * L * T / max_voxels))))
-    y = np.asarray(counts[::s, ::s], np.float32).reshape(-1, L, T)
+    y = np.asarray(sample, np.float32).reshape(-1, L, T)
     if y.shape[0] < 20:
         return np.zeros(0)
     c = np.empty_like(y)
@@ -490,6 +517,7 @@ def calibrate_null(
     split: tuple,
     rng: np.random.Generator,
     n_jobs: int,
+    tail_sample=None,
 ) -> NullCalibration:
     """Simulate the background-only saliency and fit the voxel and surface thresholds.
 
@@ -511,6 +539,8 @@ def calibrate_null(
         Draws the patches and their Poisson cubes (the first draws of ``detect``'s rng).
     n_jobs : int
         Threads.
+    tail_sample : ndarray, optional
+        :func:`data_tail`'s sub-grid of ``counts``, already read (``sample``).
     """
     n_target = int(np.clip(1000.0 / pfa, 5e5, 1e7))
     # the patches run one after the other: threads inside each (FFT and fused kernel)
@@ -529,7 +559,8 @@ def calibrate_null(
     if job is not None:
         tail = job.result()
     else:
-        tail = data_tail(counts, filters.corr.irf, filters.dev) if split_z > 0 else None
+        args = (counts, filters.corr.irf, filters.dev)
+        tail = data_tail(*args, sample=tail_sample) if split_z > 0 else None
     s_sim = np.concatenate([a.ravel() for a in p_sim])
     lev_sim = np.concatenate([a.ravel() for a in p_lev])
     # the paper's gamma fit on the data (eq:gamma_distrib, robust fit), on a second

@@ -26,7 +26,7 @@ from ..cube import Cube
 from . import _4_map
 from ._1_background import estimate_temporal_background
 from ._2_saliency import coherent_scales, region_scales, saliency_filters
-from ._3_null import calibrate_null
+from ._3_null import calibrate_null, tail_step
 from ._4_map import (
     PRESENCE_LLR,
     PRESENCE_SECONDARY,
@@ -253,7 +253,7 @@ def detect(
     o = _check_options(cube, scales, weights, pfa, surface_pfa, max_surfaces, null, presence)
     check_detect_memory(cube, store=store)  # refuse, with the way out, before allocating
     o.update(_check_resources(passes, block_rows, n_jobs, o["presence"]))
-    cube, windows, t0 = _stuck_pixels_first(cube, o)
+    cube, windows, t0, sub = _stuck_pixels_first(cube, o)
     irf, T, n_jobs, rng = o["irf"], cube.shape[3], o["n_jobs"], _generator(rng, o)
     corr = Correlator(irf, T)
     # a Dask cube: the passes over every voxel run as Dask tasks (detection/_tiled.py)
@@ -261,9 +261,9 @@ def detect(
     bg, filters = _stages_1_2(cube.counts, corr, irf, o, windows)  # 1, 2
     timings["background_temporal"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    nul = calibrate_null(  # 3
+    nul = calibrate_null(  # 3 (sub: data_tail's sub-grid, read by a Zarr cube's first pass)
         cube.counts, filters, pfa=o["pfa"], surface_pfa=o["surface_pfa"], null=o["null"],
-        min_separation=o["min_separation"], split=_split(), rng=rng, n_jobs=n_jobs,
+        min_separation=o["min_separation"], split=_split(), rng=rng, n_jobs=n_jobs, tail_sample=sub,
     )  # fmt: skip
     timings["null"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -383,13 +383,15 @@ def _by_region(det: Detection, o: dict, store) -> Detection:
 
 def _stuck_pixels_first(cube: Cube, o: dict):
     """The cube without its stuck pixels (:func:`_without_hot_pixels`), how stage 1
-    reads its windows (None: in memory), and when stage 1's timing starts. A Cube built
+    reads its windows (None: in memory), when stage 1's timing starts, and the null's
+    sub-grid of the counts (``_3_null.data_tail``'s ``sample``; None: read there). A Cube built
     from arrays has its IRF's width checked first (once per Cube, warns only:
     ``splidar._irf_width.check_cube_irf``).
 
     A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
     pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
-    unless pixels were masked; any other Dask cube is reduced to its totals, then read
+    unless pixels were masked, and the null's sub-grid of the counts with them (its stuck
+    pixels set to 0 as in the cube); any other Dask cube is reduced to its totals, then read
     again for the windows (``_tiled.tiled_window_means``). An in-memory cube of integer
     counts: the totals and the windows from one read of its counts on ``n_jobs`` threads
     (``_background.first_read``, timed with stage 1; the same values)."""
@@ -397,28 +399,33 @@ def _stuck_pixels_first(cube: Cube, o: dict):
     t0 = time.perf_counter()
     box = int(o["scales"].max())
     if is_dask(cube.counts):
-        first = first_pass(cube.counts, box)
+        first = first_pass(cube.counts, box, tail_step(cube.shape))
     else:
         first = first_read(cube.counts, box, o["n_jobs"])
-    cube = _without_hot_pixels(cube, o, None if first is None else first.totals)
+    tail = getattr(first, "sample", None)
+    cube = _without_hot_pixels(cube, o, None if first is None else first.totals, tail)
     if first is None:  # stage 1's time alone, as before (the check reads on its own)
         t0 = time.perf_counter()
     windows = tiled_window_means if is_dask(cube.counts) else None
     if first is not None and o["hot_pixels"] == 0:
         windows = first.windows
-    return cube, windows, t0
+    return cube, windows, t0, tail
 
 
-def _without_hot_pixels(cube: Cube, o: dict, totals=None) -> Cube:
+def _without_hot_pixels(cube: Cube, o: dict, totals=None, sample=None) -> Cube:
     """The cube with its stuck pixels' counts set to 0 (``_hot_pixels``); logged, and
     counted in ``o["hot_pixels"]``. A Dask cube is checked too (one reduction over its
     chunks on the active scheduler, or the ``totals`` of a Zarr cube's first pass) and
-    masked lazily, so that it gives the in-memory result."""
+    masked lazily, so that it gives the in-memory result; ``sample``, the counts'
+    sub-grid ``[::s, ::s]`` (``s = tail_step``), has them set to 0 in place too."""
     o["hot_pixels"] = 0
     hot = hot_pixels(cube.counts, totals=totals)
     n = int(hot.sum())
     if n == 0:
         return cube
+    if sample is not None:
+        s = tail_step(cube.shape)
+        sample[hot[::s, ::s]] = 0
     if is_dask(cube.counts):
         counts = cube.counts * (~hot)[:, :, None, None]  # lazy; the counts' dtype kept
     else:

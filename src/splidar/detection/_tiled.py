@@ -150,19 +150,28 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
     return np.concatenate(parts, axis=0)
 
 
-def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray):
+def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int, step: int):
     """Rows ``[a0, a1)`` of the Zarr array ``z`` read once: their pixel totals
-    ``(a1 - a0, C)`` float64 (the stuck-pixel check's) and, per row group ``(w0, w1)``
-    of ``groups`` (the rows of one row of stage 1's windows that fall in the band), the
-    counts summed over those rows at the windows' columns ``cols``, ``(len(cols), L,
-    T)`` float64: integer sums, exact, so the windows' partial sums add up to the whole
-    windows' sums whatever the bands."""
+    ``(a1 - a0, C)`` float64 (the stuck-pixel check's); per row group ``(w0, w1)`` of
+    ``groups`` (the rows of one row of stage 1's windows that fall in the band), the
+    counts summed over those rows and each window's ``kc`` columns (the columns ``cols``
+    kept, a window's first at ``at``), ``(len(at), L, T)`` float64: integer sums, exact,
+    so the windows' partial sums add up to the whole windows' sums whatever the bands;
+    and the band's rows and columns of the sub-grid ``[::step, ::step]`` (the null's
+    :func:`~splidar.detection._3_null.data_tail`; None for ``step`` 0). Nothing
+    returned refers to the thread's band buffer the rows are read into."""
     from ._fast import pixel_totals
 
-    y = np.asarray(z[a0:a1])
+    # into this thread's kept band buffer, one chunk of rows at a time (as the map pass
+    # reads): no fresh pages faulted in per task
+    y = _read_band(z, a0, a1, a1 - a0)
     totals = pixel_totals(y)
-    sums = [y[w0 - a0 : w1 - a0, cols].sum(axis=0, dtype=np.float64) for w0, w1 in groups]
-    return totals, sums
+    sums = []
+    for w0, w1 in groups:
+        part = y[w0 - a0 : w1 - a0, cols].sum(axis=0, dtype=np.float64)
+        sums.append(np.stack([part[a : a + kc].sum(axis=0) for a in at]))
+    sub = y[(-a0) % step :: step, ::step].copy() if step else None
+    return totals, sums, sub
 
 
 class FirstPass:
@@ -171,8 +180,9 @@ class FirstPass:
     window means :func:`~splidar.detection._background.temporal_shape` asks for when the
     grid is the one computed here (else it reads them: :func:`tiled_window_means`)."""
 
-    def __init__(self, totals, grid, means):
+    def __init__(self, totals, grid, means, sample=None):
         self.totals, self._grid, self._means = totals, grid, means
+        self.sample = sample  # counts[::s, ::s] when asked (first_pass's step)
 
     def windows(self, counts, row_starts, kr, col_starts, kc) -> np.ndarray:
         kr0, kc0, rs0, cs0 = self._grid
@@ -182,15 +192,18 @@ class FirstPass:
         return tiled_window_means(counts, row_starts, kr, col_starts, kc)
 
 
-def first_pass(counts, box: int) -> FirstPass | None:
+def first_pass(counts, box: int, step: int = 0) -> FirstPass | None:
     """One pass of Dask tasks over a Zarr-backed cube of integer counts
     (``dask.array.from_zarr``; None for any other cube): each task reads a band of
     whole stored chunks of rows from the Zarr array itself (each chunk decoded once)
-    and returns its pixels' totals (:func:`~splidar.detection._hot_pixels.hot_pixels`)
-    and its rows' share of the sums of stage 1's windows (the grid of
-    :func:`~splidar.detection._background.sample_grid` with ``k = box``). The windows'
-    means are then the float32 rounding of the exact sums over ``kr x kc`` pixels, as
-    :func:`~splidar.detection._fast.window_means` gives them, bit for bit."""
+    and returns its pixels' totals (:func:`~splidar.detection._hot_pixels.hot_pixels`),
+    its rows' share of the sums of stage 1's windows (the grid of
+    :func:`~splidar.detection._background.sample_grid` with ``k = box``, summed over
+    each window's columns in the task) and, with ``step``, its rows of the sub-grid
+    ``counts[::step, ::step]`` (``FirstPass.sample``, the null's
+    :func:`~splidar.detection._3_null.data_tail`: the cube not read again for it). The
+    windows' means are then the float32 rounding of the exact sums over ``kr x kc``
+    pixels, as :func:`~splidar.detection._fast.window_means` gives them, bit for bit."""
     import dask
 
     from ._background import sample_grid
@@ -201,12 +214,14 @@ def first_pass(counts, box: int) -> FirstPass | None:
     R, C, L, T = counts.shape
     kr, kc, row_starts, col_starts = grid = sample_grid(counts.shape, box)
     cols = np.unique((col_starts[:, None] + np.arange(kc)).ravel())
-    step = int(z.chunks[0]) * max(1, round(STATS_ROWS / int(z.chunks[0])))
+    # each window: its kc columns among the kept ones (summed in the tasks)
+    at = np.searchsorted(cols, col_starts)
+    rows = int(z.chunks[0]) * max(1, round(STATS_ROWS / int(z.chunks[0])))
     src = dask.delayed(z, pure=True)
-    name = "splidar-first-pass-" + dask.base.tokenize(counts.name, box, step)
+    name = "splidar-first-pass-" + dask.base.tokenize(counts.name, box, rows, step)
     tasks, parts = [], []
-    for i, a0 in enumerate(range(0, R, step)):
-        a1 = min(R, a0 + step)
+    for i, a0 in enumerate(range(0, R, rows)):
+        a1 = min(R, a0 + rows)
         groups, which = [], []
         for w, r in enumerate(row_starts):
             w0, w1 = max(int(r), a0), min(int(r) + kr, a1)
@@ -214,26 +229,28 @@ def first_pass(counts, box: int) -> FirstPass | None:
                 groups.append((w0, w1))
                 which.append(w)
         tasks.append(
-            dask.delayed(_first_band, pure=True)(src, a0, a1, groups, cols, dask_key_name=(name, i))
+            dask.delayed(_first_band, pure=True)(
+                src, a0, a1, groups, cols, at, kc, step, dask_key_name=(name, i)
+            )
         )
         parts.append((a0, a1, which))
     totals = np.empty((R, C), np.float64)
-    sums = np.zeros((row_starts.size, cols.size, L, T), np.float64)
+    sums = np.zeros((row_starts.size, col_starts.size, L, T), np.float64)
+    sub = np.empty((-(-R // step), -(-C // step), L, T), counts.dtype) if step else None
 
     def take(i, result):
         a0, a1, which = parts[i]
-        totals[a0:a1], band = result
+        totals[a0:a1], band, part = result
         for w, s in zip(which, band, strict=True):
             sums[w] += s
+        if step:
+            first = -(-a0 // step)
+            sub[first : first + part.shape[0]] = part
 
     compute_each(tasks, take)
-    # each window: its kc columns among the kept ones, summed (integers: exact)
-    at = np.searchsorted(cols, col_starts)
     means = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
-    norm = np.float64(kr * kc)
-    for u, a in enumerate(at):
-        means[:, u] = sums[:, a : a + kc].sum(axis=1) / norm
-    return FirstPass(totals, grid, means)
+    means[...] = sums / np.float64(kr * kc)
+    return FirstPass(totals, grid, means, sub)
 
 
 def _client():
