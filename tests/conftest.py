@@ -7,6 +7,27 @@ from pathlib import Path
 
 import pytest
 
+BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark(name: str):
+    """The benchmark script ``benchmarks/NAME.py`` imported as the module ``name`` (its
+    own imports of sibling scripts resolved from ``benchmarks/``), for the tests of its
+    functions."""
+    import importlib.util
+    import sys
+
+    sys.path.insert(0, str(BENCH_DIR))
+    try:
+        spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+        return mod
+    finally:
+        sys.path.remove(str(BENCH_DIR))
+
+
 # ../shared/data beside the project (override with SPLIDAR_SHARED_DATA)
 _DEFAULT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

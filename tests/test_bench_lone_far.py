@@ -4,31 +4,14 @@ the per-pixel rules' screen (:func:`screen_rules`)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from conftest import load_benchmark as _load
 
 from splidar.detection._result import Background
 from splidar.irf import gaussian_irf
 from splidar.metrics import PointSet
-
-BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _load(name):
-    sys.path.insert(0, str(BENCH_DIR))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-        return mod
-    finally:
-        sys.path.remove(str(BENCH_DIR))
-
 
 bench = _load("bench_lone_far")
 IRF = gaussian_irf(3.0)[None, :]

@@ -3,30 +3,13 @@ the ``every`` rule (:func:`every_lines`) and the line test's null tail (:func:`n
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import test_layer_evidence as tle
+from conftest import load_benchmark as _load
 
 from splidar.detection._result import Background
-
-BENCH_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-def _load(name):
-    sys.path.insert(0, str(BENCH_DIR))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH_DIR / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-        return mod
-    finally:
-        sys.path.remove(str(BENCH_DIR))
-
 
 bench = _load("bench_spread_sources")
 

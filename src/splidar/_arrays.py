@@ -150,6 +150,26 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     return out
 
 
+def _whole_row_chunks(z) -> tuple:
+    """``(raw, shape)``: :func:`_raw_chunks` of ``z`` when its chunks are whole rows (every
+    axis but the first whole), else ``(None, shape)``."""
+    raw = _raw_chunks(z)
+    shape = tuple(int(v) for v in z.shape)
+    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+        return None, shape
+    return raw, shape
+
+
+def _by_chunk(rows: np.ndarray, step: int) -> tuple:
+    """``(key, order, cuts)``: each row's chunk ``key`` (``rows // step``), the rows'
+    stable ``order`` by it, and where a new chunk starts in that order (``cuts``, for
+    ``np.split(order, cuts)``)."""
+    key = rows // step
+    order = np.argsort(key, kind="stable")
+    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    return key, order, cuts
+
+
 def zarr_take_rows(z, rows: np.ndarray) -> np.ndarray | None:
     """``z[rows]`` (rows of the first axis) of a Zarr array stored raw in a local folder
     (:func:`_raw_chunks`) in chunks of whole rows, read from the chunk files at those
@@ -170,16 +190,13 @@ def zarr_take_rows(z, rows: np.ndarray) -> np.ndarray | None:
     -------
     ndarray (n,) + z.shape[1:] of ``z``'s dtype, or None
     """
-    raw = _raw_chunks(z)
-    shape = tuple(int(v) for v in z.shape)
-    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+    raw, shape = _whole_row_chunks(z)
+    if raw is None:
         return None
     folder, chunk, dtype, md = raw
     rows = np.asarray(rows, np.int64).reshape(-1)
     out = np.empty((rows.size,) + shape[1:], np.dtype(z.dtype))
-    key = rows // chunk[0]
-    order = np.argsort(key, kind="stable")
-    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    key, order, cuts = _by_chunk(rows, chunk[0])
     tail = (0,) * (len(shape) - 1)
     size = int(np.prod(chunk)) * dtype.itemsize
     for sel in np.split(order, cuts) if rows.size else []:
@@ -219,15 +236,12 @@ def zarr_write_rows(z, idx: np.ndarray, values: np.ndarray) -> bool:
         writing: then some rows may be written already, and Zarr's write of all of
         them gives the same array).
     """
-    raw = _raw_chunks(z)
-    shape = tuple(int(v) for v in z.shape)
-    if raw is None or tuple(raw[1][1:]) != shape[1:]:
+    raw, shape = _whole_row_chunks(z)
+    if raw is None:
         return False
     folder, chunk, dtype, md = raw
     idx = np.asarray(idx, np.int64).reshape(-1)
-    key = idx // chunk[0]
-    order = np.argsort(key, kind="stable")
-    cuts = np.flatnonzero(np.diff(key[order])) + 1
+    key, order, cuts = _by_chunk(idx, chunk[0])
     groups = np.split(order, cuts) if idx.size else []
     tail = (0,) * (len(shape) - 1)
     paths = [folder / md.encode_chunk_key((int(key[g[0]]),) + tail) for g in groups]
