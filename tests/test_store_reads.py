@@ -739,3 +739,76 @@ def test_read_part_reads_rows_far_apart_at_those_rows(tmp_path, monkeypatch):
     got = _gather(table, idx, tuple(stored))
     assert got.tobytes() == _gather(table, idx, tuple(blocks)).tobytes()
     assert took == ["0"] and sliced == ["1"]
+
+
+def _f32_raw_array(tmp_path, name, shape, chunks):
+    g = zarr.open_group(str(tmp_path / f"{name}.zarr"), mode="w")
+    return g.create_array(name, shape=shape, chunks=chunks, dtype="float32", compressors=None)
+
+
+def test_write_raw_chunk_direct_writes_the_same_bytes_as_zarr(tmp_path):
+    """``write_raw_chunk`` on a chunk of >= ``DIRECT_MIN_BYTES`` whose size is no
+    multiple of the page: the aligned head past the page cache (``O_DIRECT``, where the
+    file system takes it), the tail written after; Zarr reads back exactly what its own
+    write stores (-0.0 and NaN kept), and the next chunk reuses the thread's buffer."""
+    from splidar import _arrays
+
+    chunk = (3, 7, 12_487)  # 1,048,908 bytes: 256 pages and a 332-byte tail
+    assert 4 * np.prod(chunk) >= _arrays.DIRECT_MIN_BYTES
+    assert (4 * np.prod(chunk)) % _arrays._ALIGN
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(6, 7, chunk[2])).astype(np.float32)
+    d[0, 0, :2] = (-0.0, np.nan)
+    want = _f32_raw_array(tmp_path, "want", d.shape, chunk)
+    want[...] = d
+    got = _f32_raw_array(tmp_path, "got", d.shape, chunk)
+    raw = _arrays._raw_chunks(got)
+    for i in (0, 1):
+        _arrays.write_raw_chunk(raw, (i, 0, 0), d[3 * i : 3 * i + 3])
+    assert np.asarray(got[...]).tobytes() == np.asarray(want[...]).tobytes()
+    names = sorted(p.name for p in (tmp_path / "got.zarr" / "got" / "c").rglob("*"))
+    assert not [n for n in names if n.endswith(".partial")]  # no temporary file left
+    if getattr(_arrays.os, "O_DIRECT", 0) and tmp_path.stat().st_dev not in _arrays._NO_DIRECT:
+        buf = _arrays._DIRECT_BUFFERS.buf
+        assert buf.ctypes.data % _arrays._ALIGN == 0
+        assert buf.size >= 4 * np.prod(chunk) // _arrays._ALIGN * _arrays._ALIGN
+
+
+def test_write_direct_declines_small_files_and_refusing_file_systems(tmp_path, monkeypatch):
+    """``_write_direct``: False (and no file) for a file under ``DIRECT_MIN_BYTES``; a file
+    system refusing ``O_DIRECT`` at the open (EINVAL) is remembered and not asked again,
+    and ``write_raw_chunk`` then writes the chunk the usual way, the same bytes."""
+    import errno
+    import os
+
+    from splidar import _arrays
+
+    small = memoryview(np.zeros(1000, np.float32)).cast("B")
+    assert not _arrays._write_direct(tmp_path / "small.partial", small)
+    assert not (tmp_path / "small.partial").exists()
+    big = memoryview(np.arange(300_000, dtype=np.float32)).cast("B")
+    opened = []
+    real_open = os.open
+
+    def refuse(path, flags, *a, **k):
+        if flags & getattr(os, "O_DIRECT", 0):
+            opened.append(path)
+            raise OSError(errno.EINVAL, "O_DIRECT refused")
+        return real_open(path, flags, *a, **k)
+
+    monkeypatch.setattr(_arrays.os, "open", refuse)
+    monkeypatch.setattr(_arrays, "_NO_DIRECT", set())
+    if not getattr(os, "O_DIRECT", 0):
+        pytest.skip("no O_DIRECT on this platform")
+    assert not _arrays._write_direct(tmp_path / "a.partial", big)
+    assert not _arrays._write_direct(tmp_path / "b.partial", big)
+    assert len(opened) == 1  # the refusal remembered for the device
+    assert not list(tmp_path.glob("*.partial"))
+    d = np.arange(2 * 300_000, dtype=np.float32).reshape(2, 1, 300_000)
+    got = _f32_raw_array(tmp_path, "got", d.shape, (1, 1, 300_000))
+    raw = _arrays._raw_chunks(got)
+    for i in (0, 1):
+        _arrays.write_raw_chunk(raw, (i, 0, 0), d[i : i + 1])
+    assert len(opened) == 1
+    monkeypatch.undo()
+    np.testing.assert_array_equal(got[...], d)
