@@ -812,3 +812,28 @@ def test_write_direct_declines_small_files_and_refusing_file_systems(tmp_path, m
     assert len(opened) == 1
     monkeypatch.undo()
     np.testing.assert_array_equal(got[...], d)
+
+
+def test_prefetch_advises_runs_of_consecutive_pages(tmp_path, monkeypatch):
+    """``_prefetch``: one ``POSIX_FADV_WILLNEED`` per run of consecutive pages holding the
+    offsets (repeats and unsorted offsets merged); a missing file or no offsets: no call."""
+    import os
+
+    from splidar import _arrays
+
+    if not hasattr(os, "posix_fadvise"):
+        pytest.skip("no posix_fadvise on this platform")
+    path = tmp_path / "f"
+    path.write_bytes(bytes(10 * 4096))
+    calls = []
+    monkeypatch.setattr(
+        _arrays.os, "posix_fadvise", lambda fd, off, n, advice: calls.append((off, n, advice))
+    )
+    offsets = np.array([5 * 4096 + 7, 0, 4095, 4096, 9 * 4096, 5 * 4096, 6 * 4096 + 1])
+    _arrays._prefetch(path, offsets)
+    need = os.POSIX_FADV_WILLNEED
+    assert calls == [(0, 2 * 4096, need), (5 * 4096, 2 * 4096, need), (9 * 4096, 4096, need)]
+    calls.clear()
+    _arrays._prefetch(tmp_path / "missing", offsets)
+    _arrays._prefetch(path, offsets[:0])
+    assert calls == []

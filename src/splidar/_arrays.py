@@ -138,6 +138,7 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     size = int(np.prod(chunk)) * dtype.itemsize
     fill = np.asarray(md.fill_value, np.dtype(z.dtype))
+    parts = []
     for sel in np.split(order, cuts):
         where = np.unravel_index(int(key[sel[0]]), grid)
         path = folder / md.encode_chunk_key(tuple(int(w) for w in where))
@@ -146,9 +147,11 @@ def zarr_voxels(z, index: tuple) -> np.ndarray | None:
             continue
         if path.stat().st_size != size:
             return None
-        out[sel] = _mapped_values(
-            path, dtype, chunk, tuple(i[sel] % c for i, c in zip(index, chunk, strict=True))
-        )
+        within = tuple(i[sel] % c for i, c in zip(index, chunk, strict=True))
+        _prefetch(path, np.ravel_multi_index(within, chunk) * dtype.itemsize)
+        parts.append((sel, path, within))
+    for sel, path, within in parts:
+        out[sel] = _mapped_values(path, dtype, chunk, within)
     return out
 
 
@@ -367,6 +370,32 @@ def _write_direct(tmp: Path, data: memoryview) -> bool:
         with open(tmp, "ab") as f:
             f.write(data[head:])
     return True
+
+
+def _prefetch(path, offsets: np.ndarray) -> None:
+    """Ask the kernel to read the pages holding the byte ``offsets`` of the file
+    ``path`` now (``POSIX_FADV_WILLNEED``, runs of consecutive pages together), without
+    waiting: called for every chunk file of a read before any is touched, so that a
+    store not in the page cache (written past it, :func:`_write_direct`) is read with
+    many requests in flight instead of one page fault at a time. Advice only: the bytes
+    read are the same, and a file system that ignores it is read as before."""
+    if not hasattr(os, "posix_fadvise") or offsets.size == 0:
+        return
+    page = 4096
+    pages = np.unique(offsets // page)
+    starts = np.flatnonzero(np.diff(pages, prepend=pages[0] - 2) != 1)
+    ends = np.append(starts[1:], pages.size)
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        for a, b in zip(pages[starts].tolist(), (pages[ends - 1] + 1).tolist(), strict=True):
+            os.posix_fadvise(fd, a * page, (b - a) * page, os.POSIX_FADV_WILLNEED)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _mapped_values(path, dtype, chunk: tuple, within: tuple) -> np.ndarray:
