@@ -775,9 +775,10 @@ def test_write_raw_chunk_direct_writes_the_same_bytes_as_zarr(tmp_path):
 
 
 def test_write_direct_declines_small_files_and_refusing_file_systems(tmp_path, monkeypatch):
-    """``_write_direct``: False (and no file) for a file under ``DIRECT_MIN_BYTES``; a file
-    system refusing ``O_DIRECT`` at the open (EINVAL) is remembered and not asked again,
-    and ``write_raw_chunk`` then writes the chunk the usual way, the same bytes."""
+    """``_write_direct``: False (and no file) for a file under ``DIRECT_MIN_BYTES`` or with
+    ``SPLIDAR_DIRECT_IO=0``; a file system refusing ``O_DIRECT`` at the open (EINVAL) is
+    remembered and not asked again, and ``write_raw_chunk`` then writes the chunk the
+    usual way, the same bytes."""
     import errno
     import os
 
@@ -787,6 +788,10 @@ def test_write_direct_declines_small_files_and_refusing_file_systems(tmp_path, m
     assert not _arrays._write_direct(tmp_path / "small.partial", small)
     assert not (tmp_path / "small.partial").exists()
     big = memoryview(np.arange(300_000, dtype=np.float32)).cast("B")
+    monkeypatch.setenv("SPLIDAR_DIRECT_IO", "0")  # turned off by the user
+    assert not _arrays._write_direct(tmp_path / "off.partial", big)
+    assert not (tmp_path / "off.partial").exists()
+    monkeypatch.delenv("SPLIDAR_DIRECT_IO")
     opened = []
     real_open = os.open
 

@@ -331,12 +331,14 @@ def _write_direct(tmp: Path, data: memoryview) -> bool:
     ``O_DIRECT`` from an aligned copy (:func:`_aligned_buffer`), the tail through a
     plain write; the file holds the same bytes either way. Used on Linux for files of at
     least :data:`DIRECT_MIN_BYTES`; a file system that refuses ``O_DIRECT`` (``EINVAL``
-    on opening, e.g. tmpfs) is remembered and written the usual way.
+    on opening, e.g. tmpfs) is remembered and written the usual way, and the environment
+    variable ``SPLIDAR_DIRECT_IO=0`` turns it off (e.g. a network file system where a
+    synchronous write costs more than the page cache's copy).
     """
     flag = getattr(os, "O_DIRECT", 0)
     n = data.nbytes
     head = n - n % _ALIGN
-    if not flag or head < DIRECT_MIN_BYTES:
+    if not flag or head < DIRECT_MIN_BYTES or os.environ.get("SPLIDAR_DIRECT_IO") == "0":
         return False
     try:
         dev = os.stat(tmp.parent).st_dev
