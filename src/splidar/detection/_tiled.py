@@ -166,10 +166,15 @@ def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int
     # reads): no fresh pages faulted in per task
     y = _read_band(z, a0, a1, a1 - a0)
     totals = pixel_totals(y)
+    # each window's kc columns are consecutive image columns: summed from the band's rows
+    # as they lie (no copy of the kept columns, no fresh pages for it per row group)
+    starts = np.asarray(cols)[np.asarray(at)]
     sums = []
     for w0, w1 in groups:
-        part = y[w0 - a0 : w1 - a0, cols].sum(axis=0, dtype=np.float64)
-        sums.append(np.stack([part[a : a + kc].sum(axis=0) for a in at]))
+        part = np.empty((starts.size,) + y.shape[2:], np.float64)
+        for i, c in enumerate(starts):
+            y[w0 - a0 : w1 - a0, c : c + kc].sum(axis=(0, 1), dtype=np.float64, out=part[i])
+        sums.append(part)
     sub = y[(-a0) % step :: step, ::step].copy() if step else None
     return totals, sums, sub
 
