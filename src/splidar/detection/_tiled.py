@@ -13,7 +13,9 @@ chunks and do the work; only small results travel back).
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
    and is simulated in the calling process, seeded as in memory. A cube read from Zarr
    as it is (``dask.array.from_zarr``) takes one pass for the stuck-pixel check's
-   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once).
+   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once, straight
+   into the task's kept band buffer), which also gathers the null's sub-grid and
+   ``coherent_scales``' tiles (:class:`Gathered`).
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
    sides (no padding at the image edge, which is handled as in memory, like
