@@ -425,6 +425,74 @@ def test_detect_zarr_cube_hands_the_null_its_sub_grid_from_the_first_pass(tmp_pa
     np.testing.assert_array_equal(seen[2], masked[::3, ::3])
 
 
+def test_first_pass_gathers_blocks_of_a_zarr_cube(tmp_path):
+    """With blocks, the first pass also returns ``counts[r0:r1, c0:c1]`` of each, whatever
+    the bands they cross (65 rows: within one band, across two, at the image's edges);
+    the totals and window means unchanged by them."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection._tiled import first_pass
+
+    y = np.random.default_rng(7).poisson(2.0, (150, 40, 2, 30)).astype(np.uint8)
+    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape, chunks=(13, 40, 2, 30),
+                        dtype=y.dtype)  # fmt: skip
+    z[...] = y
+    lazy = da.from_zarr(z)
+    blocks = [(3, 20, 0, 40), (50, 92, 7, 19), (0, 150, 30, 40), (140, 150, 0, 1)]
+    with dask.config.set(scheduler="threads"):
+        plain = first_pass(lazy, 5)
+        got = first_pass(lazy, 5, 0, blocks)
+    assert plain.blocks == {} and list(got.blocks) == blocks
+    for r0, r1, c0, c1 in blocks:
+        block = got.blocks[r0, r1, c0, c1]
+        assert block.dtype == y.dtype and block.tobytes() == y[r0:r1, c0:c1].tobytes()
+    np.testing.assert_array_equal(got.totals, plain.totals)
+    np.testing.assert_array_equal(got._means, plain._means)
+
+
+def test_detect_zarr_cube_hands_coherent_scales_its_tiles_from_the_first_pass(
+    tmp_path, monkeypatch
+):
+    """A Zarr cube on Dask with ``scales="auto"``: ``coherent_scales`` reads its tiles
+    from the first pass's blocks (the cube not read again: any other read fails here), a
+    stuck pixel in them set to 0 as in the cube; the Detection the in-memory one."""
+    zarr = pytest.importorskip("zarr")
+    from splidar.detection import _detect
+    from splidar.detection._tiled import Gathered
+
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
+    counts = counts.astype(np.uint16)
+    counts[9, 6, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint16)
+    z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=counts.shape,
+                        chunks=(7, 20, 1, 100), dtype=counts.dtype)  # fmt: skip
+    z[...] = counts
+    seen, coherent = [], _detect.coherent_scales
+
+    class Unread:
+        shape, dtype, ndim = counts.shape, counts.dtype, counts.ndim
+
+        def __getitem__(self, key):
+            raise AssertionError(f"coherent_scales read {key} from the cube")
+
+    def spy(c, ctx):
+        if isinstance(c, Gathered):
+            seen.append({k: v.copy() for k, v in c.blocks.items()})
+            c = Gathered(Unread(), c.blocks)
+        return coherent(c, ctx)
+
+    monkeypatch.setattr(_detect, "coherent_scales", spy)
+    a = splidar.detect(Cube(counts, irf=irf), rng=3)
+    assert a.options["scales_auto"] and seen == []  # in memory: read there
+    b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=3, block_rows=6)
+    masked = counts.copy()
+    masked[9, 6] = 0
+    ((key, block),) = seen[0].items()  # one tile, with its halo the whole small image
+    r0, r1, c0, c1 = key
+    assert (r0, c0) == (0, 0) and block.tobytes() == masked[r0:r1, c0:c1].tobytes()
+    assert b.options["hot_pixels"] == 1
+    assert b.options["scale_coherence"] == a.options["scale_coherence"]
+    _assert_same_detection(a, b)
+
+
 def test_detect_on_local_cluster_finds_a_surface_across_a_tile_border(local_client):
     cube, lazy = _cubes(*_border_cube(border=16), (8, 24, 1, 100))
     a = splidar.detect(cube, rng=0)

@@ -842,3 +842,72 @@ def test_prefetch_advises_runs_of_consecutive_pages(tmp_path, monkeypatch):
     _arrays._prefetch(tmp_path / "missing", offsets)
     _arrays._prefetch(path, offsets[:0])
     assert calls == []
+
+
+def test_zarr_rows_into_decodes_zstd_chunks_from_their_files_as_zarr(tmp_path, monkeypatch):
+    """``zarr_rows_into``: a whole chunk of whole rows of a zstd-compressed Zarr 3 array
+    decoded from its chunk file into the output (Zarr not asked; a chunk never written:
+    the fill value), the same bytes as Zarr's read; part of a chunk, the edge chunk, or
+    a chunk file whose frame does not hold one chunk's bytes: Zarr's read."""
+    from numcodecs import Zstd
+
+    from splidar._arrays import _zstd_chunk_into, zarr_rows_into
+
+    rng = np.random.default_rng(16)
+    d = rng.integers(0, 3000, (70, 5, 1, 9)).astype(np.uint16)
+    g = zarr.open_group(str(tmp_path / "c.zarr"), mode="w")
+    z = g.create_array("counts", shape=d.shape, chunks=(16, 5, 1, 9), dtype="u2", fill_value=7)
+    z[:16], z[32:] = d[:16], d[32:]  # rows 16-31: never written (the fill value)
+    want = np.asarray(z[:])
+    assert np.all(want[16:32] == 7) and np.array_equal(want[32:], d[32:])
+    out = np.full((16, 5, 1, 9), 1, np.uint16)
+    with monkeypatch.context() as m:
+        m.setattr(type(z), "get_basic_selection", _fails)
+        m.setattr(type(z), "__getitem__", _fails)
+        for lo in (0, 16, 32, 48):
+            assert zarr_rows_into(z, lo, lo + 16, out) is out
+            assert out.tobytes() == want[lo : lo + 16].tobytes()
+    for lo, hi in ((64, 70), (3, 9), (8, 24)):  # the edge chunk, parts of chunks: Zarr's
+        assert not _zstd_chunk_into(z, lo, hi, out[: hi - lo])
+        assert zarr_rows_into(z, lo, hi, out[: hi - lo]).tobytes() == want[lo:hi].tobytes()
+    # a frame of another size in chunk 3's file: left to Zarr (which then refuses it)
+    path = tmp_path / "c.zarr" / "counts" / "c" / "3" / "0" / "0" / "0"
+    path.write_bytes(Zstd().encode(d[48:63].tobytes()))
+    assert not _zstd_chunk_into(z, 48, 64, out)
+    with pytest.raises(Exception):  # noqa: B017 (whatever Zarr raises)
+        zarr_rows_into(z, 48, 64, out)
+
+
+def test_zstd_chunks_only_for_bytes_then_zstd_in_native_order(tmp_path):
+    """``_zstd_chunks``: the chunk files' layout of a ``bytes`` + ``zstd`` array only (a raw,
+    gzip, big-endian or sharded array: None, read by Zarr)."""
+    from zarr.codecs import BytesCodec, GzipCodec
+
+    from splidar._arrays import _raw_chunks, _zstd_chunks
+
+    g = zarr.open_group(str(tmp_path / "k.zarr"), mode="w")
+    kw = {"shape": (8, 3), "chunks": (4, 3), "dtype": "u2"}
+    assert _zstd_chunks(g.create_array("zstd", **kw))[1] == (4, 3)
+    assert _raw_chunks(g.create_array("zstd2", **kw)) is None
+    assert _zstd_chunks(g.create_array("raw", compressors=None, **kw)) is None
+    assert _raw_chunks(g.create_array("raw2", compressors=None, **kw)) is not None
+    assert _zstd_chunks(g.create_array("gzip", compressors=GzipCodec(), **kw)) is None
+    big = g.create_array("big", serializer=BytesCodec(endian="big"), **kw)
+    assert _zstd_chunks(big) is None
+    assert _zstd_chunks(g.create_array("shard", shards=(8, 3), **kw)) is None
+
+
+@pytest.mark.parametrize("size", [0, 1, 255, 256, 300, 65791, 65792, 1 << 20])
+def test_zstd_frame_size_reads_the_declared_content_size(size):
+    """``_zstd_frame_size``: the content size numcodecs' frames declare, whatever the
+    size field's width (1, 2 with its offset of 256, 4 bytes) and with a checksum;
+    None for bytes that are no zstd frame."""
+    from numcodecs import Zstd
+
+    from splidar._arrays import _zstd_frame_size
+
+    data = np.random.default_rng(size).integers(0, 4, size).astype(np.uint8).tobytes()
+    for codec in (Zstd(), Zstd(level=3, checksum=True)):
+        assert _zstd_frame_size(codec.encode(data)) == size
+    assert _zstd_frame_size(b"\x00" * 16) is None
+    assert _zstd_frame_size(Zstd().encode(data)[:5]) is None

@@ -61,9 +61,14 @@ def sum_over_rows(a, axis_keep: int) -> np.ndarray:
 def zarr_rows_into(z, lo: int, hi: int, out: np.ndarray) -> np.ndarray:
     """Rows ``[lo, hi)`` of the Zarr array ``z`` decoded straight into ``out`` (no copy).
 
-    ``out`` has shape ``(hi - lo,) + z.shape[1:]`` and ``z``'s dtype. Zarr 3 takes an
-    ``NDBuffer`` over ``out``; zarr 2 takes the NumPy array itself.
+    ``out`` has shape ``(hi - lo,) + z.shape[1:]`` and ``z``'s dtype. One whole chunk of
+    whole rows of a Zarr 3 array stored with zstd in a local folder
+    (:func:`_zstd_chunks`) is decoded from its chunk file into ``out`` itself
+    (:func:`_zstd_chunk_into`); any other read is Zarr's: Zarr 3 takes an ``NDBuffer``
+    over ``out``, zarr 2 the NumPy array itself.
     """
+    if _zstd_chunk_into(z, lo, hi, out):
+        return out
     try:
         from zarr.core.buffer import default_buffer_prototype
     except ImportError:  # zarr 2
@@ -74,10 +79,93 @@ def zarr_rows_into(z, lo: int, hi: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
+def _zstd_chunk_into(z, lo: int, hi: int, out: np.ndarray) -> bool:
+    """Rows ``[lo, hi)`` of ``z`` decoded from their chunk file straight into ``out`` when
+    they are one whole chunk of whole rows of an array stored with zstd in a local
+    folder (:func:`_zstd_chunks`); False (nothing read) otherwise, for Zarr to read.
+
+    Zarr decodes a chunk into a fresh buffer of the chunk's size and then copies it into
+    ``out``: on a ``dask.distributed`` worker (glibc's ``MALLOC_TRIM_THRESHOLD_`` set by
+    the nanny, so every such buffer is a new mapping) each 32 MB chunk of the ``--large``
+    cube faults 8,000 fresh pages in, 2.2-2.4 against 0.55 s of CPU for the cube's 96
+    chunks (``benchmarks/README.md``, "st141, session 28"). Here the chunk file's zstd
+    frame (Zarr's ``zstd`` codec is numcodecs' ``Zstd``) is decoded by numcodecs into
+    ``out``; a frame that does not declare exactly one chunk's bytes, or that numcodecs
+    refuses, is left to Zarr. A chunk never written is the fill value. Same bytes as
+    Zarr's read."""
+    if hi - lo < 1 or out.dtype != np.dtype(z.dtype) or not out.flags.c_contiguous:
+        return False
+    local = _zstd_chunks(z)
+    if local is None:
+        return False
+    folder, chunk, md = local
+    if lo % chunk[0] or hi - lo != chunk[0] or tuple(chunk[1:]) != tuple(z.shape[1:]):
+        return False
+    path = folder / md.encode_chunk_key((lo // chunk[0],) + (0,) * (len(chunk) - 1))
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        out[...] = md.fill_value
+        return True
+    if _zstd_frame_size(data) != out.nbytes:
+        return False
+    from numcodecs import Zstd
+
+    try:
+        Zstd().decode(data, out=out.reshape(-1).view(np.uint8))
+    except (ValueError, RuntimeError):  # numcodecs' refusals: Zarr reads it (or says why)
+        return False
+    return True
+
+
+def _zstd_frame_size(data: bytes) -> int | None:
+    """The content size a zstd frame's header declares (RFC 8878, section 3.1.1.1: the
+    frame header descriptor, then the window descriptor unless single-segment, the
+    dictionary id and the frame content size field), or None (no zstd frame, or no
+    size declared)."""
+    if len(data) < 6 or data[:4] != b"\x28\xb5\x2f\xfd":
+        return None
+    desc = data[4]
+    single = (desc >> 5) & 1
+    n = (single, 2, 4, 8)[desc >> 6]  # the size field's bytes
+    at = 5 + (1 - single) + (0, 1, 2, 4)[desc & 3]
+    if n == 0 or len(data) < at + n:
+        return None
+    size = int.from_bytes(data[at : at + n], "little")
+    return size + 256 if n == 2 else size
+
+
+def _zstd_chunks(z):
+    """``(folder, chunk shape, metadata)`` of a Zarr 3 array whose chunks are stored with
+    the ``bytes`` codec (one-byte values, or in native order) then ``zstd`` alone, without
+    storage transformer, on a regular grid, in a local folder (a chunk file is then one
+    zstd frame of the chunk's C-order bytes); else None."""
+    local = _local_chunks(z)
+    if local is None:
+        return None
+    folder, chunk, dtype, md = local
+    from zarr.codecs import ZstdCodec
+
+    codecs = tuple(md.codecs)
+    if len(codecs) != 2 or not isinstance(codecs[1], ZstdCodec) or dtype != np.dtype(z.dtype):
+        return None
+    return folder, chunk, md
+
+
 def _raw_chunks(z):
     """``(folder, chunk shape, dtype, metadata)`` of a Zarr 3 array whose chunks are
     stored raw (the ``bytes`` codec alone, no storage transformer, a regular grid) in a
     local folder, whose chunk files are then the chunks' C-order bytes; else None."""
+    local = _local_chunks(z)
+    if local is None or len(local[3].codecs) != 1:
+        return None
+    return local
+
+
+def _local_chunks(z):
+    """``(folder, chunk shape, dtype, metadata)`` of a Zarr 3 array in a local folder
+    (``LocalStore``) on a regular grid, without storage transformer, whose first codec
+    is ``bytes`` (``dtype``: the stored values' byte order); else None."""
     try:
         from zarr.codecs import BytesCodec
         from zarr.core.chunk_grids import RegularChunkGrid
@@ -88,7 +176,7 @@ def _raw_chunks(z):
     if getattr(md, "zarr_format", None) != 3 or not isinstance(z.store, LocalStore):
         return None
     codecs = tuple(md.codecs)
-    if len(codecs) != 1 or not isinstance(codecs[0], BytesCodec) or md.storage_transformers:
+    if not codecs or not isinstance(codecs[0], BytesCodec) or md.storage_transformers:
         return None
     if not isinstance(md.chunk_grid, RegularChunkGrid):
         return None

@@ -25,7 +25,7 @@ from .._validation import (
 from ..cube import Cube
 from . import _4_map
 from ._1_background import estimate_temporal_background
-from ._2_saliency import coherent_scales, region_scales, saliency_filters
+from ._2_saliency import _coherence_tiles, coherent_scales, region_scales, saliency_filters
 from ._3_null import calibrate_null, tail_step
 from ._4_map import (
     PRESENCE_LLR,
@@ -55,7 +55,7 @@ from ._regions import merge_by_region
 from ._result import Background, Detection, StageRecord, StoredHistograms
 from ._slopes import kept_counts
 from ._table import remove_tree, skipped, store_histograms
-from ._tiled import first_pass, is_dask, map_candidates_tiled, tiled_window_means
+from ._tiled import Gathered, first_pass, is_dask, map_candidates_tiled, tiled_window_means
 
 __all__ = ["PASSES", "detect"]
 
@@ -323,8 +323,10 @@ def _coherent_scales(counts, filters, o: dict) -> bool:
     ``o["scale_regions"]``, run after this one: :func:`_by_region`). True when a scale
     was dropped."""
     # on the detection's threads (the saliency kernel's rows, the tables' series: the
-    # same values on any number)
-    coh = coherent_scales(counts, dataclasses.replace(filters, workers=o["n_jobs"]))
+    # same values on any number); a Zarr cube's tiles as its first pass read them
+    blocks = o.pop("coherence_blocks", None)
+    src = Gathered(counts, blocks) if blocks else counts
+    coh = coherent_scales(src, dataclasses.replace(filters, workers=o["n_jobs"]))
     reg = region_scales(coh, counts.shape[:2])
     # recorded in Detection.options: why the boxes were kept or dropped
     o["scale_coherence"] = tuple(None if np.isnan(r) else round(float(r), 4) for r in coh.rho)
@@ -391,7 +393,9 @@ def _stuck_pixels_first(cube: Cube, o: dict):
     A Zarr cube on Dask: the stuck-pixel totals and stage 1's window sums come from one
     pass over its chunks (``_tiled.first_pass``, timed with stage 1), the windows used
     unless pixels were masked, and the null's sub-grid of the counts with them (its stuck
-    pixels set to 0 as in the cube); any other Dask cube is reduced to its totals, then read
+    pixels set to 0 as in the cube) and, with ``scales="auto"``, the counts of
+    ``coherent_scales``' tiles (``o["coherence_blocks"]``, :func:`_coherence_blocks`;
+    masked likewise); any other Dask cube is reduced to its totals, then read
     again for the windows (``_tiled.tiled_window_means``). An in-memory cube of integer
     counts: the totals and the windows from one read of its counts on ``n_jobs`` threads
     (``_background.first_read``, timed with stage 1; the same values)."""
@@ -399,11 +403,14 @@ def _stuck_pixels_first(cube: Cube, o: dict):
     t0 = time.perf_counter()
     box = int(o["scales"].max())
     if is_dask(cube.counts):
-        first = first_pass(cube.counts, box, tail_step(cube.shape))
+        blocks = _coherence_blocks(cube.shape, box) if o["auto_scales"] else ()
+        first = first_pass(cube.counts, box, tail_step(cube.shape), blocks)
     else:
         first = first_read(cube.counts, box, o["n_jobs"])
-    tail = getattr(first, "sample", None)
-    cube = _without_hot_pixels(cube, o, None if first is None else first.totals, tail)
+    tail, blocks = getattr(first, "sample", None), getattr(first, "blocks", None)
+    cube = _without_hot_pixels(cube, o, None if first is None else first.totals, tail, blocks)
+    if blocks:
+        o["coherence_blocks"] = blocks
     if first is None:  # stage 1's time alone, as before (the check reads on its own)
         t0 = time.perf_counter()
     windows = tiled_window_means if is_dask(cube.counts) else None
@@ -412,12 +419,28 @@ def _stuck_pixels_first(cube: Cube, o: dict):
     return cube, windows, t0, tail
 
 
-def _without_hot_pixels(cube: Cube, o: dict, totals=None, sample=None) -> Cube:
+def _coherence_blocks(shape: tuple, box: int) -> list:
+    """The blocks ``(r0, r1, c0, c1)`` of pixels whose counts
+    :func:`~splidar.detection._2_saliency.coherent_scales` reads for the boxes up to
+    ``box`` (its tiles with their halo of ``box // 2``; at most about
+    ``COHERENCE_VOXELS`` voxels), for a Zarr cube's first pass to read with the rest."""
+    R, C, L, T = (int(v) for v in shape)
+    h = int(box) // 2
+    if R <= 2 * h or C <= 2 * h:
+        return []
+    return [
+        (r0 - h, r1 + h, max(c0 - h, 0), min(c1 + h, C))
+        for r0, r1, c0, c1 in _coherence_tiles(R, C, L * T, h)
+    ]
+
+
+def _without_hot_pixels(cube: Cube, o: dict, totals=None, sample=None, blocks=None) -> Cube:
     """The cube with its stuck pixels' counts set to 0 (``_hot_pixels``); logged, and
     counted in ``o["hot_pixels"]``. A Dask cube is checked too (one reduction over its
     chunks on the active scheduler, or the ``totals`` of a Zarr cube's first pass) and
     masked lazily, so that it gives the in-memory result; ``sample``, the counts'
-    sub-grid ``[::s, ::s]`` (``s = tail_step``), has them set to 0 in place too."""
+    sub-grid ``[::s, ::s]`` (``s = tail_step``), and ``blocks`` (``{(r0, r1, c0, c1):
+    counts[r0:r1, c0:c1]}``) have them set to 0 in place too."""
     o["hot_pixels"] = 0
     hot = hot_pixels(cube.counts, totals=totals)
     n = int(hot.sum())
@@ -426,6 +449,8 @@ def _without_hot_pixels(cube: Cube, o: dict, totals=None, sample=None) -> Cube:
     if sample is not None:
         s = tail_step(cube.shape)
         sample[hot[::s, ::s]] = 0
+    for (r0, r1, c0, c1), block in (blocks or {}).items():
+        block[hot[r0:r1, c0:c1]] = 0
     if is_dask(cube.counts):
         counts = cube.counts * (~hot)[:, :, None, None]  # lazy; the counts' dtype kept
     else:

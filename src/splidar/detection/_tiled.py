@@ -13,7 +13,9 @@ chunks and do the work; only small results travel back).
    random patches (about ``1000 / pfa`` voxels, whatever the cube's size) through Dask
    and is simulated in the calling process, seeded as in memory. A cube read from Zarr
    as it is (``dask.array.from_zarr``) takes one pass for the stuck-pixel check's
-   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once).
+   totals and stage 1's windows (:func:`first_pass`: each chunk decoded once, straight
+   into the task's kept band buffer), which also gathers the null's sub-grid and
+   ``coherent_scales``' tiles (:class:`Gathered`).
 2. **Tiles** (:func:`map_candidates_tiled`): the map pass (stage 4) on tiles of rows x
    columns, each with a halo of ``h = max k // 2`` rows and ``h + 1`` columns on both
    sides (no padding at the image edge, which is handled as in memory, like
@@ -65,6 +67,7 @@ from ._fast import window_means
 
 __all__ = [
     "FirstPass",
+    "Gathered",
     "compute_each",
     "first_pass",
     "is_dask",
@@ -150,7 +153,9 @@ def tiled_window_means(counts, row_starts, kr: int, col_starts, kc: int) -> np.n
     return np.concatenate(parts, axis=0)
 
 
-def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int, step: int):
+def _first_band(
+    z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int, step: int, blocks=()
+):
     """Rows ``[a0, a1)`` of the Zarr array ``z`` read once: their pixel totals
     ``(a1 - a0, C)`` float64 (the stuck-pixel check's); per row group ``(w0, w1)`` of
     ``groups`` (the rows of one row of stage 1's windows that fall in the band), the
@@ -158,20 +163,32 @@ def _first_band(z, a0: int, a1: int, groups: list, cols: np.ndarray, at, kc: int
     kept, a window's first at ``at``), ``(len(at), L, T)`` float64: integer sums, exact,
     so the windows' partial sums add up to the whole windows' sums whatever the bands;
     and the band's rows and columns of the sub-grid ``[::step, ::step]`` (the null's
-    :func:`~splidar.detection._3_null.data_tail`; None for ``step`` 0). Nothing
-    returned refers to the thread's band buffer the rows are read into."""
+    :func:`~splidar.detection._3_null.data_tail`; None for ``step`` 0); and the band's
+    rows of each block ``(r0, r1, c0, c1)`` of ``blocks`` it holds some of (``[(i,
+    rows)]``). Nothing returned refers to the thread's band buffer the rows are read
+    into."""
     from ._fast import pixel_totals
 
     # into this thread's kept band buffer, one chunk of rows at a time (as the map pass
     # reads): no fresh pages faulted in per task
     y = _read_band(z, a0, a1, a1 - a0)
     totals = pixel_totals(y)
+    # each window's kc columns are consecutive image columns: summed from the band's rows
+    # as they lie (no copy of the kept columns, no fresh pages for it per row group)
+    starts = np.asarray(cols)[np.asarray(at)]
     sums = []
     for w0, w1 in groups:
-        part = y[w0 - a0 : w1 - a0, cols].sum(axis=0, dtype=np.float64)
-        sums.append(np.stack([part[a : a + kc].sum(axis=0) for a in at]))
+        part = np.empty((starts.size,) + y.shape[2:], np.float64)
+        for i, c in enumerate(starts):
+            y[w0 - a0 : w1 - a0, c : c + kc].sum(axis=(0, 1), dtype=np.float64, out=part[i])
+        sums.append(part)
     sub = y[(-a0) % step :: step, ::step].copy() if step else None
-    return totals, sums, sub
+    pieces = [
+        (i, y[max(r0, a0) - a0 : min(r1, a1) - a0, c0:c1].copy())
+        for i, (r0, r1, c0, c1) in enumerate(blocks)
+        if max(r0, a0) < min(r1, a1)
+    ]
+    return totals, sums, sub, pieces
 
 
 class FirstPass:
@@ -180,9 +197,11 @@ class FirstPass:
     window means :func:`~splidar.detection._background.temporal_shape` asks for when the
     grid is the one computed here (else it reads them: :func:`tiled_window_means`)."""
 
-    def __init__(self, totals, grid, means, sample=None):
+    def __init__(self, totals, grid, means, sample=None, blocks=None):
         self.totals, self._grid, self._means = totals, grid, means
         self.sample = sample  # counts[::s, ::s] when asked (first_pass's step)
+        # {(r0, r1, c0, c1): counts[r0:r1, c0:c1]} when asked (first_pass's blocks)
+        self.blocks = blocks or {}
 
     def windows(self, counts, row_starts, kr, col_starts, kc) -> np.ndarray:
         kr0, kc0, rs0, cs0 = self._grid
@@ -192,7 +211,7 @@ class FirstPass:
         return tiled_window_means(counts, row_starts, kr, col_starts, kc)
 
 
-def first_pass(counts, box: int, step: int = 0) -> FirstPass | None:
+def first_pass(counts, box: int, step: int = 0, blocks=()) -> FirstPass | None:
     """One pass of Dask tasks over a Zarr-backed cube of integer counts
     (``dask.array.from_zarr``; None for any other cube): each task reads a band of
     whole stored chunks of rows from the Zarr array itself (each chunk decoded once)
@@ -201,9 +220,13 @@ def first_pass(counts, box: int, step: int = 0) -> FirstPass | None:
     :func:`~splidar.detection._background.sample_grid` with ``k = box``, summed over
     each window's columns in the task) and, with ``step``, its rows of the sub-grid
     ``counts[::step, ::step]`` (``FirstPass.sample``, the null's
-    :func:`~splidar.detection._3_null.data_tail`: the cube not read again for it). The
-    windows' means are then the float32 rounding of the exact sums over ``kr x kc``
-    pixels, as :func:`~splidar.detection._fast.window_means` gives them, bit for bit."""
+    :func:`~splidar.detection._3_null.data_tail`: the cube not read again for it), and
+    its rows of each block ``(r0, r1, c0, c1)`` of ``blocks`` (``FirstPass.blocks``,
+    ``{block: counts[r0:r1, c0:c1]}``: the tiles of
+    :func:`~splidar.detection._2_saliency.coherent_scales`, served by
+    :class:`Gathered`). The windows' means are then the float32 rounding of the exact
+    sums over ``kr x kc`` pixels, as :func:`~splidar.detection._fast.window_means` gives
+    them, bit for bit."""
     import dask
 
     from ._background import sample_grid
@@ -218,7 +241,8 @@ def first_pass(counts, box: int, step: int = 0) -> FirstPass | None:
     at = np.searchsorted(cols, col_starts)
     rows = int(z.chunks[0]) * max(1, round(STATS_ROWS / int(z.chunks[0])))
     src = dask.delayed(z, pure=True)
-    name = "splidar-first-pass-" + dask.base.tokenize(counts.name, box, rows, step)
+    blocks = tuple(tuple(int(v) for v in b) for b in blocks)
+    name = "splidar-first-pass-" + dask.base.tokenize(counts.name, box, rows, step, blocks)
     tasks, parts = [], []
     for i, a0 in enumerate(range(0, R, rows)):
         a1 = min(R, a0 + rows)
@@ -230,27 +254,51 @@ def first_pass(counts, box: int, step: int = 0) -> FirstPass | None:
                 which.append(w)
         tasks.append(
             dask.delayed(_first_band, pure=True)(
-                src, a0, a1, groups, cols, at, kc, step, dask_key_name=(name, i)
+                src, a0, a1, groups, cols, at, kc, step, blocks, dask_key_name=(name, i)
             )
         )
         parts.append((a0, a1, which))
     totals = np.empty((R, C), np.float64)
     sums = np.zeros((row_starts.size, col_starts.size, L, T), np.float64)
     sub = np.empty((-(-R // step), -(-C // step), L, T), counts.dtype) if step else None
+    got = [np.empty((r1 - r0, c1 - c0, L, T), counts.dtype) for r0, r1, c0, c1 in blocks]
 
     def take(i, result):
         a0, a1, which = parts[i]
-        totals[a0:a1], band, part = result
+        totals[a0:a1], band, part, pieces = result
         for w, s in zip(which, band, strict=True):
             sums[w] += s
         if step:
             first = -(-a0 // step)
             sub[first : first + part.shape[0]] = part
+        for j, rows in pieces:
+            start = max(blocks[j][0], a0) - blocks[j][0]
+            got[j][start : start + rows.shape[0]] = rows
 
     compute_each(tasks, take)
     means = np.empty((row_starts.size, col_starts.size, L, T), np.float32)
     means[...] = sums / np.float64(kr * kc)
-    return FirstPass(totals, grid, means, sub)
+    return FirstPass(totals, grid, means, sub, dict(zip(blocks, got, strict=True)))
+
+
+class Gathered:
+    """A cube's counts (``shape``, ``dtype``, ``[rows, cols]``) that serves the blocks
+    ``{(r0, r1, c0, c1): counts[r0:r1, c0:c1]}`` already read (:func:`first_pass`'s
+    ``blocks``) when asked for exactly one of them, and reads any other selection from
+    ``counts``."""
+
+    def __init__(self, counts, blocks: dict):
+        self.counts, self.blocks = counts, blocks
+        self.shape, self.dtype, self.ndim = counts.shape, counts.dtype, counts.ndim
+
+    def __getitem__(self, key):
+        at = None
+        if isinstance(key, tuple) and len(key) == 2 and all(isinstance(k, slice) for k in key):
+            if all(k.step in (None, 1) for k in key):
+                at = (key[0].start, key[0].stop, key[1].start, key[1].stop)
+        if at in self.blocks:
+            return self.blocks[at]
+        return self.counts[key]
 
 
 def _client():
