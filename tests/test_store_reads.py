@@ -440,52 +440,6 @@ def test_row_bands_kept_cube_writes_the_items_pixels_only(tmp_path, monkeypatch,
         assert band is a and y0 == 0
 
 
-@pytest.mark.parametrize("budget", [None, 600])
-def test_row_bands_kept_cube_reuses_its_band_buffers_zeroed(tmp_path, monkeypatch, budget):
-    """Within a :func:`kept_counts` context, a read's band buffers are zeroed and kept
-    when it ends (``_Sparse.spare``, at most ``SPARE_BANDS``) and the next read takes
-    them instead of new ones; each band still holds the counts of the pixels near its
-    items and 0 elsewhere. Past the byte budget for some chunks (``budget=600``: rows
-    copied whole into a band), that band's buffer is dropped, not kept (it is not all
-    zeros), and the later reads stay right."""
-    from splidar.detection import _slopes
-
-    if budget is not None:
-        monkeypatch.setattr(_slopes, "SPARSE_BYTES", budget)
-    rng = np.random.default_rng(19)
-    R, C, h = 52, 21, 2
-    a = (rng.random((R, C, 1, 30)) < 0.2) * rng.integers(1, 200, (R, C, 1, 30))
-    a = a.astype(np.uint8)
-    z = zarr.open_array(
-        tmp_path / "c.zarr", mode="w", shape=a.shape, chunks=(8, C, 1, 30), dtype=a.dtype
-    )
-    z[:] = a
-    x = da.from_zarr(tmp_path / "c.zarr")
-    with _slopes.kept_counts(x):
-        sp = _slopes._KEPT[x.name]
-        used = []
-        for n in (70, 9, 40, 5):
-            rows, cols = rng.integers(0, R, n), rng.integers(0, C, n)
-            ptrs = set()
-            for sel, band, y0 in _row_bands(x, rows, h, band=6, cols=cols):
-                near = np.zeros((R + 2 * h, C + 2 * h), bool)
-                for r, c in zip(rows[sel], cols[sel], strict=True):
-                    near[r : r + 2 * h + 1, c : c + 2 * h + 1] = True
-                want = a[y0 : y0 + band.shape[0]]
-                m = near[h:-h, h:-h][y0 : y0 + band.shape[0]]
-                np.testing.assert_array_equal(band[m], want[m])
-                if budget is None:
-                    assert not band[~m].any()
-                ptrs.add(band.__array_interface__["data"][0])
-            used.append(ptrs)
-            assert 1 <= len(sp.spare) <= _slopes.SPARE_BANDS
-            assert all(not b.any() for b in sp.spare)  # kept all zeros
-        kept = {b.__array_interface__["data"][0] for b in sp.spare}
-        if budget is None:  # every later read in the first read's buffers
-            assert all(p <= used[0] for p in used[1:]) and kept <= used[0]
-    assert not sp.spare  # released with the context
-
-
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float64])
 def test_nonzero_equals_flatnonzero(dtype):
     from splidar.detection._slopes import _nonzero

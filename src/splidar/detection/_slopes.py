@@ -974,17 +974,13 @@ def _row_bands(counts, rows: np.ndarray, halo: int, band: int = 64, cols=None):
                 logger.debug("rows read through the scheduler: %s", exc)
         return np.ascontiguousarray(_read_rows(counts, todo[i][1], todo[i][2]))
 
-    try:
-        with ThreadPoolExecutor(1) as ex:
-            ahead = ex.submit(read, 0)
-            for i, (sel, y0, _) in enumerate(todo):
-                y = ahead.result()
-                ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
-                yield sel, y, y0
-                del y
-    finally:  # the read ahead done (the pool shut down): the bands kept for the next call
-        if chunked is not None:
-            chunked.release()
+    with ThreadPoolExecutor(1) as ex:
+        ahead = ex.submit(read, 0)
+        for i, (sel, y0, _) in enumerate(todo):
+            y = ahead.result()
+            ahead = ex.submit(read, i + 1) if i + 1 < len(todo) else None
+            yield sel, y, y0
+            del y
 
 
 def _near_items(r: np.ndarray, c: np.ndarray, shape: tuple, halo: int) -> np.ndarray:
@@ -1010,10 +1006,6 @@ SPARSE_BYTES = 256 * 2**20
 #: each): the ``--large`` cube's chunks of 32 rows (33 MB) get two threads; a cube in
 #: chunks of over this size is decoded at its first read instead.
 AHEAD_BYTES = 128 * 2**20
-
-#: Band buffers a kept cube (:class:`_Sparse`) holds between two reads of
-#: :func:`_row_bands` (the three of one read: its band, the one read ahead, a spare).
-SPARE_BANDS = 3
 
 #: Sparse counts of the Zarr cubes whose clean-up runs (:func:`kept_counts`), by the
 #: Dask array's name.
@@ -1077,28 +1069,6 @@ class _Sparse:
         self.pool = None
         self.ahead_bytes = 0  # bytes the threads decoded ahead (approximately)
         self.bufs: dict = {}  # a decoding thread's chunk buffer, by thread
-        self.spare: list = []  # zeroed band buffers of finished reads (:meth:`take`)
-
-    def take(self, n: int) -> np.ndarray:
-        """A flat buffer of at least ``n`` zeros for a band of :class:`_ChunkRows`: one a
-        finished read gave back (:meth:`give`) when one is that large, else a new one. A
-        band buffer is tens of MB, written (its nonzero counts) all over: kept between the
-        reads of the clean-up passes and stage 7 (seconds apart), its pages are not
-        allocated and first touched again at each read (``np.zeros``: fresh pages, which
-        this VM charges heavily once they went back to the host)."""
-        with self.lock:
-            fits = [i for i, b in enumerate(self.spare) if b.size >= n]
-            if fits:
-                return self.spare.pop(min(fits, key=lambda i: self.spare[i].size))
-        return np.zeros(n, self.dtype)
-
-    def give(self, buf: np.ndarray) -> None:
-        """Keep the band buffer ``buf`` (all zeros again) for a later read, up to
-        :data:`SPARE_BANDS` buffers (the largest kept)."""
-        with self.lock:
-            self.spare.append(buf)
-            self.spare.sort(key=lambda b: -b.size)
-            del self.spare[SPARE_BANDS:]
 
     def _decode(self, k: int, buf=None) -> np.ndarray:
         lo, hi = k * self.step, min((k + 1) * self.step, self.z.shape[0])
@@ -1149,7 +1119,7 @@ class _Sparse:
         pool, self.pool = self.pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
-        self.ahead, self.bufs, self.spare = {}, {}, []
+        self.ahead, self.bufs = {}, {}
 
     def _chunk(self, k: int):
         """``(indices, values, ptr)`` of chunk ``k`` (pixel ``p``'s entries are
@@ -1335,9 +1305,6 @@ class _ChunkRows:
         # sparse: each band buffer's nonzero positions (zeroed before its next band;
         # None: zero it whole)
         self.dirty: list = [None] * 3
-        # sparse: each band buffer held only entries written by parts since it was zero
-        # (so zeroing the last parts makes it zero again: :meth:`release`)
-        self.clean: list = [True] * 3
         self.turn = 0
 
     @classmethod
@@ -1372,15 +1339,13 @@ class _ChunkRows:
         self.turn = (t + 1) % len(self.bands)
         if self.sparse is not None:  # buffers of zeros, where only the nonzeros move
             if self.bands[t].size < n:
-                self._give(t)
-                self.bands[t], self.dirty[t], self.clean[t] = self.sparse.take(n), [], True
+                self.bands[t], self.dirty[t] = np.zeros(n, self.dtype), []
             buf, zero = self.bands[t], self.dirty[t] is not None
             if zero:
                 self.sparse.clear(buf, self.dirty[t])
             out = buf[:n].reshape((y1 - y0,) + self.row)
             self.dirty[t] = None  # until written
             self.dirty[t] = self.sparse.rows_into(out, y0, y1, zero, need)
-            self.clean[t] &= self.dirty[t] is not None
             return out
         if self.bands[t].size < n:
             self.bands[t] = np.empty(n, self.dtype)
@@ -1393,26 +1358,6 @@ class _ChunkRows:
         for k in [k for k in self.kept if k < y0 // self.step]:
             self.free.append(self.kept.pop(k).base)
         return out
-
-    def release(self) -> None:
-        """The reads done: a sparse reader's band buffers zeroed (their entries written)
-        and given back to the kept cube (:meth:`_Sparse.give`) for the next reads; a
-        band whose rows were copied whole (a chunk over the budget) is dropped."""
-        if self.sparse is None:
-            return
-        for t in range(len(self.bands)):
-            self._give(t)
-        self.bands = [np.empty(0, self.dtype) for _ in self.bands]
-        self.dirty = [None] * len(self.bands)
-
-    def _give(self, t: int) -> None:
-        """Band buffer ``t`` zeroed and given back to the kept cube, when every band it
-        held was written by entries (:meth:`_Sparse.rows_into`'s parts): then zeroing
-        them leaves it all zeros. Else (rows copied whole) it is dropped."""
-        buf = self.bands[t]
-        if buf.size and self.clean[t] and self.dirty[t] is not None:
-            self.sparse.clear(buf, self.dirty[t])
-            self.sparse.give(buf)
 
 
 #: Name prefixes of the Dask graph layers that only read stored chunks and slice them
