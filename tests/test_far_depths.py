@@ -306,3 +306,35 @@ def test_far_keys_are_equal_exactly_when_the_former_tuple_keys_are():
     assert same_new == same_old
     assert 0 < sum(same_old) < len(same_old)
     assert len(set(k1)) == len(set(f1)) and stage._far_keys(cand[:0], *a[1:]) == []
+
+
+def test_far_kernel_int32_indices_equal_int64_bit_for_bit():
+    """``_far_kernel`` with the sources' and slots' indices in int32 (``_far_moves``,
+    S < 2**31) gives the alternatives, sources and isolation the int64 arrays give: a
+    random 40 x 30 image of 1-3 surfaces per pixel on a few planes, far-off depths
+    among them (sources on planes and beside edges both found)."""
+    from splidar.detection._7a_align_depths import _far_kernel
+
+    rng = np.random.default_rng(23)
+    R, C, K = 40, 30, 3
+    row, col, slot, depth = [], [], [], []
+    for r in range(R):
+        for c in range(C):
+            n = rng.integers(1, K + 1)
+            d = np.sort(rng.choice([20.0 + 0.5 * c, 60.0 + 0.3 * r, 110.0], n, replace=False))
+            d += np.where(rng.random(n) < 0.1, rng.normal(0, 30, n), 0.0)
+            for k in range(n):
+                row.append(r), col.append(c), slot.append(k), depth.append(d[k])
+    row, col, slot = (np.array(v, np.int64) for v in (row, col, slot))
+    depth, S = np.array(depth), len(row)
+    got = {}
+    for kind in (np.int64, np.int32):
+        alt, src = np.empty((S, 4)), np.full((S, 4, 4), -1, kind)
+        iso, index = np.zeros(S, np.bool_), np.full((R + 4, C + 4, K), -1, kind)
+        _far_kernel(row, col, slot, depth, 3.0, alt, src, iso, index)
+        got[kind] = (alt, src, iso)
+    (a64, s64, i64), (a32, s32, i32) = got[np.int64], got[np.int32]
+    np.testing.assert_array_equal(a32, a64)
+    np.testing.assert_array_equal(s32.astype(np.int64), s64)
+    np.testing.assert_array_equal(i32, i64)
+    assert (~np.isnan(a64)).any() and (s64 >= 0).any() and i64.any() and (~i64).any()

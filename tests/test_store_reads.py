@@ -171,6 +171,43 @@ def test_gather_stored_histograms_equals_in_memory(tmp_path):
     np.testing.assert_array_equal(_gather(table, idx, tuple(stored)), want)
 
 
+def test_gather_gives_pages_back_only_for_blocks_held_in_memory(tmp_path, monkeypatch):
+    """``_gather(..., release=True)`` sets each block to None after its last part and
+    returns the heap's free pages (``give_back``) when a block released held its
+    histograms in memory; stored blocks (Zarr arrays) free next to nothing: no trim
+    (it made the next parts' buffers new pages). The same histograms either way."""
+    from splidar.detection import _6_select
+
+    rng = np.random.default_rng(4)
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    blocks = [rng.normal(size=(n, 2, 1, 5)).astype(np.float32) for n in (9, 6, 12)]
+    stored = []
+    for i, b in enumerate(blocks):
+        z = g.create_array(str(i), shape=b.shape, chunks=(4, 2, 1, 5), dtype="float32")
+        z[...] = b
+        stored.append(z)
+    hb = np.repeat(np.arange(3), [9, 6, 12])
+    hr = np.concatenate([np.arange(9), np.arange(6), np.arange(12)])
+    table = CandidateTable(
+        columns={"row": np.arange(hb.size)}, keep=np.ones(hb.size, bool),
+        origin=np.zeros(hb.size, np.int8), hist_block=hb, hist_row=hr,
+        image_shape=(hb.size, 1),
+    )  # fmt: skip
+    monkeypatch.setattr(_6_select, "GATHER_CHUNK", 5)
+    trims = []
+    monkeypatch.setattr(_6_select, "give_back", lambda: trims.append(1))
+    idx = np.arange(hb.size)
+    got = {}
+    for name, hists in (("memory", list(blocks)), ("stored", list(stored))):
+        trims.clear()
+        got[name] = _6_select._gather(table, idx, hists, release=True)
+        assert hists == [None, None, None]  # every block released after its last part
+        got[name + " trims"] = len(trims)
+    assert got["memory trims"] >= 2 and got["stored trims"] == 0
+    np.testing.assert_array_equal(got["stored"], got["memory"])
+    np.testing.assert_array_equal(got["memory"], np.concatenate(blocks))
+
+
 def test_gather_writes_a_part_while_reading_the_next(monkeypatch):
     """An ``out`` not in memory (a store's array) is written part by part on a thread
     while the next part is read: each part's write (but the last) sees the next part's

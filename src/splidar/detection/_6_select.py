@@ -120,9 +120,14 @@ def _gather(
             if last is not None:
                 done_ = np.flatnonzero(last < a + part.size)
                 gone = [b for b in done_ if histograms[b] is not None]
+                # the pages go back only when a block held its histograms in memory: a
+                # stored block (a Zarr array, a detection on a cluster) frees next to
+                # nothing, and trimming the heap there made the parts' next buffers new
+                # pages again at each block (system CPU on a VM charging first touches)
+                held = any(isinstance(histograms[b], (np.ndarray, SupportWindows)) for b in gone)
                 for b in gone:
                     histograms[b] = None  # no later part reads it
-                if gone:
+                if held:
                     give_back()
         if writing is not None:
             writing.result()

@@ -160,7 +160,7 @@ EXTRAPOLATE_FWHM = 1.5
 
 
 @njit(cache=True, nogil=True)
-def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
+def _far_kernel(row, col, slot, depth, fwhm, alt, src, isolated, index):
     """Depths the neighbours offer a surface that lies far (more than 2 FWHM) from them.
 
     ``isolated[i]``: no 8-neighbour holds a surface within 2 FWHM of surface ``i``'s
@@ -173,8 +173,8 @@ def _far_kernel(row, col, slot, depth, R, C, K, fwhm, alt, src, isolated):
     those two. Alternatives within 2 FWHM of the depth or of another of the pixel's
     surfaces are dropped (NaN).
     """
+    R, C, K = index.shape[0] - 4, index.shape[1] - 4, index.shape[2]
     D = np.full((R + 4, C + 4, K), np.nan)
-    index = np.full((R + 4, C + 4, K), -1, np.int64)
     for i in range(row.size):
         D[row[i] + 2, col[i] + 2, slot[i]] = depth[i]
         index[row[i] + 2, col[i] + 2, slot[i]] = i
@@ -315,12 +315,17 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo
     R, C = s.image_shape
     S = len(s)
     alt = np.empty((S, 4))
-    src = np.full((S, 4, 4), -1, np.int64)
+    # the sources' indices in 4 bytes when they fit (the same values): the (S, 4, 4)
+    # array is the rule's largest (436 MB at 3.4 M surfaces, new pages at each round)
+    kind = np.int32 if S < 2**31 else np.int64
+    src = np.full((S, 4, 4), -1, kind)
     isolated = np.zeros(S, np.bool_)
+    index = np.full((int(R) + 4, int(C) + 4, int(s.n_slots)), -1, kind)  # surface per slot
     _far_kernel(
-        s.row, s.col, s.slot, np.asarray(s.depth_bin, np.float64), int(R), int(C),
-        int(s.n_slots), float(fwhm), alt, src, isolated,
+        s.row, s.col, s.slot, np.asarray(s.depth_bin, np.float64), float(fwhm), alt, src,
+        isolated, index,
     )  # fmt: skip
+    del index
     cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
     if cand.size == 0:
         return s, np.zeros(0, np.int64)
