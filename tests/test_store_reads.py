@@ -948,3 +948,30 @@ def test_zstd_frame_size_reads_the_declared_content_size(size):
         assert _zstd_frame_size(codec.encode(data)) == size
     assert _zstd_frame_size(b"\x00" * 16) is None
     assert _zstd_frame_size(Zstd().encode(data)[:5]) is None
+
+
+def test_read_band_decodes_partial_chunks_whole_into_a_kept_buffer(tmp_path, monkeypatch):
+    """``_tiled._read_band``: rows ``[e0, e1)`` starting and ending inside chunks of a
+    zstd Zarr cube read as Zarr reads them, every chunk decoded whole from its file (the
+    band's partial chunks into the thread's kept chunk buffer, Zarr's reader not asked),
+    the same kept buffers on the next band; the array's edge chunk read by Zarr."""
+    from splidar.detection import _tiled
+
+    rng = np.random.default_rng(5)
+    d = rng.integers(0, 9, (75, 6, 1, 11)).astype(np.uint8)
+    g = zarr.open_group(str(tmp_path / "c.zarr"), mode="w")
+    z = g.create_array("counts", shape=d.shape, chunks=(16, 6, 1, 11), dtype="u1")
+    z[...] = d
+    _tiled.release_work()
+    with monkeypatch.context() as m:
+        m.setattr(type(z), "get_basic_selection", _fails)
+        m.setattr(type(z), "__getitem__", _fails)
+        y = _tiled._read_band(z, 5, 37, 40)  # parts of chunks 0 and 2, chunk 1 whole
+        assert y.tobytes() == d[5:37].tobytes()
+        kept = {k[0]: v for k, v in _tiled._WORK.items()}
+        assert set(kept) == {"band", "chunk"}
+        y = _tiled._read_band(z, 20, 60, 40)
+        assert y.tobytes() == d[20:60].tobytes()
+        assert all(_tiled._WORK[k] is kept[k[0]] for k in _tiled._WORK)
+    assert _tiled._read_band(z, 50, 75, 40).tobytes() == d[50:75].tobytes()  # edge: Zarr
+    _tiled.release_work()

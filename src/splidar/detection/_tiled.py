@@ -544,20 +544,37 @@ def _read_band(z, e0: int, e1: int, most_rows: int) -> np.ndarray:
     decoded at once, into pages touched once per worker thread, not per band."""
     row = tuple(int(v) for v in z.shape[1:])
     dtype = np.dtype(z.dtype)
-    key = ("band", threading.get_ident())
-    with _WORK_LOCK:
-        have = _WORK.get(key)
-    need = most_rows * int(np.prod(row))
-    if have is None or have.size < need or have.dtype != dtype:
-        have = np.empty(need, dtype)
-        with _WORK_LOCK:
-            _WORK[key] = have
+    have = _kept_buffer("band", most_rows * int(np.prod(row)), dtype)
     y = have[: (e1 - e0) * int(np.prod(row))].reshape((e1 - e0,) + row)
     step = int(z.chunks[0])
     for a in range(e0 - e0 % step, e1, step):
         lo, hi = max(a, e0), min(a + step, e1)
-        zarr_rows_into(z, lo, hi, y[lo - e0 : hi - e0])
+        if hi - lo < step and a + step <= z.shape[0]:
+            # part of a chunk (the band's ends): the whole chunk decoded into the thread's
+            # kept chunk buffer, its rows copied (Zarr would decode it into a fresh
+            # buffer each time: on a worker, Dask's malloc setting makes that new pages,
+            # ~0.55 M page faults per pass over issue #16's cube; "Lead, session 28")
+            whole = _kept_buffer("chunk", step * int(np.prod(row)), dtype)
+            whole = zarr_rows_into(
+                z, a, a + step, whole[: step * int(np.prod(row))].reshape((step,) + row)
+            )
+            y[lo - e0 : hi - e0] = whole[lo - a : hi - a]
+        else:
+            zarr_rows_into(z, lo, hi, y[lo - e0 : hi - e0])
     return y
+
+
+def _kept_buffer(name: str, size: int, dtype) -> np.ndarray:
+    """This thread's kept flat buffer ``name`` of at least ``size`` values of ``dtype``
+    (reused band after band; dropped by :func:`release_work`)."""
+    key = (name, threading.get_ident())
+    with _WORK_LOCK:
+        have = _WORK.get(key)
+    if have is None or have.size < size or have.dtype != dtype:
+        have = np.empty(size, dtype)
+        with _WORK_LOCK:
+            _WORK[key] = have
+    return have
 
 
 def _map_band(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: tuple):
