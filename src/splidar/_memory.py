@@ -7,6 +7,11 @@ estimates the peak from the shapes and dtypes and compares it with the memory
 available now: ``MemAvailable`` of ``/proc/meminfo`` on Linux, ``os.sysconf``
 elsewhere. ``SPLIDAR_MEMORY_LIMIT`` (bytes, or with a suffix K, M, G, T: ``"2G"``)
 sets a lower ceiling, e.g. on a shared machine or in a test.
+
+Also glibc's allocator, where splidar's passes free much memory or allocate many large
+temporaries: :func:`give_back` returns the freed heap pages to the system;
+:func:`keep_freed_memory` lets a block's temporaries reuse freed pages in a process whose
+environment fixed malloc's thresholds (a Dask worker).
 """
 
 from __future__ import annotations
