@@ -306,3 +306,28 @@ def test_reconstruct_tiled_strips_without_surfaces():
     # the stopping rule's precision at tol = 1e-3 (docs/distributed.md: up to 6.6e-3 on
     # the benchmark scene); measured 3.7e-3
     assert _rel(a, b).max() < 1e-2
+
+
+def test_strip_task_runs_the_strips_with_freed_memory_kept(small_strips, monkeypatch):
+    """Every strip task of the three steps runs inside ``keep_freed_memory`` (a Dask
+    worker's glibc thresholds raised: its temporaries reuse freed pages), the tasks
+    still pickle by reference (a worker imports them), and the result is the same."""
+    import contextlib
+    import pickle
+
+    _, lazy = _detections(n_classes=2)
+    a = splidar.reconstruct(lazy, library=lazy.library, rng=0)
+    entered = []
+
+    @contextlib.contextmanager
+    def kept():
+        entered.append(1)
+        yield
+
+    monkeypatch.setattr(_tiled, "keep_freed_memory", kept)
+    b = splidar.reconstruct(lazy, library=lazy.library, rng=0)
+    n = len(b.hyperparameters["tiles"]["cores"])
+    assert n >= 2 and len(entered) == 3 * n  # labels, sweeps, intensities
+    for task in (_tiled._labels_tile, _tiled._fit_tile, _tiled._std_tile):
+        assert pickle.loads(pickle.dumps(task)) is task
+    _assert_identical(a, b)

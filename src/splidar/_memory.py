@@ -7,12 +7,19 @@ estimates the peak from the shapes and dtypes and compares it with the memory
 available now: ``MemAvailable`` of ``/proc/meminfo`` on Linux, ``os.sysconf``
 elsewhere. ``SPLIDAR_MEMORY_LIMIT`` (bytes, or with a suffix K, M, G, T: ``"2G"``)
 sets a lower ceiling, e.g. on a shared machine or in a test.
+
+Also glibc's allocator, where splidar's passes free much memory or allocate many large
+temporaries: :func:`give_back` returns the freed heap pages to the system;
+:func:`keep_freed_memory` lets a block's temporaries reuse freed pages in a process whose
+environment fixed malloc's thresholds (a Dask worker).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import threading
 
 from ._validation import SplidarError
 
@@ -23,6 +30,7 @@ __all__ = [
     "detect_peak_bytes",
     "format_bytes",
     "give_back",
+    "keep_freed_memory",
     "reconstruct_peak_bytes",
 ]
 
@@ -153,3 +161,108 @@ def give_back() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
+
+
+#: glibc's ``mallopt`` parameter for the mmap threshold (``malloc.h``).
+M_MMAP_THRESHOLD = -3
+
+#: The mmap threshold when the environment fixes a malloc setting but not this one
+#: (glibc's ``DEFAULT_MMAP_THRESHOLD_MIN``, 128 KiB).
+_MALLOC_DEFAULT = 128 * 1024
+
+#: The environment variables that fix glibc's malloc thresholds (and so turn off its
+#: dynamic mmap threshold); Dask's nanny starts every worker with
+#: ``MALLOC_TRIM_THRESHOLD_=65536`` (``distributed.nanny.pre-spawn-environ``).
+_MALLOC_ENV = (
+    "MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_",
+)  # fmt: skip
+
+#: The mmap threshold inside :func:`keep_freed_memory`: a reconstruction strip's
+#: per-surface arrays (1.9 MB for 233,000 surfaces in float64 at one wavelength) come
+#: from the heap, larger ones are still mapped apart.
+KEEP_MMAP_THRESHOLD = 4 * 2**20
+
+_KEEP_LOCK = threading.Lock()
+_keep_state = {"depth": 0, "restore": None}
+
+
+@functools.cache
+def _mallopt():
+    """glibc's ``mallopt``, or None (another C library, another system)."""
+    import ctypes
+    import ctypes.util
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        fn = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return None
+    fn.argtypes, fn.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return fn
+
+
+def fixed_mmap_threshold(environ=None) -> int | None:
+    """glibc's mmap threshold in bytes as the environment fixed it when the process
+    started, or None when it fixed no malloc setting (glibc then raises the threshold to
+    the size of the blocks freed, up to 32 MiB, by itself) or when it is not known
+    (``GLIBC_TUNABLES`` naming malloc, a value that is not an integer).
+
+    Parameters
+    ----------
+    environ : mapping, optional
+        The process's environment (default ``os.environ``).
+    """
+    env = os.environ if environ is None else environ
+    if "glibc.malloc." in env.get("GLIBC_TUNABLES", "") or not any(k in env for k in _MALLOC_ENV):
+        return None
+    try:
+        return int(env.get("MALLOC_MMAP_THRESHOLD_", _MALLOC_DEFAULT))
+    except ValueError:
+        return None
+
+
+@contextlib.contextmanager
+def keep_freed_memory():
+    """Within the block, arrays up to :data:`KEEP_MMAP_THRESHOLD` reuse freed memory.
+
+    A process started with a malloc setting fixed in its environment (a Dask worker: its
+    nanny sets ``MALLOC_TRIM_THRESHOLD_=65536``) has glibc's dynamic mmap threshold off:
+    every allocation of 128 KiB or more is a fresh ``mmap``, unmapped when freed, so each
+    NumPy temporary of a reconstruction strip is new memory, a page fault per 4 KiB (on
+    the VMs measured, the first touch of a page costs several times its use:
+    ``benchmarks/README.md``, rec41). Inside the block the threshold is raised to
+    :data:`KEEP_MMAP_THRESHOLD` (never lowered), so those temporaries come from the heap
+    and reuse the pages freed before them; on leaving the outermost block it is set back
+    to the environment's value and the freed pages are returned to the system
+    (:func:`give_back`): between blocks the process holds what it held before (a Dask
+    worker's memory monitor spills its data when the process's resident memory passes
+    70 % of its limit). Nothing is done in a process whose thresholds the environment
+    did not fix (glibc adapts by itself), or without glibc. Threads may nest and overlap
+    blocks: the first in sets, the last out restores. No effect on any result.
+    """
+    with _KEEP_LOCK:
+        if _keep_state["depth"] == 0:
+            _keep_state["restore"] = _raise_mmap_threshold()
+        _keep_state["depth"] += 1
+    try:
+        yield
+    finally:
+        with _KEEP_LOCK:
+            _keep_state["depth"] -= 1
+            if _keep_state["depth"] == 0 and _keep_state["restore"] is not None:
+                _mallopt()(M_MMAP_THRESHOLD, _keep_state["restore"])
+                _keep_state["restore"] = None
+                give_back()
+
+
+def _raise_mmap_threshold() -> int | None:
+    """Raise glibc's mmap threshold (:func:`keep_freed_memory`); its value before, or
+    None when left as it is."""
+    fixed = fixed_mmap_threshold()
+    mallopt = _mallopt() if fixed is not None else None
+    if mallopt is None or KEEP_MMAP_THRESHOLD <= fixed:
+        return None
+    return fixed if mallopt(M_MMAP_THRESHOLD, KEEP_MMAP_THRESHOLD) == 1 else None

@@ -60,7 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._memory import reconstruct_peak_bytes
+from .._memory import keep_freed_memory, reconstruct_peak_bytes
 from ..detection._result import Detection
 from ..detection._table import remove_tree
 from ..detection._tiled import compute_each, tile_bounds
@@ -199,7 +199,25 @@ def _phase_one_state(su, graph, u, shared):
     return state
 
 
-@_one_at_a_time
+def _strip_task(func):
+    """A strip's task (steps 2, 4, 5): ``func`` under ``_core._one_at_a_time`` (one strip
+    at a time per process, the kernels' threads from the free cores) and
+    :func:`~splidar._memory.keep_freed_memory`: on a Dask worker, whose nanny fixes
+    glibc's trim threshold (so every array of 128 KiB or more is mapped afresh and
+    unmapped when freed), the strip's temporaries reuse freed pages instead of faulting
+    in new ones, and the freed pages go back to the system when the task ends
+    (``benchmarks/README.md``, rec41)."""
+    inner = _one_at_a_time(func)
+
+    @functools.wraps(func)
+    def task(*args, **kwargs):
+        with keep_freed_memory():
+            return inner(*args, **kwargs)
+
+    return task
+
+
+@_strip_task
 def _labels_tile(st: _Strip, shared):
     """Step 2: ``(small, carry)``. ``small`` goes to the calling process: the core's
     labels and marginals, with ``alpha="auto"`` the first phase's mean shading of each
@@ -242,7 +260,7 @@ def _labels_tile(st: _Strip, shared):
     return (u[core], marg[core], h_nb, u), dict(strip=st, graph=graph, state=state)
 
 
-@_one_at_a_time
+@_strip_task
 def _fit_tile(carry, st, u, own, shared, eb):
     """Step 4: the sweeps from the first phase's state (``carry`` of step 2; when None,
     after a restart, the first phase again on ``st`` with the strip's ``own`` labels:
@@ -288,7 +306,7 @@ def _fit_tile(carry, st, u, own, shared, eb):
     return small, dict(strip=st, graph=graph, state=state, prior=prior)
 
 
-@_one_at_a_time
+@_strip_task
 def _std_tile(carry, u, marg, shared, bias2):
     """Step 5: the core's intensities and std, with the run's smoothing-bias term
     (``u``, ``marg`` None: one class)."""

@@ -1,0 +1,116 @@
+"""``splidar._memory``: glibc's mmap threshold raised around a block of work."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from splidar import _memory
+
+DASK_ENV = {"MALLOC_TRIM_THRESHOLD_": "65536", "OMP_NUM_THREADS": "1"}
+
+
+@pytest.fixture
+def recorded(monkeypatch):
+    """``mallopt`` and ``malloc_trim`` replaced by recorders (every value accepted), the
+    environment as a Dask worker's."""
+    calls = []
+
+    def mallopt(param, value):
+        calls.append((param, value))
+        return 1
+
+    monkeypatch.setattr(_memory, "_mallopt", lambda: mallopt)
+    monkeypatch.setattr(_memory, "_malloc_trim", lambda: lambda pad: calls.append(("trim", pad)))
+    for k in (*_memory._MALLOC_ENV, "GLIBC_TUNABLES"):
+        monkeypatch.delenv(k, raising=False)
+    for k, v in DASK_ENV.items():
+        monkeypatch.setenv(k, v)
+    return calls
+
+
+def test_fixed_mmap_threshold_reads_the_environment():
+    assert _memory.fixed_mmap_threshold({}) is None  # glibc's dynamic threshold
+    assert _memory.fixed_mmap_threshold(DASK_ENV) == 128 * 1024
+    assert _memory.fixed_mmap_threshold({"MALLOC_MMAP_THRESHOLD_": "1048576"}) == 1048576
+    assert _memory.fixed_mmap_threshold({"MALLOC_MMAP_THRESHOLD_": "x"}) is None
+    tunables = {**DASK_ENV, "GLIBC_TUNABLES": "glibc.malloc.mmap_threshold=4096"}
+    assert _memory.fixed_mmap_threshold(tunables) is None
+
+
+def test_keep_freed_memory_raises_the_threshold_then_restores_and_gives_back(recorded):
+    with _memory.keep_freed_memory():
+        assert recorded == [(_memory.M_MMAP_THRESHOLD, _memory.KEEP_MMAP_THRESHOLD)]
+    assert recorded[1:] == [(_memory.M_MMAP_THRESHOLD, 128 * 1024), ("trim", 0)]
+    assert _memory._keep_state == {"depth": 0, "restore": None}
+
+
+def test_keep_freed_memory_nested_blocks_set_and_restore_once(recorded):
+    with _memory.keep_freed_memory():
+        with _memory.keep_freed_memory():
+            assert len(recorded) == 1
+        assert len(recorded) == 1  # the inner block's end restores nothing
+    assert len(recorded) == 3
+
+
+def test_keep_freed_memory_never_lowers_the_threshold(recorded, monkeypatch):
+    monkeypatch.setenv("MALLOC_MMAP_THRESHOLD_", str(64 * 2**20))
+    with _memory.keep_freed_memory():
+        pass
+    assert recorded == []
+
+
+def test_keep_freed_memory_does_nothing_with_the_dynamic_threshold(recorded, monkeypatch):
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    with _memory.keep_freed_memory():
+        pass
+    assert recorded == []
+
+
+def test_keep_freed_memory_restores_after_an_error(recorded):
+    with pytest.raises(ValueError), _memory.keep_freed_memory():
+        raise ValueError("inside")
+    assert len(recorded) == 3 and _memory._keep_state["depth"] == 0
+
+
+@pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
+def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
+    """In a process started as Dask starts its workers, 100 temporaries of 2 MB, each
+    freed after a 256 kB array that stays (as a strip's state outlives its
+    temporaries), fault in fresh pages each time outside the block (over 51,200 page
+    faults: 512 a temporary), and inside it reuse the first temporary's pages (the kept
+    arrays' 64 pages each remain); after it, the environment's threshold is back."""
+    code = textwrap.dedent(
+        """
+        import resource
+        import numpy as np
+        from splidar._memory import keep_freed_memory
+
+        def faults():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            kept = []
+            for _ in range(100):
+                t = np.empty(2**18)
+                t[:] = 1.0
+                kept.append(np.ones(2**15))
+                del t
+            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+        faults()
+        outside = faults()
+        with keep_freed_memory():
+            inside = faults()
+        print(outside, inside, faults())
+        """
+    )
+    env = {**os.environ, **DASK_ENV}
+    env.pop("GLIBC_TUNABLES", None)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    outside, inside, after = (int(x) for x in out.stdout.split())
+    assert outside > 100 * 512, outside
+    assert inside < 100 * 64 + 2000, inside
+    assert after > 100 * 512, after
