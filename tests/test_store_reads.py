@@ -975,3 +975,56 @@ def test_read_band_decodes_partial_chunks_whole_into_a_kept_buffer(tmp_path, mon
         assert all(_tiled._WORK[k] is kept[k[0]] for k in _tiled._WORK)
     assert _tiled._read_band(z, 50, 75, 40).tobytes() == d[50:75].tobytes()  # edge: Zarr
     _tiled.release_work()
+
+
+def test_deferred_chunk_writes_leave_every_file_in_place_at_the_blocks_end(tmp_path):
+    """``deferred_chunk_writes``: ``write_raw_chunk`` returns once the chunk is copied
+    (the caller may overwrite its array at once); at the block's end every chunk file is
+    in place, read back by Zarr as written, no temporary file left, and the thread keeps
+    its ``depth`` aligned buffers for the next block."""
+    from splidar import _arrays
+
+    chunk = (2, 3, 50_000)  # 1.2 MB: past the page cache where the file system allows
+    got = _f32_raw_array(tmp_path, "got", (8, 3, chunk[2]), chunk)
+    raw = _arrays._raw_chunks(got)
+    rng = np.random.default_rng(8)
+    want = rng.normal(size=(8, 3, chunk[2])).astype(np.float32)
+    value = np.empty(chunk, np.float32)
+    with _arrays.deferred_chunk_writes(depth=2):
+        for i in range(4):
+            value[...] = want[2 * i : 2 * i + 2]  # the same array, overwritten each time
+            _arrays.write_raw_chunk(raw, (i, 0, 0), value)
+    assert np.asarray(got[...]).tobytes() == want.tobytes()
+    assert not list((tmp_path / "got.zarr").rglob("*.partial"))
+    if _arrays._direct_possible(tmp_path / "x", value.nbytes):
+        bufs = _arrays._DEFERRED.buffers
+        assert len(bufs) == 2 and all(b.ctypes.data % _arrays._ALIGN == 0 for b in bufs)
+
+
+def test_deferred_chunk_writes_raise_a_writers_error_at_the_end(tmp_path, monkeypatch):
+    """A write that fails on the writer thread: its temporary file removed, the error
+    raised when the block ends (after the other writes have ended)."""
+    from splidar import _arrays
+
+    chunk = (1, 1, 300_000)
+    got = _f32_raw_array(tmp_path, "got", (3, 1, chunk[2]), chunk)
+    raw = _arrays._raw_chunks(got)
+    if not _arrays._direct_possible(tmp_path / "x", 4 * chunk[2]):
+        pytest.skip("no direct writes here: nothing deferred")
+    real = _arrays.os.replace
+
+    def fail_second(src, dst):
+        if str(dst).endswith("/1/0/0"):
+            raise OSError("disk full")
+        return real(src, dst)
+
+    monkeypatch.setattr(_arrays.os, "replace", fail_second)
+    value = np.ones(chunk, np.float32)
+    with pytest.raises(OSError, match="disk full"):
+        with _arrays.deferred_chunk_writes():
+            for i in range(3):
+                _arrays.write_raw_chunk(raw, (i, 0, 0), value)
+    monkeypatch.undo()
+    assert not list((tmp_path / "got.zarr").rglob("*.partial"))
+    np.testing.assert_array_equal(got[0], value[0])
+    np.testing.assert_array_equal(got[2], value[0])

@@ -8,6 +8,7 @@ can still be summarised and drawn.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import threading
@@ -374,6 +375,16 @@ def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     data = memoryview(np.ascontiguousarray(value, dtype=dtype)).cast("B")
     tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")
+    queue = getattr(_DEFERRED, "queue", None)
+    if queue is not None and _direct_possible(tmp, data.nbytes):
+        queue.put(tmp, path, data)
+        return
+    _write_file(tmp, path, data)
+
+
+def _write_file(tmp: Path, path: Path, data: memoryview) -> None:
+    """``data`` written as ``tmp`` (past the page cache where possible), then renamed
+    over ``path``; ``tmp`` removed on any error."""
     try:
         if not _write_direct(tmp, data):
             with open(tmp, "wb") as f:
@@ -384,6 +395,87 @@ def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
         raise
 
 
+_DEFERRED = threading.local()
+_WRITER: list = []  # the process's one chunk-writer thread pool, made when first needed
+_WRITER_LOCK = threading.Lock()
+
+
+class _WriteQueue:
+    """The direct chunk writes of one thread's :func:`deferred_chunk_writes` block: each
+    chunk copied into one of ``depth`` page-aligned buffers (kept by the thread) and
+    written by the process's writer thread while the caller goes on."""
+
+    def __init__(self, depth: int):
+        self.depth, self.pending = depth, []
+        self.buffers = getattr(_DEFERRED, "buffers", None) or []
+        _DEFERRED.buffers = self.buffers
+
+    def put(self, tmp: Path, path: Path, data: memoryview) -> None:
+        if len(self.pending) >= self.depth:  # every buffer in flight: the oldest done
+            self.pending.pop(0)[1].result()
+        busy = {id(b) for b, _ in self.pending}
+        free = [b for b in self.buffers if id(b) not in busy]
+        n = data.nbytes
+        buf = next((b for b in free if b.size >= n), None)
+        if buf is None:
+            if free:  # a free buffer too small for this chunk: replaced
+                self.buffers.remove(free[0])
+            raw = np.empty(n + _ALIGN, np.uint8)
+            off = (-raw.ctypes.data) % _ALIGN
+            buf = raw[off : off + n]
+            self.buffers.append(buf)
+        buf[:n] = np.frombuffer(data, np.uint8)
+        fut = _writer().submit(_write_file, tmp, path, memoryview(buf[:n]))
+        self.pending.append((buf, fut))
+
+    def wait(self) -> None:
+        """Every write done; the first error raised (after all have ended)."""
+        error = None
+        for _, fut in self.pending:
+            try:
+                fut.result()
+            except BaseException as e:  # noqa: BLE001 (re-raised below)
+                error = error or e
+        self.pending.clear()
+        if error is not None:
+            raise error
+
+
+def _writer():
+    with _WRITER_LOCK:
+        if not _WRITER:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _WRITER.append(ThreadPoolExecutor(1, thread_name_prefix="splidar-chunk-writer"))
+        return _WRITER[0]
+
+
+@contextlib.contextmanager
+def deferred_chunk_writes(depth: int = 2):
+    """Within the block, this thread's :func:`write_raw_chunk` calls that go past the
+    page cache (:func:`_write_direct`) return once the chunk is copied into one of
+    ``depth`` page-aligned buffers: a writer thread writes the files while the caller
+    computes the next chunks (the disk's time overlapped, not waited for: on issue #16's
+    cube the workers otherwise sat 8 % of the map pass in I/O wait; "Lead, session 28"
+    in ``benchmarks/README.md``). The block's end waits for every write and raises the
+    first error; a file is only ever renamed into place whole. Nested blocks are one."""
+    if getattr(_DEFERRED, "queue", None) is not None:
+        yield
+        return
+    queue = _DEFERRED.queue = _WriteQueue(depth)
+    try:
+        yield
+    except BaseException:
+        _DEFERRED.queue = None
+        try:
+            queue.wait()
+        except BaseException:  # noqa: BLE001 (the block's own error goes first)
+            pass
+        raise
+    _DEFERRED.queue = None
+    queue.wait()
+
+
 #: Chunk files at least this large are written past the page cache (:func:`_write_direct`).
 DIRECT_MIN_BYTES = 1 << 20
 #: The alignment ``O_DIRECT`` asks of the buffer, the file offset and the length: a page
@@ -392,6 +484,20 @@ _ALIGN = 4096
 #: Devices (``st_dev``) whose file system refused ``O_DIRECT`` (e.g. tmpfs): not retried.
 _NO_DIRECT: set = set()
 _DIRECT_BUFFERS = threading.local()
+
+
+def _direct_possible(tmp: Path, n: int) -> bool:
+    """Whether a file of ``n`` bytes at ``tmp`` is written past the page cache
+    (:func:`_write_direct`: Linux, at least :data:`DIRECT_MIN_BYTES` of whole pages, not
+    turned off, a file system not known to refuse it)."""
+    if not getattr(os, "O_DIRECT", 0) or n - n % _ALIGN < DIRECT_MIN_BYTES:
+        return False
+    if os.environ.get("SPLIDAR_DIRECT_IO") == "0":
+        return False
+    try:
+        return os.stat(tmp.parent).st_dev not in _NO_DIRECT
+    except OSError:
+        return False
 
 
 def _aligned_buffer(n: int) -> np.ndarray:
@@ -423,27 +529,25 @@ def _write_direct(tmp: Path, data: memoryview) -> bool:
     variable ``SPLIDAR_DIRECT_IO=0`` turns it off (e.g. a network file system where a
     synchronous write costs more than the page cache's copy).
     """
-    flag = getattr(os, "O_DIRECT", 0)
     n = data.nbytes
     head = n - n % _ALIGN
-    if not flag or head < DIRECT_MIN_BYTES or os.environ.get("SPLIDAR_DIRECT_IO") == "0":
+    if not _direct_possible(tmp, n):
         return False
+    dev = os.stat(tmp.parent).st_dev
     try:
-        dev = os.stat(tmp.parent).st_dev
-    except OSError:
-        return False
-    if dev in _NO_DIRECT:
-        return False
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | flag, 0o666)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_DIRECT, 0o666)
     except OSError as e:
         if e.errno != errno.EINVAL:
             raise
         _NO_DIRECT.add(dev)
         return False
     try:
-        buf = _aligned_buffer(head)
-        buf[:] = np.frombuffer(data, np.uint8, count=head)
+        src = np.frombuffer(data, np.uint8, count=head)
+        if src.ctypes.data % _ALIGN == 0:  # already aligned (a deferred write's buffer)
+            buf = src
+        else:
+            buf = _aligned_buffer(head)
+            buf[:] = src
         view = memoryview(buf)
         done = 0
         while done < head:

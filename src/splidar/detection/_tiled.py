@@ -51,7 +51,7 @@ import threading
 
 import numpy as np
 
-from .._arrays import zarr_rows_into
+from .._arrays import deferred_chunk_writes, zarr_rows_into
 from ._2_saliency import SaliencyFilters
 from ._3_null import NullCalibration
 from ._4_map import (
@@ -503,7 +503,8 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     # the running sums are read and rewritten in place: a copy of the neighbour's
     shape = (L, r, ctx.scales.size, T)
     carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
-    res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work, cols=(ce0, c0, c1, carry))
+    with deferred_chunk_writes():  # (within a band task's block: that one)
+        res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work, cols=(ce0, c0, c1, carry))
     if res.histograms is not None and res.kept.size < len(res.histograms):
         # only the histograms of the candidates in the table travel back (in memory the
         # block's whole array is kept and indexed by ``kept``: the same values)
@@ -588,13 +589,16 @@ def _map_band(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: t
     # the store's arrays opened once for the band's tiles, not once per tile
     store_path = None if store_path is None else _stores(store_path)
     carry, done = None, []
-    for j, (t0, r0, r1, ce0, ce1, c0, c1) in enumerate(tiles):
-        tile = (t0, r0, r1, ce0, c0, c1)
-        last = j == len(tiles) - 1
-        res, own, carry = _map_tile(
-            y[:, ce0:ce1], tile, ctx, table, opts, store_path, most, carry, last
-        )
-        done.append((res, own))
+    # the saliency's chunk files written by a writer thread while the next tiles compute
+    # (the band returns once every file is in place)
+    with deferred_chunk_writes():
+        for j, (t0, r0, r1, ce0, ce1, c0, c1) in enumerate(tiles):
+            tile = (t0, r0, r1, ce0, c0, c1)
+            last = j == len(tiles) - 1
+            res, own, carry = _map_tile(
+                y[:, ce0:ce1], tile, ctx, table, opts, store_path, most, carry, last
+            )
+            done.append((res, own))
     return done
 
 
