@@ -391,19 +391,26 @@ def test_data_tail_sample_equals_reading_the_counts():
     assert _3_null.tail_step(counts.shape, 40_000) == 3
 
 
-def test_detect_zarr_cube_hands_the_null_its_sub_grid_from_the_first_pass(tmp_path, monkeypatch):
-    """A Zarr cube on Dask: the null's ``data_tail`` gets its sub-grid from the first
-    pass (the cube not read again), a stuck pixel set to 0 in it as in the cube; the
-    Detection the in-memory one."""
+def _stuck_pixel_zarr_cube(tmp_path):
+    """A small varying cube (24 x 20 x 1 x 100, uint16) with a stuck pixel at (9, 6),
+    and the same counts as a Zarr array in chunks of 7 rows: ``(counts, irf, z)``."""
     zarr = pytest.importorskip("zarr")
-    from splidar.detection import _3_null, _detect
-
     counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
     counts = counts.astype(np.uint16)
     counts[9, 6, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint16)
     z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=counts.shape,
                         chunks=(7, 20, 1, 100), dtype=counts.dtype)  # fmt: skip
     z[...] = counts
+    return counts, irf, z
+
+
+def test_detect_zarr_cube_hands_the_null_its_sub_grid_from_the_first_pass(tmp_path, monkeypatch):
+    """A Zarr cube on Dask: the null's ``data_tail`` gets its sub-grid from the first
+    pass (the cube not read again), a stuck pixel set to 0 in it as in the cube; the
+    Detection the in-memory one."""
+    from splidar.detection import _3_null, _detect
+
+    counts, irf, z = _stuck_pixel_zarr_cube(tmp_path)
     seen, tail = [], _3_null.data_tail
 
     def spy(c, *a, sample=None, **k):
@@ -455,16 +462,10 @@ def test_detect_zarr_cube_hands_coherent_scales_its_tiles_from_the_first_pass(
     """A Zarr cube on Dask with ``scales="auto"``: ``coherent_scales`` reads its tiles
     from the first pass's blocks (the cube not read again: any other read fails here), a
     stuck pixel in them set to 0 as in the cube; the Detection the in-memory one."""
-    zarr = pytest.importorskip("zarr")
     from splidar.detection import _detect
     from splidar.detection._tiled import Gathered
 
-    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)
-    counts = counts.astype(np.uint16)
-    counts[9, 6, 0] += np.random.default_rng(0).poisson(500.0, 100).astype(np.uint16)
-    z = zarr.open_array(str(tmp_path / "c.zarr"), mode="w", shape=counts.shape,
-                        chunks=(7, 20, 1, 100), dtype=counts.dtype)  # fmt: skip
-    z[...] = counts
+    counts, irf, z = _stuck_pixel_zarr_cube(tmp_path)
     seen, coherent = [], _detect.coherent_scales
 
     class Unread:
