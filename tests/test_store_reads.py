@@ -1028,3 +1028,40 @@ def test_deferred_chunk_writes_raise_a_writers_error_at_the_end(tmp_path, monkey
     assert not list((tmp_path / "got.zarr").rglob("*.partial"))
     np.testing.assert_array_equal(got[0], value[0])
     np.testing.assert_array_equal(got[2], value[0])
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="no fork on this platform")
+def test_deferred_chunk_writes_work_in_a_forked_child(tmp_path):
+    """A process forked after the writer thread was made gets its own (the parent's
+    thread does not exist in the child): its deferred writes finish, not hang."""
+    import os
+
+    from splidar import _arrays
+
+    chunk = (1, 1, 300_000)
+    got = _f32_raw_array(tmp_path, "got", (2, 1, chunk[2]), chunk)
+    raw = _arrays._raw_chunks(got)
+    with _arrays.deferred_chunk_writes():
+        _arrays.write_raw_chunk(raw, (0, 0, 0), np.full(chunk, 1, np.float32))
+    _arrays._writer()  # made in the parent
+    pid = os.fork()
+    if pid == 0:  # the child: exit code 0 only if the write completes
+        code = 1
+        try:
+            with _arrays.deferred_chunk_writes():
+                _arrays.write_raw_chunk(raw, (1, 0, 0), np.full(chunk, 2, np.float32))
+            code = 0
+        finally:
+            os._exit(code)
+    import signal
+    import time
+
+    deadline = time.monotonic() + 30  # a hung child (no writer thread) fails, not hangs
+    while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if done[0] == 0:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked child's deferred write did not finish")
+    assert os.waitstatus_to_exitcode(done[1]) == 0
+    np.testing.assert_array_equal(got[...][:, 0, 0], [1, 2])

@@ -398,6 +398,8 @@ def _write_file(tmp: Path, path: Path, data: memoryview) -> None:
 _DEFERRED = threading.local()
 _WRITER: list = []  # the process's one chunk-writer thread pool, made when first needed
 _WRITER_LOCK = threading.Lock()
+if hasattr(os, "register_at_fork"):  # a forked child has no writer thread: it makes its own
+    os.register_at_fork(after_in_child=_WRITER.clear)
 
 
 class _WriteQueue:
