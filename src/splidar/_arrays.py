@@ -364,7 +364,9 @@ def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
     Zarr's per-chunk pipeline around it: 0.27-0.33 against 0.37-0.58 s of CPU for a
     256-row slab's saliency in 16 x 90-pixel chunks (``benchmarks/README.md``, "halo39,
     session 27"). Zarr reads the values back unchanged (every chunk written, as with
-    ``write_empty_chunks``).
+    ``write_empty_chunks``). A chunk file of at least :data:`DIRECT_MIN_BYTES` is written
+    past the page cache (:func:`_write_direct`); inside :func:`deferred_chunk_writes` it
+    is copied and written by a writer thread, in place when the block ends.
     """
     import uuid
 
@@ -422,9 +424,7 @@ class _WriteQueue:
         if buf is None:
             if free:  # a free buffer too small for this chunk: replaced
                 self.buffers.remove(free[0])
-            raw = np.empty(n + _ALIGN, np.uint8)
-            off = (-raw.ctypes.data) % _ALIGN
-            buf = raw[off : off + n]
+            buf = _new_aligned(n)
             self.buffers.append(buf)
         buf[:n] = np.frombuffer(data, np.uint8)
         fut = _writer().submit(_write_file, tmp, path, memoryview(buf[:n]))
@@ -507,11 +507,15 @@ def _aligned_buffer(n: int) -> np.ndarray:
     (reused chunk after chunk: its pages are touched once per thread, not per chunk)."""
     have = getattr(_DIRECT_BUFFERS, "buf", None)
     if have is None or have.size < n:
-        raw = np.empty(n + _ALIGN, np.uint8)
-        off = (-raw.ctypes.data) % _ALIGN
-        have = raw[off : off + n]
-        _DIRECT_BUFFERS.buf = have
+        have = _DIRECT_BUFFERS.buf = _new_aligned(n)
     return have[:n]
+
+
+def _new_aligned(n: int) -> np.ndarray:
+    """A new ``n``-byte uint8 array whose address is a multiple of :data:`_ALIGN`."""
+    raw = np.empty(n + _ALIGN, np.uint8)
+    off = (-raw.ctypes.data) % _ALIGN
+    return raw[off : off + n]
 
 
 def _write_direct(tmp: Path, data: memoryview) -> bool:
