@@ -307,6 +307,45 @@ def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
     assert sorted(opened) == sorted([store] * 4 + [store + "/candidate_histograms"] * 4)
 
 
+def test_map_band_runs_its_tiles_with_freed_memory_kept(tmp_path, monkeypatch):
+    """Every band task runs its tiles inside ``keep_freed_memory(any_size=True)`` (on a
+    Dask worker the tiles' temporaries reuse freed pages), and the Detection is the
+    in-memory one."""
+    zarr = pytest.importorskip("zarr")
+    import contextlib
+
+    import dask
+
+    from splidar.detection import _tiled
+
+    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
+    z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(5, 20, 1, 100))
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band, 4 bands
+
+    class OneProcess:  # stands for a client: the band path is taken, tasks run here
+        def run(self, fn):
+            return fn()
+
+    def each(tasks, take):
+        for i, r in enumerate(dask.compute(*tasks, scheduler="synchronous")):
+            take(i, r)
+
+    entered = []
+
+    @contextlib.contextmanager
+    def kept(**k):
+        entered.append(k)
+        yield
+
+    monkeypatch.setattr(_tiled, "_client", OneProcess)
+    monkeypatch.setattr(_tiled, "compute_each", each)
+    monkeypatch.setattr(_tiled, "keep_freed_memory", kept)
+    a = splidar.detect(Cube(counts, irf=irf), rng=2)
+    b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=2, block_rows=6, store=tmp_path / "s")
+    _assert_same_detection(a, b)
+    assert entered == [{"any_size": True}] * 4
+
+
 def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):
     """One read of a Zarr cube's chunks gives the stuck-pixel totals and stage 1's
     window means, bit for bit the in-memory ones, whatever the bands (windows crossing

@@ -44,7 +44,7 @@ def test_keep_freed_memory_raises_the_threshold_then_restores_and_gives_back(rec
     with _memory.keep_freed_memory():
         assert recorded == [(_memory.M_MMAP_THRESHOLD, _memory.KEEP_MMAP_THRESHOLD)]
     assert recorded[1:] == [(_memory.M_MMAP_THRESHOLD, 128 * 1024), ("trim", 0)]
-    assert _memory._keep_state == {"depth": 0, "restore": None}
+    assert _memory._keep_state == {"depth": 0, "restore": None, "any": 0, "restore_any": None}
 
 
 def test_keep_freed_memory_nested_blocks_set_and_restore_once(recorded):
@@ -114,3 +114,94 @@ def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
     assert outside > 100 * 512, outside
     assert inside < 100 * 64 + 2000, inside
     assert after > 100 * 512, after
+
+
+def test_keep_freed_memory_any_size_maps_nothing_apart_then_restores(recorded):
+    with _memory.keep_freed_memory(any_size=True):
+        assert recorded == [
+            (_memory.M_MMAP_THRESHOLD, _memory.KEEP_MMAP_THRESHOLD),
+            (_memory.M_MMAP_MAX, 0),
+            (_memory.M_TRIM_THRESHOLD, _memory.KEEP_TRIM_THRESHOLD),
+        ]
+    assert recorded[3:] == [
+        (_memory.M_MMAP_MAX, 65536),
+        (_memory.M_TRIM_THRESHOLD, 65536),  # the environment's (DASK_ENV)
+        (_memory.M_MMAP_THRESHOLD, 128 * 1024),
+        ("trim", 0),
+    ]
+    assert _memory._keep_state == {"depth": 0, "restore": None, "any": 0, "restore_any": None}
+
+
+def test_keep_freed_memory_any_size_inside_a_plain_block_gives_back_at_its_end(recorded):
+    with _memory.keep_freed_memory():
+        with _memory.keep_freed_memory(any_size=True):
+            assert len(recorded) == 3
+        # mappings and trimming as before, the freed pages given back; threshold kept
+        assert recorded[3:] == [
+            (_memory.M_MMAP_MAX, 65536), (_memory.M_TRIM_THRESHOLD, 65536), ("trim", 0),
+        ]  # fmt: skip
+    assert recorded[6:] == [(_memory.M_MMAP_THRESHOLD, 128 * 1024), ("trim", 0)]
+
+
+def test_keep_freed_memory_any_size_does_nothing_with_the_dynamic_threshold(recorded, monkeypatch):
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    with _memory.keep_freed_memory(any_size=True):
+        pass
+    assert recorded == []
+
+
+def test_keep_freed_memory_any_size_sets_back_what_a_refusal_left(recorded, monkeypatch):
+    calls = []
+
+    def mallopt(param, value):  # the trim threshold refused
+        calls.append((param, value))
+        return 0 if param == _memory.M_TRIM_THRESHOLD else 1
+
+    monkeypatch.setattr(_memory, "_mallopt", lambda: mallopt)
+    with _memory.keep_freed_memory(any_size=True):
+        assert calls[-1] == (_memory.M_MMAP_MAX, 65536)  # set back at once
+        n = len(calls)
+    assert calls[n:] == [(_memory.M_MMAP_THRESHOLD, 128 * 1024)]
+    assert _memory._keep_state["restore_any"] is None
+
+
+@pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
+def test_keep_freed_memory_any_size_reuses_large_freed_arrays_in_a_dask_workers_environment():
+    """As a map tile's 70 MB temporaries: 20 arrays of 64 MB, each freed after a 256 kB
+    array that stays, fault in fresh pages each time outside the block (16,384 faults a
+    temporary, huge pages off) and inside it reuse the first one's pages (its 16,384
+    faults and the kept arrays' 1,280)."""
+    code = textwrap.dedent(
+        """
+        import ctypes, resource
+        import numpy as np
+        from splidar._memory import keep_freed_memory
+
+        # transparent huge pages off (PR_SET_THP_DISABLE): a page fault per 4 KiB
+        ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)
+
+        def faults():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            kept = []
+            for _ in range(20):
+                t = np.empty(2**23)
+                t[:] = 1.0
+                kept.append(np.ones(2**15))
+                del t
+            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+        faults()
+        outside = faults()
+        with keep_freed_memory(any_size=True):
+            inside = faults()
+        print(outside, inside)
+        """
+    )
+    env = {**os.environ, **DASK_ENV}
+    env.pop("GLIBC_TUNABLES", None)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    outside, inside = (int(x) for x in out.stdout.split())
+    assert outside > 20 * 16384, outside
+    assert inside < 2 * 16384 + 2000, inside

@@ -182,8 +182,18 @@ _MALLOC_ENV = (
 #: from the heap, larger ones are still mapped apart.
 KEEP_MMAP_THRESHOLD = 4 * 2**20
 
+#: glibc's ``mallopt`` parameters for the most mappings apart and the trim threshold.
+M_MMAP_MAX, M_TRIM_THRESHOLD = -4, -1
+
+#: glibc's default ``M_MMAP_MAX`` (``DEFAULT_MMAP_MAX``).
+_MMAP_MAX_DEFAULT = 65536
+
+#: The trim threshold inside :func:`keep_freed_memory` with ``any_size`` (1 GiB: a
+#: task's freed heap top stays until the block's end gives it back).
+KEEP_TRIM_THRESHOLD = 2**30
+
 _KEEP_LOCK = threading.Lock()
-_keep_state = {"depth": 0, "restore": None}
+_keep_state = {"depth": 0, "restore": None, "any": 0, "restore_any": None}
 
 
 @functools.cache
@@ -225,7 +235,7 @@ def fixed_mmap_threshold(environ=None) -> int | None:
 
 
 @contextlib.contextmanager
-def keep_freed_memory():
+def keep_freed_memory(*, any_size: bool = False):
     """Within the block, arrays up to :data:`KEEP_MMAP_THRESHOLD` reuse freed memory.
 
     A process started with a malloc setting fixed in its environment (a Dask worker: its
@@ -242,20 +252,71 @@ def keep_freed_memory():
     70 % of its limit). Nothing is done in a process whose thresholds the environment
     did not fix (glibc adapts by itself), or without glibc. Threads may nest and overlap
     blocks: the first in sets, the last out restores. No effect on any result.
+
+    Parameters
+    ----------
+    any_size : bool
+        Also temporaries of any size reuse freed memory: inside the block glibc maps
+        nothing apart (``M_MMAP_MAX`` 0) and keeps the freed top of its heap
+        (``M_TRIM_THRESHOLD`` raised), both set back with the rest. For a task whose
+        temporaries are tens of MB (a map-pass tile's per-voxel arrays), where the
+        block's end returns what the task freed.
     """
     with _KEEP_LOCK:
         if _keep_state["depth"] == 0:
             _keep_state["restore"] = _raise_mmap_threshold()
         _keep_state["depth"] += 1
+        if any_size:
+            if _keep_state["any"] == 0:
+                _keep_state["restore_any"] = _map_nothing_apart()
+            _keep_state["any"] += 1
     try:
         yield
     finally:
         with _KEEP_LOCK:
+            if any_size:
+                _keep_state["any"] -= 1
+                if _keep_state["any"] == 0 and _keep_state["restore_any"] is not None:
+                    for param, value in _keep_state["restore_any"]:
+                        _mallopt()(param, value)
+                    _keep_state["restore_any"] = None
+                    # (leaving the outermost block with a raised threshold gives back below)
+                    if _keep_state["depth"] > 1 or _keep_state["restore"] is None:
+                        give_back()
             _keep_state["depth"] -= 1
             if _keep_state["depth"] == 0 and _keep_state["restore"] is not None:
                 _mallopt()(M_MMAP_THRESHOLD, _keep_state["restore"])
                 _keep_state["restore"] = None
                 give_back()
+
+
+def _map_nothing_apart() -> tuple | None:
+    """``M_MMAP_MAX`` set to 0 and ``M_TRIM_THRESHOLD`` raised to
+    :data:`KEEP_TRIM_THRESHOLD` (:func:`keep_freed_memory` with ``any_size``): the
+    ``(parameter, value before)`` pairs to set back, or None when nothing was changed
+    (the environment fixed no malloc setting, or no glibc)."""
+    fixed = fixed_mmap_threshold()
+    mallopt = _mallopt() if fixed is not None else None
+    if mallopt is None:
+        return None
+    env = os.environ
+    try:
+        before = (
+            (M_MMAP_MAX, int(env.get("MALLOC_MMAP_MAX_", _MMAP_MAX_DEFAULT))),
+            (M_TRIM_THRESHOLD, int(env.get("MALLOC_TRIM_THRESHOLD_", _MALLOC_DEFAULT))),
+        )
+    except ValueError:
+        return None
+    done = []
+    for (param, _), value in zip(before, (0, KEEP_TRIM_THRESHOLD), strict=True):
+        if mallopt(param, value) != 1:
+            break
+        done.append(before[len(done)])
+    if len(done) < len(before):  # refused: what was set goes back
+        for param, value in done:
+            mallopt(param, value)
+        return None
+    return before
 
 
 def _raise_mmap_threshold() -> int | None:

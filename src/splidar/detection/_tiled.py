@@ -52,6 +52,7 @@ import threading
 import numpy as np
 
 from .._arrays import deferred_chunk_writes, zarr_rows_into
+from .._memory import keep_freed_memory
 from ._2_saliency import SaliencyFilters
 from ._3_null import NullCalibration
 from ._4_map import (
@@ -584,6 +585,17 @@ def _map_band(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: t
     then its ``tiles`` (``(e0, r0, r1, ce0, ce1, c0, c1)`` each, left to right) run as
     :func:`_map_tile` runs them, the running column sums passed from tile to tile in
     this task (no carry or input keys). Returns ``[(result, own arrays)]`` per tile."""
+    e0, e1, most_rows = band
+    # on a Dask worker the tiles' temporaries (tens of MB each) reuse the pages the tile
+    # before freed instead of new mappings, given back when the band ends
+    # (:func:`~splidar._memory.keep_freed_memory`; "Lead, session 29" in
+    # ``benchmarks/README.md``)
+    with keep_freed_memory(any_size=True):
+        return _map_band_tiles(z, band, tiles, ctx, table, opts, store_path, most)
+
+
+def _map_band_tiles(z, band: tuple, tiles: list, ctx, table, opts, store_path, most: tuple):
+    """:func:`_map_band`'s work."""
     e0, e1, most_rows = band
     y = _read_band(z, e0, e1, most_rows)
     # the store's arrays opened once for the band's tiles, not once per tile
