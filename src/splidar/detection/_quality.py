@@ -563,42 +563,79 @@ def _spill_kernel(
     below ``vouch`` (all at once, as :func:`spill_over_features`). ``llr`` (n,) holds
     the first pass's log-ratios (:func:`_first_llrs_kernel`) and is updated in place.
     Returns the number of passes.
+
+    After the first pass, only what a pass's rejections can change is computed again:
+    a log-ratio, the further and mute flags where the 3 x 3 neighbourhood lost a
+    candidate (the *dirty* pixels: its source may have gone, its pixel's other
+    candidates changed), the test of the dirty pixels' candidates and of their
+    4-neighbours' (an enclosing pair's member may have gone or turned mute). Every other
+    candidate's inputs are those of the last pass, where it was not rejected: it is not
+    rejected again (the same passes as testing every candidate each time).
     """
     n = row.size
-    L = counts.shape[1]
     active = np.ones(n, np.bool_)
     further = np.zeros(n, np.bool_)
     mute = np.zeros(n, np.bool_)
-    new = np.zeros(n, np.bool_)
-    # a log-ratio changes only where the 3 x 3 neighbourhood lost a candidate in the
-    # last pass (the source may have gone): recompute those (none in the first pass,
-    # whose log-ratios come in ``llr``)
-    dirty = np.zeros(R * C, np.bool_)
-    sig = np.empty(L, np.float64)
+    new = np.empty(n, np.int64)
+    mark = np.zeros(R * C, np.int32)  # the pass that listed a pixel (dirty; tested: -pass)
+    sig = np.empty(counts.shape[1], np.float64)
+    dirty = np.empty(0, np.int64)  # no log-ratio recomputed in the first pass
+    touched = np.arange(R * C)  # the first pass: every pixel's flags and tests
+    tested = touched
     passes = 0
     for _ in range(max_iter):
         passes += 1
-        for i in range(n):
-            if active[i] and dirty[row[i] * C + col[i]]:
-                llr[i] = _spill_suspect(
-                    i, row, col, d, offset, counts, bkg, own, active, order, starts,
-                    R, C, irf, peak, fwhm, sig,
-                )  # fmt: skip
-        # further candidates: beside another candidate of the pixel that its own
-        # counts support; mute: further ones whose counts reject their source's return
-        for i in range(n):
+        for p in dirty:
+            for kk in range(starts[p], starts[p + 1]):
+                i = order[kk]
+                if active[i]:
+                    llr[i] = _spill_suspect(
+                        i, row, col, d, offset, counts, bkg, own, active, order, starts,
+                        R, C, irf, peak, fwhm, sig,
+                    )  # fmt: skip
+        _spill_flags(touched, order, starts, active, llr, level, vouch, further, mute)
+        n_new = _spill_unenclosed(
+            tested, row, col, d, order, starts, R, C, fwhm, level, active, llr, further,
+            mute, new,
+        )  # fmt: skip
+        if n_new == 0:
+            break
+        for i in new[:n_new]:
+            rej[i] = True
+            active[i] = False
+        dirty = _spill_dirty(new[:n_new], row, col, R, C, mark, passes)
+        touched, tested = dirty, _spill_cross(dirty, R, C, mark, passes)
+    return passes
+
+
+@njit(cache=True, nogil=True)
+def _spill_flags(pixels, order, starts, active, llr, level, vouch, further, mute):
+    """``further`` and ``mute`` of :func:`_spill_kernel` for the candidates of
+    ``pixels``: beside another active candidate of the pixel that its own counts
+    support (``llr >= level``); mute: further and its own ``llr < vouch``."""
+    for p in pixels:
+        for k in range(starts[p], starts[p + 1]):
+            i = order[k]
             further[i] = False
             if active[i]:
-                p = row[i] * C + col[i]
                 for kk in range(starts[p], starts[p + 1]):
                     j = order[kk]
                     if j != i and active[j] and llr[j] >= level:
                         further[i] = True
                         break
             mute[i] = further[i] and llr[i] < vouch
-        n_new = 0
-        for i in range(n):
-            new[i] = False
+
+
+@njit(cache=True, nogil=True)
+def _spill_unenclosed(
+    pixels, row, col, d, order, starts, R, C, fwhm, level, active, llr, further, mute, new
+):
+    """The active candidates of ``pixels`` below ``level`` that no opposite pair of
+    4-neighbours encloses (:func:`_pair_encloses`), written to ``new``; their number."""
+    n_new = 0
+    for p in pixels:
+        for k in range(starts[p], starts[p + 1]):
+            i = order[k]
             if not active[i] or not llr[i] < level:
                 continue
             f = further[i]
@@ -610,19 +647,49 @@ def _spill_kernel(
                     row[i], col[i], 1, d[i], d, active, mute, f, order, starts, R, C, fwhm
                 )
             ):
-                new[i] = True
+                new[n_new] = i
                 n_new += 1
-        if n_new == 0:
-            break
-        dirty[:] = False
-        for i in range(n):
-            if new[i]:
-                rej[i] = True
-                active[i] = False
-                for rr in range(max(row[i] - 1, 0), min(row[i] + 2, R)):
-                    for cc in range(max(col[i] - 1, 0), min(col[i] + 2, C)):
-                        dirty[rr * C + cc] = True
-    return passes
+    return n_new
+
+
+@njit(cache=True, nogil=True)
+def _spill_dirty(gone, row, col, R, C, mark, stamp):
+    """The pixels (each once) of the 3 x 3 neighbourhoods of the candidates ``gone``;
+    ``mark`` set to ``stamp`` there."""
+    out = np.empty(9 * gone.size, np.int64)
+    m = 0
+    for i in gone:
+        for rr in range(max(row[i] - 1, 0), min(row[i] + 2, R)):
+            for cc in range(max(col[i] - 1, 0), min(col[i] + 2, C)):
+                q = rr * C + cc
+                if mark[q] != stamp:
+                    mark[q] = stamp
+                    out[m] = q
+                    m += 1
+    return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def _spill_cross(dirty, R, C, mark, stamp):
+    """``dirty`` (marked ``stamp`` in ``mark``) and their 4-neighbours, each once (the
+    latter marked ``-stamp``)."""
+    out = np.empty(5 * dirty.size, np.int64)
+    out[: dirty.size] = dirty
+    m = dirty.size
+    for p in dirty:
+        r = p // C
+        c = p - r * C
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            rr = r + dr
+            cc = c + dc
+            if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                continue
+            q = rr * C + cc
+            if mark[q] != stamp and mark[q] != -stamp:
+                mark[q] = -stamp
+                out[m] = q
+                m += 1
+    return out[:m]
 
 
 @njit(cache=True, nogil=True)
