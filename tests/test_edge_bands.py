@@ -782,3 +782,56 @@ def test_most_members_counts_in_one_pass_as_sorting_did():
             n_none += int(x.size == 0)
             assert _most_members(lab, r, c, half, own, seen) == want
     assert n_tie > 10 and n_none > 10
+
+
+def test_pair_index_equals_unique_of_stacked_pairs():
+    # one integer key per pair gives np.unique(axis=1)'s inverse (lexicographic ranks)
+    from splidar.detection._7b_edge_bands import _pair_index
+
+    rng = np.random.default_rng(29)
+    for n, hi in ((0, 3), (1, 3), (50, 4), (400, 40), (300, 2_000_000)):
+        a = rng.integers(-1, hi, n)
+        b = np.maximum(a, rng.integers(-1, hi, n))
+        want = np.unique(np.stack([a, b]), axis=1, return_inverse=True)[1].ravel()
+        got = _pair_index(a, b)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+
+
+def _shared_any_dense(s: Surfaces, depth, D, tol) -> np.ndarray:
+    # the former rule: every slot's depth map, 8 shifted comparisons
+    R, C = s.image_shape
+    maps = np.full((int(s.slot.max()) + 1, R + 2, C + 2), np.nan)
+    maps[s.slot, s.row + 1, s.col + 1] = depth
+    out = np.zeros((R, C), np.int64)
+    for dr, dc in itertools.product((-1, 0, 1), repeat=2):
+        if dr or dc:
+            nb = maps[:, 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+            with np.errstate(invalid="ignore"):
+                out += np.any(np.abs(nb - D) <= tol, axis=0)
+    return out
+
+
+def test_shared_any_equals_the_dense_slot_maps_where_asked():
+    from splidar.detection._7b_edge_bands import _shared_any
+
+    rng = np.random.default_rng(31)
+    R, C = SHAPE
+    n_hit = 0
+    for trial in range(8):
+        one = _surfaces(rng.choice([20.0, 22.5, 40.0], SHAPE) + rng.normal(0, 1.0, SHAPE))
+        two = rng.random(SHAPE) < 0.3  # a second slot in some pixels
+        r2, c2 = np.nonzero(two)
+        s = replace(
+            one, row=np.r_[one.row, r2], col=np.r_[one.col, c2],
+            slot=np.r_[one.slot, np.ones(r2.size, np.int64)],
+        )  # fmt: skip
+        depth = np.r_[one.depth_bin, rng.uniform(10.0, 50.0, r2.size)]
+        D = np.where(rng.random(SHAPE) < 0.2, np.nan, rng.uniform(15.0, 45.0, SHAPE))
+        where = rng.random(SHAPE) < (0.05 if trial % 2 else 0.6)
+        where[0, :] |= trial == 3  # the border's pixels
+        want = where & (_shared_any_dense(s, depth, D, 2.0) > 0)
+        got = _shared_any(s, depth, D, 2.0, where)
+        np.testing.assert_array_equal(got, want)
+        n_hit += int(want.sum())
+    assert n_hit > 50

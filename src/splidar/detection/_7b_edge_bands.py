@@ -821,7 +821,7 @@ def band_depths(
     ll_ab = np.where(own_b[:, None], ll[:, ::-1], ll)  # column 0: A, 1: B
     change = _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) != own_b
     # the prior shapes a band; it never moves one the own counts do not favour
-    pair = np.unique(np.stack([pair_a, pair_b]), axis=1, return_inverse=True)[1].ravel()
+    pair = _pair_index(pair_a, pair_b)
     gain = np.bincount(pair, weights=np.where(change, ll[:, 1] - ll[:, 0], 0.0))
     go = change & (gain[pair] > 0.0)
     i, d_new = at[zr[go], zc[go]], dep[zr[go], zc[go], 1]  # the other region's plane
@@ -843,6 +843,20 @@ def band_depths(
         depth[far] = to
         moved = np.union1d(moved, far)
     return depth, moved, beta
+
+
+def _pair_index(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) int64: the rank of each pair ``(a, b)`` (integer labels) among the distinct
+    pairs in lexicographic order, as ``np.unique(np.stack([a, b]), axis=1,
+    return_inverse=True)[1]`` gives it: one integer key per pair (``a`` major), sorted
+    once."""
+    if a.size == 0:
+        return np.zeros(0, np.int64)
+    a = np.asarray(a, np.int64)
+    b = np.asarray(b, np.int64)
+    a0, b0 = int(a.min()), int(b.min())
+    key = (a - a0) * (int(b.max()) - b0 + 1) + (b - b0)
+    return np.unique(key, return_inverse=True)[1].ravel().astype(np.int64, copy=False)
 
 
 def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
@@ -970,21 +984,32 @@ def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragm
             plane[r, c] = _window_plane(big, depth, r, c, reach, best, False, gate, 3, buf)
 
 
-def _shared_any(surfaces, depth, D, tol: float) -> np.ndarray:
-    """(R, C) int: how many 8-neighbours hold a surface (any slot) within ``tol`` of the
-    pixel's depth ``D`` (NaN: none)."""
+def _shared_any(surfaces, depth, D, tol: float, where: np.ndarray) -> np.ndarray:
+    """(R, C) bool: the pixels of ``where`` (R, C) bool one of whose 8-neighbours holds a
+    surface (any slot) within ``tol`` of the pixel's depth ``D`` (NaN: none); False
+    elsewhere. Only the surfaces of the pixels beside ``where`` are read (each offers
+    ``|depth - D| <= tol`` to its 8-neighbours of ``where``: the same comparison, bit
+    for bit, as the neighbours' depth maps of every slot)."""
     s = surfaces
     R, C = s.image_shape
-    K = int(np.max(s.slot)) + 1 if len(s) else 1
-    maps = np.full((K, R + 2, C + 2), np.nan)
-    maps[s.slot, s.row + 1, s.col + 1] = depth
-    out = np.zeros((R, C), np.int64)
+    out = np.zeros((R, C), bool)
+    near = np.zeros((R + 2, C + 2), bool)  # ``where`` dilated by the 8-neighbourhood
+    for dr in (0, 1, 2):
+        for dc in (0, 1, 2):
+            near[dr : dr + R, dc : dc + C] |= where
+    pick = np.flatnonzero(near[s.row + 1, s.col + 1])
+    row, col, dep = s.row[pick], s.col[pick], np.asarray(depth, np.float64)[pick]
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                nb = maps[:, 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+                r, c = row + dr, col + dc
+                ok = np.flatnonzero((r >= 0) & (r < R) & (c >= 0) & (c < C))
+                r, c = r[ok], c[ok]
+                on = where[r, c]
+                r, c, d = r[on], c[on], dep[ok][on]
                 with np.errstate(invalid="ignore"):
-                    out += np.any(np.abs(nb - D) <= tol, axis=0)
+                    hit = np.abs(d - D[r, c]) <= tol
+                out[r[hit], c[hit]] = True
     return out
 
 
@@ -1031,7 +1056,7 @@ def far_inside_depths(
     with np.errstate(invalid="ignore"):
         cand = np.isfinite(plane) & (np.abs(D - plane) > gate) & (plane >= 0.0)
         cand &= plane <= T - 1
-    cand &= _shared_any(s, depth, D, gate) == 0
+    cand &= ~_shared_any(s, depth, D, gate, cand)
     zr, zc = np.nonzero(cand)
     if zr.size == 0:
         return none
