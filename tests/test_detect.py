@@ -1266,6 +1266,29 @@ def test_align_depths_stays_within_half_a_bin_of_the_chosen_bin():
             assert 13.5 <= new[4] <= 17.5
 
 
+def test_align_depths_same_on_any_number_of_threads(monkeypatch):
+    # the surfaces in parts on threads: each one's depth is its own (the moves read the
+    # depths before any move), the number moved their sum
+    from splidar.detection import _quality
+    from splidar.detection._quality import align_depths
+
+    monkeypatch.setattr(_quality, "_ALIGN_PART", 5)
+    rng = np.random.default_rng(4)
+    R, C, W = 12, 10, 13
+    r, c = (a.ravel() for a in np.mgrid[0:R, 0:C])
+    d = 10.0 + 5.0 * r + rng.normal(0, 0.3, r.size)  # a steep ramp
+    bad = rng.random(r.size) < 0.3
+    d[bad] += rng.choice([-5.0, 5.0], int(bad.sum()))  # a neighbour row's lobe
+    off = np.rint(d).astype(np.int64) - W // 2
+    own = rng.random((r.size, W)) * (rng.random((r.size, W)) < 0.5)
+    kw = dict(image_shape=(R, C), n_slots=1, fwhm=3.0)
+    one, n1 = align_depths(r, c, np.zeros(r.size, int), d, off, own, **kw)
+    assert n1 > 5
+    for n_jobs in (2, 3, 7):
+        got, n = align_depths(r, c, np.zeros(r.size, int), d, off, own, n_jobs=n_jobs, **kw)
+        assert n == n1 and got.tobytes() == one.tobytes()
+
+
 def test_pooled_same_on_any_number_of_threads():
     # the sheared pools of 900 holes, one thread or three: each hole's sums are its own
     from splidar.detection._slopes import _pooled

@@ -30,6 +30,7 @@ from ._depth_fields import (
 )
 from ._quality import _shifted_irf, align_depths
 from ._result import StoredHistograms, Surfaces
+from ._threads import on_parts
 
 __all__ = ["aligned_depths", "move_far_depths"]
 
@@ -59,25 +60,32 @@ FAR_DEPTHS = True
 FINEST_PART_BYTES = 2**24
 
 
-def _finest_sums(histograms) -> np.ndarray:
+def _finest_sums(histograms, n_jobs: int = 1) -> np.ndarray:
     """``histograms[:, 0].sum(axis=1)`` (the finest scale summed over wavelengths, (S, W))
     as float64, a part of the surfaces at a time: the same values (each row's sum is its
     own) without the float32 array beside the float64 one (0.1 float32 cubes on the face
     file at its native bin). Stored histograms (:class:`StoredHistograms`) are read by
     rows (:func:`~splidar.detection._6_select._stored_rows`: a raw array's chunk files
-    read directly), every scale of a part at a time."""
+    read directly), every scale of a part at a time. The parts in ``n_jobs`` contiguous
+    runs on as many threads (NumPy's sums and the file reads release the GIL; each part
+    fills its own rows: the same values on any number)."""
     S, W = int(histograms.shape[0]), int(histograms.shape[-1])
     out = np.empty((S, W), np.float64)
     stored = isinstance(histograms, StoredHistograms)
     row = histograms.shape[1 if stored else 2 :]
     step = max(1, FINEST_PART_BYTES // (4 * int(np.prod(row, dtype=np.int64))))
-    for a in range(0, S, step):
-        if stored:  # the finest scale as Zarr's ``[a:b, 0]`` gives it (C order)
-            b = min(S, a + step)
-            part = np.ascontiguousarray(_stored_rows(histograms.array, a, b)[:, 0])
-        else:
-            part = np.asarray(histograms[a : a + step, 0])
-        out[a : a + step] = part.sum(axis=1)
+    firsts = list(range(0, S, step))
+
+    def parts(k0: int, k1: int) -> None:
+        for a in firsts[k0:k1]:
+            if stored:  # the finest scale as Zarr's ``[a:b, 0]`` gives it (C order)
+                b = min(S, a + step)
+                part = np.ascontiguousarray(_stored_rows(histograms.array, a, b)[:, 0])
+            else:
+                part = np.asarray(histograms[a : a + step, 0])
+            out[a : a + step] = part.sum(axis=1)
+
+    on_parts(parts, len(firsts), n_jobs)
     return out
 
 
@@ -90,6 +98,7 @@ def aligned_depths(
     background=None,
     shear: bool = True,
     memo: dict | None = None,
+    n_jobs: int = 1,
 ) -> tuple:
     """The depths of ``surfaces`` after the sheared pool (when ``shear``) and, with
     ``counts`` and ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the
@@ -112,6 +121,8 @@ def aligned_depths(
     memo : dict, optional
         The far rule's scores met before on this cube (:func:`_far_moves`; stage 7's
         rounds share one): never changes the result.
+    n_jobs : int
+        Threads of the sheared pool and its histograms' sums (never changes the result).
 
     Returns
     -------
@@ -133,8 +144,9 @@ def aligned_depths(
     depth = s.depth_bin
     if shear:
         depth, _ = align_depths(
-            s.row, s.col, s.slot, s.depth_bin, s.offset, _finest_sums(s.histograms),
+            s.row, s.col, s.slot, s.depth_bin, s.offset, _finest_sums(s.histograms, n_jobs),
             image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
+            n_jobs=n_jobs,
         )  # fmt: skip
     old = np.asarray(s.depth_bin, np.float64)
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))

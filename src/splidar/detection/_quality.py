@@ -1107,21 +1107,30 @@ def _sheared_pool(i, r, c, own, offset, index, kb, grad, has, pool):
 
 
 @njit(cache=True, nogil=True)
-def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_own, out):
-    """``out``: each surface's depth, moved where its neighbours' plane and the sheared
-    pool agree on another (see :func:`align_depths`). Returns the number moved."""
+def _align_maps(row, col, slot, depth, R, C, K):
+    """The padded depth map ``D`` (R + 2, C + 2, K) of the surfaces (NaN: none) and
+    their indices ``index`` (-1: none) for :func:`_align_kernel`."""
     D = np.full((R + 2, C + 2, K), np.nan)
     index = np.full((R + 2, C + 2, K), -1, np.int64)
     for i in range(row.size):
         D[row[i] + 1, col[i] + 1, slot[i]] = depth[i]
         index[row[i] + 1, col[i] + 1, slot[i]] = i
+    return D, index
+
+
+@njit(cache=True, nogil=True)
+def _align_kernel(row, col, depth, offset, own, noise, D, index, K, fwhm, z_own, out, i0, i1):
+    """``out[i0:i1]``: the depths of surfaces ``i0..i1-1``, moved where their neighbours'
+    plane and the sheared pool agree on another (see :func:`align_depths`; ``D`` and
+    ``index`` from :func:`_align_maps`: the depths before any move, so each surface's
+    result is its own). Returns the number moved."""
     W = own.shape[1]
     kb = np.zeros((2, 2), np.int64)
     grad = np.zeros(2)
     has = np.zeros(2, np.bool_)
     pool = np.zeros(W)
     moved = 0
-    for i in range(row.size):
+    for i in range(i0, i1):
         out[i] = depth[i]
         d = depth[i]
         p = _align_pairs(D, row[i] + 1, col[i] + 1, d, K, fwhm, kb, grad, has)
@@ -1155,9 +1164,13 @@ def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_ow
     return moved
 
 
+#: Fewest surfaces per thread of :func:`_align_kernel`.
+_ALIGN_PART = 4096
+
+
 def align_depths(
     row, col, slot, depth, offset, own_hist, *, image_shape, n_slots: int, fwhm: float,
-    noise=None, z_own: float = 1.0,
+    noise=None, z_own: float = 1.0, n_jobs: int = 1,
 ) -> tuple[np.ndarray, int]:  # fmt: skip
     """Depths that the 4-neighbours' plane and the sheared 3 x 3 pool place elsewhere, moved.
 
@@ -1200,6 +1213,9 @@ def align_depths(
         per bin). Default: infinite (the own counts never veto a move).
     z_own : float
         How many of ``noise`` the own counts must favour the current depth by to keep it.
+    n_jobs : int
+        Threads (the surfaces in contiguous parts; each surface's depth is its own: the
+        same result on any number).
 
     Returns
     -------
@@ -1226,12 +1242,19 @@ def align_depths(
         return out, 0
     noise = np.full(depth.size, np.inf) if noise is None else np.asarray(noise, np.float64)
     R, C = image_shape
-    n = _align_kernel(
-        np.asarray(row, np.int64), np.asarray(col, np.int64), np.asarray(slot, np.int64),
-        depth, np.asarray(offset, np.int64), np.ascontiguousarray(own_hist, np.float64),
-        np.ascontiguousarray(noise, np.float64), int(R), int(C), int(n_slots), float(fwhm),
+    row, col = np.asarray(row, np.int64), np.asarray(col, np.int64)
+    D, index = _align_maps(
+        row, col, np.asarray(slot, np.int64), depth, int(R), int(C), int(n_slots)
+    )
+    args = (
+        row, col, depth, np.asarray(offset, np.int64), np.ascontiguousarray(own_hist, np.float64),
+        np.ascontiguousarray(noise, np.float64), D, index, int(n_slots), float(fwhm),
         float(z_own), out,
     )  # fmt: skip
+    counts: list = []  # the parts' numbers moved
+    work = min(int(n_jobs), depth.size // _ALIGN_PART)
+    on_parts(lambda i0, i1: counts.append(_align_kernel(*args, i0, i1)), depth.size, work)
+    n = sum(counts)
     logger.debug("depth alignment: %d surfaces moved", n)
     return out, int(n)
 
