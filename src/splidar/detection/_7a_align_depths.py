@@ -122,7 +122,8 @@ def aligned_depths(
         The far rule's scores met before on this cube (:func:`_far_moves`; stage 7's
         rounds share one): never changes the result.
     n_jobs : int
-        Threads of the sheared pool and its histograms' sums (never changes the result).
+        Threads of the sheared pool, its histograms' sums and the far rule's
+        alternatives (never changes the result).
 
     Returns
     -------
@@ -152,7 +153,7 @@ def aligned_depths(
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     far = np.zeros(0, np.int64)
     if FAR_DEPTHS and counts is not None and background is not None:
-        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf, memo=memo)
+        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf, memo=memo, n_jobs=n_jobs)
     d = np.asarray(out.depth_bin, np.float64)
     moved = np.flatnonzero(d != old)
     # a depth the sheared pool moved out of its support: treated as a far move
@@ -185,13 +186,29 @@ def _far_kernel(row, col, slot, depth, fwhm, alt, src, isolated, index):
     those two. Alternatives within 2 FWHM of the depth or of another of the pixel's
     surfaces are dropped (NaN).
     """
+    D = _far_maps(row, col, slot, depth, index)
+    _far_items(row, col, depth, fwhm, alt, src, isolated, index, D, 0, row.size)
+
+
+@njit(cache=True, nogil=True)
+def _far_maps(row, col, slot, depth, index):
+    """The padded depth map ``D`` (R + 4, C + 4, K) of the surfaces (NaN: none) of
+    :func:`_far_kernel`, their indices written to ``index`` (same shape, -1: none)."""
     R, C, K = index.shape[0] - 4, index.shape[1] - 4, index.shape[2]
     D = np.full((R + 4, C + 4, K), np.nan)
     for i in range(row.size):
         D[row[i] + 2, col[i] + 2, slot[i]] = depth[i]
         index[row[i] + 2, col[i] + 2, slot[i]] = i
+    return D
+
+
+@njit(cache=True, nogil=True)
+def _far_items(row, col, depth, fwhm, alt, src, isolated, index, D, i0, i1):
+    """:func:`_far_kernel`'s ``alt``, ``src`` and ``isolated`` of surfaces ``i0..i1-1``
+    (``D`` and ``index`` from :func:`_far_maps`: each surface's entries its own)."""
+    K = index.shape[2]
     far = 2.0 * fwhm
-    for i in range(row.size):
+    for i in range(i0, i1):
         r, c, d = row[i] + 2, col[i] + 2, depth[i]
         for u in range(4):
             alt[i, u] = np.nan
@@ -307,7 +324,7 @@ def move_far_depths(
     ``.threshold``) their ``saliency_mass`` and ``evidence`` too, summed over the new
     support (:func:`~splidar.detection._slopes.support_sums`; without, the old depth's).
     """
-    out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf)
+    out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf, n_jobs=n_jobs)
     if moved.size == 0:
         return surfaces, 0
     ones = np.ones(moved.size, bool)
@@ -315,14 +332,21 @@ def move_far_depths(
     return _support_fields(out, moved, saliency, threshold), int(moved.size)
 
 
-def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo=None) -> tuple:
+#: Fewest surfaces per thread of :func:`_far_items`.
+_FAR_PART = 4096
+
+
+def _far_moves(
+    surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo=None, n_jobs: int = 1
+) -> tuple:
     """The far-depth rule of :func:`move_far_depths`: the surfaces with the moved ones'
     ``depth_bin``, ``start``, ``stop``, ``counts`` and ``background`` changed (the other
     fields not yet), and the moved surfaces' indices. ``memo``: a dict kept by the
     caller over calls on the same cube, background and IRF (stage 7's rounds): a
     candidate whose inputs to its score (pixel, depth, alternatives, isolation and the
     sources' ``photons``) all equal one met before takes that score
-    (:func:`_memo_far_scores`; the same to the bit)."""
+    (:func:`_memo_far_scores`; the same to the bit). ``n_jobs``: threads of
+    :func:`_far_items` (each surface's alternatives its own: the same on any number)."""
     s = surfaces
     R, C = s.image_shape
     S = len(s)
@@ -333,12 +357,15 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo
     src = np.full((S, 4, 4), -1, kind)
     isolated = np.zeros(S, np.bool_)
     index = np.full((int(R) + 4, int(C) + 4, int(s.n_slots)), -1, kind)  # surface per slot
-    _far_kernel(
-        s.row, s.col, s.slot, np.asarray(s.depth_bin, np.float64), float(fwhm), alt, src,
-        isolated, index,
-    )  # fmt: skip
-    del index
-    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
+    depth = np.asarray(s.depth_bin, np.float64)
+    D = _far_maps(s.row, s.col, s.slot, depth, index)  # then the surfaces on threads
+    args = (s.row, s.col, depth, float(fwhm), alt, src, isolated, index, D)
+    on_parts(lambda i0, i1: _far_items(*args, i0, i1), S, min(int(n_jobs), S // _FAR_PART))
+    del index, D, args
+    none = np.isnan(alt[:, 0])  # no alternative: column by column (np.all's axis-1
+    for k in range(1, alt.shape[1]):  # reduction over 4 values took 3x as long)
+        none &= np.isnan(alt[:, k])
+    cand = np.flatnonzero(~none)
     if cand.size == 0:
         return s, np.zeros(0, np.int64)
     irf = np.atleast_2d(np.asarray(irf, np.float64))
