@@ -1120,3 +1120,24 @@ def test_first_read_reads_a_memory_map(tmp_path):
     got, want = first_read(mm, 11, 2, n_samples=100), first_read(y, 11, 1, n_samples=100)
     np.testing.assert_array_equal(got.totals, want.totals)
     np.testing.assert_array_equal(got.means, want.means)
+
+
+def test_take_rows_equals_indexing_and_astype_on_any_number_of_threads(monkeypatch):
+    # select_surfaces' columns: the selected rows in parts on threads, cast as astype
+    from splidar.detection import _6_select
+    from splidar.detection._6_select import _take_rows
+
+    monkeypatch.setattr(_6_select, "TAKE_PART", 16)
+    rng = np.random.default_rng(5)
+    idx = np.sort(rng.choice(1000, 700, replace=False))
+    cols = (
+        rng.integers(-5, 900, 1000).astype(np.int32), rng.random(1000),
+        rng.random((1000, 3, 2)).astype(np.float32), rng.integers(0, 9, (1000, 2)),
+    )  # fmt: skip
+    for a in cols:
+        for dtype in (a.dtype, np.float64, np.int64):
+            want = a[idx].astype(dtype, copy=False)
+            for n_jobs in (1, 2, 3, 64):
+                got = _take_rows(a, idx, dtype, n_jobs)
+                assert got.dtype == want.dtype and got.shape == want.shape
+                assert got.tobytes() == want.tobytes()

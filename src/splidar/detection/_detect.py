@@ -519,7 +519,7 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     surfaces = select_surfaces(
         done[-1].table, hists.pop(), max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
-        histograms_out=out, release=True,
+        histograms_out=out, release=True, n_jobs=o["n_jobs"],
     )  # fmt: skip
     n_kept = int(done[-1].table.keep.sum())
     done[-1] = dataclasses.replace(done[-1], table=None)
