@@ -59,7 +59,8 @@ def restore_dark_regions(
     max_kept : int
         ``K_s``: those are restored in pixels with room only.
     n_jobs : int
-        Threads of the neighbours' agreed depths (the result does not depend on it).
+        Threads of the pools' sums and the neighbours' agreed depths (the result does
+        not depend on it).
     """
     if not table.keep.size:
         return skipped("dark_regions", table)
@@ -73,6 +74,7 @@ def restore_dark_regions(
         half=half,
         pfa=pfa,
         llr_level=llr_level,
+        n_jobs=n_jobs,
     )
     keep, items = table.keep | res, None
     while agreed:  # repeated while it restores (a restored pixel is a neighbour too)

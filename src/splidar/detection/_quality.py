@@ -815,41 +815,55 @@ def reject_isolated(
 MIN_POOL = 6
 
 
-@njit(cache=True, nogil=True)
+#: Fewest candidates (suspects) per thread of :func:`_dark_sums`
+#: (:func:`_dark_pool_sums`).
+_DARK_PART = 4096
+_DARK_POOL_PART = 256
+
+
 def _dark_pools(
-    row,
-    col,
-    d,
-    offset,
-    counts,
-    bkg,
-    keep,
-    ev,
-    order,
-    starts,
-    R,
-    C,
-    irf,
-    peak,
-    hw,
-    fwhm,
-    half,
-    weak_z,
-):
+    row, col, d, offset, counts, bkg, keep, ev, order, starts, R, C, irf, peak, hw, fwhm,
+    half, weak_z, n_jobs=1,
+):  # fmt: skip
     """Suspects of :func:`rescue_dark` and the sums of their pools.
 
     Returns the suspects' indices (m,), the pooled counts, background and IRF fraction
     in the half-maximum windows about the suspect's depth, per wavelength ((m, L)
     each), the pools' sizes, and the pooled counts and background about each member's
-    own depth ((m,) each).
+    own depth ((m,) each). The candidates' own sums (:func:`_dark_sums`) and the
+    suspects' pools (:func:`_dark_pool_sums`) in ``n_jobs`` contiguous parts on as many
+    threads: each candidate's and each pool's sums are its own, added in the same order
+    (the same values on any number).
     """
-    S = row.size
-    L = counts.shape[1]
-    W = counts.shape[2]
+    S, L = row.size, counts.shape[1]
     n_l = np.zeros((S, L))
     b_l = np.zeros((S, L))
     member = np.zeros(S, np.bool_)
-    for i in range(S):
+    own = (d, offset, counts, bkg, keep, hw, weak_z, n_l, b_l, member)
+    on_parts(lambda i0, i1: _dark_sums(*own, i0, i1), S, min(int(n_jobs), S // _DARK_PART))
+    idx = _dark_suspects(keep, ev, order, starts, R, C, member)
+    m = idx.size
+    pn, pb, pf = np.zeros((m, L)), np.zeros((m, L)), np.zeros((m, L))
+    size = np.zeros(m, np.int64)
+    n0, b0 = np.zeros(m), np.zeros(m)  # the same pool counted about each member's own depth
+    args = (
+        idx, row, col, d, offset, counts, bkg, member, n_l, b_l, order, starts, R, C, irf,
+        peak, hw, fwhm, half, pn, pb, pf, size, n0, b0,
+    )  # fmt: skip
+    on_parts(
+        lambda k0, k1: _dark_pool_sums(*args, k0, k1), m, min(int(n_jobs), m // _DARK_POOL_PART)
+    )
+    return idx, pn, pb, pf, size, n0, b0
+
+
+@njit(cache=True, nogil=True)
+def _dark_sums(d, offset, counts, bkg, keep, hw, weak_z, n_l, b_l, member, i0, i1):
+    """Candidates ``i0..i1-1``' own counts ``n_l`` and background ``b_l`` (S, L) in the
+    half-maximum window about their depths; ``member``: kept ones whose own z is below
+    ``weak_z``."""
+    L = counts.shape[1]
+    W = counts.shape[2]
+    for i in range(i0, i1):
         nt = 0.0
         bt = 0.0
         for l in range(L):
@@ -865,8 +879,12 @@ def _dark_pools(
             bt += b_l[i, l]
         if keep[i]:
             member[i] = (nt - bt) < weak_z * np.sqrt(max(bt, 1e-9))
-    # one suspect per pixel with no kept candidate: its rejected candidate of largest
-    # evidence
+
+
+@njit(cache=True, nogil=True)
+def _dark_suspects(keep, ev, order, starts, R, C, member):
+    """One suspect per pixel with no kept candidate: its rejected candidate of largest
+    evidence, in pixel order (m,); ``member`` set for them."""
     sus = np.full(R * C, -1, np.int64)
     for p in range(R * C):
         best = -1
@@ -884,18 +902,27 @@ def _dark_pools(
             member[sus[p]] = True
             m += 1
     idx = np.empty(m, np.int64)
-    pn = np.zeros((m, L))
-    pb = np.zeros((m, L))
-    pf = np.zeros((m, L))
-    size = np.zeros(m, np.int64)
-    n0 = np.zeros(m)  # the same pool counted about each member's own depth
-    b0 = np.zeros(m)
     k = 0
     for p in range(R * C):
-        i = sus[p]
-        if i < 0:
-            continue
-        idx[k] = i
+        if sus[p] >= 0:
+            idx[k] = sus[p]
+            k += 1
+    return idx
+
+
+@njit(cache=True, nogil=True)
+def _dark_pool_sums(
+    idx, row, col, d, offset, counts, bkg, member, n_l, b_l, order, starts, R, C, irf, peak,
+    hw, fwhm, half, pn, pb, pf, size, n0, b0, k0, k1,
+):  # fmt: skip
+    """The pools of suspects ``idx[k0:k1]``: members within ``half`` pixels at the
+    suspect's depth (within ``fwhm``); their counts, background and IRF fraction about
+    the suspect's depth (``pn``, ``pb``, ``pf``), their number and their own sums
+    (``n0``, ``b0``)."""
+    L = counts.shape[1]
+    W = counts.shape[2]
+    for k in range(k0, k1):
+        i = idx[k]
         r0 = row[i]
         c0 = col[i]
         for rr in range(max(r0 - half, 0), min(r0 + half + 1, R)):
@@ -920,8 +947,6 @@ def _dark_pools(
                                     pn[k, l] += counts[a, l, w]
                                     pb[k, l] += b
                                     pf[k, l] += _interp_irf(irf[l], x + peak[l])
-        k += 1
-    return idx, pn, pb, pf, size, n0, b0
 
 
 def rescue_dark(
@@ -936,6 +961,7 @@ def rescue_dark(
     llr_level: float,
     weak_z: float = 3.0,
     min_pool: int = MIN_POOL,
+    n_jobs: int = 1,
 ) -> np.ndarray:
     """Rejected candidates of empty pixels that a dim surface around them explains.
 
@@ -976,6 +1002,11 @@ def rescue_dark(
         Lowest own log-likelihood ratio (``detect`` passes ``-presence_llr``).
     weak_z : float
         Kept candidates below this own z join the pools (``presence_z``).
+    min_pool : int
+        Fewest members of a pool.
+    n_jobs : int
+        Threads of the candidates' sums and the pools' (:func:`_dark_pools`; the result
+        does not depend on it).
 
     Returns
     -------
@@ -1022,7 +1053,7 @@ def rescue_dark(
         row, col, d, off, counts, bkg, np.ascontiguousarray(keep),
         np.asarray(surf["evidence"], np.float64), order, starts, int(R), int(C),
         np.ascontiguousarray(irf, np.float64), np.asarray(peak, np.float64), hw,
-        float(fwhm), int(half), float(weak_z),
+        float(fwhm), int(half), float(weak_z), n_jobs,
     )  # fmt: skip
     if sus.size == 0:
         return out
