@@ -838,8 +838,9 @@ def band_depths(
     moved = np.union1d(np.asarray(moved, np.int64), near)
     if FAR_INSIDE:
         far, to = far_inside_depths(
-            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, memo=memo
-        )
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, memo=memo,
+            n_jobs=n_jobs,
+        )  # fmt: skip
         depth[far] = to
         moved = np.union1d(moved, far)
     return depth, moved, beta
@@ -859,31 +860,33 @@ def _pair_index(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.unique(key, return_inverse=True)[1].ravel().astype(np.int64, copy=False)
 
 
-def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
-    """(R, C) int: how many 8-neighbours' finite values lie within ``tol`` of the pixel's."""
-    R, C = depth.shape
+def _shared_at(depth: np.ndarray, tol: float, zr: np.ndarray, zc: np.ndarray) -> np.ndarray:
+    """(n,) int: at the pixels ``(zr, zc)`` of ``depth`` (R, C), how many 8-neighbours'
+    finite values lie within ``tol`` of the pixel's (neighbours outside the image count
+    as not): the same comparisons as over the whole image, at those pixels only."""
     pad = np.pad(depth, 1, constant_values=np.nan)
-    out = np.zeros((R, C), np.int64)
+    own = depth[zr, zc]
+    out = np.zeros(zr.size, np.int64)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                nb = pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
                 with np.errstate(invalid="ignore"):
-                    out += np.abs(nb - depth) <= tol
+                    out += np.abs(pad[zr + 1 + dr, zc + 1 + dc] - own) <= tol
     return out
 
 
-def _inside(lab: np.ndarray) -> np.ndarray:
-    """(R, C) int: how many of a labelled pixel's 8-neighbours carry its label (0 where
-    ``lab < 0``; neighbours outside the image count as not)."""
-    R, C = lab.shape
+def _inside_at(lab: np.ndarray, zr: np.ndarray, zc: np.ndarray) -> np.ndarray:
+    """(n,) int: at the pixels ``(zr, zc)`` of ``lab`` (R, C), how many 8-neighbours
+    carry the pixel's label (0 where ``lab < 0``; neighbours outside the image count as
+    not)."""
     pad = np.pad(lab, 1, constant_values=-1)
-    out = np.zeros((R, C), np.int64)
+    own = lab[zr, zc]
+    out = np.zeros(zr.size, np.int64)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                out += pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C] == lab
-    return np.where(lab >= 0, out, 0)
+                out += pad[zr + 1 + dr, zc + 1 + dc] == own
+    return np.where(own >= 0, out, 0)
 
 
 def near_depths(
@@ -938,8 +941,11 @@ def near_depths(
     )
     has = np.isfinite(plane)
     off = has & (np.abs(D - plane) > NEAR_FWHM * float(fwhm))
-    cand = off & (_shared(D - plane, 0.5 * float(fwhm)) < 2) & (_inside(big) >= NEAR_INSIDE)
-    zr, zc = np.nonzero(cand)
+    zr, zc = np.nonzero(off)  # those of them few 8-neighbours share and inside a region
+    ok = (_shared_at(D - plane, 0.5 * float(fwhm), zr, zc) < 2) & (
+        _inside_at(big, zr, zc) >= NEAR_INSIDE
+    )
+    zr, zc = zr[ok], zc[ok]
     T = int(np.shape(counts)[-1])
     keep = (plane[zr, zc] >= 0.0) & (plane[zr, zc] <= T - 1)
     zr, zc = zr[keep], zc[keep]
@@ -950,14 +956,15 @@ def near_depths(
 
 
 @njit(cache=True, nogil=True)
-def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragma: no cover
-    """Per pixel, ``region[r, c]``: the region holding at least ``need`` of its
-    8-neighbours (-1 if none); for a pixel with a depth that is not a member of that
-    region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_window_plane` over
-    its members within ``reach``, Chebyshev); NaN elsewhere."""
+def _inside_plane_kernel(big, depth, reach, gate, need, region, plane, r0, r1):  # pragma: no cover
+    """Per pixel of rows ``r0:r1``, ``region[r, c]``: the region holding at least ``need``
+    of its 8-neighbours (-1 if none); for a pixel with a depth that is not a member of
+    that region, ``plane[r, c]``: the region's local plane at the pixel
+    (:func:`_window_plane` over its members within ``reach``, Chebyshev); NaN elsewhere.
+    Only rows ``r0:r1`` are written: disjoint row ranges run on threads side by side."""
     R, C = big.shape
     buf = np.empty((3, (2 * reach + 1) ** 2))
-    for r in range(R):
+    for r in range(r0, r1):
         for c in range(C):
             region[r, c] = -1
             plane[r, c] = np.nan
@@ -1014,8 +1021,9 @@ def _shared_any(surfaces, depth, D, tol: float, where: np.ndarray) -> np.ndarray
 
 
 def far_inside_depths(
-    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, memo=None
-):
+    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, memo=None,
+    n_jobs: int = 1,
+):  # fmt: skip
     """The far wrong depths inside a region: a single-surface pixel that is not a member
     of the region holding at least :data:`NEAR_INSIDE` of its 8-neighbours (its depth
     more than the gate, :data:`GATE_FWHM` FWHM, off every neighbour's), moved onto that
@@ -1035,8 +1043,9 @@ def far_inside_depths(
 
     Parameters
     ----------
-    surfaces, depth, solo, counts, background, fwhm, irf, half, memo
-        As :func:`near_depths` (``depth`` after the near depths).
+    surfaces, depth, solo, counts, background, fwhm, irf, half, memo, n_jobs
+        As :func:`near_depths` (``depth`` after the near depths; ``n_jobs``: threads of
+        the planes, rows of at least 16 each).
 
     Returns
     -------
@@ -1051,7 +1060,13 @@ def far_inside_depths(
     D, gate, big = _solo_regions(s, depth, solo, fwhm)
     region = np.empty((R, C), np.int64)
     plane = np.empty((R, C))
-    _inside_plane_kernel(big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane)
+    on_parts(
+        lambda i0, i1: _inside_plane_kernel(
+            big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane, i0, i1
+        ),
+        R,
+        min(int(n_jobs), R // 16),  # rows of at least 16 per thread
+    )
     T = int(np.shape(counts)[-1])
     with np.errstate(invalid="ignore"):
         cand = np.isfinite(plane) & (np.abs(D - plane) > gate) & (plane >= 0.0)
