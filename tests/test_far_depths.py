@@ -371,6 +371,7 @@ def test_far_items_in_parts_on_threads_equal_the_whole_kernel():
     assert np.isfinite(alt).any(axis=1).sum() > 20 and iso.sum() > 5
     for workers in (2, 3, 7):
         a2, s2, i2, x2 = arrays()
+        s2[:] = 7  # not pre-filled (``_far_moves``: np.empty): the kernel writes -1
         D = _far_maps(row, col, slot, depth, x2)
         args = (row, col, depth, 3.0, a2, s2, i2, x2, D)
         on_parts(lambda i0, i1, args=args: _far_items(*args, i0, i1), S, workers)

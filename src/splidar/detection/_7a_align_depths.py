@@ -204,11 +204,13 @@ def _far_maps(row, col, slot, depth, index):
 
 @njit(cache=True, nogil=True)
 def _far_items(row, col, depth, fwhm, alt, src, isolated, index, D, i0, i1):
-    """:func:`_far_kernel`'s ``alt``, ``src`` and ``isolated`` of surfaces ``i0..i1-1``
-    (``D`` and ``index`` from :func:`_far_maps`: each surface's entries its own)."""
+    """:func:`_far_kernel`'s ``alt``, ``src`` (-1 first: no source) and ``isolated`` of
+    surfaces ``i0..i1-1`` (``D`` and ``index`` from :func:`_far_maps`: each surface's
+    entries its own)."""
     K = index.shape[2]
     far = 2.0 * fwhm
     for i in range(i0, i1):
+        src[i] = -1
         r, c, d = row[i] + 2, col[i] + 2, depth[i]
         for u in range(4):
             alt[i, u] = np.nan
@@ -354,7 +356,7 @@ def _far_moves(
     # the sources' indices in 4 bytes when they fit (the same values): the (S, 4, 4)
     # array is the rule's largest (436 MB at 3.4 M surfaces, new pages at each round)
     kind = np.int32 if S < 2**31 else np.int64
-    src = np.full((S, 4, 4), -1, kind)
+    src = np.empty((S, 4, 4), kind)  # -1 written by _far_items, on its threads
     isolated = np.zeros(S, np.bool_)
     index = np.full((int(R) + 4, int(C) + 4, int(s.n_slots)), -1, kind)  # surface per slot
     depth = np.asarray(s.depth_bin, np.float64)
@@ -382,8 +384,11 @@ def _far_moves(
     rows, cols = s.row[cand], s.col[cand]
     pix = s.row * C + s.col
     others: dict = {}  # the candidates' pixels' surfaces
-    for j in np.flatnonzero(np.isin(pix, pix[cand])):
+    at = np.zeros(int(R) * int(C), bool)  # the candidates' pixels (np.isin's set, unsorted)
+    at[pix[cand]] = True
+    for j in np.flatnonzero(at[pix]):
         others.setdefault(int(pix[j]), []).append(int(j))
+    del at
     args = (alt, src, isolated, photons, depth, irf, peak, counts, background, rows, cols)
     best, to = _memo_far_scores(cand, *args, {} if memo is None else memo)
     prior = np.where(isolated[cand], plane_prior, 0.0)
