@@ -219,30 +219,3 @@ def test_own_rows_equal_the_former_numpy_rows_bit_for_bit(dev_dtype):
     assert ref.any() and np.isnan(ref).any()
     np.testing.assert_array_equal(got.view(np.uint32), ref.view(np.uint32))
     np.testing.assert_array_equal(ob[idx].view(np.uint32), ref.view(np.uint32))
-
-
-def test_own_background_rows_same_on_any_number_of_workers(monkeypatch):
-    """``OwnBackground.rows``' parts on ``workers`` threads (``with_workers``, as
-    ``detect``'s clean-up sets them) give the one-thread rows, to the bit; the copy
-    shares the arrays and leaves the original's number."""
-    from splidar.detection import _windows
-    from splidar.detection._windows import OwnBackground
-
-    rng = np.random.default_rng(4)
-    R, C, L, T, W, n = 6, 7, 2, 50, 11, 300
-    sp = rng.normal(0.3, 0.4, (R, C, L)).astype(np.float32)
-    dev = rng.normal(0.0, 0.3, (L, T)).astype(np.float32)
-    off = rng.integers(-3, T - 5, n)
-    start = np.maximum(off + rng.integers(-3, W, n), 0)
-    ob = OwnBackground(sp, dev, rng.integers(0, R, n), rng.integers(0, C, n), off, start,
-                       start + rng.integers(0, W, n), width=W)  # fmt: skip
-    idx = rng.permutation(n)[: n - 9]
-    want = ob[idx]
-    monkeypatch.setattr(_windows, "PART_BYTES", 4 * L * W * 7)  # 7 rows a part
-    assert ob.workers == 1
-    for workers in (1, 2, 3, 8):
-        other = ob.with_workers(workers)
-        assert other.workers == workers and other.row is ob.row and ob.workers == 1
-        assert other[idx].tobytes() == want.tobytes()
-        assert np.asarray(other).tobytes() == np.asarray(ob).tobytes()
-    assert want.any()

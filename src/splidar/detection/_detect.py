@@ -56,7 +56,6 @@ from ._result import Background, Detection, StageRecord, StoredHistograms
 from ._slopes import kept_counts
 from ._table import remove_tree, skipped, store_histograms
 from ._tiled import Gathered, first_pass, is_dask, map_candidates_tiled, tiled_window_means
-from ._windows import OwnBackground
 
 __all__ = ["PASSES", "detect"]
 
@@ -656,9 +655,6 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
     on = set(o["passes"]) if o["checks"] else set()
     surface_pfa, T = o["surface_pfa"], cube.shape[3]
     table, done, tiled = held.pop(), [], bool(o.get("tiled"))
-    own_bg = table.columns.get("own_background")
-    if isinstance(own_bg, OwnBackground):  # computed where read: on the detection's threads
-        table = table.with_columns(own_background=own_bg.with_workers(o["n_jobs"]))
 
     def run(name, fn):
         if tiled and name in on:  # the pages the last pass (or the map's tiles) freed

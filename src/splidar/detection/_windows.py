@@ -17,8 +17,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._threads import on_parts
-
 __all__ = ["OwnBackground", "SupportWindows"]
 
 
@@ -212,9 +210,6 @@ class OwnBackground(_RowIndexing):
         The candidates' pixels, first window bin and support (bins).
     width : int
         W, the window's bins.
-    workers : int
-        Threads of :meth:`rows`' parts (each row its own: the same values on any
-        number); :meth:`with_workers` gives a copy with another number.
 
     Examples
     --------
@@ -226,25 +221,14 @@ class OwnBackground(_RowIndexing):
     [[0.0, 0.0, 0.75, 0.0]]
     """
 
-    __slots__ = ("spatial", "dev", "row", "col", "offset", "start", "stop", "width", "workers")
+    __slots__ = ("spatial", "dev", "row", "col", "offset", "start", "stop", "width")
 
-    def __init__(
-        self, spatial, dev, row, col, offset, start, stop, *, width: int, workers: int = 1
-    ):
+    def __init__(self, spatial, dev, row, col, offset, start, stop, *, width: int):
         self.spatial, self.dev = np.asarray(spatial), np.asarray(dev)
         self.row, self.col = np.array(row, np.int64), np.array(col, np.int64)
         self.offset = np.array(offset, np.int64)
         self.start, self.stop = np.array(start, np.int64), np.array(stop, np.int64)
         self.width = int(width)
-        self.workers = max(int(workers), 1)
-
-    def with_workers(self, workers: int) -> OwnBackground:
-        """The same rows computed on ``workers`` threads (the arrays shared, not copied)."""
-        out = object.__new__(OwnBackground)
-        for name in self.__slots__:
-            setattr(out, name, getattr(self, name))
-        out.workers = max(int(workers), 1)
-        return out
 
     @property
     def shape(self) -> tuple:
@@ -267,18 +251,13 @@ class OwnBackground(_RowIndexing):
 
     def rows(self, idx) -> np.ndarray:
         """Rows ``idx`` (integer array) dense, ``(idx.size, L, W)`` float32 (computed
-        :data:`PART_BYTES` of them at a time, the parts on ``workers`` threads)."""
+        :data:`PART_BYTES` of them at a time)."""
         idx = np.arange(len(self))[np.ascontiguousarray(idx, np.int64).reshape(-1)]
         L, W = self.shape[1:]
         out = np.empty((idx.size, L, W), np.float32)
         step = max(1, PART_BYTES // (4 * max(L, 1) * max(W, 1)))
-        firsts = range(0, idx.size, step)
-
-        def parts(k0: int, k1: int) -> None:  # each part's rows its own
-            for a in firsts[k0:k1]:
-                out[a : a + step] = self._part(idx[a : a + step])
-
-        on_parts(parts, len(firsts), self.workers)
+        for a in range(0, idx.size, step):
+            out[a : a + step] = self._part(idx[a : a + step])
         return out
 
     def _part(self, idx) -> np.ndarray:
