@@ -1120,3 +1120,65 @@ def test_first_read_reads_a_memory_map(tmp_path):
     got, want = first_read(mm, 11, 2, n_samples=100), first_read(y, 11, 1, n_samples=100)
     np.testing.assert_array_equal(got.totals, want.totals)
     np.testing.assert_array_equal(got.means, want.means)
+
+
+def test_take_rows_equals_indexing_and_astype_on_any_number_of_threads(monkeypatch):
+    # select_surfaces' columns: the selected rows in parts on threads, cast as astype
+    from splidar.detection import _6_select
+    from splidar.detection._6_select import _take_rows
+
+    monkeypatch.setattr(_6_select, "TAKE_PART", 16)
+    rng = np.random.default_rng(5)
+    idx = np.sort(rng.choice(1000, 700, replace=False))
+    cols = (
+        rng.integers(-5, 900, 1000).astype(np.int32), rng.random(1000),
+        rng.random((1000, 3, 2)).astype(np.float32), rng.integers(0, 9, (1000, 2)),
+    )  # fmt: skip
+    for a in cols:
+        for dtype in (a.dtype, np.float64, np.int64):
+            want = a[idx].astype(dtype, copy=False)
+            for n_jobs in (1, 2, 3, 64):
+                got = _take_rows(a, idx, dtype, n_jobs)
+                assert got.dtype == want.dtype and got.shape == want.shape
+                assert got.tobytes() == want.tobytes()
+
+
+def test_rescue_dark_same_on_any_number_of_threads(monkeypatch):
+    # the candidates' own sums and the suspects' pools in parts on threads: each its own
+    from splidar.detection import _quality
+    from splidar.detection._quality import rescue_dark
+
+    monkeypatch.setattr(_quality, "_DARK_PART", 9)
+    monkeypatch.setattr(_quality, "_DARK_POOL_PART", 4)
+    g = np.asarray(gaussian_irf(2.0), float)[None]
+    rng = np.random.default_rng(8)
+    R, C, W = 18, 16, 13
+    r, c = (a.ravel() for a in np.mgrid[0:R, 0:C])
+    r, c = np.repeat(r, 2), np.repeat(c, 2)
+    n = r.size
+    depth = np.where(rng.random(n) < 0.7, 6.0, rng.uniform(2.0, 10.0, n))
+    cnt = rng.poisson(0.06, (n, 1, W)).astype(np.int32)
+    cnt[np.arange(n), 0, np.round(depth).astype(int)] += rng.poisson(0.7, n).astype(np.int32)
+    surf = dict(
+        row=r, col=c, depth_bin=depth, offset=np.zeros(n, int), own_counts=cnt,
+        own_background=np.full((n, 1, W), 0.05, np.float32), evidence=rng.random(n),
+        image_shape=(R, C),
+    )  # fmt: skip
+    keep = rng.random(n) < 0.3
+    kw = dict(irf=g, peak=np.array([g.argmax()]), fwhm=4.7, half=3, pfa=0.01, llr_level=-3.0)
+    one = rescue_dark(surf, keep, **kw)
+    assert 10 < one.sum() < (~keep).sum()
+    for n_jobs in (2, 3, 8):
+        np.testing.assert_array_equal(rescue_dark(surf, keep, n_jobs=n_jobs, **kw), one)
+    # the pools' sums themselves, bit for bit
+    order, starts = _quality._by_pixel(r.astype(np.int64), c.astype(np.int64), (R, C))
+    args = (
+        r.astype(np.int64), c.astype(np.int64), depth, np.zeros(n, np.int64), cnt,
+        surf["own_background"], keep, surf["evidence"], order, starts, R, C, g,
+        np.array([g.argmax()], np.float64), 2.35, 4.7, 3, 3.0,
+    )  # fmt: skip
+    want = _quality._dark_pools(*args, 1)
+    assert want[0].size > 20
+    for n_jobs in (2, 5):
+        got = _quality._dark_pools(*args, n_jobs)
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(got, want, strict=True))

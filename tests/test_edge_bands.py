@@ -782,3 +782,103 @@ def test_most_members_counts_in_one_pass_as_sorting_did():
             n_none += int(x.size == 0)
             assert _most_members(lab, r, c, half, own, seen) == want
     assert n_tie > 10 and n_none > 10
+
+
+def test_pair_index_equals_unique_of_stacked_pairs():
+    # one integer key per pair gives np.unique(axis=1)'s inverse (lexicographic ranks)
+    from splidar.detection._7b_edge_bands import _pair_index
+
+    rng = np.random.default_rng(29)
+    for n, hi in ((0, 3), (1, 3), (50, 4), (400, 40), (300, 2_000_000)):
+        a = rng.integers(-1, hi, n)
+        b = np.maximum(a, rng.integers(-1, hi, n))
+        want = np.unique(np.stack([a, b]), axis=1, return_inverse=True)[1].ravel()
+        got = _pair_index(a, b)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+
+
+def _shared_any_dense(s: Surfaces, depth, D, tol) -> np.ndarray:
+    # the former rule: every slot's depth map, 8 shifted comparisons
+    R, C = s.image_shape
+    maps = np.full((int(s.slot.max()) + 1, R + 2, C + 2), np.nan)
+    maps[s.slot, s.row + 1, s.col + 1] = depth
+    out = np.zeros((R, C), np.int64)
+    for dr, dc in itertools.product((-1, 0, 1), repeat=2):
+        if dr or dc:
+            nb = maps[:, 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+            with np.errstate(invalid="ignore"):
+                out += np.any(np.abs(nb - D) <= tol, axis=0)
+    return out
+
+
+def test_shared_any_equals_the_dense_slot_maps_where_asked():
+    from splidar.detection._7b_edge_bands import _shared_any
+
+    rng = np.random.default_rng(31)
+    R, C = SHAPE
+    n_hit = 0
+    for trial in range(8):
+        one = _surfaces(rng.choice([20.0, 22.5, 40.0], SHAPE) + rng.normal(0, 1.0, SHAPE))
+        two = rng.random(SHAPE) < 0.3  # a second slot in some pixels
+        r2, c2 = np.nonzero(two)
+        s = replace(
+            one, row=np.r_[one.row, r2], col=np.r_[one.col, c2],
+            slot=np.r_[one.slot, np.ones(r2.size, np.int64)],
+        )  # fmt: skip
+        depth = np.r_[one.depth_bin, rng.uniform(10.0, 50.0, r2.size)]
+        D = np.where(rng.random(SHAPE) < 0.2, np.nan, rng.uniform(15.0, 45.0, SHAPE))
+        where = rng.random(SHAPE) < (0.05 if trial % 2 else 0.6)
+        where[0, :] |= trial == 3  # the border's pixels
+        want = where & (_shared_any_dense(s, depth, D, 2.0) > 0)
+        got = _shared_any(s, depth, D, 2.0, where)
+        np.testing.assert_array_equal(got, want)
+        n_hit += int(want.sum())
+    assert n_hit > 50
+
+
+def test_shared_at_and_inside_at_equal_the_whole_images_counts():
+    # near_depths' guards at its offered pixels only: the whole image's counts there
+    from splidar.detection._7b_edge_bands import _inside_at, _shared_at
+
+    rng = np.random.default_rng(37)
+    R, C = 17, 13
+    for trial in range(6):
+        depth = np.where(rng.random((R, C)) < 0.25, np.nan, rng.choice([0.0, 0.4, 3.0], (R, C)))
+        lab = rng.integers(-1, 3, (R, C))
+        zr, zc = np.nonzero(rng.random((R, C)) < (1.0 if trial == 0 else 0.3))
+        pad, padl = np.pad(depth, 1, constant_values=np.nan), np.pad(lab, 1, constant_values=-1)
+        shared, inside = np.zeros((R, C), np.int64), np.zeros((R, C), np.int64)
+        for dr, dc in itertools.product((-1, 0, 1), repeat=2):
+            if dr or dc:
+                with np.errstate(invalid="ignore"):
+                    shared += np.abs(pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C] - depth) <= 0.5
+                inside += padl[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C] == lab
+        inside = np.where(lab >= 0, inside, 0)
+        np.testing.assert_array_equal(_shared_at(depth, 0.5, zr, zc), shared[zr, zc])
+        np.testing.assert_array_equal(_inside_at(lab, zr, zc), inside[zr, zc])
+        assert len(set(shared[zr, zc])) > 3 and len(set(inside[zr, zc])) > 3
+
+
+def test_inside_plane_kernel_same_on_any_split_of_rows():
+    # far_inside_depths' planes on threads: rows r0:r1 each, the whole image's values
+    from splidar.detection._7b_edge_bands import _inside_plane_kernel, _solo_regions
+    from splidar.detection._threads import on_parts
+
+    rng = np.random.default_rng(41)
+    depth = (
+        np.where(np.arange(SHAPE[1]) < 12, 30.0, 62.0)[None, :] + 0.3 * np.arange(SHAPE[0])[:, None]
+    )
+    far = rng.random(SHAPE) < 0.08
+    depth = np.where(far, rng.uniform(0.0, 99.0, SHAPE), depth)
+    s = _surfaces(depth)
+    D, gate, big = _solo_regions(s, s.depth_bin, np.arange(len(s)), 3.0)
+    want = np.empty(SHAPE, np.int64), np.empty(SHAPE)
+    _inside_plane_kernel(big, D, 4, gate, 5, *want, 0, SHAPE[0])
+    assert np.isfinite(want[1]).sum() > 5
+    for workers in (2, 3, 20):
+        got = np.empty(SHAPE, np.int64), np.empty(SHAPE)
+        on_parts(lambda i0, i1, got=got: _inside_plane_kernel(big, D, 4, gate, 5, *got, i0, i1),
+                 SHAPE[0], workers)  # fmt: skip
+        np.testing.assert_array_equal(got[0], want[0])
+        assert got[1].tobytes() == want[1].tobytes()

@@ -338,3 +338,44 @@ def test_far_kernel_int32_indices_equal_int64_bit_for_bit():
     np.testing.assert_array_equal(s32.astype(np.int64), s64)
     np.testing.assert_array_equal(i32, i64)
     assert (~np.isnan(a64)).any() and (s64 >= 0).any() and i64.any() and (~i64).any()
+
+
+def test_far_items_in_parts_on_threads_equal_the_whole_kernel():
+    """``_far_moves``' split of ``_far_kernel``: the depth map once (``_far_maps``), the
+    surfaces' alternatives in parts on threads (``_far_items``) give the whole kernel's
+    alternatives, sources and isolation (each surface's entries its own)."""
+    from splidar.detection._7a_align_depths import _far_items, _far_kernel, _far_maps
+    from splidar.detection._threads import on_parts
+
+    rng = np.random.default_rng(29)
+    R, C, K = 30, 26, 2
+    row, col, slot, depth = [], [], [], []
+    for r in range(R):
+        for c in range(C):
+            n = rng.integers(1, K + 1)
+            d = np.sort(rng.choice([20.0 + 0.5 * c, 60.0 + 0.3 * r], n, replace=False))
+            d += np.where(rng.random(n) < 0.15, rng.normal(0, 30, n), 0.0)
+            for k in range(n):
+                row.append(r), col.append(c), slot.append(k), depth.append(d[k])
+    row, col, slot = (np.array(v, np.int64) for v in (row, col, slot))
+    depth, S = np.array(depth), len(row)
+
+    def arrays():
+        return (
+            np.empty((S, 4)), np.full((S, 4, 4), -1, np.int32), np.zeros(S, np.bool_),
+            np.full((R + 4, C + 4, K), -1, np.int32),
+        )  # fmt: skip
+
+    alt, src, iso, index = arrays()
+    _far_kernel(row, col, slot, depth, 3.0, alt, src, iso, index)
+    assert np.isfinite(alt).any(axis=1).sum() > 20 and iso.sum() > 5
+    for workers in (2, 3, 7):
+        a2, s2, i2, x2 = arrays()
+        s2[:] = 7  # not pre-filled (``_far_moves``: np.empty): the kernel writes -1
+        D = _far_maps(row, col, slot, depth, x2)
+        args = (row, col, depth, 3.0, a2, s2, i2, x2, D)
+        on_parts(lambda i0, i1, args=args: _far_items(*args, i0, i1), S, workers)
+        assert a2.tobytes() == alt.tobytes()
+        np.testing.assert_array_equal(s2, src)
+        np.testing.assert_array_equal(i2, iso)
+        np.testing.assert_array_equal(x2, index)

@@ -159,3 +159,24 @@ def test_agreed_items_repeats_give_the_full_tables_outcome():
             assert items.size < t.keep.size  # a part of the table
         rounds.append(k)
     assert max(rounds) >= 2  # the repeats were exercised
+
+
+def test_agreed_same_on_any_number_of_threads(monkeypatch):
+    # the candidates' agreed depths and signals in parts on threads: each its own
+    from splidar.detection import _5_recentre
+    from splidar.detection._5_recentre import _agreed
+
+    monkeypatch.setattr(_5_recentre, "_AGREE_PART", 7)  # parts of a few candidates
+    fwhm = irf_fwhm(gaussian_irf(3.0).reshape(1, -1))
+    found = []
+    for seed in range(4):
+        t = _grid_table(np.random.default_rng(seed))
+        items = np.flatnonzero(np.random.default_rng(seed).random(t.keep.size) < 0.6)
+        for near, it in ((0, None), (2, None), (2, items)):
+            a1, s1 = _agreed(t, t.keep, fwhm, near, items=it, n_jobs=1)
+            found.append(int(np.isfinite(a1).sum()))
+            for n_jobs in (2, 3, 8):
+                a, s = _agreed(t, t.keep, fwhm, near, items=it, n_jobs=n_jobs)
+                np.testing.assert_array_equal(a, a1)
+                np.testing.assert_array_equal(s, s1)
+    assert min(found) >= 1 and sum(found) > 20  # agreed depths were found

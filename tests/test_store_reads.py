@@ -694,6 +694,24 @@ def test_finest_sums_stored_equals_in_memory_bit_for_bit(tmp_path, monkeypatch, 
     assert got.dtype == np.float64 and got.tobytes() == want.tobytes()
 
 
+def test_finest_sums_same_on_any_number_of_threads(tmp_path, monkeypatch):
+    """``_finest_sums``' parts on threads (in memory and stored raw): each part fills its
+    own rows, the same bytes as on one thread."""
+    from splidar.detection import _7a_align_depths
+    from splidar.detection._result import StoredHistograms
+
+    rng = np.random.default_rng(14)
+    h = (rng.gamma(0.5, 3.0, (61, 3, 2, 7)) * (rng.random((61, 3, 2, 7)) < 0.7)).astype("f4")
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    z = store_histograms(g, "h", h.shape, data=h, compressed=False)
+    want = _7a_align_depths._finest_sums(h)
+    monkeypatch.setattr(_7a_align_depths, "FINEST_PART_BYTES", 4 * 4 * 42)  # 4 rows a part
+    for src in (h, StoredHistograms(z)):
+        for n_jobs in (1, 2, 5):
+            got = _7a_align_depths._finest_sums(src, n_jobs)
+            assert got.tobytes() == want.tobytes()
+
+
 def test_detect_store_writes_stage_7s_moves_in_the_raw_chunk_files(tmp_path, monkeypatch):
     """``detect(store=)``: the surfaces' histograms stored raw, stage 7's moved surfaces'
     rows written in the chunk files (``zarr_write_rows`` wrote every call's rows: no write

@@ -46,6 +46,7 @@ from ._6_select import _gather
 from ._kernels import _llr_one, _local_z
 from ._quality import _by_pixel, _own_llr, reject_isolated
 from ._table import CandidateTable, PassResult, skipped, with_keep
+from ._threads import on_parts
 
 __all__ = ["MIN_AGREE", "moved_presence", "recentre_runs"]
 
@@ -167,9 +168,17 @@ def _agree_kernel(
             s_alt[i, l] = s / cnt
 
 
-def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int, items=None):
+#: Fewest candidates per thread of :func:`_agree_kernel`.
+_AGREE_PART = 4096
+
+
+def _agreed(
+    table: CandidateTable, keep: np.ndarray, fwhm: float, near: int, items=None, n_jobs: int = 1
+):
     """The neighbours' agreed depth and signal of each candidate (:func:`_agree_kernel`),
-    or of the candidates ``items`` (sorted indices) only (the others' ``alt``: NaN)."""
+    or of the candidates ``items`` (sorted indices) only (the others' ``alt``: NaN).
+    ``items`` in ``n_jobs`` contiguous parts on as many threads (each candidate's values
+    are its own: the same on any number)."""
     cols = table.columns
     R, C = table.image_shape
     row = np.asarray(cols["row"], np.int64)
@@ -186,11 +195,13 @@ def _agreed(table: CandidateTable, keep: np.ndarray, fwhm: float, near: int, ite
         solo = keep & (n_kept[pix] == 1)
     else:
         solo = keep
-    _agree_kernel(
+    args = (
         row, col, d, np.asarray(cols["start"], np.int64), np.asarray(cols["stop"], np.int64),
         keep, solo, np.ascontiguousarray(sel, np.float64), order, starts, int(R), int(C),
-        float(fwhm), int(MIN_AGREE), int(near), alt, s_alt, items,
+        float(fwhm), int(MIN_AGREE), int(near), alt, s_alt,
     )  # fmt: skip
+    work = min(int(n_jobs), items.size // _AGREE_PART)
+    on_parts(lambda i0, i1: _agree_kernel(*args, items[i0:i1]), items.size, work)
     return alt, s_alt
 
 
@@ -234,6 +245,7 @@ def recentre_runs(
     max_kept: int,
     histograms=None,
     scales=None,
+    n_jobs: int = 1,
 ) -> PassResult:
     """Move candidates to the depth their 4-neighbours agree on inside their run (module).
 
@@ -264,6 +276,9 @@ def recentre_runs(
         ``scales`` (the box sizes), a moved candidate's ``presence_llr`` and
         ``presence_z`` are recomputed at its new depth (:func:`moved_presence`).
     scales : ndarray (Q,) int, optional
+    n_jobs : int
+        Threads of the neighbours' agreed depths (:func:`_agreed`; the result does not
+        depend on it).
 
     Returns
     -------
@@ -277,7 +292,7 @@ def recentre_runs(
     t0 = time.perf_counter()
     keep = np.asarray(table.keep, bool)
     d = np.asarray(table.columns["depth_bin"], np.float64)
-    alt, s_alt = _agreed(table, keep, fwhm, near=0)
+    alt, s_alt = _agreed(table, keep, fwhm, near=0, n_jobs=n_jobs)
     ii = np.flatnonzero(np.isfinite(alt))
     if ii.size == 0:
         return with_keep("recentre", table, keep, t0)
@@ -349,6 +364,7 @@ def restore_agreed(
     llr_level: float,
     max_kept: int,
     items=None,
+    n_jobs: int = 1,
 ) -> np.ndarray:
     """Rejected candidates of pixels with no kept surface, at the depth :data:`MIN_AGREE`
     of their 4-neighbours agree on (within the FWHM, inside the candidate's run; each
@@ -365,13 +381,14 @@ def restore_agreed(
     ``items`` (sorted candidate indices, whole pixels): only those are tested (the others
     False); a candidate's outcome depends on ``keep`` in its pixel and its 4-neighbours
     only, so a repeat after a round need only test those pixels' candidates
-    (:func:`agreed_items`).
+    (:func:`agreed_items`). ``n_jobs``: threads of :func:`_agreed` (the same result on
+    any number).
     """
     out = np.zeros(keep.size, bool)
     if not keep.size or "own_counts" not in table.columns:
         return out
     d = np.asarray(table.columns["depth_bin"], np.float64)
-    alt, s_alt = _agreed(table, np.asarray(keep, bool), fwhm, near=2, items=items)
+    alt, s_alt = _agreed(table, np.asarray(keep, bool), fwhm, near=2, items=items, n_jobs=n_jobs)
     ii = np.flatnonzero(np.isfinite(alt))
     if ii.size:
         l_a = _own_llrs(table, ii, d[ii], s_alt[ii], irf, peak)

@@ -37,6 +37,7 @@ def restore_dark_regions(
     llr_level: float,
     agreed: bool = False,
     max_kept: int = 2,
+    n_jobs: int = 1,
 ) -> PassResult:
     """Restore rejected candidates of pixels with no surface whose pool is significant.
 
@@ -57,6 +58,9 @@ def restore_dark_regions(
         restores any.
     max_kept : int
         ``K_s``: those are restored in pixels with room only.
+    n_jobs : int
+        Threads of the pools' sums and the neighbours' agreed depths (the result does
+        not depend on it).
     """
     if not table.keep.size:
         return skipped("dark_regions", table)
@@ -70,12 +74,13 @@ def restore_dark_regions(
         half=half,
         pfa=pfa,
         llr_level=llr_level,
+        n_jobs=n_jobs,
     )
     keep, items = table.keep | res, None
     while agreed:  # repeated while it restores (a restored pixel is a neighbour too)
         more = restore_agreed(
             table, keep, irf=irf, peak=peak, fwhm=fwhm, llr_level=-llr_level,
-            max_kept=max_kept, items=items,
+            max_kept=max_kept, items=items, n_jobs=n_jobs,
         )  # fmt: skip
         if not more.any():
             break

@@ -14,6 +14,7 @@ from .._memory import give_back
 from ._kernels import select_sorted
 from ._result import Surfaces
 from ._table import CandidateTable, _position_in_pixel, _raster_ordered
+from ._threads import on_parts
 from ._windows import SupportWindows
 
 __all__ = ["select_surfaces"]
@@ -213,6 +214,31 @@ def _last_part(hb: np.ndarray, n_blocks: int) -> np.ndarray:
     return last
 
 
+#: Fewest rows per thread of :func:`_take_rows`.
+TAKE_PART = 2**16
+
+
+def _take_rows(a, idx: np.ndarray, dtype, n_jobs: int) -> np.ndarray:
+    """``a[idx].astype(dtype, copy=False)`` for an array ``a`` (n, ...) and row
+    positions ``idx`` (m,) in ``[0, n)``: ``idx`` in ``n_jobs`` contiguous parts on as
+    many threads, each writing its rows of one new array (NumPy's ``take`` and casts
+    release the GIL; the same values, cast as ``astype`` casts). Anything but a NumPy
+    array is indexed as before, on this thread."""
+    work = min(int(n_jobs), idx.size // TAKE_PART)
+    if not isinstance(a, np.ndarray) or work <= 1:
+        return a[idx].astype(dtype, copy=False)
+    out = np.empty((idx.size, *a.shape[1:]), dtype)
+
+    def part(i0: int, i1: int) -> None:
+        if a.dtype == out.dtype:
+            np.take(a, idx[i0:i1], axis=0, out=out[i0:i1], mode="clip")  # unbuffered
+        else:
+            out[i0:i1] = a[idx[i0:i1]].astype(dtype)
+
+    on_parts(part, idx.size, work)
+    return out
+
+
 def select_surfaces(
     table: CandidateTable,
     histograms: tuple,
@@ -223,6 +249,7 @@ def select_surfaces(
     width: int,
     histograms_out=None,
     release: bool = False,
+    n_jobs: int = 1,
 ) -> Surfaces:
     """Keep at most ``max_surfaces`` kept candidates per pixel as :class:`Surfaces`.
 
@@ -244,14 +271,15 @@ def select_surfaces(
         entry set to None) once its selected rows are gathered (``detect``, which holds
         the map's arrays in that list alone: they are released while the surfaces'
         array fills instead of after it).
+    n_jobs : int
+        Threads of the columns' selected rows (:func:`_take_rows`; the same values).
     """
     idx, slot = _select(table.columns, table.keep, max_surfaces)
     cols = table.columns
 
     def take(name, dtype, shape=None):
-        # one column at a time: the selected rows in the Surfaces' type (no second copy
-        # when the table already has it)
-        v = cols[name][idx].astype(dtype, copy=False)
+        # one column at a time: the selected rows in the Surfaces' type
+        v = _take_rows(cols[name], idx, dtype, n_jobs)
         return v if shape is None else v.reshape(shape)
 
     Q, L = n_scales, n_wavelengths

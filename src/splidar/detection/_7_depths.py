@@ -169,7 +169,7 @@ def place_depths(
             if rule == "align_depths":
                 s, support, now = aligned_depths(
                     s, fwhm=fwhm, irf=irf, counts=counts, background=background,
-                    shear=rounds == 1, memo=far_memo,
+                    shear=rounds == 1, memo=far_memo, n_jobs=n_jobs,
                 )  # fmt: skip
             else:
                 depth, now, beta = band_depths(

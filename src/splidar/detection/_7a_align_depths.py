@@ -30,6 +30,7 @@ from ._depth_fields import (
 )
 from ._quality import _shifted_irf, align_depths
 from ._result import StoredHistograms, Surfaces
+from ._threads import on_parts
 
 __all__ = ["aligned_depths", "move_far_depths"]
 
@@ -59,25 +60,32 @@ FAR_DEPTHS = True
 FINEST_PART_BYTES = 2**24
 
 
-def _finest_sums(histograms) -> np.ndarray:
+def _finest_sums(histograms, n_jobs: int = 1) -> np.ndarray:
     """``histograms[:, 0].sum(axis=1)`` (the finest scale summed over wavelengths, (S, W))
     as float64, a part of the surfaces at a time: the same values (each row's sum is its
     own) without the float32 array beside the float64 one (0.1 float32 cubes on the face
     file at its native bin). Stored histograms (:class:`StoredHistograms`) are read by
     rows (:func:`~splidar.detection._6_select._stored_rows`: a raw array's chunk files
-    read directly), every scale of a part at a time."""
+    read directly), every scale of a part at a time. The parts in ``n_jobs`` contiguous
+    runs on as many threads (NumPy's sums and the file reads release the GIL; each part
+    fills its own rows: the same values on any number)."""
     S, W = int(histograms.shape[0]), int(histograms.shape[-1])
     out = np.empty((S, W), np.float64)
     stored = isinstance(histograms, StoredHistograms)
     row = histograms.shape[1 if stored else 2 :]
     step = max(1, FINEST_PART_BYTES // (4 * int(np.prod(row, dtype=np.int64))))
-    for a in range(0, S, step):
-        if stored:  # the finest scale as Zarr's ``[a:b, 0]`` gives it (C order)
-            b = min(S, a + step)
-            part = np.ascontiguousarray(_stored_rows(histograms.array, a, b)[:, 0])
-        else:
-            part = np.asarray(histograms[a : a + step, 0])
-        out[a : a + step] = part.sum(axis=1)
+    firsts = list(range(0, S, step))
+
+    def parts(k0: int, k1: int) -> None:
+        for a in firsts[k0:k1]:
+            if stored:  # the finest scale as Zarr's ``[a:b, 0]`` gives it (C order)
+                b = min(S, a + step)
+                part = np.ascontiguousarray(_stored_rows(histograms.array, a, b)[:, 0])
+            else:
+                part = np.asarray(histograms[a : a + step, 0])
+            out[a : a + step] = part.sum(axis=1)
+
+    on_parts(parts, len(firsts), n_jobs)
     return out
 
 
@@ -90,6 +98,7 @@ def aligned_depths(
     background=None,
     shear: bool = True,
     memo: dict | None = None,
+    n_jobs: int = 1,
 ) -> tuple:
     """The depths of ``surfaces`` after the sheared pool (when ``shear``) and, with
     ``counts`` and ``background`` (when :data:`FAR_DEPTHS`), the far-depth rule (see the
@@ -112,6 +121,9 @@ def aligned_depths(
     memo : dict, optional
         The far rule's scores met before on this cube (:func:`_far_moves`; stage 7's
         rounds share one): never changes the result.
+    n_jobs : int
+        Threads of the sheared pool, its histograms' sums and the far rule's
+        alternatives (never changes the result).
 
     Returns
     -------
@@ -133,14 +145,15 @@ def aligned_depths(
     depth = s.depth_bin
     if shear:
         depth, _ = align_depths(
-            s.row, s.col, s.slot, s.depth_bin, s.offset, _finest_sums(s.histograms),
+            s.row, s.col, s.slot, s.depth_bin, s.offset, _finest_sums(s.histograms, n_jobs),
             image_shape=s.image_shape, n_slots=s.n_slots, fwhm=fwhm, noise=noise, z_own=OWN_Z,
+            n_jobs=n_jobs,
         )  # fmt: skip
     old = np.asarray(s.depth_bin, np.float64)
     out = replace(s, depth_bin=np.asarray(depth).astype(np.float64))
     far = np.zeros(0, np.int64)
     if FAR_DEPTHS and counts is not None and background is not None:
-        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf, memo=memo)
+        out, far = _far_moves(out, counts, background, fwhm=fwhm, irf=irf, memo=memo, n_jobs=n_jobs)
     d = np.asarray(out.depth_bin, np.float64)
     moved = np.flatnonzero(d != old)
     # a depth the sheared pool moved out of its support: treated as a far move
@@ -173,13 +186,31 @@ def _far_kernel(row, col, slot, depth, fwhm, alt, src, isolated, index):
     those two. Alternatives within 2 FWHM of the depth or of another of the pixel's
     surfaces are dropped (NaN).
     """
+    D = _far_maps(row, col, slot, depth, index)
+    _far_items(row, col, depth, fwhm, alt, src, isolated, index, D, 0, row.size)
+
+
+@njit(cache=True, nogil=True)
+def _far_maps(row, col, slot, depth, index):
+    """The padded depth map ``D`` (R + 4, C + 4, K) of the surfaces (NaN: none) of
+    :func:`_far_kernel`, their indices written to ``index`` (same shape, -1: none)."""
     R, C, K = index.shape[0] - 4, index.shape[1] - 4, index.shape[2]
     D = np.full((R + 4, C + 4, K), np.nan)
     for i in range(row.size):
         D[row[i] + 2, col[i] + 2, slot[i]] = depth[i]
         index[row[i] + 2, col[i] + 2, slot[i]] = i
+    return D
+
+
+@njit(cache=True, nogil=True)
+def _far_items(row, col, depth, fwhm, alt, src, isolated, index, D, i0, i1):
+    """:func:`_far_kernel`'s ``alt``, ``src`` (-1 first: no source) and ``isolated`` of
+    surfaces ``i0..i1-1`` (``D`` and ``index`` from :func:`_far_maps`: each surface's
+    entries its own)."""
+    K = index.shape[2]
     far = 2.0 * fwhm
-    for i in range(row.size):
+    for i in range(i0, i1):
+        src[i] = -1
         r, c, d = row[i] + 2, col[i] + 2, depth[i]
         for u in range(4):
             alt[i, u] = np.nan
@@ -295,7 +326,7 @@ def move_far_depths(
     ``.threshold``) their ``saliency_mass`` and ``evidence`` too, summed over the new
     support (:func:`~splidar.detection._slopes.support_sums`; without, the old depth's).
     """
-    out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf)
+    out, moved = _far_moves(surfaces, counts, background, fwhm=fwhm, irf=irf, n_jobs=n_jobs)
     if moved.size == 0:
         return surfaces, 0
     ones = np.ones(moved.size, bool)
@@ -303,14 +334,21 @@ def move_far_depths(
     return _support_fields(out, moved, saliency, threshold), int(moved.size)
 
 
-def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo=None) -> tuple:
+#: Fewest surfaces per thread of :func:`_far_items`.
+_FAR_PART = 4096
+
+
+def _far_moves(
+    surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo=None, n_jobs: int = 1
+) -> tuple:
     """The far-depth rule of :func:`move_far_depths`: the surfaces with the moved ones'
     ``depth_bin``, ``start``, ``stop``, ``counts`` and ``background`` changed (the other
     fields not yet), and the moved surfaces' indices. ``memo``: a dict kept by the
     caller over calls on the same cube, background and IRF (stage 7's rounds): a
     candidate whose inputs to its score (pixel, depth, alternatives, isolation and the
     sources' ``photons``) all equal one met before takes that score
-    (:func:`_memo_far_scores`; the same to the bit)."""
+    (:func:`_memo_far_scores`; the same to the bit). ``n_jobs``: threads of
+    :func:`_far_items` (each surface's alternatives its own: the same on any number)."""
     s = surfaces
     R, C = s.image_shape
     S = len(s)
@@ -318,15 +356,18 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo
     # the sources' indices in 4 bytes when they fit (the same values): the (S, 4, 4)
     # array is the rule's largest (436 MB at 3.4 M surfaces, new pages at each round)
     kind = np.int32 if S < 2**31 else np.int64
-    src = np.full((S, 4, 4), -1, kind)
+    src = np.empty((S, 4, 4), kind)  # -1 written by _far_items, on its threads
     isolated = np.zeros(S, np.bool_)
     index = np.full((int(R) + 4, int(C) + 4, int(s.n_slots)), -1, kind)  # surface per slot
-    _far_kernel(
-        s.row, s.col, s.slot, np.asarray(s.depth_bin, np.float64), float(fwhm), alt, src,
-        isolated, index,
-    )  # fmt: skip
-    del index
-    cand = np.flatnonzero(~np.all(np.isnan(alt), axis=1))
+    depth = np.asarray(s.depth_bin, np.float64)
+    D = _far_maps(s.row, s.col, s.slot, depth, index)  # then the surfaces on threads
+    args = (s.row, s.col, depth, float(fwhm), alt, src, isolated, index, D)
+    on_parts(lambda i0, i1: _far_items(*args, i0, i1), S, min(int(n_jobs), S // _FAR_PART))
+    del index, D, args
+    none = np.isnan(alt[:, 0])  # no alternative: column by column (np.all's axis-1
+    for k in range(1, alt.shape[1]):  # reduction over 4 values took 3x as long)
+        none &= np.isnan(alt[:, k])
+    cand = np.flatnonzero(~none)
     if cand.size == 0:
         return s, np.zeros(0, np.int64)
     irf = np.atleast_2d(np.asarray(irf, np.float64))
@@ -343,8 +384,11 @@ def _far_moves(surfaces: Surfaces, counts, background, *, fwhm: float, irf, memo
     rows, cols = s.row[cand], s.col[cand]
     pix = s.row * C + s.col
     others: dict = {}  # the candidates' pixels' surfaces
-    for j in np.flatnonzero(np.isin(pix, pix[cand])):
+    at = np.zeros(int(R) * int(C), bool)  # the candidates' pixels (np.isin's set, unsorted)
+    at[pix[cand]] = True
+    for j in np.flatnonzero(at[pix]):
         others.setdefault(int(pix[j]), []).append(int(j))
+    del at
     args = (alt, src, isolated, photons, depth, irf, peak, counts, background, rows, cols)
     best, to = _memo_far_scores(cand, *args, {} if memo is None else memo)
     prior = np.where(isolated[cand], plane_prior, 0.0)

@@ -821,7 +821,7 @@ def band_depths(
     ll_ab = np.where(own_b[:, None], ll[:, ::-1], ll)  # column 0: A, 1: B
     change = _all_bands(big, zr, zc, pair_a, pair_b, ll_ab, beta) != own_b
     # the prior shapes a band; it never moves one the own counts do not favour
-    pair = np.unique(np.stack([pair_a, pair_b]), axis=1, return_inverse=True)[1].ravel()
+    pair = _pair_index(pair_a, pair_b)
     gain = np.bincount(pair, weights=np.where(change, ll[:, 1] - ll[:, 0], 0.0))
     go = change & (gain[pair] > 0.0)
     i, d_new = at[zr[go], zc[go]], dep[zr[go], zc[go], 1]  # the other region's plane
@@ -838,38 +838,55 @@ def band_depths(
     moved = np.union1d(np.asarray(moved, np.int64), near)
     if FAR_INSIDE:
         far, to = far_inside_depths(
-            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, memo=memo
-        )
+            s, depth, solo, counts, background, fwhm=fwhm, irf=irf, half=half, memo=memo,
+            n_jobs=n_jobs,
+        )  # fmt: skip
         depth[far] = to
         moved = np.union1d(moved, far)
     return depth, moved, beta
 
 
-def _shared(depth: np.ndarray, tol: float) -> np.ndarray:
-    """(R, C) int: how many 8-neighbours' finite values lie within ``tol`` of the pixel's."""
-    R, C = depth.shape
+def _pair_index(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) int64: the rank of each pair ``(a, b)`` (integer labels) among the distinct
+    pairs in lexicographic order, as ``np.unique(np.stack([a, b]), axis=1,
+    return_inverse=True)[1]`` gives it: one integer key per pair (``a`` major), sorted
+    once."""
+    if a.size == 0:
+        return np.zeros(0, np.int64)
+    a = np.asarray(a, np.int64)
+    b = np.asarray(b, np.int64)
+    a0, b0 = int(a.min()), int(b.min())
+    key = (a - a0) * (int(b.max()) - b0 + 1) + (b - b0)
+    return np.unique(key, return_inverse=True)[1].ravel().astype(np.int64, copy=False)
+
+
+def _shared_at(depth: np.ndarray, tol: float, zr: np.ndarray, zc: np.ndarray) -> np.ndarray:
+    """(n,) int: at the pixels ``(zr, zc)`` of ``depth`` (R, C), how many 8-neighbours'
+    finite values lie within ``tol`` of the pixel's (neighbours outside the image count
+    as not): the same comparisons as over the whole image, at those pixels only."""
     pad = np.pad(depth, 1, constant_values=np.nan)
-    out = np.zeros((R, C), np.int64)
+    own = depth[zr, zc]
+    out = np.zeros(zr.size, np.int64)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                nb = pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
                 with np.errstate(invalid="ignore"):
-                    out += np.abs(nb - depth) <= tol
+                    out += np.abs(pad[zr + 1 + dr, zc + 1 + dc] - own) <= tol
     return out
 
 
-def _inside(lab: np.ndarray) -> np.ndarray:
-    """(R, C) int: how many of a labelled pixel's 8-neighbours carry its label (0 where
-    ``lab < 0``; neighbours outside the image count as not)."""
-    R, C = lab.shape
+def _inside_at(lab: np.ndarray, zr: np.ndarray, zc: np.ndarray) -> np.ndarray:
+    """(n,) int: at the pixels ``(zr, zc)`` of ``lab`` (R, C), how many 8-neighbours
+    carry the pixel's label (0 where ``lab < 0``; neighbours outside the image count as
+    not)."""
     pad = np.pad(lab, 1, constant_values=-1)
-    out = np.zeros((R, C), np.int64)
+    own = lab[zr, zc]
+    out = np.zeros(zr.size, np.int64)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                out += pad[1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C] == lab
-    return np.where(lab >= 0, out, 0)
+                out += pad[zr + 1 + dr, zc + 1 + dc] == own
+    return np.where(own >= 0, out, 0)
 
 
 def near_depths(
@@ -924,8 +941,11 @@ def near_depths(
     )
     has = np.isfinite(plane)
     off = has & (np.abs(D - plane) > NEAR_FWHM * float(fwhm))
-    cand = off & (_shared(D - plane, 0.5 * float(fwhm)) < 2) & (_inside(big) >= NEAR_INSIDE)
-    zr, zc = np.nonzero(cand)
+    zr, zc = np.nonzero(off)  # those of them few 8-neighbours share and inside a region
+    ok = (_shared_at(D - plane, 0.5 * float(fwhm), zr, zc) < 2) & (
+        _inside_at(big, zr, zc) >= NEAR_INSIDE
+    )
+    zr, zc = zr[ok], zc[ok]
     T = int(np.shape(counts)[-1])
     keep = (plane[zr, zc] >= 0.0) & (plane[zr, zc] <= T - 1)
     zr, zc = zr[keep], zc[keep]
@@ -936,14 +956,15 @@ def near_depths(
 
 
 @njit(cache=True, nogil=True)
-def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragma: no cover
-    """Per pixel, ``region[r, c]``: the region holding at least ``need`` of its
-    8-neighbours (-1 if none); for a pixel with a depth that is not a member of that
-    region, ``plane[r, c]``: the region's local plane at the pixel (:func:`_window_plane` over
-    its members within ``reach``, Chebyshev); NaN elsewhere."""
+def _inside_plane_kernel(big, depth, reach, gate, need, region, plane, r0, r1):  # pragma: no cover
+    """Per pixel of rows ``r0:r1``, ``region[r, c]``: the region holding at least ``need``
+    of its 8-neighbours (-1 if none); for a pixel with a depth that is not a member of
+    that region, ``plane[r, c]``: the region's local plane at the pixel
+    (:func:`_window_plane` over its members within ``reach``, Chebyshev); NaN elsewhere.
+    Only rows ``r0:r1`` are written: disjoint row ranges run on threads side by side."""
     R, C = big.shape
     buf = np.empty((3, (2 * reach + 1) ** 2))
-    for r in range(R):
+    for r in range(r0, r1):
         for c in range(C):
             region[r, c] = -1
             plane[r, c] = np.nan
@@ -970,27 +991,39 @@ def _inside_plane_kernel(big, depth, reach, gate, need, region, plane):  # pragm
             plane[r, c] = _window_plane(big, depth, r, c, reach, best, False, gate, 3, buf)
 
 
-def _shared_any(surfaces, depth, D, tol: float) -> np.ndarray:
-    """(R, C) int: how many 8-neighbours hold a surface (any slot) within ``tol`` of the
-    pixel's depth ``D`` (NaN: none)."""
+def _shared_any(surfaces, depth, D, tol: float, where: np.ndarray) -> np.ndarray:
+    """(R, C) bool: the pixels of ``where`` (R, C) bool one of whose 8-neighbours holds a
+    surface (any slot) within ``tol`` of the pixel's depth ``D`` (NaN: none); False
+    elsewhere. Only the surfaces of the pixels beside ``where`` are read (each offers
+    ``|depth - D| <= tol`` to its 8-neighbours of ``where``: the same comparison, bit
+    for bit, as the neighbours' depth maps of every slot)."""
     s = surfaces
     R, C = s.image_shape
-    K = int(np.max(s.slot)) + 1 if len(s) else 1
-    maps = np.full((K, R + 2, C + 2), np.nan)
-    maps[s.slot, s.row + 1, s.col + 1] = depth
-    out = np.zeros((R, C), np.int64)
+    out = np.zeros((R, C), bool)
+    near = np.zeros((R + 2, C + 2), bool)  # ``where`` dilated by the 8-neighbourhood
+    for dr in (0, 1, 2):
+        for dc in (0, 1, 2):
+            near[dr : dr + R, dc : dc + C] |= where
+    pick = np.flatnonzero(near[s.row + 1, s.col + 1])
+    row, col, dep = s.row[pick], s.col[pick], np.asarray(depth, np.float64)[pick]
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if dr or dc:
-                nb = maps[:, 1 + dr : 1 + dr + R, 1 + dc : 1 + dc + C]
+                r, c = row + dr, col + dc
+                ok = np.flatnonzero((r >= 0) & (r < R) & (c >= 0) & (c < C))
+                r, c = r[ok], c[ok]
+                on = where[r, c]
+                r, c, d = r[on], c[on], dep[ok][on]
                 with np.errstate(invalid="ignore"):
-                    out += np.any(np.abs(nb - D) <= tol, axis=0)
+                    hit = np.abs(d - D[r, c]) <= tol
+                out[r[hit], c[hit]] = True
     return out
 
 
 def far_inside_depths(
-    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, memo=None
-):
+    surfaces, depth, solo, counts, background, *, fwhm: float, irf, half: int, memo=None,
+    n_jobs: int = 1,
+):  # fmt: skip
     """The far wrong depths inside a region: a single-surface pixel that is not a member
     of the region holding at least :data:`NEAR_INSIDE` of its 8-neighbours (its depth
     more than the gate, :data:`GATE_FWHM` FWHM, off every neighbour's), moved onto that
@@ -1010,8 +1043,9 @@ def far_inside_depths(
 
     Parameters
     ----------
-    surfaces, depth, solo, counts, background, fwhm, irf, half, memo
-        As :func:`near_depths` (``depth`` after the near depths).
+    surfaces, depth, solo, counts, background, fwhm, irf, half, memo, n_jobs
+        As :func:`near_depths` (``depth`` after the near depths; ``n_jobs``: threads of
+        the planes, rows of at least 16 each).
 
     Returns
     -------
@@ -1026,12 +1060,18 @@ def far_inside_depths(
     D, gate, big = _solo_regions(s, depth, solo, fwhm)
     region = np.empty((R, C), np.int64)
     plane = np.empty((R, C))
-    _inside_plane_kernel(big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane)
+    on_parts(
+        lambda i0, i1: _inside_plane_kernel(
+            big, D, 2 * int(half), gate, NEAR_INSIDE, region, plane, i0, i1
+        ),
+        R,
+        min(int(n_jobs), R // 16),  # rows of at least 16 per thread
+    )
     T = int(np.shape(counts)[-1])
     with np.errstate(invalid="ignore"):
         cand = np.isfinite(plane) & (np.abs(D - plane) > gate) & (plane >= 0.0)
         cand &= plane <= T - 1
-    cand &= _shared_any(s, depth, D, gate) == 0
+    cand &= ~_shared_any(s, depth, D, gate, cand)
     zr, zc = np.nonzero(cand)
     if zr.size == 0:
         return none

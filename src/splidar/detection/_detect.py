@@ -519,7 +519,7 @@ def _select_and_align(cube, o, mp, hists: list, done, t0: float, store, bg):
     surfaces = select_surfaces(
         done[-1].table, hists.pop(), max_surfaces=o["max_surfaces"],
         n_scales=o["scales"].size, n_wavelengths=cube.shape[2], width=mp.width,
-        histograms_out=out, release=True,
+        histograms_out=out, release=True, n_jobs=o["n_jobs"],
     )  # fmt: skip
     n_kept = int(done[-1].table.keep.sum())
     done[-1] = dataclasses.replace(done[-1], table=None)
@@ -669,7 +669,8 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
     table = run("recentre", lambda t: recentre_runs(
         t, irf=irf, peak=peak, fwhm=fwhm, pfa=surface_pfa, n_bins=T,
         llr_level=PRESENCE_LLR, secondary_llr=PRESENCE_SECONDARY,
-        max_kept=o["max_surfaces"], histograms=hists, scales=o["scales"]))  # fmt: skip
+        max_kept=o["max_surfaces"], histograms=hists, scales=o["scales"],
+        n_jobs=o["n_jobs"]))  # fmt: skip
     table = run("spill_over", lambda t: remove_spill_over(
         t, irf=irf, peak=peak, fwhm=fwhm, llr_level=SPILL_LLR,
         vouch_level=-PRESENCE_LLR, counts=cube.counts, spatial=mp.spatial, dev=bg.dev,
@@ -677,7 +678,8 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
     table = run("isolated", lambda t: remove_isolated(t, fwhm=fwhm, pfa=surface_pfa, n_bins=T))
     table = run("dark_regions", lambda t: restore_dark_regions(
         t, irf=irf, peak=peak, fwhm=fwhm, half=half, pfa=surface_pfa,
-        llr_level=-PRESENCE_LLR, agreed=True, max_kept=o["max_surfaces"]))  # fmt: skip
+        llr_level=-PRESENCE_LLR, agreed=True, max_kept=o["max_surfaces"],
+        n_jobs=o["n_jobs"]))  # fmt: skip
     table = table.without("own_counts", "own_background", "line_support")
     done[-1] = dataclasses.replace(done[-1], table=table)  # the columns dropped: released
     give_back()

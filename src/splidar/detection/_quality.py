@@ -563,42 +563,79 @@ def _spill_kernel(
     below ``vouch`` (all at once, as :func:`spill_over_features`). ``llr`` (n,) holds
     the first pass's log-ratios (:func:`_first_llrs_kernel`) and is updated in place.
     Returns the number of passes.
+
+    After the first pass, only what a pass's rejections can change is computed again:
+    a log-ratio, the further and mute flags where the 3 x 3 neighbourhood lost a
+    candidate (the *dirty* pixels: its source may have gone, its pixel's other
+    candidates changed), the test of the dirty pixels' candidates and of their
+    4-neighbours' (an enclosing pair's member may have gone or turned mute). Every other
+    candidate's inputs are those of the last pass, where it was not rejected: it is not
+    rejected again (the same passes as testing every candidate each time).
     """
     n = row.size
-    L = counts.shape[1]
     active = np.ones(n, np.bool_)
     further = np.zeros(n, np.bool_)
     mute = np.zeros(n, np.bool_)
-    new = np.zeros(n, np.bool_)
-    # a log-ratio changes only where the 3 x 3 neighbourhood lost a candidate in the
-    # last pass (the source may have gone): recompute those (none in the first pass,
-    # whose log-ratios come in ``llr``)
-    dirty = np.zeros(R * C, np.bool_)
-    sig = np.empty(L, np.float64)
+    new = np.empty(n, np.int64)
+    mark = np.zeros(R * C, np.int32)  # the pass that listed a pixel (dirty; tested: -pass)
+    sig = np.empty(counts.shape[1], np.float64)
+    dirty = np.empty(0, np.int64)  # no log-ratio recomputed in the first pass
+    touched = np.arange(R * C)  # the first pass: every pixel's flags and tests
+    tested = touched
     passes = 0
     for _ in range(max_iter):
         passes += 1
-        for i in range(n):
-            if active[i] and dirty[row[i] * C + col[i]]:
-                llr[i] = _spill_suspect(
-                    i, row, col, d, offset, counts, bkg, own, active, order, starts,
-                    R, C, irf, peak, fwhm, sig,
-                )  # fmt: skip
-        # further candidates: beside another candidate of the pixel that its own
-        # counts support; mute: further ones whose counts reject their source's return
-        for i in range(n):
+        for p in dirty:
+            for kk in range(starts[p], starts[p + 1]):
+                i = order[kk]
+                if active[i]:
+                    llr[i] = _spill_suspect(
+                        i, row, col, d, offset, counts, bkg, own, active, order, starts,
+                        R, C, irf, peak, fwhm, sig,
+                    )  # fmt: skip
+        _spill_flags(touched, order, starts, active, llr, level, vouch, further, mute)
+        n_new = _spill_unenclosed(
+            tested, row, col, d, order, starts, R, C, fwhm, level, active, llr, further,
+            mute, new,
+        )  # fmt: skip
+        if n_new == 0:
+            break
+        for i in new[:n_new]:
+            rej[i] = True
+            active[i] = False
+        dirty = _spill_dirty(new[:n_new], row, col, R, C, mark, passes)
+        touched, tested = dirty, _spill_cross(dirty, R, C, mark, passes)
+    return passes
+
+
+@njit(cache=True, nogil=True)
+def _spill_flags(pixels, order, starts, active, llr, level, vouch, further, mute):
+    """``further`` and ``mute`` of :func:`_spill_kernel` for the candidates of
+    ``pixels``: beside another active candidate of the pixel that its own counts
+    support (``llr >= level``); mute: further and its own ``llr < vouch``."""
+    for p in pixels:
+        for k in range(starts[p], starts[p + 1]):
+            i = order[k]
             further[i] = False
             if active[i]:
-                p = row[i] * C + col[i]
                 for kk in range(starts[p], starts[p + 1]):
                     j = order[kk]
                     if j != i and active[j] and llr[j] >= level:
                         further[i] = True
                         break
             mute[i] = further[i] and llr[i] < vouch
-        n_new = 0
-        for i in range(n):
-            new[i] = False
+
+
+@njit(cache=True, nogil=True)
+def _spill_unenclosed(
+    pixels, row, col, d, order, starts, R, C, fwhm, level, active, llr, further, mute, new
+):
+    """The active candidates of ``pixels`` below ``level`` that no opposite pair of
+    4-neighbours encloses (:func:`_pair_encloses`), written to ``new``; their number."""
+    n_new = 0
+    for p in pixels:
+        for k in range(starts[p], starts[p + 1]):
+            i = order[k]
             if not active[i] or not llr[i] < level:
                 continue
             f = further[i]
@@ -610,19 +647,49 @@ def _spill_kernel(
                     row[i], col[i], 1, d[i], d, active, mute, f, order, starts, R, C, fwhm
                 )
             ):
-                new[i] = True
+                new[n_new] = i
                 n_new += 1
-        if n_new == 0:
-            break
-        dirty[:] = False
-        for i in range(n):
-            if new[i]:
-                rej[i] = True
-                active[i] = False
-                for rr in range(max(row[i] - 1, 0), min(row[i] + 2, R)):
-                    for cc in range(max(col[i] - 1, 0), min(col[i] + 2, C)):
-                        dirty[rr * C + cc] = True
-    return passes
+    return n_new
+
+
+@njit(cache=True, nogil=True)
+def _spill_dirty(gone, row, col, R, C, mark, stamp):
+    """The pixels (each once) of the 3 x 3 neighbourhoods of the candidates ``gone``;
+    ``mark`` set to ``stamp`` there."""
+    out = np.empty(9 * gone.size, np.int64)
+    m = 0
+    for i in gone:
+        for rr in range(max(row[i] - 1, 0), min(row[i] + 2, R)):
+            for cc in range(max(col[i] - 1, 0), min(col[i] + 2, C)):
+                q = rr * C + cc
+                if mark[q] != stamp:
+                    mark[q] = stamp
+                    out[m] = q
+                    m += 1
+    return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def _spill_cross(dirty, R, C, mark, stamp):
+    """``dirty`` (marked ``stamp`` in ``mark``) and their 4-neighbours, each once (the
+    latter marked ``-stamp``)."""
+    out = np.empty(5 * dirty.size, np.int64)
+    out[: dirty.size] = dirty
+    m = dirty.size
+    for p in dirty:
+        r = p // C
+        c = p - r * C
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            rr = r + dr
+            cc = c + dc
+            if rr < 0 or rr >= R or cc < 0 or cc >= C:
+                continue
+            q = rr * C + cc
+            if mark[q] != stamp and mark[q] != -stamp:
+                mark[q] = -stamp
+                out[m] = q
+                m += 1
+    return out[:m]
 
 
 @njit(cache=True, nogil=True)
@@ -748,41 +815,55 @@ def reject_isolated(
 MIN_POOL = 6
 
 
-@njit(cache=True, nogil=True)
+#: Fewest candidates (suspects) per thread of :func:`_dark_sums`
+#: (:func:`_dark_pool_sums`).
+_DARK_PART = 4096
+_DARK_POOL_PART = 256
+
+
 def _dark_pools(
-    row,
-    col,
-    d,
-    offset,
-    counts,
-    bkg,
-    keep,
-    ev,
-    order,
-    starts,
-    R,
-    C,
-    irf,
-    peak,
-    hw,
-    fwhm,
-    half,
-    weak_z,
-):
+    row, col, d, offset, counts, bkg, keep, ev, order, starts, R, C, irf, peak, hw, fwhm,
+    half, weak_z, n_jobs=1,
+):  # fmt: skip
     """Suspects of :func:`rescue_dark` and the sums of their pools.
 
     Returns the suspects' indices (m,), the pooled counts, background and IRF fraction
     in the half-maximum windows about the suspect's depth, per wavelength ((m, L)
     each), the pools' sizes, and the pooled counts and background about each member's
-    own depth ((m,) each).
+    own depth ((m,) each). The candidates' own sums (:func:`_dark_sums`) and the
+    suspects' pools (:func:`_dark_pool_sums`) in ``n_jobs`` contiguous parts on as many
+    threads: each candidate's and each pool's sums are its own, added in the same order
+    (the same values on any number).
     """
-    S = row.size
-    L = counts.shape[1]
-    W = counts.shape[2]
+    S, L = row.size, counts.shape[1]
     n_l = np.zeros((S, L))
     b_l = np.zeros((S, L))
     member = np.zeros(S, np.bool_)
-    for i in range(S):
+    own = (d, offset, counts, bkg, keep, hw, weak_z, n_l, b_l, member)
+    on_parts(lambda i0, i1: _dark_sums(*own, i0, i1), S, min(int(n_jobs), S // _DARK_PART))
+    idx = _dark_suspects(keep, ev, order, starts, R, C, member)
+    m = idx.size
+    pn, pb, pf = np.zeros((m, L)), np.zeros((m, L)), np.zeros((m, L))
+    size = np.zeros(m, np.int64)
+    n0, b0 = np.zeros(m), np.zeros(m)  # the same pool counted about each member's own depth
+    args = (
+        idx, row, col, d, offset, counts, bkg, member, n_l, b_l, order, starts, R, C, irf,
+        peak, hw, fwhm, half, pn, pb, pf, size, n0, b0,
+    )  # fmt: skip
+    on_parts(
+        lambda k0, k1: _dark_pool_sums(*args, k0, k1), m, min(int(n_jobs), m // _DARK_POOL_PART)
+    )
+    return idx, pn, pb, pf, size, n0, b0
+
+
+@njit(cache=True, nogil=True)
+def _dark_sums(d, offset, counts, bkg, keep, hw, weak_z, n_l, b_l, member, i0, i1):
+    """Candidates ``i0..i1-1``' own counts ``n_l`` and background ``b_l`` (S, L) in the
+    half-maximum window about their depths; ``member``: kept ones whose own z is below
+    ``weak_z``."""
+    L = counts.shape[1]
+    W = counts.shape[2]
+    for i in range(i0, i1):
         nt = 0.0
         bt = 0.0
         for l in range(L):
@@ -798,8 +879,12 @@ def _dark_pools(
             bt += b_l[i, l]
         if keep[i]:
             member[i] = (nt - bt) < weak_z * np.sqrt(max(bt, 1e-9))
-    # one suspect per pixel with no kept candidate: its rejected candidate of largest
-    # evidence
+
+
+@njit(cache=True, nogil=True)
+def _dark_suspects(keep, ev, order, starts, R, C, member):
+    """One suspect per pixel with no kept candidate: its rejected candidate of largest
+    evidence, in pixel order (m,); ``member`` set for them."""
     sus = np.full(R * C, -1, np.int64)
     for p in range(R * C):
         best = -1
@@ -817,18 +902,27 @@ def _dark_pools(
             member[sus[p]] = True
             m += 1
     idx = np.empty(m, np.int64)
-    pn = np.zeros((m, L))
-    pb = np.zeros((m, L))
-    pf = np.zeros((m, L))
-    size = np.zeros(m, np.int64)
-    n0 = np.zeros(m)  # the same pool counted about each member's own depth
-    b0 = np.zeros(m)
     k = 0
     for p in range(R * C):
-        i = sus[p]
-        if i < 0:
-            continue
-        idx[k] = i
+        if sus[p] >= 0:
+            idx[k] = sus[p]
+            k += 1
+    return idx
+
+
+@njit(cache=True, nogil=True)
+def _dark_pool_sums(
+    idx, row, col, d, offset, counts, bkg, member, n_l, b_l, order, starts, R, C, irf, peak,
+    hw, fwhm, half, pn, pb, pf, size, n0, b0, k0, k1,
+):  # fmt: skip
+    """The pools of suspects ``idx[k0:k1]``: members within ``half`` pixels at the
+    suspect's depth (within ``fwhm``); their counts, background and IRF fraction about
+    the suspect's depth (``pn``, ``pb``, ``pf``), their number and their own sums
+    (``n0``, ``b0``)."""
+    L = counts.shape[1]
+    W = counts.shape[2]
+    for k in range(k0, k1):
+        i = idx[k]
         r0 = row[i]
         c0 = col[i]
         for rr in range(max(r0 - half, 0), min(r0 + half + 1, R)):
@@ -853,8 +947,6 @@ def _dark_pools(
                                     pn[k, l] += counts[a, l, w]
                                     pb[k, l] += b
                                     pf[k, l] += _interp_irf(irf[l], x + peak[l])
-        k += 1
-    return idx, pn, pb, pf, size, n0, b0
 
 
 def rescue_dark(
@@ -869,6 +961,7 @@ def rescue_dark(
     llr_level: float,
     weak_z: float = 3.0,
     min_pool: int = MIN_POOL,
+    n_jobs: int = 1,
 ) -> np.ndarray:
     """Rejected candidates of empty pixels that a dim surface around them explains.
 
@@ -909,6 +1002,11 @@ def rescue_dark(
         Lowest own log-likelihood ratio (``detect`` passes ``-presence_llr``).
     weak_z : float
         Kept candidates below this own z join the pools (``presence_z``).
+    min_pool : int
+        Fewest members of a pool.
+    n_jobs : int
+        Threads of the candidates' sums and the pools' (:func:`_dark_pools`; the result
+        does not depend on it).
 
     Returns
     -------
@@ -955,7 +1053,7 @@ def rescue_dark(
         row, col, d, off, counts, bkg, np.ascontiguousarray(keep),
         np.asarray(surf["evidence"], np.float64), order, starts, int(R), int(C),
         np.ascontiguousarray(irf, np.float64), np.asarray(peak, np.float64), hw,
-        float(fwhm), int(half), float(weak_z),
+        float(fwhm), int(half), float(weak_z), n_jobs,
     )  # fmt: skip
     if sus.size == 0:
         return out
@@ -1040,21 +1138,30 @@ def _sheared_pool(i, r, c, own, offset, index, kb, grad, has, pool):
 
 
 @njit(cache=True, nogil=True)
-def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_own, out):
-    """``out``: each surface's depth, moved where its neighbours' plane and the sheared
-    pool agree on another (see :func:`align_depths`). Returns the number moved."""
+def _align_maps(row, col, slot, depth, R, C, K):
+    """The padded depth map ``D`` (R + 2, C + 2, K) of the surfaces (NaN: none) and
+    their indices ``index`` (-1: none) for :func:`_align_kernel`."""
     D = np.full((R + 2, C + 2, K), np.nan)
     index = np.full((R + 2, C + 2, K), -1, np.int64)
     for i in range(row.size):
         D[row[i] + 1, col[i] + 1, slot[i]] = depth[i]
         index[row[i] + 1, col[i] + 1, slot[i]] = i
+    return D, index
+
+
+@njit(cache=True, nogil=True)
+def _align_kernel(row, col, depth, offset, own, noise, D, index, K, fwhm, z_own, out, i0, i1):
+    """``out[i0:i1]``: the depths of surfaces ``i0..i1-1``, moved where their neighbours'
+    plane and the sheared pool agree on another (see :func:`align_depths`; ``D`` and
+    ``index`` from :func:`_align_maps`: the depths before any move, so each surface's
+    result is its own). Returns the number moved."""
     W = own.shape[1]
     kb = np.zeros((2, 2), np.int64)
     grad = np.zeros(2)
     has = np.zeros(2, np.bool_)
     pool = np.zeros(W)
     moved = 0
-    for i in range(row.size):
+    for i in range(i0, i1):
         out[i] = depth[i]
         d = depth[i]
         p = _align_pairs(D, row[i] + 1, col[i] + 1, d, K, fwhm, kb, grad, has)
@@ -1088,9 +1195,13 @@ def _align_kernel(row, col, slot, depth, offset, own, noise, R, C, K, fwhm, z_ow
     return moved
 
 
+#: Fewest surfaces per thread of :func:`_align_kernel`.
+_ALIGN_PART = 4096
+
+
 def align_depths(
     row, col, slot, depth, offset, own_hist, *, image_shape, n_slots: int, fwhm: float,
-    noise=None, z_own: float = 1.0,
+    noise=None, z_own: float = 1.0, n_jobs: int = 1,
 ) -> tuple[np.ndarray, int]:  # fmt: skip
     """Depths that the 4-neighbours' plane and the sheared 3 x 3 pool place elsewhere, moved.
 
@@ -1133,6 +1244,9 @@ def align_depths(
         per bin). Default: infinite (the own counts never veto a move).
     z_own : float
         How many of ``noise`` the own counts must favour the current depth by to keep it.
+    n_jobs : int
+        Threads (the surfaces in contiguous parts; each surface's depth is its own: the
+        same result on any number).
 
     Returns
     -------
@@ -1159,12 +1273,19 @@ def align_depths(
         return out, 0
     noise = np.full(depth.size, np.inf) if noise is None else np.asarray(noise, np.float64)
     R, C = image_shape
-    n = _align_kernel(
-        np.asarray(row, np.int64), np.asarray(col, np.int64), np.asarray(slot, np.int64),
-        depth, np.asarray(offset, np.int64), np.ascontiguousarray(own_hist, np.float64),
-        np.ascontiguousarray(noise, np.float64), int(R), int(C), int(n_slots), float(fwhm),
+    row, col = np.asarray(row, np.int64), np.asarray(col, np.int64)
+    D, index = _align_maps(
+        row, col, np.asarray(slot, np.int64), depth, int(R), int(C), int(n_slots)
+    )
+    args = (
+        row, col, depth, np.asarray(offset, np.int64), np.ascontiguousarray(own_hist, np.float64),
+        np.ascontiguousarray(noise, np.float64), D, index, int(n_slots), float(fwhm),
         float(z_own), out,
     )  # fmt: skip
+    counts: list = []  # the parts' numbers moved
+    work = min(int(n_jobs), depth.size // _ALIGN_PART)
+    on_parts(lambda i0, i1: counts.append(_align_kernel(*args, i0, i1)), depth.size, work)
+    n = sum(counts)
     logger.debug("depth alignment: %d surfaces moved", n)
     return out, int(n)
 
