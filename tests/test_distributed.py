@@ -259,10 +259,10 @@ def test_detect_on_local_cluster_zarr_cube_bands_match_in_memory(
     assert {"splidar-map-band", "splidar-first-pass"} <= names
 
 
-def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
-    """A band task (the band path, run here on Dask's synchronous scheduler as a
-    cluster's worker runs it) opens the store's arrays and its histograms' group once
-    for its 3 tiles, not once per tile; the Detection is the in-memory one."""
+def _band_path(tmp_path, monkeypatch):
+    """A 24 x 20 cube in Zarr taken by the band path (3 tiles a band, 4 bands), its tasks
+    run here on Dask's synchronous scheduler as a cluster's worker runs them:
+    ``(counts, irf, z)``."""
     zarr = pytest.importorskip("zarr")
     import dask
 
@@ -270,7 +270,7 @@ def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
 
     counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
     z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(5, 20, 1, 100))
-    monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band, 4 bands
+    monkeypatch.setattr(_tiled, "TILE_COLS", 7)
 
     class OneProcess:  # stands for a client: the band path is taken, tasks run here
         def run(self, fn):
@@ -282,6 +282,17 @@ def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
 
     monkeypatch.setattr(_tiled, "_client", OneProcess)
     monkeypatch.setattr(_tiled, "compute_each", each)
+    return counts, irf, z
+
+
+def test_map_band_opens_the_store_once_for_its_tiles(tmp_path, monkeypatch):
+    """A band task opens the store's arrays and its histograms' group once for its 3
+    tiles, not once per tile; the Detection is the in-memory one."""
+    from splidar.detection import _tiled
+
+    counts, irf, z = _band_path(tmp_path, monkeypatch)  # (skipped without zarr)
+    import zarr
+
     opened, in_band = [], [False]
     real_open, real_band = zarr.open_group, _tiled._map_band
 
@@ -311,25 +322,11 @@ def test_map_band_runs_its_tiles_with_freed_memory_kept(tmp_path, monkeypatch):
     """Every band task runs its tiles inside ``keep_freed_memory(any_size=True)`` (on a
     Dask worker the tiles' temporaries reuse freed pages), and the Detection is the
     in-memory one."""
-    zarr = pytest.importorskip("zarr")
     import contextlib
-
-    import dask
 
     from splidar.detection import _tiled
 
-    counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=9)
-    z = _zarr_of(zarr, tmp_path / "c.zarr", counts, chunks=(5, 20, 1, 100))
-    monkeypatch.setattr(_tiled, "TILE_COLS", 7)  # 3 tiles a band, 4 bands
-
-    class OneProcess:  # stands for a client: the band path is taken, tasks run here
-        def run(self, fn):
-            return fn()
-
-    def each(tasks, take):
-        for i, r in enumerate(dask.compute(*tasks, scheduler="synchronous")):
-            take(i, r)
-
+    counts, irf, z = _band_path(tmp_path, monkeypatch)
     entered = []
 
     @contextlib.contextmanager
@@ -337,8 +334,6 @@ def test_map_band_runs_its_tiles_with_freed_memory_kept(tmp_path, monkeypatch):
         entered.append(k)
         yield
 
-    monkeypatch.setattr(_tiled, "_client", OneProcess)
-    monkeypatch.setattr(_tiled, "compute_each", each)
     monkeypatch.setattr(_tiled, "keep_freed_memory", kept)
     a = splidar.detect(Cube(counts, irf=irf), rng=2)
     b = splidar.detect(Cube(da.from_zarr(z), irf=irf), rng=2, block_rows=6, store=tmp_path / "s")

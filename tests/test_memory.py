@@ -75,24 +75,25 @@ def test_keep_freed_memory_restores_after_an_error(recorded):
     assert len(recorded) == 3 and _memory._keep_state["depth"] == 0
 
 
-@pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
-def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
-    """In a process started as Dask starts its workers, 100 temporaries of 2 MB, each
-    freed after a 256 kB array that stays (as a strip's state outlives its
-    temporaries), fault in fresh pages each time outside the block (over 51,200 page
-    faults: 512 a temporary), and inside it reuse the first temporary's pages (the kept
-    arrays' 64 pages each remain); after it, the environment's threshold is back."""
+def _faults(n: int, size: int, block: str) -> tuple:
+    """Page faults of ``n`` temporaries of ``size`` float64, each freed after a 256 kB
+    array that stays (as a strip's state outlives its temporaries), in a process started
+    as Dask starts its workers with transparent huge pages off (a fault per 4 KiB):
+    ``(outside the block, inside block, after it)``; ``block`` the ``with`` statement's
+    context, e.g. ``"keep_freed_memory()"``."""
     code = textwrap.dedent(
-        """
-        import resource
+        f"""
+        import ctypes, resource
         import numpy as np
         from splidar._memory import keep_freed_memory
+
+        ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE
 
         def faults():
             before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             kept = []
-            for _ in range(100):
-                t = np.empty(2**18)
+            for _ in range({n}):
+                t = np.empty({size})
                 t[:] = 1.0
                 kept.append(np.ones(2**15))
                 del t
@@ -100,7 +101,7 @@ def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
 
         faults()
         outside = faults()
-        with keep_freed_memory():
+        with {block}:
             inside = faults()
         print(outside, inside, faults())
         """
@@ -110,7 +111,16 @@ def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
     out = subprocess.run(
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
     )
-    outside, inside, after = (int(x) for x in out.stdout.split())
+    return tuple(int(x) for x in out.stdout.split())
+
+
+@pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
+def test_keep_freed_memory_reuses_freed_pages_in_a_dask_workers_environment():
+    """100 temporaries of 2 MB fault in fresh pages each time outside the block (over
+    51,200 page faults: 512 a temporary), and inside it reuse the first temporary's
+    pages (the kept arrays' 64 pages each remain); after it, the environment's threshold
+    is back."""
+    outside, inside, after = _faults(100, 2**18, "keep_freed_memory()")
     assert outside > 100 * 512, outside
     assert inside < 100 * 64 + 2000, inside
     assert after > 100 * 512, after
@@ -167,41 +177,10 @@ def test_keep_freed_memory_any_size_sets_back_what_a_refusal_left(recorded, monk
 
 @pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
 def test_keep_freed_memory_any_size_reuses_large_freed_arrays_in_a_dask_workers_environment():
-    """As a map tile's 70 MB temporaries: 20 arrays of 64 MB, each freed after a 256 kB
-    array that stays, fault in fresh pages each time outside the block (16,384 faults a
-    temporary, huge pages off) and inside it reuse the first one's pages (its 16,384
-    faults and the kept arrays' 1,280)."""
-    code = textwrap.dedent(
-        """
-        import ctypes, resource
-        import numpy as np
-        from splidar._memory import keep_freed_memory
-
-        # transparent huge pages off (PR_SET_THP_DISABLE): a page fault per 4 KiB
-        ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)
-
-        def faults():
-            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-            kept = []
-            for _ in range(20):
-                t = np.empty(2**23)
-                t[:] = 1.0
-                kept.append(np.ones(2**15))
-                del t
-            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
-
-        faults()
-        outside = faults()
-        with keep_freed_memory(any_size=True):
-            inside = faults()
-        print(outside, inside)
-        """
-    )
-    env = {**os.environ, **DASK_ENV}
-    env.pop("GLIBC_TUNABLES", None)
-    out = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
-    )
-    outside, inside = (int(x) for x in out.stdout.split())
+    """As a map tile's 70 MB temporaries: 20 arrays of 64 MB fault in fresh pages each
+    time outside the block (16,384 faults a temporary) and inside it reuse the first
+    one's pages (its 16,384 faults and the kept arrays' 1,280)."""
+    outside, inside, after = _faults(20, 2**23, "keep_freed_memory(any_size=True)")
     assert outside > 20 * 16384, outside
     assert inside < 2 * 16384 + 2000, inside
+    assert after > 20 * 16384, after
