@@ -308,6 +308,24 @@ def test_far_keys_are_equal_exactly_when_the_former_tuple_keys_are():
     assert len(set(k1)) == len(set(f1)) and stage._far_keys(cand[:0], *a[1:]) == []
 
 
+def _plane_surfaces(seed: int, R: int, C: int, K: int, p_far: float) -> tuple:
+    """A random R x C image of 1-K surfaces per pixel on the first K of three planes
+    (depth bins 20 + 0.5 c, 60 + 0.3 r, 110), a fraction ``p_far`` of them moved far off
+    (normal, 30 bins): ``(row, col, slot, depth)``, int64 and float64."""
+    rng = np.random.default_rng(seed)
+    row, col, slot, depth = [], [], [], []
+    for r in range(R):
+        for c in range(C):
+            n = rng.integers(1, K + 1)
+            planes = [20.0 + 0.5 * c, 60.0 + 0.3 * r, 110.0][:K]
+            d = np.sort(rng.choice(planes, n, replace=False))
+            d += np.where(rng.random(n) < p_far, rng.normal(0, 30, n), 0.0)
+            for k in range(n):
+                row.append(r), col.append(c), slot.append(k), depth.append(d[k])
+    row, col, slot = (np.array(v, np.int64) for v in (row, col, slot))
+    return row, col, slot, np.array(depth)
+
+
 def test_far_kernel_int32_indices_equal_int64_bit_for_bit():
     """``_far_kernel`` with the sources' and slots' indices in int32 (``_far_moves``,
     S < 2**31) gives the alternatives, sources and isolation the int64 arrays give: a
@@ -315,18 +333,9 @@ def test_far_kernel_int32_indices_equal_int64_bit_for_bit():
     among them (sources on planes and beside edges both found)."""
     from splidar.detection._7a_align_depths import _far_kernel
 
-    rng = np.random.default_rng(23)
     R, C, K = 40, 30, 3
-    row, col, slot, depth = [], [], [], []
-    for r in range(R):
-        for c in range(C):
-            n = rng.integers(1, K + 1)
-            d = np.sort(rng.choice([20.0 + 0.5 * c, 60.0 + 0.3 * r, 110.0], n, replace=False))
-            d += np.where(rng.random(n) < 0.1, rng.normal(0, 30, n), 0.0)
-            for k in range(n):
-                row.append(r), col.append(c), slot.append(k), depth.append(d[k])
-    row, col, slot = (np.array(v, np.int64) for v in (row, col, slot))
-    depth, S = np.array(depth), len(row)
+    row, col, slot, depth = _plane_surfaces(23, R, C, K, 0.1)
+    S = len(row)
     got = {}
     for kind in (np.int64, np.int32):
         alt, src = np.empty((S, 4)), np.full((S, 4, 4), -1, kind)
@@ -347,18 +356,9 @@ def test_far_items_in_parts_on_threads_equal_the_whole_kernel():
     from splidar.detection._7a_align_depths import _far_items, _far_kernel, _far_maps
     from splidar.detection._threads import on_parts
 
-    rng = np.random.default_rng(29)
     R, C, K = 30, 26, 2
-    row, col, slot, depth = [], [], [], []
-    for r in range(R):
-        for c in range(C):
-            n = rng.integers(1, K + 1)
-            d = np.sort(rng.choice([20.0 + 0.5 * c, 60.0 + 0.3 * r], n, replace=False))
-            d += np.where(rng.random(n) < 0.15, rng.normal(0, 30, n), 0.0)
-            for k in range(n):
-                row.append(r), col.append(c), slot.append(k), depth.append(d[k])
-    row, col, slot = (np.array(v, np.int64) for v in (row, col, slot))
-    depth, S = np.array(depth), len(row)
+    row, col, slot, depth = _plane_surfaces(29, R, C, K, 0.15)
+    S = len(row)
 
     def arrays():
         return (

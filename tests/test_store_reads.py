@@ -674,6 +674,13 @@ def test_write_rows_raw_store_equals_compressed_store(tmp_path, monkeypatch):
     assert np.asarray(raw[...]).tobytes() == np.asarray(packed[...]).tobytes()
 
 
+def _sparse_histograms(seed: int, shape: tuple) -> np.ndarray:
+    """Random float32 histograms of ``shape``, 30 % of their values 0 (as a stored
+    candidate's outside its support)."""
+    rng = np.random.default_rng(seed)
+    return (rng.gamma(0.5, 3.0, shape) * (rng.random(shape) < 0.7)).astype("f4")
+
+
 @pytest.mark.parametrize("compressed", [True, False])
 def test_finest_sums_stored_equals_in_memory_bit_for_bit(tmp_path, monkeypatch, compressed):
     """``_finest_sums`` of stored histograms (read by rows, several parts) equals the
@@ -682,8 +689,7 @@ def test_finest_sums_stored_equals_in_memory_bit_for_bit(tmp_path, monkeypatch, 
     from splidar.detection import _7a_align_depths
     from splidar.detection._result import StoredHistograms
 
-    rng = np.random.default_rng(13)
-    h = (rng.gamma(0.5, 3.0, (50, 3, 2, 7)) * (rng.random((50, 3, 2, 7)) < 0.7)).astype("f4")
+    h = _sparse_histograms(13, (50, 3, 2, 7))
     g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
     z = store_histograms(g, "h", h.shape, data=h, compressed=compressed)
     want = _7a_align_depths._finest_sums(h)
@@ -700,8 +706,7 @@ def test_finest_sums_same_on_any_number_of_threads(tmp_path, monkeypatch):
     from splidar.detection import _7a_align_depths
     from splidar.detection._result import StoredHistograms
 
-    rng = np.random.default_rng(14)
-    h = (rng.gamma(0.5, 3.0, (61, 3, 2, 7)) * (rng.random((61, 3, 2, 7)) < 0.7)).astype("f4")
+    h = _sparse_histograms(14, (61, 3, 2, 7))
     g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
     z = store_histograms(g, "h", h.shape, data=h, compressed=False)
     want = _7a_align_depths._finest_sums(h)
