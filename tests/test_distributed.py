@@ -341,6 +341,16 @@ def test_map_band_runs_its_tiles_with_freed_memory_kept(tmp_path, monkeypatch):
     assert entered == [{"any_size": True}] * 4
 
 
+def _poisson_zarr(zarr, tmp_path, seed: int, shape: tuple, dtype) -> tuple:
+    """Poisson counts (mean 2) of ``shape`` and their Zarr array in chunks of 13 whole
+    rows (so bands cross chunk edges): ``(array, Zarr array)``."""
+    y = np.random.default_rng(seed).poisson(2.0, shape).astype(dtype)
+    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape,
+                        chunks=(13,) + y.shape[1:], dtype=y.dtype)  # fmt: skip
+    z[...] = y
+    return y, z
+
+
 def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):
     """One read of a Zarr cube's chunks gives the stuck-pixel totals and stage 1's
     window means, bit for bit the in-memory ones, whatever the bands (windows crossing
@@ -351,10 +361,7 @@ def test_first_pass_gives_the_totals_and_window_means_of_a_zarr_cube(tmp_path):
     from splidar.detection._fast import window_means
     from splidar.detection._tiled import first_pass
 
-    y = np.random.default_rng(5).poisson(2.0, (90, 300, 2, 40)).astype(np.uint16)
-    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape, chunks=(13, 300, 2, 40),
-                        dtype=y.dtype)  # fmt: skip
-    z[...] = y
+    y, z = _poisson_zarr(zarr, tmp_path, 5, (90, 300, 2, 40), np.uint16)
     lazy = da.from_zarr(z)
     with dask.config.set(scheduler="threads"):
         got = first_pass(lazy, 7)
@@ -473,10 +480,7 @@ def test_first_pass_gathers_blocks_of_a_zarr_cube(tmp_path):
     zarr = pytest.importorskip("zarr")
     from splidar.detection._tiled import first_pass
 
-    y = np.random.default_rng(7).poisson(2.0, (150, 40, 2, 30)).astype(np.uint8)
-    z = zarr.open_array(str(tmp_path / "y.zarr"), mode="w", shape=y.shape, chunks=(13, 40, 2, 30),
-                        dtype=y.dtype)  # fmt: skip
-    z[...] = y
+    y, z = _poisson_zarr(zarr, tmp_path, 7, (150, 40, 2, 30), np.uint8)
     lazy = da.from_zarr(z)
     blocks = [(3, 20, 0, 40), (50, 92, 7, 19), (0, 150, 30, 40), (140, 150, 0, 1)]
     with dask.config.set(scheduler="threads"):
