@@ -82,6 +82,27 @@ def test_detect_dask_cube_matches_in_memory():
     assert b.options["block_rows"] == 6
 
 
+def test_detect_dask_cube_holds_freed_memory_in_stages_5_to_7_only(monkeypatch):
+    """A Dask cube's stages 5-7 run inside ``hold_freed_memory`` (glibc's settings set
+    back after); an in-memory cube's do not."""
+    import splidar.detection._detect as det_mod
+    from splidar import _memory
+
+    entered, real = [], _memory.hold_freed_memory
+
+    def recording():
+        entered.append(1)
+        return real()
+
+    monkeypatch.setattr(det_mod, "hold_freed_memory", recording)
+    cube, lazy = _cubes(*_varying_cube(shape=(16, 14), n_bins=80), (8, 14, 1, 80))
+    splidar.detect(cube, rng=0)
+    assert entered == []
+    splidar.detect(lazy, rng=0, block_rows=8)
+    assert entered == [1]
+    assert _memory._keep_state == {"depth": 0, "restore": None, "any": 0, "restore_any": None}
+
+
 def test_detect_dask_cube_with_a_hot_pixel_matches_in_memory():
     # a stuck pixel (10^4 x the background, flat in t) is set aside in both paths
     counts, irf = _varying_cube(shape=(24, 20), n_bins=100, seed=5)

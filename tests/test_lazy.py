@@ -49,6 +49,12 @@ def test_detect_store_writes_arrays_to_zarr_and_matches_memory(tmp_path):
     # the arrays stay on disk after the call
     g = zarr.open_group(str(tmp_path / "det"), mode="r")
     np.testing.assert_array_equal(g["mask"][:], a.mask)
+    # every chunk file in its array's folder (``c.i.j.k`` keys): no folder per chunk
+    first = {"saliency": "c.0.0.0", "mask": "c.0.0.0", "surface_histograms": "c.0.0.0.0"}
+    for name, key in first.items():
+        files = list((tmp_path / "det" / name).iterdir())
+        assert not [f for f in files if f.is_dir()], name
+        assert {"zarr.json", key} <= {f.name for f in files}, name
 
 
 def test_detect_store_refuses_existing_directory(tmp_path):

@@ -75,17 +75,18 @@ def test_keep_freed_memory_restores_after_an_error(recorded):
     assert len(recorded) == 3 and _memory._keep_state["depth"] == 0
 
 
-def _faults(n: int, size: int, block: str) -> tuple:
+def _faults(n: int, size: int, block: str, *, dask_env: bool = True) -> tuple:
     """Page faults of ``n`` temporaries of ``size`` float64, each freed after a 256 kB
     array that stays (as a strip's state outlives its temporaries), in a process started
     as Dask starts its workers with transparent huge pages off (a fault per 4 KiB):
     ``(outside the block, inside block, after it)``; ``block`` the ``with`` statement's
-    context, e.g. ``"keep_freed_memory()"``."""
+    context, e.g. ``"keep_freed_memory()"``; ``dask_env=False``: no malloc setting in the
+    environment (glibc's dynamic threshold, as in a user's process)."""
     code = textwrap.dedent(
         f"""
         import ctypes, resource
         import numpy as np
-        from splidar._memory import keep_freed_memory
+        from splidar._memory import hold_freed_memory, keep_freed_memory
 
         ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE
 
@@ -106,7 +107,8 @@ def _faults(n: int, size: int, block: str) -> tuple:
         print(outside, inside, faults())
         """
     )
-    env = {**os.environ, **DASK_ENV}
+    env = {k: v for k, v in os.environ.items() if k not in _memory._MALLOC_ENV}
+    env.update(DASK_ENV if dask_env else {})
     env.pop("GLIBC_TUNABLES", None)
     out = subprocess.run(
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
@@ -181,6 +183,46 @@ def test_keep_freed_memory_any_size_reuses_large_freed_arrays_in_a_dask_workers_
     time outside the block (16,384 faults a temporary) and inside it reuse the first
     one's pages (its 16,384 faults and the kept arrays' 1,280)."""
     outside, inside, after = _faults(20, 2**23, "keep_freed_memory(any_size=True)")
+    assert outside > 20 * 16384, outside
+    assert inside < 2 * 16384 + 2000, inside
+    assert after > 20 * 16384, after
+
+
+def test_hold_freed_memory_maps_nothing_apart_with_the_dynamic_threshold(recorded, monkeypatch):
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")  # no malloc setting: glibc's dynamic rule
+    with _memory.hold_freed_memory():
+        assert recorded == [(_memory.M_MMAP_MAX, 0), (_memory.M_TRIM_THRESHOLD, 2**30)]
+    # set back to glibc's default and to the dynamic rule's trim threshold at 32 MiB
+    assert recorded[2:] == [
+        (_memory.M_MMAP_MAX, 65536), (_memory.M_TRIM_THRESHOLD, 2**26), ("trim", 0),
+    ]  # fmt: skip
+    assert _memory._keep_state == {"depth": 0, "restore": None, "any": 0, "restore_any": None}
+
+
+def test_hold_freed_memory_in_a_dask_workers_environment_is_keep_freed_memory_any_size(recorded):
+    with _memory.hold_freed_memory():
+        pass
+    held = list(recorded)
+    recorded.clear()
+    with _memory.keep_freed_memory(any_size=True):
+        pass
+    assert held == recorded and len(held) == 7
+
+
+def test_hold_freed_memory_leaves_glibc_tunables_alone(recorded, monkeypatch):
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.trim_threshold=1000000")
+    with _memory.hold_freed_memory():
+        pass
+    assert recorded == []
+
+
+@pytest.mark.skipif(_memory._mallopt() is None, reason="glibc's mallopt only")
+def test_hold_freed_memory_reuses_large_freed_arrays_with_the_dynamic_threshold():
+    """A user's process (no malloc setting): arrays of 64 MB, over glibc's largest
+    dynamic threshold (32 MiB), are fresh mappings each time outside the block (16,384
+    faults each) and reuse the first one's pages inside it."""
+    outside, inside, after = _faults(20, 2**23, "hold_freed_memory()", dask_env=False)
     assert outside > 20 * 16384, outside
     assert inside < 2 * 16384 + 2000, inside
     assert after > 20 * 16384, after

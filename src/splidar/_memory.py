@@ -30,6 +30,7 @@ __all__ = [
     "detect_peak_bytes",
     "format_bytes",
     "give_back",
+    "hold_freed_memory",
     "keep_freed_memory",
     "reconstruct_peak_bytes",
 ]
@@ -192,6 +193,11 @@ _MMAP_MAX_DEFAULT = 65536
 #: task's freed heap top stays until the block's end gives it back).
 KEEP_TRIM_THRESHOLD = 2**30
 
+#: The trim threshold :func:`hold_freed_memory` leaves in a process whose environment
+#: fixed no malloc setting: twice glibc's largest dynamic mmap threshold (32 MiB), the
+#: value its dynamic rule sets once a freed mapping raised the threshold that far.
+_DYNAMIC_TRIM_THRESHOLD = 2 * 32 * 2**20
+
 _KEEP_LOCK = threading.Lock()
 _keep_state = {"depth": 0, "restore": None, "any": 0, "restore_any": None}
 
@@ -235,7 +241,7 @@ def fixed_mmap_threshold(environ=None) -> int | None:
 
 
 @contextlib.contextmanager
-def keep_freed_memory(*, any_size: bool = False):
+def keep_freed_memory(*, any_size: bool = False, _dynamic: bool = False):
     """Within the block, arrays up to :data:`KEEP_MMAP_THRESHOLD` reuse freed memory.
 
     A process started with a malloc setting fixed in its environment (a Dask worker: its
@@ -268,7 +274,7 @@ def keep_freed_memory(*, any_size: bool = False):
         _keep_state["depth"] += 1
         if any_size:
             if _keep_state["any"] == 0:
-                _keep_state["restore_any"] = _map_nothing_apart()
+                _keep_state["restore_any"] = _map_nothing_apart(_dynamic)
             _keep_state["any"] += 1
     try:
         yield
@@ -290,16 +296,40 @@ def keep_freed_memory(*, any_size: bool = False):
                 give_back()
 
 
-def _map_nothing_apart() -> tuple | None:
+@contextlib.contextmanager
+def hold_freed_memory():
+    """Within the block, freed memory of any size is reused, in any process: the calling
+    process's image-wide passes (a tiled detection's stages 5-7 over a Dask cube).
+
+    :func:`keep_freed_memory` with ``any_size`` where the environment fixed malloc's
+    thresholds; in a process where it did not (glibc's dynamic threshold: arrays over
+    32 MiB are mapped apart, each a fresh mapping, a page fault per page), glibc maps
+    nothing apart and keeps its freed heap top inside the block too, and at its end
+    ``M_MMAP_MAX`` goes back to glibc's default and ``M_TRIM_THRESHOLD`` to
+    :data:`_DYNAMIC_TRIM_THRESHOLD` (glibc cannot turn its dynamic rule back on: the mmap
+    threshold stays at the value the rule reached), the freed pages given back. The
+    explicit :func:`give_back` calls inside the block still return what was freed. On
+    issue #16's cluster run the calling process's stages 5-7 took 17.3-19.7 instead of
+    19.4-21.4 s ("Lead, session 30" in ``benchmarks/README.md``). No effect on any
+    result."""
+    with keep_freed_memory(any_size=True, _dynamic=True):
+        yield
+
+
+def _map_nothing_apart(dynamic: bool = False) -> tuple | None:
     """``M_MMAP_MAX`` set to 0 and ``M_TRIM_THRESHOLD`` raised to
     :data:`KEEP_TRIM_THRESHOLD` (:func:`keep_freed_memory` with ``any_size``): the
-    ``(parameter, value before)`` pairs to set back, or None when nothing was changed
-    (the environment fixed no malloc setting, or no glibc)."""
-    fixed = fixed_mmap_threshold()
-    mallopt = _mallopt() if fixed is not None else None
+    ``(parameter, value to set back)`` pairs, or None when nothing was changed (the
+    environment fixed no malloc setting and not ``dynamic``, or no glibc)."""
+    fixed, env = fixed_mmap_threshold(), os.environ
+    untouched = "glibc.malloc." not in env.get("GLIBC_TUNABLES", "") and not any(
+        k in env for k in _MALLOC_ENV
+    )  # glibc's dynamic threshold
+    if fixed is None and not (dynamic and untouched):
+        return None
+    mallopt = _mallopt()
     if mallopt is None:
         return None
-    env = os.environ
     try:
         before = (
             (M_MMAP_MAX, int(env.get("MALLOC_MMAP_MAX_", _MMAP_MAX_DEFAULT))),
@@ -307,6 +337,8 @@ def _map_nothing_apart() -> tuple | None:
         )
     except ValueError:
         return None
+    if fixed is None:  # the dynamic threshold's process (hold_freed_memory): no env values
+        before = ((M_MMAP_MAX, _MMAP_MAX_DEFAULT), (M_TRIM_THRESHOLD, _DYNAMIC_TRIM_THRESHOLD))
     done = []
     for (param, _), value in zip(before, (0, KEEP_TRIM_THRESHOLD), strict=True):
         if mallopt(param, value) != 1:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .._arrays import _raw_chunks, write_raw_chunk
+from .._arrays import FLAT_CHUNK_KEYS, _raw_chunks, write_raw_chunk
 from .._validation import SplidarError, describe
 from ._2_saliency import STRIP_COLS, SaliencyFilters, block_saliency
 from ._3_null import NullCalibration, split_rule
@@ -691,10 +691,13 @@ def _open_store(store, shape, block_rows: int, block_cols=None) -> dict:
     # write speed); the sparse mask ~150 x with Zarr's default zstd
     out = dict(
         saliency=g.create_array(
-            "saliency", shape=shape, chunks=ch, dtype="float32", compressors=None
+            "saliency", shape=shape, chunks=ch, dtype="float32", compressors=None,
+            chunk_key_encoding=FLAT_CHUNK_KEYS,
         ),
-        mask=g.create_array("mask", shape=shape, chunks=ch, dtype="bool"),
-    )
+        mask=g.create_array(
+            "mask", shape=shape, chunks=ch, dtype="bool", chunk_key_encoding=FLAT_CHUNK_KEYS
+        ),
+    )  # fmt: skip
     out = {k: writer(v) for k, v in out.items()}
     out["threshold"] = None
     return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -14,7 +15,7 @@ from types import MappingProxyType
 import numpy as np
 
 from .._irf_width import check_cube_irf
-from .._memory import check_detect_memory, give_back
+from .._memory import check_detect_memory, give_back, hold_freed_memory
 from .._validation import (
     SplidarError,
     check_choice,
@@ -293,8 +294,12 @@ def _stages_5_to_7(cube, o, mp, held, hists: list, bg, corr, rng, t0: float, sto
     nonzero entries meanwhile, each chunk decoded once (``_slopes.kept_counts``), ahead
     on ``n_jobs`` threads from the start (while the recentring runs).
     ``hists``: ``[list of the map's per-block histograms]``, which stage 6 empties block by
-    block as it gathers the surfaces' rows (``select_surfaces(release=True)``)."""
-    with kept_counts(cube.counts, threads=o["n_jobs"]):
+    block as it gathers the surfaces' rows (``select_surfaces(release=True)``).
+    For a Dask cube the calling process reuses its freed memory meanwhile
+    (:func:`~splidar._memory.hold_freed_memory`: the whole image's arrays, not pages
+    faulted in afresh for each)."""
+    held_memory = hold_freed_memory() if o["tiled"] else contextlib.nullcontext()
+    with kept_counts(cube.counts, threads=o["n_jobs"]), held_memory:
         done = _clean_up(cube, o, mp, held, hists[0], bg, corr, rng)
         return done, *_select_and_align(cube, o, mp, hists, done, t0, store, bg)
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._arrays import zarr_write_rows
+from .._arrays import FLAT_CHUNK_KEYS, zarr_write_rows
 from ._kernels import rank_in_pixel_sorted
 from ._result import STAGES
 
@@ -250,6 +250,7 @@ def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: b
     z = group.create_array(
         name, shape=tuple(int(v) for v in shape), chunks=chunks, dtype="float32",
         compressors=fast, overwrite=True, config={"write_empty_chunks": True},
+        chunk_key_encoding=FLAT_CHUNK_KEYS,
     )  # fmt: skip
     if data is not None and len(data):
         z[...] = data
