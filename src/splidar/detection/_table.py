@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._arrays import FLAT_CHUNK_KEYS, zarr_write_rows
+from .._arrays import FLAT_CHUNK_KEYS, _raw_chunks, write_raw_chunk, zarr_write_rows
 from ._kernels import rank_in_pixel_sorted
 from ._result import STAGES
 
@@ -225,11 +225,14 @@ def compact_columns(columns: dict, image_shape: tuple[int, int], n_bins: int) ->
     return out
 
 
-def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: bool = True):
+def store_histograms(
+    group, name: str, shape: tuple, *, data=None, compressed: bool = True, chunk_rows=None
+):
     """A float32 Zarr array ``name`` of ``shape`` ``(n, Q, L, W)`` in the Zarr group
     ``group`` (replaced if it exists: a recomputed tile writes the same values), chunked
-    by :data:`HIST_CHUNK` candidates, compressed with lz4 (histograms are zero outside
-    their supports) unless ``compressed=False``; ``data``, when given, written to it.
+    by :data:`HIST_CHUNK` candidates (or ``chunk_rows``), compressed with lz4
+    (histograms are zero outside their supports) unless ``compressed=False``; ``data``,
+    when given, written to it.
 
     The tiles' candidate histograms, read once by the selection and then removed, are
     written uncompressed: on the ``--large`` benchmark scene lz4 stored them in 82 % of
@@ -242,18 +245,25 @@ def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: b
     Every chunk is written, even one of zeros (Zarr's ``write_empty_chunks``): Zarr would
     otherwise compare each chunk with the fill value before writing it, bit pattern by
     bit pattern (0.8 ms per MB, a pass over every histogram written; "dist27" in
-    ``benchmarks/README.md``). The values read back are the same."""
+    ``benchmarks/README.md``). The values read back are the same. Data in one chunk of
+    an uncompressed array is written as its chunk file
+    (:func:`~splidar._arrays.write_raw_chunk`: the same bytes)."""
     from zarr.codecs import BloscCodec
 
     fast = [BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")] if compressed else None
-    chunks = (max(1, min(int(shape[0]), HIST_CHUNK)),) + tuple(int(v) for v in shape[1:])
+    rows = HIST_CHUNK if chunk_rows is None else int(chunk_rows)
+    chunks = (max(1, min(int(shape[0]), rows)),) + tuple(int(v) for v in shape[1:])
     z = group.create_array(
         name, shape=tuple(int(v) for v in shape), chunks=chunks, dtype="float32",
         compressors=fast, overwrite=True, config={"write_empty_chunks": True},
         chunk_key_encoding=FLAT_CHUNK_KEYS,
     )  # fmt: skip
     if data is not None and len(data):
-        z[...] = data
+        raw = None if chunks[0] < len(data) else _raw_chunks(z)
+        if raw is None:
+            z[...] = data
+        else:  # one raw chunk: its file (past the page cache when large enough)
+            write_raw_chunk(raw, (0,) * len(shape), np.asarray(data, np.float32))
     return z
 
 

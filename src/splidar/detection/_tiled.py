@@ -506,12 +506,12 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
     with deferred_chunk_writes():  # (within a band task's block: that one)
         res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work, cols=(ce0, c0, c1, carry))
-    if res.histograms is not None and res.kept.size < len(res.histograms):
-        # only the histograms of the candidates in the table travel back (in memory the
-        # block's whole array is kept and indexed by ``kept``: the same values)
-        res.histograms = np.ascontiguousarray(res.histograms[res.kept])
-        res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
-    _compact_result(res, store_path, (r0, c0), opts["image_shape"], T)
+        if res.histograms is not None and res.kept.size < len(res.histograms):
+            # only the histograms of the candidates in the table travel back (in memory
+            # the block's whole array is kept and indexed by ``kept``: the same values)
+            res.histograms = np.ascontiguousarray(res.histograms[res.kept])
+            res.kept = np.arange(res.kept.size, dtype=res.kept.dtype)
+        _compact_result(res, store_path, (r0, c0), opts["image_shape"], T)
     return res, own, None if last else carry
 
 
@@ -653,9 +653,11 @@ def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) ->
     if store_path is not None and res.histograms is not None:
         g = _stores(store_path)["histograms"]
         # read once by the selection, then removed: uncompressed (store_histograms)
+        # in one chunk (read at the selected rows in the chunk file, zarr_take_rows):
+        # one file to create per tile, not one per HIST_CHUNK candidates
         res.histograms = store_histograms(
             g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=np.asarray(res.histograms),
-            compressed=False,
+            compressed=False, chunk_rows=max(1, len(res.histograms)),
         )  # fmt: skip
 
 
@@ -779,7 +781,10 @@ def map_candidates_tiled(
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
     if store is not None:
-        out = _open_store(store, (R, C, T), chunk_rows, block_cols=block_cols)
+        # the mask (not read by the passes after the map) in one chunk per tile: 8 x
+        # fewer files to create ("Lead, session 30" in benchmarks/README.md)
+        out = _open_store(store, (R, C, T), chunk_rows, block_cols=block_cols,
+                          mask_rows=block_rows)  # fmt: skip
         store_path = str(store)
         import zarr
 
