@@ -7,7 +7,7 @@ import pytest
 zarr = pytest.importorskip("zarr")
 da = pytest.importorskip("dask.array")
 
-from splidar._arrays import zarr_voxels  # noqa: E402
+from splidar._arrays import zarr_take_rows, zarr_voxels  # noqa: E402
 from splidar.detection import ThresholdField  # noqa: E402
 from splidar.detection._6_select import _gather  # noqa: E402
 from splidar.detection._slopes import (  # noqa: E402
@@ -278,8 +278,27 @@ def test_store_histograms_writes_every_chunk_without_comparing(tmp_path, compres
     data = np.zeros((10, 2, 1, 5), np.float32)  # one chunk, all zeros
     z = store_histograms(g, "h", data.shape, data=data, compressed=compressed)
     assert z.config.write_empty_chunks
-    assert (tmp_path / "h.zarr" / "h" / "c" / "0" / "0" / "0" / "0").is_file()
+    assert (tmp_path / "h.zarr" / "h" / "c.0.0.0.0").is_file()  # FLAT_CHUNK_KEYS
     np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "h.zarr"))["h"][...], data)
+
+
+def test_store_histograms_chunk_rows_one_raw_chunk_written_as_its_file(tmp_path, monkeypatch):
+    # a tile's candidates in one uncompressed chunk: written as the chunk file (not
+    # through Zarr's write), read back the same, by Zarr and at rows
+    import splidar.detection._table as table_mod
+
+    g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
+    data = np.random.default_rng(0).random((9000, 2, 1, 5)).astype(np.float32)
+    written = []
+    real = table_mod.write_raw_chunk
+    monkeypatch.setattr(table_mod, "write_raw_chunk", lambda *a: written.append(a[1]) or real(*a))
+    z = store_histograms(g, "h", data.shape, data=data, compressed=False, chunk_rows=len(data))
+    assert z.chunks[0] == 9000 and written == [(0, 0, 0, 0)]
+    files = sorted(p.name for p in (tmp_path / "h.zarr" / "h").iterdir())
+    assert files == ["c.0.0.0.0", "zarr.json"]
+    np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "h.zarr"))["h"][...], data)
+    rows = np.array([8999, 3, 4500])
+    np.testing.assert_array_equal(zarr_take_rows(z, rows), data[rows])
 
 
 def test_remove_tree_removes_nested_folders(tmp_path):
