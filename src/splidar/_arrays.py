@@ -481,11 +481,12 @@ def deferred_chunk_writes(depth: int = 2):
 #: The chunk key encoding of the arrays a detection writes in its store (the saliency, the
 #: map, the histograms): Zarr 3's default keys with ``.`` between the grid indices
 #: (``c.12.3.0``), every chunk file in the array's folder. With ``/`` (Zarr's default)
-#: each chunk makes folders too (``c/12/3/0``): a new inode per chunk besides its file,
-#: and on this project's test VMs (ext4 without a journal, where each new inode skips
-#: every inode deleted in the last 3000 s, one buffer lookup each) creating them was
-#: 4-7 % of all CPU during the map pass ("Lead, session 30" in ``benchmarks/README.md``).
-#: A Zarr reader follows the keys the array's metadata names: nothing else changes.
+#: each chunk makes folders too (``c/12/3/0``): new inodes besides the chunk file's
+#: (issue #16's cluster run: 11,986 folders for 7,098 files), and on this project's VMs
+#: (ext4 without a journal, where each new inode skips every inode deleted in the last
+#: 3000 s, one buffer lookup each) creating them was 8 % of all CPU during the map pass
+#: ("Lead, session 30" in ``benchmarks/README.md``). A Zarr reader follows the keys the
+#: array's metadata names: nothing else changes.
 FLAT_CHUNK_KEYS = {"name": "default", "separator": "."}
 
 #: Chunk files at least this large are written past the page cache (:func:`_write_direct`).

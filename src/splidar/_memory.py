@@ -309,9 +309,9 @@ def hold_freed_memory():
     :data:`_DYNAMIC_TRIM_THRESHOLD` (glibc cannot turn its dynamic rule back on: the mmap
     threshold stays at the value the rule reached), the freed pages given back. The
     explicit :func:`give_back` calls inside the block still return what was freed. On
-    issue #16's cluster run the calling process's stages 5-7 took 17.3-19.7 instead of
-    19.4-21.4 s ("Lead, session 30" in ``benchmarks/README.md``). No effect on any
-    result."""
+    issue #16's cluster run the calling process's stages 5-7 took 19.1-19.7 s against
+    19.4-21.4 s without (four runs each; ``clear_page_erms`` 8 % of its CPU there against
+    17 %: "Lead, session 30" in ``benchmarks/README.md``). No effect on any result."""
     with keep_freed_memory(any_size=True, _dynamic=True):
         yield
 
