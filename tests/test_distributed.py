@@ -82,9 +82,9 @@ def test_detect_dask_cube_matches_in_memory():
     assert b.options["block_rows"] == 6
 
 
-def test_detect_dask_cube_holds_freed_memory_in_stages_5_to_7_only(monkeypatch):
-    """A Dask cube's stages 5-7 run inside ``hold_freed_memory`` (glibc's settings set
-    back after); an in-memory cube's do not."""
+def test_detect_dask_cube_holds_freed_memory_in_the_map_and_stages_5_to_7(monkeypatch):
+    """A Dask cube's map pass (its tables joined) and stages 5-7 run inside
+    ``hold_freed_memory`` (glibc's settings set back after); an in-memory cube's do not."""
     import splidar.detection._detect as det_mod
     from splidar import _memory
 
@@ -99,7 +99,7 @@ def test_detect_dask_cube_holds_freed_memory_in_stages_5_to_7_only(monkeypatch):
     splidar.detect(cube, rng=0)
     assert entered == []
     splidar.detect(lazy, rng=0, block_rows=8)
-    assert entered == [1]
+    assert entered == [1, 1]
     assert _memory._keep_state == {"depth": 0, "restore": None, "any": 0, "restore_any": None}
 
 

@@ -331,3 +331,33 @@ def test_row_sums_equal_the_whole_windows_sums():
         idx = np.flatnonzero(rng.random(S) < 0.7)
         want = w.sum(axis=-1, dtype=np.float64)[idx]
         np.testing.assert_array_equal(_row_sums(w, idx), want)
+
+
+def test_table_joins_the_columns_on_threads_with_the_same_table():
+    """The blocks' candidate columns joined on 3 threads: the same table (values, types,
+    order) as one thread's, every block's part released (popped) once copied."""
+
+    class Out:
+        def __init__(self, b, n, rng):
+            self.kept = np.arange(n)
+            self.surf = {
+                "row": np.repeat(np.arange(b * 4, b * 4 + 4), n // 4).astype(np.int32),
+                "col": np.tile(np.arange(n // 4), 4).astype(np.int32),
+                "start": rng.integers(0, 50, n).astype(np.int32),
+                "evidence": rng.random(n),
+                "presence_ok": rng.random(n) > 0.2,
+            }
+
+    def outs():
+        rng = np.random.default_rng(5)
+        return [Out(b, 40, rng) for b in range(6)]
+
+    one, blocks = _4_map._table(outs(), (24, 10)), outs()
+    three = _4_map._table(blocks, (24, 10), threads=3)
+    assert all(o.surf == {} for o in blocks)
+    assert one.columns.keys() == three.columns.keys()
+    for k, v in one.columns.items():
+        assert three.columns[k].dtype == v.dtype
+        np.testing.assert_array_equal(three.columns[k], v, err_msg=k)
+    np.testing.assert_array_equal(three.keep, one.keep)
+    np.testing.assert_array_equal(three.hist_row, one.hist_row)

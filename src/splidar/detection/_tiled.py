@@ -721,6 +721,7 @@ def map_candidates_tiled(
     *,
     block_rows: int | None,
     store=None,
+    n_jobs: int = 1,
 ) -> CandidateMap:
     """Stage 4 (:func:`~splidar.detection._4_map.map_candidates`) on a Dask array.
 
@@ -739,6 +740,8 @@ def map_candidates_tiled(
         A new directory: the tiles write saliency, mask (and a per-voxel threshold)
         there as Zarr arrays, one chunk per tile; otherwise they come back to
         the calling process as NumPy arrays.
+    n_jobs : int
+        Threads of the calling process joining the tiles' candidate tables at the end.
 
     Returns
     -------
@@ -836,7 +839,7 @@ def map_candidates_tiled(
             client.run(release_work)
         release_work()
     outs = [res for band in outs for res in band]
-    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts)
+    return assemble_map(outs, out, filters, null, store, counts.shape, block_rows, opts, n_jobs)
 
 
 def _tile_tasks(inputs, grid, ctx, shared, store_path, most, *, token_of):
