@@ -133,14 +133,16 @@ def test_detect_dask_store_written_by_the_tiles(tmp_path):
     _assert_same_detection(a, b)
 
 
-def test_detect_dask_store_mask_in_one_chunk_per_tile(tmp_path):
-    # tiles of 32 rows: the saliency in chunks of 16 rows, the mask in one chunk per
-    # tile (the last tile's 8 rows in the grid's edge chunk); the same values
+def test_detect_dask_store_saliency_and_mask_in_one_chunk_per_tile(tmp_path):
+    # tiles of 32 rows: the saliency and the mask in one chunk per tile (the last tile's
+    # 8 rows in the grid's edge chunk); the same values
     cube, lazy = _cubes(*_varying_cube(shape=(40, 12), n_bins=80, seed=4), (20, 12, 1, 80))
     a = splidar.detect(cube, rng=0)
     b = splidar.detect(lazy, rng=0, block_rows=32, store=tmp_path / "s")
-    assert b.saliency.chunks[0] == 16 and b.mask.chunks[0] == 32
-    assert sorted(p.name for p in (tmp_path / "s" / "mask").glob("c.*")) == ["c.0.0.0", "c.1.0.0"]
+    assert b.saliency.chunks[0] == b.mask.chunks[0] == 32
+    for name in ("saliency", "mask"):
+        files = sorted(p.name for p in (tmp_path / "s" / name).glob("c.*"))
+        assert files == ["c.0.0.0", "c.1.0.0"], name
     _assert_same_detection(a, b)
 
 

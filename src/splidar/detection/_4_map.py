@@ -659,11 +659,10 @@ def _finish_block(n_vox, kept, n_ph, surf, keep, opts, n_cand) -> _BlockOut:
     )
 
 
-def _open_store(store, shape, block_rows: int, block_cols=None, mask_rows=None) -> dict:
+def _open_store(store, shape, block_rows: int, block_cols=None) -> dict:
     """Chunked Zarr arrays for saliency and mask in a new directory, in chunks of
-    ``block_rows`` rows (the mask's: ``mask_rows``, default the same) and ``block_cols``
-    columns (default all). The threshold is not stored: as in memory, it is kept as its
-    factors (:class:`ThresholdField`)."""
+    ``block_rows`` rows and ``block_cols`` columns (default all). The threshold is not
+    stored: as in memory, it is kept as its factors (:class:`ThresholdField`)."""
     import os as _os
     from pathlib import Path
 
@@ -696,8 +695,7 @@ def _open_store(store, shape, block_rows: int, block_cols=None, mask_rows=None) 
             chunk_key_encoding=FLAT_CHUNK_KEYS,
         ),
         mask=g.create_array(
-            "mask", shape=shape, chunks=(min(mask_rows or block_rows, R),) + ch[1:],
-            dtype="bool", chunk_key_encoding=FLAT_CHUNK_KEYS,
+            "mask", shape=shape, chunks=ch, dtype="bool", chunk_key_encoding=FLAT_CHUNK_KEYS
         ),
     )  # fmt: skip
     out = {k: writer(v) for k, v in out.items()}

@@ -504,7 +504,7 @@ def _map_tile(y, tile, ctx, table, opts, store_path, most: tuple, carry, last: b
     # the running sums are read and rewritten in place: a copy of the neighbour's
     shape = (L, r, ctx.scales.size, T)
     carry = np.empty(shape, np.float64) if carry is None else np.array(carry, np.float64)
-    with deferred_chunk_writes():  # (within a band task's block: that one)
+    with deferred_chunk_writes(depth=1):  # (within a band task's block: that one)
         res = _block(y, c_ext, e0, r0, r1, ctx, table, opts, out, work, cols=(ce0, c0, c1, carry))
         if res.histograms is not None and res.kept.size < len(res.histograms):
             # only the histograms of the candidates in the table travel back (in memory
@@ -602,8 +602,9 @@ def _map_band_tiles(z, band: tuple, tiles: list, ctx, table, opts, store_path, m
     store_path = None if store_path is None else _stores(store_path)
     carry, done = None, []
     # the saliency's chunk files written by a writer thread while the next tiles compute
-    # (the band returns once every file is in place)
-    with deferred_chunk_writes():
+    # (the band returns once every file is in place); one tile's chunk in flight (a
+    # tile's saliency is tens of MB, its write a few ms of the disk's)
+    with deferred_chunk_writes(depth=1):
         for j, (t0, r0, r1, ce0, ce1, c0, c1) in enumerate(tiles):
             tile = (t0, r0, r1, ce0, c0, c1)
             last = j == len(tiles) - 1
@@ -769,12 +770,9 @@ def map_candidates_tiled(
         if zsrc is not None:
             block_rows = _rows_with_band(limit, counts.shape, item, (h, hc), n_box, block_rows)
     block_rows, block_cols = _tile_shape(block_rows, counts.shape, h, hc, given is not None)
-    # a store's chunks: the tile's columns and 16 of its rows (a multiple of 16 unless
-    # given), so that the slope pass's bands of rows do not decompress a tall chunk once
-    # per band; every chunk still belongs to one tile (no two tasks write one chunk)
+    # a tile of a multiple of 16 rows unless given
     if given is None and block_rows >= 2 * _CHUNK_ROWS:
         block_rows -= block_rows % _CHUNK_ROWS
-    chunk_rows = _CHUNK_ROWS if block_rows % _CHUNK_ROWS == 0 else block_rows
     table = null.table(per_voxel=False)
     rows, cols = tile_bounds(R, block_rows, h), tile_bounds(C, block_cols, hc)
     ext = [(max(0, a - h), min(R, b + h)) for a, b in rows]
@@ -784,10 +782,11 @@ def map_candidates_tiled(
         max(b - a for a, b in ext) * max(b - a for a, b in ext_c),
     )
     if store is not None:
-        # the mask (not read by the passes after the map) in one chunk per tile: 8 x
-        # fewer files to create ("Lead, session 30" in benchmarks/README.md)
-        out = _open_store(store, (R, C, T), chunk_rows, block_cols=block_cols,
-                          mask_rows=block_rows)  # fmt: skip
+        # a store's saliency and mask in one chunk per tile (no two tasks write one
+        # chunk): a file to create per tile, not one per 16 rows (the saliency is stored
+        # raw, read at its voxels from the chunk files, never decoded whole by the
+        # passes after the map; "Lead, session 30" in benchmarks/README.md)
+        out = _open_store(store, (R, C, T), block_rows, block_cols=block_cols)
         store_path = str(store)
         import zarr
 
