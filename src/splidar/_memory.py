@@ -299,7 +299,8 @@ def keep_freed_memory(*, any_size: bool = False, _dynamic: bool = False):
 @contextlib.contextmanager
 def hold_freed_memory():
     """Within the block, freed memory of any size is reused, in any process: the calling
-    process's image-wide passes (a tiled detection's stages 5-7 over a Dask cube).
+    process's image-wide work for a Dask cube (the map pass's gathered tables joined,
+    stages 5-7).
 
     :func:`keep_freed_memory` with ``any_size`` where the environment fixed malloc's
     thresholds; in a process where it did not (glibc's dynamic threshold: arrays over

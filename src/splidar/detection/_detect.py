@@ -589,21 +589,20 @@ def _map_pass(cube, filters, nul, o, store, tiled: bool):
     the number of candidates the map kept: the table goes to the clean-up passes alone,
     which release each pass's input once it has run."""
     opts = _map_options(o, cube.shape[3])
-    if tiled:
-        # the tiles' results gathered, then joined into one table in the calling
-        # process, which reuses the pages the joined parts free (hold_freed_memory: the
-        # join 0.27 s against 1.3-1.5 s for 9.6 M candidates, "Lead, session 30")
-        with hold_freed_memory():
+    # a Dask cube's tiles' results are gathered, then joined into one table in the
+    # calling process, which reuses the pages the joined parts free (hold_freed_memory:
+    # the join 0.27 s against 1.3-1.5 s for 9.6 M candidates, "Lead, session 30")
+    with hold_freed_memory() if tiled else contextlib.nullcontext():
+        if tiled:
             mp = map_candidates_tiled(
                 cube.counts, filters, nul, opts, block_rows=o["block_rows"], store=store,
                 n_jobs=o["n_jobs"],
             )  # fmt: skip
-            held = [mp.candidates.compacted(cube.shape[3])]
-    else:
-        mp = map_candidates(
-            cube.counts, filters, nul, opts, block_rows=o["block_rows"], n_jobs=o["n_jobs"],
-            store=store,
-        )  # fmt: skip
+        else:
+            mp = map_candidates(
+                cube.counts, filters, nul, opts, block_rows=o["block_rows"],
+                n_jobs=o["n_jobs"], store=store,
+            )  # fmt: skip
         held = [mp.candidates.compacted(cube.shape[3])]
     n_map = int(mp.candidates.keep.sum())
     mp = dataclasses.replace(mp, candidates=None)
