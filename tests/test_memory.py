@@ -226,3 +226,88 @@ def test_hold_freed_memory_reuses_large_freed_arrays_with_the_dynamic_threshold(
     assert outside > 20 * 16384, outside
     assert inside < 2 * 16384 + 2000, inside
     assert after > 20 * 16384, after
+
+
+@pytest.fixture
+def switch(monkeypatch):
+    """NumPy's huge-page switch replaced by a recorder (advice on before)."""
+    calls, state = [], [True]
+
+    def fake(on):
+        calls.append(bool(on))
+        before, state[0] = state[0], bool(on)
+        return before
+
+    monkeypatch.delenv(_memory.HUGEPAGE_ENV, raising=False)
+    monkeypatch.setattr(_memory, "_hugepage_switch", lambda: fake)
+    return calls, state
+
+
+def test_small_pages_turns_the_advice_off_inside_and_back_after(switch):
+    calls, state = switch
+    with _memory.small_pages():
+        with _memory.small_pages():  # nested: set and restored once
+            assert state == [False]
+        assert state == [False]
+    assert state == [True] and calls == [False, True]
+
+
+def test_small_pages_restores_after_an_error(switch):
+    calls, state = switch
+    with pytest.raises(RuntimeError), _memory.small_pages():
+        raise RuntimeError("boom")
+    assert state == [True] and calls == [False, True]
+
+
+def test_small_pages_leaves_the_users_environment_choice(switch, monkeypatch):
+    calls, _ = switch
+    monkeypatch.setenv(_memory.HUGEPAGE_ENV, "1")
+    with _memory.small_pages():
+        pass
+    assert calls == []
+
+
+def test_hold_freed_memory_opens_small_pages(switch, recorded):
+    calls, state = switch
+    with _memory.hold_freed_memory():
+        assert state == [False]
+    assert state == [True]
+
+
+_VMFLAGS = """
+import numpy as np
+from splidar import _memory
+
+def advised(a):
+    # the VmFlags of the mapping holding the array's data: "hg" = MADV_HUGEPAGE
+    addr = a.__array_interface__["data"][0] + a.nbytes // 2
+    lines = open("/proc/self/smaps").read().splitlines()
+    inside = False
+    for line in lines:
+        head = line.split()[0]
+        if "-" in head and all(c in "0123456789abcdef-" for c in head):
+            lo, hi = (int(x, 16) for x in head.split("-"))
+            inside = lo <= addr < hi
+        elif inside and line.startswith("VmFlags:"):
+            return " hg" in line
+    raise AssertionError("mapping not found")
+
+before = np.ones(2**24, np.float32)  # 64 MiB: a mapping of its own
+with _memory.small_pages():
+    within = np.ones(2**24, np.float32)
+after = np.ones(2**24, np.float32)
+print(advised(before), advised(within), advised(after))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/smaps")
+def test_small_pages_makes_arrays_without_the_huge_page_advice():
+    """In a fresh process (NumPy's default advice): a 64 MiB array made inside the
+    block is mapped without ``MADV_HUGEPAGE``, those made before and after with it."""
+    env = {k: v for k, v in os.environ.items() if k != _memory.HUGEPAGE_ENV}
+    out = subprocess.run(
+        [sys.executable, "-c", _VMFLAGS], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    if out[0] != "True":
+        pytest.skip("NumPy or the kernel gives no huge-page advice here")
+    assert out == ["True", "False", "True"]
