@@ -282,23 +282,80 @@ def test_store_histograms_writes_every_chunk_without_comparing(tmp_path, compres
     np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "h.zarr"))["h"][...], data)
 
 
-def test_store_histograms_chunk_rows_one_raw_chunk_written_as_its_file(tmp_path, monkeypatch):
-    # a tile's candidates in one uncompressed chunk: written as the chunk file (not
+def test_store_histograms_one_raw_chunk_written_as_its_file(tmp_path, monkeypatch):
+    # candidates that fit one uncompressed chunk: written as the chunk file (not
     # through Zarr's write), read back the same, by Zarr and at rows
     import splidar.detection._table as table_mod
 
     g = zarr.open_group(str(tmp_path / "h.zarr"), mode="w")
-    data = np.random.default_rng(0).random((9000, 2, 1, 5)).astype(np.float32)
+    data = np.random.default_rng(0).random((table_mod.HIST_CHUNK, 2, 1, 5)).astype(np.float32)
     written = []
     real = table_mod.write_raw_chunk
     monkeypatch.setattr(table_mod, "write_raw_chunk", lambda *a: written.append(a[1]) or real(*a))
-    z = store_histograms(g, "h", data.shape, data=data, compressed=False, chunk_rows=len(data))
-    assert z.chunks[0] == 9000 and written == [(0, 0, 0, 0)]
+    z = store_histograms(g, "h", data.shape, data=data, compressed=False)
+    assert z.chunks[0] == len(data) and written == [(0, 0, 0, 0)]
     files = sorted(p.name for p in (tmp_path / "h.zarr" / "h").iterdir())
     assert files == ["c.0.0.0.0", "zarr.json"]
     np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "h.zarr"))["h"][...], data)
-    rows = np.array([8999, 3, 4500])
+    rows = np.array([len(data) - 1, 3, 2000])
     np.testing.assert_array_equal(zarr_take_rows(z, rows), data[rows])
+
+
+def test_raw_rows_reads_any_rows_as_numpy_indexing(tmp_path):
+    """Rows near together (one range read) and far apart (mapped at those rows), in any
+    order with repeats, slices, booleans, ints: NumPy's indexing of the written array."""
+    import pickle
+
+    from splidar.detection._table import RawRows
+
+    data = np.random.default_rng(1).random((5000, 2, 1, 7)).astype(np.float32)
+    r = RawRows.write(tmp_path / "t.raw", data)
+    assert (tmp_path / "t.raw").stat().st_size == data.nbytes
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.raw"]  # no temporary left
+    assert r.shape == data.shape and r.dtype == np.float32 and len(r) == 5000
+    near = np.array([40, 12, 12, 39, 13])
+    far = np.array([4999, 0, 2500, 0])  # 4 rows over 5000: mapped
+    mask = np.zeros(5000, bool)
+    mask[::7] = True
+    for key in (near, far, mask, slice(10, 20), 4321, np.array([], np.int64)):
+        np.testing.assert_array_equal(r[key], data[key])
+    back = pickle.loads(pickle.dumps(r))  # a tile's handle travels to the caller
+    np.testing.assert_array_equal(back[far], data[far])
+
+
+def test_raw_rows_short_file_raises(tmp_path):
+    from splidar.detection._table import RawRows
+
+    data = np.ones((100, 3), np.float32)
+    RawRows.write(tmp_path / "t.raw", data)
+    short = RawRows(tmp_path / "t.raw", (200, 3), np.float32)
+    with pytest.raises(OSError, match="values"):
+        short[np.arange(150, 200)]
+
+
+def test_compact_result_writes_a_tiles_histograms_as_one_raw_file(tmp_path):
+    """A tile's candidate histograms: one file ``<row>_<col>.raw`` in the store's
+    ``candidate_histograms`` folder (no Zarr array, no metadata files), read back the
+    same at any rows."""
+    from types import SimpleNamespace
+
+    from splidar.detection import _tiled
+    from splidar.detection._4_map import _open_store
+    from splidar.detection._table import RawRows
+
+    store = tmp_path / "det.zarr"
+    _open_store(store, (8, 6, 20), 8)
+    zarr.open_group(str(store), mode="r+").create_group("candidate_histograms")
+    hist = np.random.default_rng(2).random((30, 2, 1, 9)).astype(np.float32)
+    cols = dict(row=np.arange(30) % 8, col=np.arange(30) % 6, depth_bin=np.arange(30) % 20)
+    res = SimpleNamespace(surf=cols, histograms=hist)
+    _tiled._compact_result(res, str(store), (16, 24), (8, 6), 20)
+    assert isinstance(res.histograms, RawRows)
+    assert sorted(p.name for p in (store / "candidate_histograms").iterdir()) == [
+        "16_24.raw", "zarr.json",
+    ]  # fmt: skip
+    rows = np.array([29, 0, 7, 7])
+    np.testing.assert_array_equal(res.histograms[rows], hist[rows])
 
 
 def test_remove_tree_removes_nested_folders(tmp_path):

@@ -368,14 +368,22 @@ def write_raw_chunk(raw: tuple, where: tuple, value: np.ndarray) -> None:
     past the page cache (:func:`_write_direct`); inside :func:`deferred_chunk_writes` it
     is copied and written by a writer thread, in place when the block ends.
     """
-    import uuid
-
     folder, chunk, dtype, md = raw
     if tuple(value.shape) != tuple(chunk):
         raise ValueError(f"a chunk of shape {tuple(chunk)} expected, got {tuple(value.shape)}")
     path = folder / md.encode_chunk_key(tuple(int(w) for w in where))
     path.parent.mkdir(parents=True, exist_ok=True)
-    data = memoryview(np.ascontiguousarray(value, dtype=dtype)).cast("B")
+    write_whole_file(path, np.ascontiguousarray(value, dtype=dtype))
+
+
+def write_whole_file(path: Path, value: np.ndarray) -> None:
+    """``value``'s C-order bytes as the file ``path``, written as Zarr's local store
+    writes a chunk (a temporary file beside it, then renamed over ``path``: never half a
+    file), past the page cache when large enough (:func:`_write_direct`), and inside
+    :func:`deferred_chunk_writes` by the writer thread (``value`` copied first)."""
+    import uuid
+
+    data = memoryview(np.ascontiguousarray(value)).cast("B")
     tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")
     queue = getattr(_DEFERRED, "queue", None)
     if queue is not None and _direct_possible(tmp, data.nbytes):

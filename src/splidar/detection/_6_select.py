@@ -13,7 +13,7 @@ from .._arrays import _raw_chunks, zarr_take_rows
 from .._memory import give_back
 from ._kernels import select_sorted
 from ._result import Surfaces
-from ._table import CandidateTable, _position_in_pixel, _raster_ordered
+from ._table import CandidateTable, RawRows, _position_in_pixel, _raster_ordered
 from ._threads import on_parts
 from ._windows import SupportWindows
 
@@ -159,8 +159,8 @@ def _read_part(table: CandidateTable, histograms, hist: np.ndarray, part: np.nda
             else:
                 hist[sel] = src.rows(rows)
             return
-        if isinstance(src, np.ndarray) or rows.size == 0:
-            hist[sel] = src[rows]
+        if isinstance(src, (np.ndarray, RawRows)) or rows.size == 0:
+            hist[sel] = src[rows]  # a RawRows: read at those rows from its file
             return
         # a stored array: the rows' range read as one slice (most of a block's
         # candidates are selected: Zarr's integer indexing took 2.5x the CPU); rows

@@ -15,14 +15,23 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .._arrays import FLAT_CHUNK_KEYS, _raw_chunks, write_raw_chunk, zarr_write_rows
+from .._arrays import (
+    FLAT_CHUNK_KEYS,
+    _mapped_values,
+    _raw_chunks,
+    write_raw_chunk,
+    write_whole_file,
+    zarr_write_rows,
+)
 from ._kernels import rank_in_pixel_sorted
 from ._result import STAGES
+from ._windows import _RowIndexing
 
 __all__ = [
     "STAGES",
     "CandidateTable",
     "PassResult",
+    "RawRows",
     "compact_columns",
     "remove_tree",
     "stage_code",
@@ -225,20 +234,17 @@ def compact_columns(columns: dict, image_shape: tuple[int, int], n_bins: int) ->
     return out
 
 
-def store_histograms(
-    group, name: str, shape: tuple, *, data=None, compressed: bool = True, chunk_rows=None
-):
+def store_histograms(group, name: str, shape: tuple, *, data=None, compressed: bool = True):
     """A float32 Zarr array ``name`` of ``shape`` ``(n, Q, L, W)`` in the Zarr group
-    ``group`` (replaced if it exists: a recomputed tile writes the same values), chunked
-    by :data:`HIST_CHUNK` candidates (or ``chunk_rows``), compressed with lz4
-    (histograms are zero outside their supports) unless ``compressed=False``; ``data``,
-    when given, written to it.
+    ``group`` (replaced if it exists), chunked by :data:`HIST_CHUNK` candidates,
+    compressed with lz4 (histograms are zero outside their supports) unless
+    ``compressed=False``; ``data``, when given, written to it.
 
-    The tiles' candidate histograms, read once by the selection and then removed, are
-    written uncompressed: on the ``--large`` benchmark scene lz4 stored them in 82 % of
-    their bytes (27 % of the values are 0), for 1.5-2x the CPU of a plain write and 2-4x
-    that of a plain read (``benchmarks/README.md``, "Branch dist24"). So are the
-    surfaces' (``detect(store=...)``): stage 7 rewrites its moved surfaces' rows in
+    The surfaces' histograms (``detect(store=...)``) are written uncompressed: on the
+    ``--large`` benchmark scene lz4 stored histograms in 82 % of their bytes (27 % of
+    the values are 0), for 1.5-2x the CPU of a plain write and 2-4x that of a plain
+    read (``benchmarks/README.md``, "Branch dist24"; the tiles' candidate histograms are
+    raw files, :class:`RawRows`), and stage 7 rewrites its moved surfaces' rows in
     place in the raw chunk files (:func:`write_rows`) instead of decoding and encoding
     every chunk they fall in ("call39" in ``benchmarks/README.md``).
 
@@ -251,8 +257,7 @@ def store_histograms(
     from zarr.codecs import BloscCodec
 
     fast = [BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")] if compressed else None
-    rows = HIST_CHUNK if chunk_rows is None else int(chunk_rows)
-    chunks = (max(1, min(int(shape[0]), rows)),) + tuple(int(v) for v in shape[1:])
+    chunks = (max(1, min(int(shape[0]), HIST_CHUNK)),) + tuple(int(v) for v in shape[1:])
     z = group.create_array(
         name, shape=tuple(int(v) for v in shape), chunks=chunks, dtype="float32",
         compressors=fast, overwrite=True, config={"write_empty_chunks": True},
@@ -265,6 +270,66 @@ def store_histograms(
         else:  # one raw chunk: its file (past the page cache when large enough)
             write_raw_chunk(raw, (0,) * len(shape), np.asarray(data, np.float32))
     return z
+
+
+class RawRows(_RowIndexing):
+    """A read-only array of rows kept in one file of its C-order bytes: a tile's
+    candidate histograms ``(n, Q, L, W)`` float32 on a Dask cube with a store, written
+    by the worker that computed them and read once, at the selected rows, by the calling
+    process (stage 6; then removed with the ``candidate_histograms`` folder).
+
+    ``r[key]`` gives the selected rows as a NumPy array (integers, slices, integer or
+    boolean arrays on the first axis, as :class:`~splidar.detection._windows.SupportWindows`);
+    picklable (the path, shape and dtype only). A Zarr array of one raw chunk held the
+    same bytes in a chunk file, but also made a folder and its ``zarr.json`` and
+    rewrote the parent group's ``zarr.json`` for each tile, through Zarr's event loop:
+    7 % of a map tile's time on issue #16's cluster run ("Lead, session 31" in
+    ``benchmarks/README.md``).
+
+    Parameters
+    ----------
+    path : pathlib.Path
+    shape : tuple of int
+    dtype : numpy dtype
+    """
+
+    #: Rows read by mapping the file at those rows only (random access) rather than as
+    #: the range from the first to the last, when the range is more than this many times
+    #: longer (as the selection's reads of Zarr arrays, ``_6_select.ROWS_APART``).
+    APART = 16
+
+    def __init__(self, path, shape: tuple, dtype):
+        self.path = path
+        self.shape = tuple(int(v) for v in shape)
+        self.dtype = np.dtype(dtype)
+
+    @classmethod
+    def write(cls, path, data: np.ndarray) -> RawRows:
+        """``data`` written as the new file ``path`` (whole: a temporary file renamed;
+        inside ``deferred_chunk_writes`` by the writer thread)."""
+        data = np.ascontiguousarray(data)
+        write_whole_file(path, data)
+        return cls(path, data.shape, data.dtype)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def rows(self, idx) -> np.ndarray:
+        """Rows ``idx`` (non-negative, in bounds, any order, repeats allowed)."""
+        idx = np.asarray(idx, np.int64).reshape(-1)
+        if idx.size == 0:
+            return np.empty((0,) + self.shape[1:], self.dtype)
+        lo, hi = int(idx.min()), int(idx.max()) + 1
+        if idx.size * self.APART < hi - lo:  # few rows far apart: those rows' pages
+            return _mapped_values(self.path, self.dtype, self.shape, (idx,))
+        per_row = int(np.prod(self.shape[1:], dtype=np.int64))
+        got = np.fromfile(
+            self.path, self.dtype, count=(hi - lo) * per_row,
+            offset=lo * per_row * self.dtype.itemsize,
+        )  # fmt: skip
+        if got.size != (hi - lo) * per_row:
+            raise OSError(f"{self.path}: {got.size} values, {(hi - lo) * per_row} expected")
+        return got.reshape((hi - lo,) + self.shape[1:])[idx - lo]
 
 
 def write_rows(z, idx, values) -> None:

@@ -47,7 +47,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -529,7 +531,7 @@ def _stores(store_path) -> dict:
     return dict(
         saliency=writer(g["saliency"]),
         mask=writer(g["mask"]),
-        histograms=zarr.open_group(str(store_path) + "/candidate_histograms", mode="r+"),
+        histograms=Path(os.fspath(store_path)) / "candidate_histograms",
     )
 
 
@@ -644,22 +646,20 @@ def _tile_shape(rows: int, shape, h: int, hc: int, given: bool) -> tuple[int, in
 def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) -> None:
     """What a tile sends back, made small for the calling process (which gathers every
     tile's): the candidates' integer columns in compact types (same values), and with a
-    store, the histograms written there (``candidate_histograms/<first row>_<first
-    column>``, from ``origin``; the
-    calling process reads the selected surfaces' rows only) and replaced by the Zarr
-    array's handle."""
-    from ._table import compact_columns, store_histograms
+    store, the histograms written there as one file (``candidate_histograms/<first
+    row>_<first column>.raw``, from ``origin``: :class:`~splidar.detection._table.RawRows`,
+    which the calling process reads at the selected surfaces' rows only) and replaced by
+    its handle."""
+    from ._table import RawRows, compact_columns
 
     res.surf = compact_columns(res.surf, image_shape, n_bins)
     if store_path is not None and res.histograms is not None:
-        g = _stores(store_path)["histograms"]
-        # read once by the selection, then removed: uncompressed (store_histograms)
-        # in one chunk (read at the selected rows in the chunk file, zarr_take_rows):
-        # one file to create per tile, not one per HIST_CHUNK candidates
-        res.histograms = store_histograms(
-            g, f"{origin[0]}_{origin[1]}", res.histograms.shape, data=np.asarray(res.histograms),
-            compressed=False, chunk_rows=max(1, len(res.histograms)),
-        )  # fmt: skip
+        folder = _stores(store_path)["histograms"]
+        # read once by the selection, then removed: raw bytes in one file per tile (no
+        # Zarr array: a folder and two metadata files fewer to create per tile)
+        res.histograms = RawRows.write(
+            folder / f"{origin[0]}_{origin[1]}.raw", np.asarray(res.histograms, np.float32)
+        )
 
 
 def _parts(chunks, a: int, b: int) -> list[tuple[int, slice, slice]]:
