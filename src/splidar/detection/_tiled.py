@@ -531,8 +531,16 @@ def _stores(store_path) -> dict:
     return dict(
         saliency=writer(g["saliency"]),
         mask=writer(g["mask"]),
-        histograms=Path(os.fspath(store_path)) / "candidate_histograms",
+        histograms=_histograms_folder(store_path),
     )
+
+
+def _histograms_folder(store_path) -> Path:
+    """The folder of the tiles' candidate histograms in the store at ``store_path`` (or
+    in the store :func:`_stores` opened)."""
+    if isinstance(store_path, dict):
+        return store_path["histograms"]
+    return Path(os.fspath(store_path)) / "candidate_histograms"
 
 
 def _copy_into(buf: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -654,7 +662,7 @@ def _compact_result(res, store_path, origin: tuple, image_shape, n_bins: int) ->
 
     res.surf = compact_columns(res.surf, image_shape, n_bins)
     if store_path is not None and res.histograms is not None:
-        folder = _stores(store_path)["histograms"]
+        folder = _histograms_folder(store_path)  # (no Zarr metadata read for a path)
         # read once by the selection, then removed: raw bytes in one file per tile (no
         # Zarr array: a folder and two metadata files fewer to create per tile)
         res.histograms = RawRows.write(
