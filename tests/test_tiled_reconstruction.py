@@ -211,6 +211,38 @@ def test_reconstruct_tiled_on_local_cluster_tasks_read_their_strips(
     assert list((tmp_path / "det").iterdir()) == []
 
 
+def test_reconstruct_tiled_carries_keep_the_strips_reference_not_its_graph(
+    small_strips, tmp_path, monkeypatch
+):
+    """On a cluster whose strips are in a folder, what a strip's task keeps for its next
+    step is the strip's reference (read again) and the sweeps' state, not the strip's
+    arrays nor its graph (rebuilt: the same); the result is the threads' bit for bit."""
+    distributed = pytest.importorskip("distributed")
+    pytest.importorskip("zarr")
+    _, lazy = _detections(n_classes=2)
+    (tmp_path / "det").mkdir()
+    stored = dataclasses.replace(lazy, options={**lazy.options, "store": str(tmp_path / "det")})
+    a = _tiled.reconstruct_tiled(lazy, library=lazy.library, rng=0)  # threads
+    kept, real = [], _tiled._carry
+
+    def carry(strip, state, **more):
+        kept.append(real(strip, state, **more))
+        return kept[-1]
+
+    monkeypatch.setattr(_tiled, "_carry", carry)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster),
+    ):
+        b = _tiled.reconstruct_tiled(stored, library=lazy.library, rng=0)
+    assert kept and len(kept) % 2 == 0  # steps 2 and 4 of every strip
+    assert all(isinstance(c["strip"], _tiled._StripRef) for c in kept)
+    assert all(set(c) <= {"strip", "state", "prior"} for c in kept)
+    _assert_identical(a, b)
+
+
 def _in_memory(client, prefix: str, wait: float = 5.0) -> list:
     """Keys named ``prefix...`` held on the cluster's workers, after up to ``wait``
     seconds for the releases under way."""
@@ -225,8 +257,9 @@ def _in_memory(client, prefix: str, wait: float = 5.0) -> list:
 
 
 def test_reconstruct_tiled_released_carries(small_strips, monkeypatch):
-    """Each strip's carry (its surfaces, graph and sweep state, kept on a worker) is
-    released as soon as the next step of that strip is done, not when every strip's is:
+    """Each strip's carry (its surfaces or their reference and its sweep state, kept on a
+    worker) is released as soon as the next step of that strip is done, not when every
+    strip's is:
     when the sweeps are done no step-2 carry is held, when the intensities are done no
     step-4 carry (Dask counts a carry's strip and graph in both steps' results, so
     holding both made the workers spill). The result is the same bit for bit."""

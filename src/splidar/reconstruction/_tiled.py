@@ -223,10 +223,10 @@ def _labels_tile(st: _Strip, shared):
     labels and marginals, with ``alpha="auto"`` the first phase's mean shading of each
     core surface's neighbours, and the labels of the whole strip (its own, margins
     included: a restart redoes the first phase with them). ``carry`` stays where the task
-    ran, for step 4: the strip, its graph and (``alpha="auto"``) the first phase's state
-    (:func:`_register_sizes`: the scheduler knows their size)."""
+    ran, for step 4 (:func:`_carry`): the strip as given and (``alpha="auto"``) the first
+    phase's state."""
     _register_sizes()  # where the carry is kept (a worker)
-    st = _as_strip(st)
+    given, st = st, _as_strip(st)
     su = _strip_setup(st, shared)
     graph = _strip_graph(st, su, shared)
     S, K = st.y.shape[0], su.sig.shape[0]
@@ -257,7 +257,19 @@ def _labels_tile(st: _Strip, shared):
     if shared["prior"][0] and S:
         state = _phase_one_state(su, graph, u, shared)
         h_nb = _neighbour_shading(graph, state["h"])[core]
-    return (u[core], marg[core], h_nb, u), dict(strip=st, graph=graph, state=state)
+    return (u[core], marg[core], h_nb, u), _carry(given, state)
+
+
+def _carry(strip, state, **more) -> dict:
+    """What a strip's task keeps on its worker for the next step: the strip as the task
+    was given it (a :class:`_StripRef` when the strips are in a scratch folder, read
+    again by the next step; otherwise the strip itself) and the sweeps' state; not the
+    graph, which the next step rebuilds (:func:`_strip_graph`: deterministic, a few % of
+    a step's time). Kept whole, a strip of 234,000 surfaces (one wavelength) held 35 MB
+    (strip 15, graph 12.7, state 7.5): nine a worker beside a running strip were over a
+    1 GB worker's spill mark, and Dask wrote 260-340 MB a worker to disk and read it
+    back ("Lead, session 31" in ``benchmarks/README.md``)."""
+    return dict(strip=strip, state=state, **more)
 
 
 @_strip_task
@@ -266,17 +278,15 @@ def _fit_tile(carry, st, u, own, shared, eb):
     after a restart, the first phase again on ``st`` with the strip's ``own`` labels:
     the same state). ``u``: the strip's labels (None: one class). Returns ``(small,
     carry)``: the core's residuals for the std's smoothing-bias term, its surfaces and
-    links, the history; the strip, graph, state and prior for step 5."""
+    links, the history; the strip, state and prior for step 5 (:func:`_carry`)."""
     _register_sizes()
     auto = shared["prior"][0]
     state = None
     if carry is not None:
-        st, graph, state = carry["strip"], carry["graph"], carry["state"]
-        su = _strip_setup(st, shared)
-    else:
-        st = _as_strip(st)
-        su = _strip_setup(st, shared)
-        graph = _strip_graph(st, su, shared)
+        st, state = carry["strip"], carry["state"]
+    given, st = st, _as_strip(st)
+    su = _strip_setup(st, shared)
+    graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
     u = _labels_of(u, S)
     if state is None:  # fixed alpha: the only phase, with these labels (or no surfaces)
@@ -303,15 +313,16 @@ def _fit_tile(carry, st, u, own, shared, eb):
     n_links = int(np.diff(graph.indptr)[core].sum())
     small = (resid, int(np.count_nonzero(core)), n_links, hist)
     state.pop("z"), state.pop("q")  # the last E-step's: step 5 redoes it (less to keep)
-    return small, dict(strip=st, graph=graph, state=state, prior=prior)
+    return small, _carry(given, state, prior=prior)
 
 
 @_strip_task
 def _std_tile(carry, u, marg, shared, bias2):
     """Step 5: the core's intensities and std, with the run's smoothing-bias term
     (``u``, ``marg`` None: one class)."""
-    st, graph, state, prior = carry["strip"], carry["graph"], carry["state"], carry["prior"]
+    st, state, prior = _as_strip(carry["strip"]), carry["state"], carry["prior"]
     su = _strip_setup(st, shared)
+    graph = _strip_graph(st, su, shared)
     S = st.y.shape[0]
     u = _labels_of(u, S)
     marg = np.ones((S, 1)) if marg is None else _loaded(marg)
