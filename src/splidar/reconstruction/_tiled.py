@@ -533,17 +533,15 @@ def _points(detection, ci, intensity, std, u, conf) -> dict:
 
 @functools.cache
 def _register_sizes() -> None:
-    """Dask's ``sizeof`` of a strip and its graph (the carries): their arrays' bytes, not
-    the few hundred bytes of the objects it counts by default. Told 0.3 kB, the scheduler
-    moved carries of tens of MB to idle workers (work stealing: up to 15 s of transfers
-    in a run of ``bench_distributed.py --large --process``) and the workers spilled them
-    late."""
+    """Dask's ``sizeof`` of a strip (kept in a carry when the strips are not in a
+    folder, :func:`_carry`): its arrays' bytes, not the few hundred bytes of the object
+    it counts by default. Told 0.3 kB, the scheduler moved carries of tens of MB to idle
+    workers (work stealing: up to 15 s of transfers in a run of ``bench_distributed.py
+    --large --process``) and the workers spilled them late. (The carries no longer hold
+    the strip's graph, session 31.)"""
     from dask.sizeof import sizeof
 
-    from ._graph import SurfaceGraph
-
     @sizeof.register(_Strip)
-    @sizeof.register(SurfaceGraph)
     def _arrays(x) -> int:
         return 64 + sum(a.nbytes for a in vars(x).values() if isinstance(a, np.ndarray))
 
