@@ -251,8 +251,8 @@ def _pipeline_options(p: argparse.ArgumentParser) -> None:
         type=_pass_list,
         metavar="PASS,..",
         help="clean-up passes of the detection to skip (default: run all): spill_over, "
-        "isolated, dark_regions, slopes, enclosed, stray_clusters, align_depths, "
-        "edge_bands (docs/detection.md)",
+        "isolated, dark_regions, slopes, enclosed, stray_clusters, unlayered, "
+        "align_depths, edge_bands (docs/detection.md)",
     )
     g.add_argument(
         "--store",

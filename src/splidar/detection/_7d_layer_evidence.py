@@ -1,4 +1,6 @@
-"""Stage 7d (model, **off**: :data:`LAYER_GATE`): where the scene shows a second layer.
+"""Stage 7d (model): where the scene shows a second layer. Stage 5g
+(:mod:`~splidar.detection._5g_unlayered`) uses its whole-image decision; the line rule
+it gates here (:func:`spread_lines`) stays **off** (:data:`LAYER_GATE`).
 
 Issue #15's "spread" false surfaces (a neighbour's depth pooled into the pixels beside a
 depth edge by the multiscale boxes) and the dim second layers of partly transmissive

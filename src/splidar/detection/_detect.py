@@ -47,6 +47,7 @@ from ._5c_dark_regions import restore_dark_regions
 from ._5d_slopes import SLOPE_PIXELS, recover_slope_surfaces
 from ._5e_enclosed import restore_enclosed_holes
 from ._5f_stray_clusters import remove_stray_clusters
+from ._5g_unlayered import remove_unlayered_seconds
 from ._6_select import select_surfaces
 from ._7_depths import RULES, place_depths
 from ._background import first_read
@@ -126,7 +127,7 @@ def _check_weights(weights, scales: np.ndarray) -> np.ndarray:
 #: The clean-up passes :func:`detect` can run, in the order they run (``passes``).
 PASSES = (
     "recentre", "spill_over", "isolated", "dark_regions", "slopes", "enclosed", "stray_clusters",
-    "align_depths", "edge_bands",
+    "unlayered", "align_depths", "edge_bands",
 )  # fmt: skip
 
 
@@ -196,10 +197,9 @@ def detect(
         could not reach it. ``"pixel"``: own log-ratio >= 0 (strict). ``"none"``: no
         test. The clean-up passes run with ``"auto"`` and ``"adaptive"`` only.
     passes : sequence of str
-        The clean-up passes to run, any of :data:`PASSES` (default all; ``()``: none):
-        ``"recentre"``, ``"spill_over"``, ``"isolated"``, ``"dark_regions"``, ``"slopes"``,
-        ``"enclosed"``, ``"stray_clusters"``, ``"align_depths"``, ``"edge_bands"``. What each
-        does and its measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
+        The clean-up passes to run, any of :data:`PASSES` (``"recentre"`` ...
+        ``"edge_bands"``, run in that order; default all; ``()``: none). What each does and
+        its measured gain: ``docs/detection.md`` and ``benchmarks/bench_ablation.py``.
     block_rows : int, optional
         Rows per block (default: 64 MB of buffers, all threads' at most a quarter cube); a
         Dask cube's rows per tile (Dask task) (default: square tiles of that many pixels).
@@ -702,7 +702,9 @@ def _clean_up(cube, o: dict, mp, held: list, hists: tuple, bg, corr, rng) -> lis
     table = run("enclosed", lambda t: restore_enclosed_holes(
         t, fwhm=fwhm, z_level=PRESENCE_Z, max_kept=o["max_surfaces"],
         llr_level=PRESENCE_SECONDARY))  # fmt: skip
-    run("stray_clusters", lambda t: remove_stray_clusters(t, fwhm=fwhm, half=half))
+    table = run("stray_clusters", lambda t: remove_stray_clusters(t, fwhm=fwhm, half=half))
+    run("unlayered", lambda t: remove_unlayered_seconds(
+        t, fwhm=fwhm, half=half, surface_pfa=surface_pfa, level=PRESENCE_LLR))  # fmt: skip
     return done
 
 

@@ -40,6 +40,7 @@ STAGES = (
     "slopes",  # 5d: adds surfaces on steep slopes (sheared pooled tests)
     "enclosed",  # 5e: restores candidates of holes that a surface encloses
     "stray_clusters",  # 5f: removes a crowded pixel's small stray same-depth clusters
+    "unlayered",  # 5g: an image with no second layer: further candidates need the presence level
     "select",  # 6: keeps at most K_s candidates per pixel
     "align_depths",  # 7: moves depths (counts surfaces moved, adds or removes none)
     "edge_bands",  # 7b: moves the bands beside depth edges to the side their counts favour

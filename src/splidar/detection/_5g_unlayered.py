@@ -1,0 +1,115 @@
+"""Stage 5g (clean-up): where the image shows no second layer, a pixel's further
+candidates must pass the presence level that refutes a first one.
+
+The map keeps a pixel's further candidates when its own counts favour them at all
+(log-ratio >= ``PRESENCE_SECONDARY`` = 0 nats), so that the dim object behind a sheet or
+a net, often the lower-ranked of its pixel's two surfaces, is not lost. In a scene with
+no second layer the same leniency keeps the spread of a neighbour's return beside a depth
+edge and the background's alarms behind a pixel's surface: on issue #15's
+single-surface cells they are most of the false surfaces (``benchmarks/README.md``,
+"Lead, session 32"). Whether the scene *has* a second layer is read from the detection's
+geometry by stage 7d's model (:func:`~splidar.detection._7d_layer_evidence.layer_evidence`:
+a pixel's depths continuing as pairs among its neighbours, counted over the whole image
+against the null's rate ``surface_pfa`` per pixel). Where the image is not layered, each
+pixel holding two or more kept candidates keeps the one of largest own-count log-ratio
+``presence_llr`` and those of the others that reach ``PRESENCE_LLR`` (3 nats: the level
+at which a first candidate's own counts refute it, ``-PRESENCE_LLR``, taken the other
+way); a pixel never loses its last candidate. A layered image is left as it is.
+
+No tuned constant: the gate's window (the whole image) and level (``surface_pfa``) are
+stage 7d's, the depth gate is stage 7c's, the reach the largest box's half-width, the
+level the presence test's.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._7c_spread_groups import GATE_FWHM
+from ._7d_layer_evidence import layer_evidence
+from ._table import CandidateTable, PassResult, skipped, with_keep
+
+__all__ = ["remove_unlayered_seconds", "unlayered_seconds"]
+
+
+def unlayered_seconds(
+    row, col, depth, presence_llr, keep, *, image_shape, fwhm: float, half: int,
+    surface_pfa: float, level: float,
+) -> np.ndarray:  # fmt: skip
+    """``(n,)`` bool: the kept candidates stage 5g removes (see the module).
+
+    Parameters
+    ----------
+    row, col : ndarray (n,) int
+    depth : ndarray (n,) float
+        Depth bins.
+    presence_llr : ndarray (n,) float
+        The own-count log-ratio of each candidate (nats).
+    keep : ndarray (n,) bool
+        The kept candidates; the others are ignored.
+    image_shape : (int, int)
+    fwhm : float
+        The IRF's FWHM (bins).
+    half : int
+        The largest box's half-width (pixels).
+    surface_pfa : float
+        ``detect``'s option: the null's false surfaces per pixel.
+    level : float
+        The presence level a further candidate must reach (nats).
+    """
+    keep = np.asarray(keep, bool)
+    out = np.zeros(keep.size, bool)
+    idx = np.flatnonzero(keep)
+    if idx.size < 2:
+        return out
+    R, C = image_shape
+    pix = np.asarray(row, np.int64)[idx] * C + np.asarray(col, np.int64)[idx]
+    llr = np.asarray(presence_llr, np.float64)[idx]
+    order = np.lexsort((-llr, pix))  # by pixel, the largest log-ratio first
+    p = pix[order]
+    first = np.r_[True, p[1:] != p[:-1]]
+    if first.all():  # no pixel holds two
+        return out
+    d = np.asarray(depth, np.float64)[idx]
+    layers = layer_evidence(
+        pix // C, pix % C, d, (R, C), gate=GATE_FWHM * float(fwhm), half=int(half),
+        surface_pfa=float(surface_pfa), radius=None,
+    )  # fmt: skip
+    if layers.layered.any():  # the whole image is one window
+        return out
+    further = order[~first]
+    out[idx[further[llr[further] < level]]] = True
+    return out
+
+
+def remove_unlayered_seconds(
+    table: CandidateTable, *, fwhm: float, half: int, surface_pfa: float, level: float
+) -> PassResult:
+    """Stage 5g: remove the further candidates below ``level`` of an image that shows no
+    second layer (see the module).
+
+    Parameters
+    ----------
+    table : CandidateTable
+        Needs the ``presence_llr`` column.
+    fwhm : float
+        The IRF's FWHM (bins).
+    half : int
+        The largest box's half-width (pixels).
+    surface_pfa : float
+        ``detect``'s option.
+    level : float
+        Nats (``detect`` passes ``PRESENCE_LLR``).
+    """
+    if not table.keep.any():
+        return skipped("unlayered", table)
+    t0 = time.perf_counter()
+    c = table.columns
+    drop = unlayered_seconds(
+        c["row"], c["col"], c["depth_bin"], c["presence_llr"], table.keep,
+        image_shape=table.image_shape, fwhm=fwhm, half=half, surface_pfa=surface_pfa,
+        level=level,
+    )  # fmt: skip
+    return with_keep("unlayered", table, table.keep & ~drop, t0)
