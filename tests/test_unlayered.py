@@ -114,3 +114,31 @@ def test_detect_unlayered_leaves_a_net_in_front_of_objects_alone():
     det = detect(sim.cube, rng=0)
     rec = {r.stage: r for r in det.provenance}["unlayered"]
     assert rec.ran and rec.removed == 0
+
+
+def test_image_layered_is_stage_7d_whole_image_decision():
+    # the early-stopping count decides as layer_evidence over the whole image does, on
+    # images from "no pair at all" to "pairs everywhere"
+    from splidar.detection._5g_unlayered import image_layered
+    from splidar.detection._7c_spread_groups import GATE_FWHM
+    from splidar.detection._7d_layer_evidence import layer_evidence
+
+    rng = np.random.default_rng(0)
+    seen = set()
+    for frac in (0.0, 0.005, 0.01, 0.02, 0.03, 0.05, 0.2):
+        for _ in range(4):
+            row, col, depth, _ = _edge_scene(strip_llr=1.0)
+            n = 24 * 24
+            row, col, depth = row[:n], col[:n], depth[:n]
+            pick = rng.random(n) < frac  # a second surface at depth 10 in some pixels
+            row = np.r_[row, row[pick]]
+            col = np.r_[col, col[pick]]
+            depth = np.r_[depth, np.full(pick.sum(), 10.0)]
+            want = layer_evidence(
+                row, col, depth, (24, 24), gate=GATE_FWHM * FWHM, half=HALF,
+                surface_pfa=PFA, radius=None,
+            ).layered.any()  # fmt: skip
+            got = image_layered(row, col, depth, (24, 24), fwhm=FWHM, half=HALF, surface_pfa=PFA)
+            assert got == want
+            seen.add(bool(want))
+    assert seen == {False, True}

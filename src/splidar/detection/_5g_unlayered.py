@@ -26,12 +26,55 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from numba import njit
+from scipy import stats
 
 from ._7c_spread_groups import GATE_FWHM
-from ._7d_layer_evidence import layer_evidence
+from ._7d_layer_evidence import _held, depth_slots
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
-__all__ = ["remove_unlayered_seconds", "unlayered_seconds"]
+__all__ = ["image_layered", "remove_unlayered_seconds", "unlayered_seconds"]
+
+
+@njit(cache=True, nogil=True)
+def _evidence_reaches(D, n, gate, h, stop):
+    """Whether at least ``stop`` pixels show a second layer (stage 7d's evidence,
+    :func:`~splidar.detection._7d_layer_evidence.layer_evidence`): counted pixel by
+    pixel, stopping at ``stop``."""
+    R, C, K = D.shape
+    count = 0
+    for r in range(R):
+        for c in range(C):
+            if n[r, c] < 2:
+                continue
+            for k in range(min(n[r, c], K)):
+                n1, n2 = _held(D, n, r, c, D[r, c, k], gate, h)
+                if n2 > n1:
+                    count += 1
+                    break
+            if count >= stop:
+                return True
+    return False
+
+
+def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surface_pfa: float):
+    """Stage 7d's decision over the whole image: ``layer_evidence(..., radius=None)
+    .layered.any()``, the evidence counted only until it reaches the level (a layered
+    image stops early).
+
+    The image is layered when ``P(N >= count) < surface_pfa`` for ``N`` Poisson with
+    mean ``surface_pfa`` x pixels, i.e. when ``count`` reaches the smallest such ``n``.
+    """
+    R, C = image_shape
+    expected = float(surface_pfa) * R * C
+    # the smallest n with P(N >= n) < surface_pfa (sf(n - 1) decreases with n)
+    stop = int(stats.poisson.isf(float(surface_pfa), expected)) + 1
+    while stop > 1 and stats.poisson.sf(stop - 2, expected) < surface_pfa:
+        stop -= 1
+    while stats.poisson.sf(stop - 1, expected) >= surface_pfa:
+        stop += 1
+    D, n = depth_slots(row, col, depth, image_shape)
+    return bool(_evidence_reaches(D, n, GATE_FWHM * float(fwhm), int(half), stop))
 
 
 def unlayered_seconds(
@@ -73,12 +116,8 @@ def unlayered_seconds(
     if first.all():  # no pixel holds two
         return out
     d = np.asarray(depth, np.float64)[idx]
-    layers = layer_evidence(
-        pix // C, pix % C, d, (R, C), gate=GATE_FWHM * float(fwhm), half=int(half),
-        surface_pfa=float(surface_pfa), radius=None,
-    )  # fmt: skip
-    if layers.layered.any():  # the whole image is one window
-        return out
+    if image_layered(pix // C, pix % C, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
+        return out  # the whole image is one window
     further = order[~first]
     out[idx[further[llr[further] < level]]] = True
     return out
