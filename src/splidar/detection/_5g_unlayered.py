@@ -26,35 +26,13 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from numba import njit
 from scipy import stats
 
 from ._7c_spread_groups import GATE_FWHM
-from ._7d_layer_evidence import _held, depth_slots
+from ._7d_layer_evidence import _evidence, depth_slots
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
 __all__ = ["image_layered", "remove_unlayered_seconds", "unlayered_seconds"]
-
-
-@njit(cache=True, nogil=True)
-def _evidence_reaches(D, n, gate, h, stop):
-    """Whether at least ``stop`` pixels show a second layer (stage 7d's evidence,
-    :func:`~splidar.detection._7d_layer_evidence.layer_evidence`): counted pixel by
-    pixel, stopping at ``stop``."""
-    R, C, K = D.shape
-    count = 0
-    for r in range(R):
-        for c in range(C):
-            if n[r, c] < 2:
-                continue
-            for k in range(min(n[r, c], K)):
-                n1, n2 = _held(D, n, r, c, D[r, c, k], gate, h)
-                if n2 > n1:
-                    count += 1
-                    break
-            if count >= stop:
-                return True
-    return False
 
 
 def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surface_pfa: float):
@@ -64,6 +42,23 @@ def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surfa
 
     The image is layered when ``P(N >= count) < surface_pfa`` for ``N`` Poisson with
     mean ``surface_pfa`` x pixels, i.e. when ``count`` reaches the smallest such ``n``.
+
+    Parameters
+    ----------
+    row, col : ndarray (S,) int
+    depth : ndarray (S,) float
+        The kept candidates' depths (bins).
+    image_shape : (int, int)
+    fwhm : float
+        The IRF's FWHM (bins); depths within ``GATE_FWHM`` of it are one.
+    half : int
+        The largest box's half-width (pixels).
+    surface_pfa : float
+        ``detect``'s option: the null's false surfaces per pixel.
+
+    Returns
+    -------
+    bool
     """
     R, C = image_shape
     expected = float(surface_pfa) * R * C
@@ -74,7 +69,8 @@ def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surfa
     while stats.poisson.sf(stop - 1, expected) >= surface_pfa:
         stop += 1
     D, n = depth_slots(row, col, depth, image_shape)
-    return bool(_evidence_reaches(D, n, GATE_FWHM * float(fwhm), int(half), stop))
+    ev = np.zeros(n.shape, np.bool_)
+    return bool(_evidence(D, n, GATE_FWHM * float(fwhm), int(half), ev, stop) >= stop)
 
 
 def unlayered_seconds(

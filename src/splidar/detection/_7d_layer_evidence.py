@@ -123,17 +123,22 @@ def _held(D, n, r, c, x, gate, h):
 
 
 @njit(cache=True, nogil=True)
-def _evidence(D, n, gate, h):
+def _evidence(D, n, gate, h, ev, stop):
+    """Mark in ``ev`` (rows, cols) the pixels that show a second layer, in raster order,
+    stopping once ``stop`` are marked; returns how many are."""
     R, C, K = D.shape
-    ev = np.zeros((R, C), np.bool_)
+    count = 0
     for r in range(R):
         for c in range(C):
             for k in range(min(n[r, c], K) if n[r, c] >= 2 else 0):
                 n1, n2 = _held(D, n, r, c, D[r, c, k], gate, h)
                 if n2 > n1:
                     ev[r, c] = True
+                    count += 1
                     break
-    return ev
+            if count >= stop:
+                return count
+    return count
 
 
 def layer_evidence(
@@ -162,7 +167,8 @@ def layer_evidence(
     LayerEvidence
     """
     D, n = depth_slots(row, col, depth, image_shape)
-    ev = _evidence(D, n, float(gate), int(half))
+    ev = np.zeros(n.shape, np.bool_)
+    _evidence(D, n, float(gate), int(half), ev, ev.size + 1)
     if radius is None:
         count = np.full(ev.shape, int(ev.sum()), np.int64)
         area = np.full(ev.shape, float(ev.size))
