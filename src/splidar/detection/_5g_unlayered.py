@@ -105,17 +105,19 @@ def unlayered_seconds(
         return out
     R, C = image_shape
     pix = np.asarray(row, np.int64)[idx] * C + np.asarray(col, np.int64)[idx]
-    llr = np.asarray(presence_llr, np.float64)[idx]
-    order = np.lexsort((-llr, pix))  # by pixel, the largest log-ratio first
-    p = pix[order]
-    first = np.r_[True, p[1:] != p[:-1]]
-    if first.all():  # no pixel holds two
+    crowded = np.bincount(pix, minlength=R * C)[pix] >= 2
+    if not crowded.any():  # no pixel holds two
         return out
     d = np.asarray(depth, np.float64)[idx]
     if image_layered(pix // C, pix % C, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
         return out  # the whole image is one window
-    further = order[~first]
-    out[idx[further[llr[further] < level]]] = True
+    sel = idx[crowded]  # the candidates of pixels holding two or more
+    p = pix[crowded]
+    llr = np.asarray(presence_llr, np.float64)[sel]
+    order = np.lexsort((-llr, p))  # by pixel, the largest log-ratio first
+    q = p[order]
+    further = order[np.r_[False, q[1:] == q[:-1]]]
+    out[sel[further[llr[further] < level]]] = True
     return out
 
 

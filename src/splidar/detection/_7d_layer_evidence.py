@@ -90,16 +90,26 @@ class LayerEvidence:
     layered: np.ndarray
 
 
+@njit(cache=True, nogil=True)
+def _fill_slots(pix, depth, out):
+    """``out[p, k]``: the depth of pixel ``p``'s ``k``-th surface in input order; returns
+    the number each pixel holds (one pass, no sort)."""
+    n = np.zeros(out.shape[0], np.int64)
+    for i in range(pix.size):
+        p = pix[i]
+        out[p, n[p]] = depth[i]
+        n[p] += 1
+    return n
+
+
 def depth_slots(row, col, depth, image_shape) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols, K) float64 depths of each pixel's surfaces (NaN padded) and
-    (rows, cols) int64 the number each pixel holds."""
+    """(rows, cols, K) float64 depths of each pixel's surfaces (NaN padded; a pixel's in
+    their input order) and (rows, cols) int64 the number each pixel holds."""
     R, C = image_shape
     pix = np.asarray(row, np.int64) * C + np.asarray(col, np.int64)
-    n = np.bincount(pix, minlength=R * C)
-    out = np.full((R * C, max(int(n.max(initial=0)), 1)), np.nan)
-    order = np.argsort(pix, kind="stable")
-    p = pix[order]
-    out[p, np.arange(p.size) - np.searchsorted(p, p)] = np.asarray(depth, np.float64)[order]
+    k = int(np.bincount(pix, minlength=R * C).max(initial=0))
+    out = np.full((R * C, max(k, 1)), np.nan)
+    n = _fill_slots(pix, np.asarray(depth, np.float64), out)
     return out.reshape(R, C, -1), n.reshape(R, C)
 
 
