@@ -116,9 +116,9 @@ def test_detect_unlayered_leaves_a_net_in_front_of_objects_alone():
     assert rec.ran and rec.removed == 0
 
 
-def test_image_layered_is_stage_7d_whole_image_decision():
-    # the early-stopping count decides as layer_evidence over the whole image does, on
-    # images from "no pair at all" to "pairs everywhere"
+def test_image_layered_is_stage_7d_whole_image_decision_or_the_majority():
+    # the early-stopping count decides as layer_evidence over the whole image does, or
+    # most crowded pixels show the evidence, on images from "no pair" to "pairs everywhere"
     from splidar.detection._5g_unlayered import image_layered
     from splidar.detection._7c_spread_groups import GATE_FWHM
     from splidar.detection._7d_layer_evidence import layer_evidence
@@ -134,11 +134,37 @@ def test_image_layered_is_stage_7d_whole_image_decision():
             row = np.r_[row, row[pick]]
             col = np.r_[col, col[pick]]
             depth = np.r_[depth, np.full(pick.sum(), 10.0)]
-            want = layer_evidence(
+            le = layer_evidence(
                 row, col, depth, (24, 24), gate=GATE_FWHM * FWHM, half=HALF,
                 surface_pfa=PFA, radius=None,
-            ).layered.any()  # fmt: skip
+            )  # fmt: skip
+            crowded = int((np.bincount(row * 24 + col) >= 2).sum())
+            want = le.layered.any() or 2 * int(le.evidence.sum()) > crowded
             got = image_layered(row, col, depth, (24, 24), fwhm=FWHM, half=HALF, surface_pfa=PFA)
             assert got == want
             seen.add(bool(want))
     assert seen == {False, True}
+
+
+def test_unlayered_seconds_keeps_a_small_layer_most_crowded_pixels_show():
+    # a 3 x 3 patch of pixels holding (10, 40) inside the depth-40 region: 9 evidence
+    # pixels, fewer than the null's level (about 13 at 576 pixels, surface_pfa 0.01), but
+    # all of the crowded pixels: a layer, its weak further candidates kept
+    row, col, depth, llr = _edge_scene(strip_llr=1.0)
+    n = 24 * 24
+    row, col, depth, llr = row[:n], col[:n], depth[:n], llr[:n]
+    rows, cols = np.mgrid[4:7, 4:7]
+    row = np.r_[row, rows.ravel()]
+    col = np.r_[col, cols.ravel()]
+    depth = np.r_[depth, np.full(9, 10.0)]
+    llr = np.r_[llr, np.full(9, 0.5)]
+    assert not _run(row, col, depth, llr).any()
+    # beside the edge strip's 48 crowded pixels (no evidence) the 9 are a minority: the
+    # image is not layered and every weak further candidate goes
+    r2, c2, d2, l2 = _edge_scene(strip_llr=1.0)
+    row = np.r_[r2, rows.ravel()]
+    col = np.r_[c2, cols.ravel()]
+    depth = np.r_[d2, np.full(9, 10.0)]
+    llr = np.r_[l2, np.full(9, 0.5)]
+    out = _run(row, col, depth, llr)
+    assert out[n:].all() and not out[:n].any()
