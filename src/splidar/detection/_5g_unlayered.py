@@ -116,12 +116,13 @@ def unlayered_seconds(
     if idx.size < 2:
         return out
     R, C = image_shape
-    pix = np.asarray(row, np.int64)[idx] * C + np.asarray(col, np.int64)[idx]
+    r, c = np.asarray(row, np.int64)[idx], np.asarray(col, np.int64)[idx]
+    pix = r * C + c
     crowded = np.bincount(pix, minlength=R * C)[pix] >= 2
     if not crowded.any():  # no pixel holds two
         return out
     d = np.asarray(depth, np.float64)[idx]
-    if image_layered(pix // C, pix % C, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
+    if image_layered(r, c, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
         return out  # the whole image is one window
     sel = idx[crowded]  # the candidates of pixels holding two or more
     p = pix[crowded]
