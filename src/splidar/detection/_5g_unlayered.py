@@ -24,6 +24,7 @@ largest box's half-width, the level the presence test's.
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -34,6 +35,8 @@ from ._7d_layer_evidence import _evidence, depth_slots
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
 __all__ = ["image_layered", "remove_unlayered_seconds", "unlayered_seconds"]
+
+logger = logging.getLogger(__name__)
 
 
 def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surface_pfa: float):
@@ -123,6 +126,7 @@ def unlayered_seconds(
         return out
     d = np.asarray(depth, np.float64)[idx]
     if image_layered(r, c, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
+        logger.debug("unlayered: the image shows a second layer; nothing removed")
         return out  # the whole image is one window
     sel = idx[crowded]  # the candidates of pixels holding two or more
     p = pix[crowded]
@@ -131,6 +135,10 @@ def unlayered_seconds(
     q = p[order]
     further = order[np.r_[False, q[1:] == q[:-1]]]
     out[sel[further[llr[further] < level]]] = True
+    logger.debug(
+        "unlayered: no second layer in the image; %d of %d further candidates below %g "
+        "nats removed", int(out.sum()), further.size, level,
+    )  # fmt: skip
     return out
 
 
