@@ -168,3 +168,52 @@ def test_unlayered_seconds_keeps_a_small_layer_most_crowded_pixels_show():
     llr = np.r_[l2, np.full(9, 0.5)]
     out = _run(row, col, depth, llr)
     assert out[n:].all() and not out[:n].any()
+
+
+def test_unlayered_seconds_keeps_a_layer_over_part_of_the_image():
+    # 48 x 48: a weak spread strip beside a depth edge (columns 30-31) and, far from it,
+    # a 5 x 5 patch of pairs (a net in front of part of the scene). 25 evidence pixels:
+    # fewer than the whole image's null level (about 35 at 2,304 pixels) and a minority of
+    # the 121 crowded pixels, but far beyond what the null explains in the patch's
+    # window (radius 15: about 9.6) -> the patch keeps its weak candidates, the strip
+    # loses its own
+    rows, cols = np.mgrid[:48, :48]
+    row, col = rows.ravel(), cols.ravel()
+    depth = np.where(col < 30, 40.0, 80.0)
+    llr = np.full(row.size, 8.0)
+    strip = (col == 30) | (col == 31)
+    patch = (row >= 20) & (row < 25) & (col >= 2) & (col < 7)
+    n = row.size
+    row = np.r_[row, row[strip], row[patch]]
+    col = np.r_[col, col[strip], col[patch]]
+    depth = np.r_[depth, np.full(strip.sum(), 40.0), np.full(patch.sum(), 10.0)]
+    llr = np.r_[llr, np.full(strip.sum(), 1.0), np.full(patch.sum(), 0.5)]
+    out = unlayered_seconds(
+        row, col, depth, llr, np.ones(row.size, bool), image_shape=(48, 48), fwhm=FWHM,
+        half=HALF, surface_pfa=PFA, level=3.0,
+    )  # fmt: skip
+    n_strip = int(strip.sum())
+    assert out[n : n + n_strip].all()  # the strip's further candidates go
+    assert not out[n + n_strip :].any()  # the patch's stay
+    assert not out[:n].any()
+
+
+def test_locally_layered_is_stage_7d_windowed_test():
+    from splidar.detection._5g_unlayered import _locally_layered
+    from splidar.detection._7c_spread_groups import GATE_FWHM
+    from splidar.detection._7d_layer_evidence import layer_evidence
+
+    rng = np.random.default_rng(1)
+    row, col, depth, _ = _edge_scene(strip_llr=1.0)
+    pick = rng.random(row.size) < 0.05
+    row = np.r_[row, row[pick]]
+    col = np.r_[col, col[pick]]
+    depth = np.r_[depth, np.full(pick.sum(), 10.0)]
+    le = layer_evidence(
+        row, col, depth, (24, 24), gate=GATE_FWHM * FWHM, half=HALF, surface_pfa=PFA,
+        radius=7,
+    )  # fmt: skip
+    rr, cc = np.mgrid[:24, :24]
+    got = _locally_layered(le.evidence, rr.ravel(), cc.ravel(), radius=7, surface_pfa=PFA)
+    np.testing.assert_array_equal(got, le.layered.ravel())
+    assert got.any() and not got.all()

@@ -11,25 +11,31 @@ single-surface cells they are most of the false surfaces (``benchmarks/README.md
 geometry by stage 7d's model (:func:`~splidar.detection._7d_layer_evidence.layer_evidence`:
 a pixel's depths continuing as pairs among its neighbours, counted over the whole image
 against the null's rate ``surface_pfa`` per pixel, or shown by most of the pixels that
-hold two or more surfaces: :func:`image_layered`). Where the image is not layered, each
+hold two or more surfaces: :func:`image_layered`; and, where the image as a whole is not
+layered, in a window of ``REACH_BOXES`` x the largest box's half-width about each pixel,
+stage 5f's reach: a net over part of the scene). Where neither is layered, each
 pixel holding two or more kept candidates keeps the one of largest own-count log-ratio
 ``presence_llr`` and those of the others that reach ``PRESENCE_LLR`` (3 nats: the level
 at which a first candidate's own counts refute it, ``-PRESENCE_LLR``, taken the other
-way); a pixel never loses its last candidate. A layered image is left as it is.
+way); a pixel never loses its last candidate. A layered image, or window, is left as it
+is.
 
 No tuned constant: the gate's window (the whole image) and level (``surface_pfa``) are
-stage 7d's, its second test a majority, the depth gate is stage 7c's, the reach the
-largest box's half-width, the level the presence test's.
+stage 7d's, its second test a majority, the local window stage 5f's reach, the depth
+gate is stage 7c's, the reach the largest box's half-width, the level the presence
+test's.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
 import numpy as np
-from scipy import stats
+from scipy import ndimage, stats
 
+from ._5f_stray_clusters import REACH_BOXES
 from ._7c_spread_groups import GATE_FWHM
 from ._7d_layer_evidence import _evidence, depth_slots
 from ._table import CandidateTable, PassResult, skipped, with_keep
@@ -72,6 +78,14 @@ def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surfa
     -------
     bool
     """
+    return _whole_image(
+        row, col, depth, image_shape, fwhm=fwhm, half=half, surface_pfa=surface_pfa
+    )[0]
+
+
+def _whole_image(row, col, depth, image_shape, *, fwhm, half, surface_pfa):
+    """:func:`image_layered`'s decision and the evidence map (rows, cols) bool it read:
+    complete when the image is not layered (the count stops early only when it is)."""
     R, C = image_shape
     expected = float(surface_pfa) * R * C
     # the smallest n with P(N >= n) < surface_pfa (sf(n - 1) decreases with n)
@@ -85,7 +99,17 @@ def image_layered(row, col, depth, image_shape, *, fwhm: float, half: int, surfa
     count = _evidence(D, n, GATE_FWHM * float(fwhm), int(half), ev, stop)
     # a layer the null's rate cannot show yet (few second surfaces detected: low flux,
     # a small image) still shows in most of the crowded pixels
-    return bool(count >= stop or 2 * count > int((n >= 2).sum()))
+    return bool(count >= stop or 2 * count > int((n >= 2).sum())), ev
+
+
+def _locally_layered(ev, rows, cols, *, radius: int, surface_pfa: float) -> np.ndarray:
+    """Stage 7d's test in the window of ``radius`` pixels about each ``(rows, cols)``:
+    ``layer_evidence(..., radius=radius).layered`` there, computed at those pixels only."""
+    k = 2 * int(radius) + 1
+    box = functools.partial(ndimage.uniform_filter, size=k, mode="constant")
+    count = np.rint(box(ev.astype(np.float64))[rows, cols] * k * k)
+    area = np.rint(box(np.ones(ev.shape))[rows, cols] * k * k)
+    return stats.poisson.sf(count - 1, float(surface_pfa) * area) < float(surface_pfa)
 
 
 def unlayered_seconds(
@@ -125,11 +149,15 @@ def unlayered_seconds(
     if not crowded.any():  # no pixel holds two
         return out
     d = np.asarray(depth, np.float64)[idx]
-    if image_layered(r, c, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa):
+    layered, ev = _whole_image(r, c, d, (R, C), fwhm=fwhm, half=half, surface_pfa=surface_pfa)
+    if layered:
         logger.debug("unlayered: the image shows a second layer; nothing removed")
-        return out  # the whole image is one window
-    sel = idx[crowded]  # the candidates of pixels holding two or more
-    p = pix[crowded]
+        return out
+    # a layer over part of the image only (a net in front of one object, at low flux)
+    rc, cc = r[crowded], c[crowded]
+    free = ~_locally_layered(ev, rc, cc, radius=REACH_BOXES * int(half), surface_pfa=surface_pfa)
+    sel = idx[crowded][free]  # the candidates of crowded pixels outside a layered window
+    p = pix[crowded][free]
     llr = np.asarray(presence_llr, np.float64)[sel]
     order = np.lexsort((-llr, p))  # by pixel, the largest log-ratio first
     q = p[order]
