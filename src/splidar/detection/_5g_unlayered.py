@@ -28,16 +28,15 @@ test's.
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import stats
 
 from ._5f_stray_clusters import REACH_BOXES
 from ._7c_spread_groups import GATE_FWHM
-from ._7d_layer_evidence import _evidence, depth_slots
+from ._7d_layer_evidence import _evidence, depth_slots, window_counts
 from ._table import CandidateTable, PassResult, skipped, with_keep
 
 __all__ = ["image_layered", "remove_unlayered_seconds", "unlayered_seconds"]
@@ -105,10 +104,7 @@ def _whole_image(row, col, depth, image_shape, *, fwhm, half, surface_pfa):
 def _locally_layered(ev, rows, cols, *, radius: int, surface_pfa: float) -> np.ndarray:
     """Stage 7d's test in the window of ``radius`` pixels about each ``(rows, cols)``:
     ``layer_evidence(..., radius=radius).layered`` there, computed at those pixels only."""
-    k = 2 * int(radius) + 1
-    box = functools.partial(ndimage.uniform_filter, size=k, mode="constant")
-    count = np.rint(box(ev.astype(np.float64))[rows, cols] * k * k)
-    area = np.rint(box(np.ones(ev.shape))[rows, cols] * k * k)
+    count, area = window_counts(ev, radius, at=(rows, cols))
     return stats.poisson.sf(count - 1, float(surface_pfa) * area) < float(surface_pfa)
 
 

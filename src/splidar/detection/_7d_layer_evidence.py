@@ -62,7 +62,14 @@ from scipy import ndimage, stats
 from ._7b_edge_bands import _windows, group_llr
 from ._7c_spread_groups import AXES, GATE_FWHM, REACH, continued_axes
 
-__all__ = ["LAYER_GATE", "LayerEvidence", "SpreadLines", "layer_evidence", "spread_lines"]
+__all__ = [
+    "LAYER_GATE",
+    "LayerEvidence",
+    "SpreadLines",
+    "layer_evidence",
+    "spread_lines",
+    "window_counts",
+]
 
 #: Off: measured, not adopted (see the module). ``detect`` does not run the stage.
 LAYER_GATE = False
@@ -183,13 +190,22 @@ def layer_evidence(
         count = np.full(ev.shape, int(ev.sum()), np.int64)
         area = np.full(ev.shape, float(ev.size))
     else:
-        k = 2 * int(radius) + 1
-        box = ndimage.uniform_filter
-        count = np.rint(box(ev.astype(np.float64), k, mode="constant") * k * k).astype(np.int64)
-        area = np.rint(box(np.ones(ev.shape), k, mode="constant") * k * k)
+        count, area = window_counts(ev, int(radius))
     expected = float(surface_pfa) * area
     layered = stats.poisson.sf(count - 1, expected) < float(surface_pfa)
     return LayerEvidence(ev, count, expected, layered)
+
+
+def window_counts(ev, radius: int, at=None) -> tuple[np.ndarray, np.ndarray]:
+    """Evidence pixels and pixels inside the image in the ``(2 radius + 1)^2`` window
+    about each pixel (int64, float64; ``at``: ``(rows, cols)`` to return them there only)."""
+    k = 2 * int(radius) + 1
+    box = ndimage.uniform_filter
+    count = box(ev.astype(np.float64), k, mode="constant")
+    area = box(np.ones(ev.shape), k, mode="constant")
+    if at is not None:
+        count, area = count[at], area[at]
+    return np.rint(count * k * k).astype(np.int64), np.rint(area * k * k)
 
 
 @dataclass(frozen=True)
